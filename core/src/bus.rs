@@ -1,0 +1,1 @@
+//! Typed frame bus.

@@ -1,0 +1,1 @@
+//! Light types shared by estimators and engines.

@@ -1,0 +1,81 @@
+//! A rig's calibration: every camera's intrinsics and the transforms between them.
+//!
+//! Written by `relight-calibrate` as one TOML file per rig, loaded by `relightd`, and embedded
+//! verbatim in every recording so a recording can be replayed without the rig.
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::CameraModel;
+use crate::pose::Pose;
+
+/// Calibration of one rig. Every field is optional so a partial rig (depth only) still loads.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RigCalibration {
+    /// Free-form rig name, e.g. `lab-desk-1`.
+    #[serde(default)]
+    pub name: String,
+    pub depth: Option<CameraModel>,
+    pub color: Option<CameraModel>,
+    pub probe: Option<CameraModel>,
+    /// Registration of the depth sensor: `point_in_color = color_from_depth * point_in_depth`.
+    #[serde(default)]
+    pub color_from_depth: Pose,
+    /// The fish-eye probe's pose in the world (marker board) frame.
+    #[serde(default)]
+    pub world_from_probe: Pose,
+    /// The lamp's light centre in its marker's frame.
+    #[serde(default)]
+    pub lamp_marker_from_light: Pose,
+    /// The probe's inverse response, 256 entries mapping 8-bit value → relative linear radiance.
+    #[serde(default)]
+    pub probe_response: Vec<f32>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum RigCalibrationError {
+    #[error("calibration TOML: {0}")]
+    Parse(#[from] toml::de::Error),
+    #[error("calibration to TOML: {0}")]
+    Serialize(#[from] toml::ser::Error),
+}
+
+impl RigCalibration {
+    pub fn from_toml(text: &str) -> Result<Self, RigCalibrationError> {
+        Ok(toml::from_str(text)?)
+    }
+
+    pub fn to_toml(&self) -> Result<String, RigCalibrationError> {
+        Ok(toml::to_string_pretty(self)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Pinhole;
+
+    #[test]
+    fn toml_round_trip() {
+        let rig = RigCalibration {
+            name: "desk".into(),
+            depth: Some(CameraModel::Pinhole(Pinhole {
+                width: 320,
+                height: 240,
+                fx: 285.0,
+                fy: 285.0,
+                cx: 160.0,
+                cy: 120.0,
+                k1: 0.01,
+                k2: 0.0,
+                p1: 0.0,
+                p2: 0.0,
+                k3: 0.0,
+            })),
+            probe_response: vec![0.5; 4],
+            ..Default::default()
+        };
+        let text = rig.to_toml().unwrap();
+        assert_eq!(RigCalibration::from_toml(&text).unwrap(), rig);
+    }
+}

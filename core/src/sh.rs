@@ -1,0 +1,1 @@
+//! L2 spherical harmonics (9 coefficients per colour channel).

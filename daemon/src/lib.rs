@@ -1,0 +1,1 @@
+//! relightd internals: configuration, pipeline, control socket, sinks.
