@@ -1,1 +1,18 @@
-//! relight-engines.
+//! relight-engines: relighting engines behind one [`Engine`] trait, and the registry that builds
+//! them by name with validated parameters.
+//!
+//! This crate starts with the two diagnostic engines that need no GPU (`passthrough`,
+//! `depth_preview`); the GPU context, reconstruction and the paper engines (differential, DLPV,
+//! DVCT, DIR, IBL) plug into the same trait and registry.
+
+pub mod engine;
+pub mod params;
+pub mod registry;
+
+mod color;
+mod depth_preview;
+mod passthrough;
+
+pub use engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
+pub use params::{ParamError, ParamKind, ParamSpec, ParamsSchema};
+pub use registry::{EngineRegistry, EngineSpec};

@@ -1,0 +1,118 @@
+//! The engine contract: a scene frame in, a relit frame (Δ, composite, per-pass timings) out.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use relight_core::{Frame, Image, PixelFormat, Timestamp};
+
+/// What every engine renders from: the synchronised sensor data of one instant.
+///
+/// The reconstruction issue extends this with the G-buffer, normals, albedo and lights; the
+/// daemon, `relightd render` and the bench all build it the same way, so an error measured
+/// offline is the error live.
+#[derive(Debug, Clone, Default)]
+pub struct SceneFrame {
+    pub stamp: Timestamp,
+    /// Sequence number of the frame set this scene frame was built from.
+    pub seq: u64,
+    /// The camera image the composite is built on (the background B of DLPV Algorithm 1).
+    pub color: Option<Arc<Frame<Image>>>,
+    /// Depth registered to the colour camera, metres or millimetres.
+    pub depth: Option<Arc<Frame<Image>>>,
+}
+
+/// How long one pass of an engine took, wall clock (GPU timestamp queries where available).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PassTiming {
+    pub pass: &'static str,
+    pub ms: f64,
+}
+
+impl PassTiming {
+    /// Time `f` and record it under `pass`.
+    pub fn measure<T>(timings: &mut Vec<PassTiming>, pass: &'static str, f: impl FnOnce() -> T) -> T {
+        let start = Instant::now();
+        let out = f();
+        timings.push(PassTiming {
+            pass,
+            ms: start.elapsed().as_secs_f64() * 1e3,
+        });
+        out
+    }
+}
+
+/// An engine's output for one frame.
+#[derive(Debug, Clone, Default)]
+pub struct RelitFrame {
+    pub stamp: Timestamp,
+    pub seq: u64,
+    /// Δ = L^ρ − L^μ, linear HDR RGBA f16 (may be negative); zero-sized when the engine has none.
+    pub delta: Image,
+    /// Background + Δ on real pixels, L^ρ on virtual pixels (DLPV Algorithm 1), 8-bit RGB.
+    pub composite: Image,
+    pub timings: Vec<PassTiming>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    #[error("engine `{engine}` needs a {stream} image and the frame has none")]
+    MissingInput {
+        engine: &'static str,
+        stream: &'static str,
+    },
+    #[error("engine `{engine}`: unsupported {stream} format {format:?}")]
+    UnsupportedFormat {
+        engine: &'static str,
+        stream: &'static str,
+        format: PixelFormat,
+    },
+    #[error(transparent)]
+    Params(#[from] crate::params::ParamError),
+}
+
+/// A relighting engine. Built off the render thread by the registry and swapped in between
+/// frames, so `render` is the only method called per frame.
+pub trait Engine: Send {
+    fn name(&self) -> &'static str;
+    /// Render one frame into `out`, whose buffers are reused from frame to frame (no
+    /// allocation per frame in steady state). Never panics on bad input; returns an error.
+    fn render(&mut self, scene: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError>;
+    /// Apply already-validated parameters (see [`crate::ParamsSchema::validate`]).
+    fn set_params(&mut self, params: &serde_json::Map<String, serde_json::Value>);
+}
+
+impl RelitFrame {
+    /// Start a frame for an engine that composites over the camera image: check the image,
+    /// size Δ (zeroed) and the composite to it, and reset the timings. Buffers are reused.
+    pub fn begin<'s>(
+        &mut self,
+        engine: &'static str,
+        scene: &'s SceneFrame,
+    ) -> Result<&'s Image, EngineError> {
+        let color = &scene
+            .color
+            .as_ref()
+            .ok_or(EngineError::MissingInput {
+                engine,
+                stream: "color",
+            })?
+            .payload;
+        if color.format() != PixelFormat::Rgb8 {
+            return Err(EngineError::UnsupportedFormat {
+                engine,
+                stream: "color",
+                format: color.format(),
+            });
+        }
+        let (width, height) = (color.width(), color.height());
+        self.stamp = scene.stamp;
+        self.seq = scene.seq;
+        self.timings.clear();
+        self.composite.reshape(width, height, PixelFormat::Rgb8);
+        self.delta.reshape(width, height, PixelFormat::Rgba16F);
+        if let Some(delta) = self.delta.as_u16_mut() {
+            delta.fill(0);
+        }
+        Ok(color)
+    }
+}

@@ -1,0 +1,216 @@
+//! Engine parameter schemas: what an engine accepts, with ranges, so that a bad value from the
+//! control socket is refused with a message instead of reaching the GPU.
+
+use serde::Serialize;
+use serde_json::{Map, Value};
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ParamKind {
+    Float { min: f64, max: f64, default: f64 },
+    Int { min: i64, max: i64, default: i64 },
+    Bool { default: bool },
+    Choice { options: Vec<&'static str>, default: &'static str },
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ParamSpec {
+    pub name: &'static str,
+    pub doc: &'static str,
+    #[serde(flatten)]
+    pub kind: ParamKind,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ParamError {
+    #[error("unknown parameter `{name}`; known: {known}")]
+    Unknown { name: String, known: String },
+    #[error("parameter `{name}`: expected {expected}, got {got}")]
+    WrongType {
+        name: String,
+        expected: &'static str,
+        got: String,
+    },
+    #[error("parameter `{name}`: {value} is outside [{min}, {max}]")]
+    OutOfRange {
+        name: String,
+        value: String,
+        min: String,
+        max: String,
+    },
+    #[error("parameter `{name}`: `{value}` is not one of {options}")]
+    NotAChoice {
+        name: String,
+        value: String,
+        options: String,
+    },
+}
+
+/// The parameters one engine accepts.
+#[derive(Debug, Clone, PartialEq, Default, Serialize)]
+pub struct ParamsSchema {
+    pub params: Vec<ParamSpec>,
+}
+
+impl ParamsSchema {
+    pub fn new(params: Vec<ParamSpec>) -> Self {
+        Self { params }
+    }
+
+    /// Every parameter at its default value.
+    pub fn defaults(&self) -> Map<String, Value> {
+        self.params
+            .iter()
+            .map(|p| {
+                let value = match &p.kind {
+                    ParamKind::Float { default, .. } => Value::from(*default),
+                    ParamKind::Int { default, .. } => Value::from(*default),
+                    ParamKind::Bool { default } => Value::from(*default),
+                    ParamKind::Choice { default, .. } => Value::from(*default),
+                };
+                (p.name.to_owned(), value)
+            })
+            .collect()
+    }
+
+    /// Check `update` against the schema and return `current` with the update applied.
+    /// Nothing is applied unless every entry is valid.
+    pub fn validate(
+        &self,
+        current: &Map<String, Value>,
+        update: &Map<String, Value>,
+    ) -> Result<Map<String, Value>, ParamError> {
+        let mut merged = current.clone();
+        for (name, value) in update {
+            let spec = self
+                .params
+                .iter()
+                .find(|p| p.name == name)
+                .ok_or_else(|| ParamError::Unknown {
+                    name: name.clone(),
+                    known: self.known_names(),
+                })?;
+            merged.insert(name.clone(), spec.check(value)?);
+        }
+        Ok(merged)
+    }
+
+    fn known_names(&self) -> String {
+        if self.params.is_empty() {
+            return "(none)".to_owned();
+        }
+        self.params
+            .iter()
+            .map(|p| p.name)
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
+
+impl ParamSpec {
+    fn check(&self, value: &Value) -> Result<Value, ParamError> {
+        let wrong_type = |expected| ParamError::WrongType {
+            name: self.name.to_owned(),
+            expected,
+            got: value.to_string(),
+        };
+        let out_of_range = |min: &dyn ToString, max: &dyn ToString| ParamError::OutOfRange {
+            name: self.name.to_owned(),
+            value: value.to_string(),
+            min: min.to_string(),
+            max: max.to_string(),
+        };
+        match &self.kind {
+            ParamKind::Float { min, max, .. } => {
+                let v = value.as_f64().ok_or_else(|| wrong_type("a number"))?;
+                if !(v.is_finite() && (*min..=*max).contains(&v)) {
+                    return Err(out_of_range(min, max));
+                }
+                Ok(Value::from(v))
+            }
+            ParamKind::Int { min, max, .. } => {
+                let v = value.as_i64().ok_or_else(|| wrong_type("an integer"))?;
+                if !(*min..=*max).contains(&v) {
+                    return Err(out_of_range(min, max));
+                }
+                Ok(Value::from(v))
+            }
+            ParamKind::Bool { .. } => value
+                .as_bool()
+                .map(Value::from)
+                .ok_or_else(|| wrong_type("true or false")),
+            ParamKind::Choice { options, .. } => {
+                let v = value.as_str().ok_or_else(|| wrong_type("a string"))?;
+                if options.contains(&v) {
+                    Ok(Value::from(v))
+                } else {
+                    Err(ParamError::NotAChoice {
+                        name: self.name.to_owned(),
+                        value: v.to_owned(),
+                        options: options.join(", "),
+                    })
+                }
+            }
+        }
+    }
+}
+
+/// Read a float parameter that [`ParamsSchema::validate`] has already checked.
+pub fn get_f64(params: &Map<String, Value>, name: &str, default: f64) -> f64 {
+    params.get(name).and_then(Value::as_f64).unwrap_or(default)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn schema() -> ParamsSchema {
+        ParamsSchema::new(vec![
+            ParamSpec {
+                name: "steps",
+                doc: "propagation steps",
+                kind: ParamKind::Int { min: 1, max: 64, default: 32 },
+            },
+            ParamSpec {
+                name: "mode",
+                doc: "",
+                kind: ParamKind::Choice { options: vec!["a", "b"], default: "a" },
+            },
+        ])
+    }
+
+    fn map(v: Value) -> Map<String, Value> {
+        v.as_object().cloned().unwrap()
+    }
+
+    #[test]
+    fn valid_update_is_merged_over_defaults() {
+        let s = schema();
+        let merged = s.validate(&s.defaults(), &map(json!({"steps": 8}))).unwrap();
+        assert_eq!(Value::Object(merged), json!({"steps": 8, "mode": "a"}));
+    }
+
+    #[test]
+    fn each_bad_value_names_the_parameter() {
+        let s = schema();
+        let d = s.defaults();
+        for (update, needle) in [
+            (json!({"steps": 0}), "outside [1, 64]"),
+            (json!({"steps": "many"}), "expected an integer"),
+            (json!({"mode": "c"}), "not one of a, b"),
+            (json!({"nope": 1}), "known: steps, mode"),
+        ] {
+            let err = s.validate(&d, &map(update)).unwrap_err().to_string();
+            assert!(err.contains(needle), "{err}");
+        }
+    }
+
+    #[test]
+    fn nothing_is_applied_when_one_entry_is_bad() {
+        let s = schema();
+        let d = s.defaults();
+        assert!(s.validate(&d, &map(json!({"steps": 4, "mode": "zzz"}))).is_err());
+        assert_eq!(d, s.defaults());
+    }
+}

@@ -1,0 +1,115 @@
+//! Engines by name: what the control socket lists, and how a new engine is built off the render
+//! thread with validated parameters before it is swapped in.
+
+use serde_json::{Map, Value};
+
+use crate::depth_preview::DepthPreview;
+use crate::engine::Engine;
+use crate::params::{ParamError, ParamsSchema};
+use crate::passthrough::Passthrough;
+
+/// One registered engine: its name, what it does, its parameters, and how to build it.
+#[derive(Debug, Clone)]
+pub struct EngineSpec {
+    pub name: &'static str,
+    pub description: &'static str,
+    pub schema: ParamsSchema,
+    build: fn() -> Box<dyn Engine>,
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum RegistryError {
+    #[error("unknown engine `{name}`; known engines: {known}")]
+    UnknownEngine { name: String, known: String },
+    #[error(transparent)]
+    Params(#[from] ParamError),
+}
+
+/// All engines this build knows.
+#[derive(Debug, Clone)]
+pub struct EngineRegistry {
+    specs: Vec<EngineSpec>,
+}
+
+impl Default for EngineRegistry {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl EngineRegistry {
+    pub fn new() -> Self {
+        Self {
+            specs: vec![
+                EngineSpec {
+                    name: Passthrough::NAME,
+                    description: "camera image unchanged (Δ = 0); the pipeline's reference path",
+                    schema: Passthrough::schema(),
+                    build: || Box::new(Passthrough::default()),
+                },
+                EngineSpec {
+                    name: DepthPreview::NAME,
+                    description: "depth colour-mapped over the camera image (Δ = 0); checks registration",
+                    schema: DepthPreview::schema(),
+                    build: || Box::new(DepthPreview::default()),
+                },
+            ],
+        }
+    }
+
+    pub fn specs(&self) -> &[EngineSpec] {
+        &self.specs
+    }
+
+    pub fn names(&self) -> Vec<&'static str> {
+        self.specs.iter().map(|s| s.name).collect()
+    }
+
+    pub fn spec(&self, name: &str) -> Result<&EngineSpec, RegistryError> {
+        self.specs
+            .iter()
+            .find(|s| s.name == name)
+            .ok_or_else(|| RegistryError::UnknownEngine {
+                name: name.to_owned(),
+                known: self.names().join(", "),
+            })
+    }
+
+    /// Validate `params` (a partial update over the defaults) and build the engine with them.
+    /// Returns the engine and the full parameter set it runs with.
+    pub fn build(
+        &self,
+        name: &str,
+        params: &Map<String, Value>,
+    ) -> Result<(Box<dyn Engine>, Map<String, Value>), RegistryError> {
+        let spec = self.spec(name)?;
+        let full = spec.schema.validate(&spec.schema.defaults(), params)?;
+        let mut engine = (spec.build)();
+        engine.set_params(&full);
+        Ok((engine, full))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_engine_lists_the_known_ones() {
+        let err = EngineRegistry::new().build("dlvp", &Map::new()).err().unwrap();
+        assert_eq!(
+            err.to_string(),
+            "unknown engine `dlvp`; known engines: passthrough, depth_preview"
+        );
+    }
+
+    #[test]
+    fn every_engine_builds_with_defaults() {
+        let registry = EngineRegistry::new();
+        for name in registry.names() {
+            let (engine, params) = registry.build(name, &Map::new()).unwrap();
+            assert_eq!(engine.name(), name);
+            assert_eq!(params, registry.spec(name).unwrap().schema.defaults());
+        }
+    }
+}
