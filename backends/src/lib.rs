@@ -1,1 +1,16 @@
-//! relight-backends.
+//! relight-backends: the device contract and its implementations.
+//!
+//! Every device runs on its own thread under a [`DeviceRunner`], which owns the failure
+//! contract of DESIGN.md: a typed error on open, `Lost` + reconnect with backoff on disconnect,
+//! never a panic on bad data. Backends only implement [`Device`]. The replay backend plays MCAP
+//! recordings through the same contract, so the daemon cannot tell it from hardware.
+
+pub mod device;
+pub mod replay;
+pub mod sources;
+pub mod synthetic;
+
+pub use device::{
+    Device, DeviceContext, DeviceError, DeviceRunner, DeviceState, DeviceStatus, RunEnd,
+};
+pub use replay::{Replay, ReplayConfig, ReplayMode};

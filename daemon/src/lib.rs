@@ -1,1 +1,6 @@
 //! relightd internals: configuration, pipeline, control socket, sinks.
+pub mod config;
+pub mod control;
+pub mod pipeline;
+pub mod sinks;
+pub mod timing;

@@ -1,1 +1,307 @@
-fn main() {}
+//! relightd: the relight service.
+//!
+//! `relightd [--config FILE]` runs the configured pipeline as a service (systemd Type=notify);
+//! `relightd replay FILE` plays a recording through the pipeline without a configuration file
+//! (the demo); `relightd record` captures the configured sources to an MCAP file;
+//! `relightd synth` writes the synthetic demo recording; `relightd check-config` validates a
+//! configuration file.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand, ValueEnum};
+use relight_backends::synthetic::{SyntheticRig, SyntheticSettings};
+use relight_core::recording::{RecordingMeta, RecordingWriter};
+use relight_daemon::config::{self, Config, OutputConfig, ReplayConfig, SourceConfig};
+use relight_daemon::control::ControlServer;
+use relight_daemon::control::types::StatusReport;
+use relight_daemon::pipeline::{Pipeline, PipelineOptions};
+
+#[derive(Debug, Parser)]
+#[command(name = "relightd", version, about = "relight: AR relighting daemon")]
+struct Cli {
+    /// Configuration file.
+    #[arg(long, global = true, default_value = config::DEFAULT_CONFIG_PATH)]
+    config: PathBuf,
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum Mode {
+    Realtime,
+    Fast,
+    Stepped,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Run the configured pipeline as a service (the default).
+    Run,
+    /// Play a recording through the pipeline; prints per-stage timings at the end.
+    Replay {
+        recording: PathBuf,
+        #[arg(long, value_enum, default_value = "realtime")]
+        mode: Mode,
+        /// Playback speed for `realtime` mode.
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+        /// Start over at the end (runs until stopped).
+        #[arg(long = "loop")]
+        looping: bool,
+        #[arg(long, default_value = "passthrough")]
+        engine: String,
+        /// Write composite PNGs here.
+        #[arg(long)]
+        output: Option<PathBuf>,
+        /// Write every Nth frame to --output.
+        #[arg(long, default_value_t = 1)]
+        every_n: u32,
+        /// Serve the control socket here while replaying.
+        #[arg(long)]
+        socket: Option<PathBuf>,
+    },
+    /// Record the configured sources to an MCAP file.
+    Record {
+        #[arg(long)]
+        out: PathBuf,
+        /// Stop after this many seconds (default: until SIGINT/SIGTERM or the sources end).
+        #[arg(long)]
+        seconds: Option<f64>,
+    },
+    /// Write the synthetic demo recording (deterministic).
+    Synth {
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, default_value_t = 60)]
+        frames: u32,
+        #[arg(long, default_value_t = 160)]
+        width: u32,
+        #[arg(long, default_value_t = 120)]
+        height: u32,
+    },
+    /// Validate a configuration file and print it as understood.
+    CheckConfig,
+}
+
+fn main() -> std::process::ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_env("RELIGHT_LOG")
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match run(Cli::parse()) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("relightd: {error:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.command.unwrap_or(Command::Run) {
+        Command::Run => {
+            let config = Config::load(&cli.config)?;
+            serve(config, PipelineOptions::default(), true)
+        }
+        Command::CheckConfig => {
+            let config = Config::load(&cli.config)?;
+            println!("{}: ok\n{config:#?}", cli.config.display());
+            Ok(())
+        }
+        Command::Replay {
+            recording,
+            mode,
+            speed,
+            looping,
+            engine,
+            output,
+            every_n,
+            socket,
+        } => {
+            let mut config = Config {
+                path: PathBuf::from("(command line)"),
+                source: SourceConfig::Replay(ReplayConfig {
+                    path: recording,
+                    mode: match mode {
+                        Mode::Realtime => config::ReplayMode::Realtime,
+                        Mode::Fast => config::ReplayMode::Fast,
+                        Mode::Stepped => config::ReplayMode::Stepped,
+                    },
+                    loop_playback: looping,
+                    speed,
+                }),
+                output: OutputConfig { dir: output, every_n },
+                ..Config::default()
+            };
+            config.engine.name = engine;
+            if let Some(socket) = socket {
+                config.daemon.socket = socket;
+            }
+            let serve_socket = config.daemon.socket != Path::new(config::DEFAULT_SOCKET_PATH);
+            let options = PipelineOptions { exit_at_end: !looping };
+            serve(config, options, serve_socket)
+        }
+        Command::Record { out, seconds } => {
+            let mut config = Config::load(&cli.config)?;
+            config.recorder.autostart = false;
+            record(config, &out, seconds.map(Duration::from_secs_f64))
+        }
+        Command::Synth {
+            out,
+            frames,
+            width,
+            height,
+        } => synth(&out, frames, width, height),
+    }
+}
+
+/// Run the pipeline until a signal, or until the sources end when `exit_at_end`, serving the
+/// control socket when `serve_socket`.
+fn serve(config: Config, options: PipelineOptions, serve_socket: bool) -> Result<()> {
+    let term = Arc::new(AtomicBool::new(false));
+    for signal in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
+        signal_hook::flag::register(signal, term.clone()).context("installing signal handlers")?;
+    }
+    let daemon = config.daemon.clone();
+    let allowed_gid = daemon
+        .socket_group
+        .as_ref()
+        .map(config::GroupSpec::resolve_gid)
+        .transpose()
+        .context("[daemon] socket_group")?;
+    let exit_at_end = options.exit_at_end;
+    let mut pipeline = Pipeline::start(config, options)?;
+    let server = match serve_socket {
+        false => None,
+        true => {
+            if let Some(dir) = daemon.socket.parent() {
+                std::fs::create_dir_all(dir)
+                    .with_context(|| format!("creating {}", dir.display()))?;
+            }
+            let server = ControlServer::bind(
+                &daemon.socket,
+                daemon.socket_mode,
+                allowed_gid,
+                daemon.max_request_bytes,
+                pipeline.control(),
+            )?;
+            tracing::info!(socket = %daemon.socket.display(), "control socket ready");
+            Some(server.spawn().context("starting the control server")?)
+        }
+    };
+    let watchdog = daemon.watchdog.then(sd_notify::watchdog_enabled).flatten();
+    notify_systemd(sd_notify::NotifyState::Ready);
+    let started = Instant::now();
+    let mut last_ping = Instant::now();
+    while !term.load(Ordering::Acquire) && !(exit_at_end && pipeline.is_finished()) {
+        std::thread::sleep(Duration::from_millis(20));
+        if let Some(interval) = watchdog
+            && last_ping.elapsed() >= interval / 2
+        {
+            // Ping only while the render loop is alive: a hung pipeline gets restarted.
+            if pipeline.is_healthy(interval / 2) {
+                notify_systemd(sd_notify::NotifyState::Watchdog);
+            } else {
+                tracing::error!("render loop stalled; withholding the watchdog ping");
+            }
+            last_ping = Instant::now();
+        }
+    }
+    notify_systemd(sd_notify::NotifyState::Stopping);
+    let status = pipeline.status();
+    pipeline.shutdown();
+    if let Some(server) = server {
+        server.shutdown();
+    }
+    print_summary(&status, started.elapsed());
+    Ok(())
+}
+
+/// Tell systemd (when it started us with a notify socket) how we are doing.
+fn notify_systemd(state: sd_notify::NotifyState<'_>) {
+    if let Err(error) = sd_notify::notify(&[state]) {
+        tracing::warn!(%error, "sd_notify failed");
+    }
+}
+
+fn record(config: Config, out: &Path, seconds: Option<Duration>) -> Result<()> {
+    let term = Arc::new(AtomicBool::new(false));
+    for signal in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
+        signal_hook::flag::register(signal, term.clone()).context("installing signal handlers")?;
+    }
+    let mut pipeline = Pipeline::start(config, PipelineOptions { exit_at_end: true })?;
+    let control = pipeline.control();
+    control.record_start(Some(out.to_path_buf())).map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    let started = Instant::now();
+    while !term.load(Ordering::Acquire)
+        && !pipeline.is_finished()
+        && seconds.is_none_or(|s| started.elapsed() < s)
+    {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let summary = control.record_stop().map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    pipeline.shutdown();
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(())
+}
+
+fn synth(out: &Path, frames: u32, width: u32, height: u32) -> Result<()> {
+    if frames == 0 || width < 8 || height < 8 {
+        bail!("--frames must be ≥ 1 and the image at least 8×8");
+    }
+    let rig = SyntheticRig::new(SyntheticSettings {
+        frames,
+        width,
+        height,
+        ..SyntheticSettings::default()
+    });
+    let meta = RecordingMeta {
+        calibration: Some(rig.calibration()),
+        source: format!("relightd {} synth", env!("CARGO_PKG_VERSION")),
+    };
+    let mut writer = RecordingWriter::create(out, &meta)?;
+    for msg in rig.messages() {
+        writer.write(&msg)?;
+    }
+    let messages = writer.messages_written();
+    writer.finish()?;
+    let bytes = std::fs::metadata(out).map(|m| m.len()).unwrap_or(0);
+    println!("{}: {messages} messages, {frames} frames of {width}×{height}, {bytes} bytes", out.display());
+    Ok(())
+}
+
+fn print_summary(status: &StatusReport, elapsed: Duration) {
+    println!(
+        "{} frame sets in {:.2} s ({} with a missing stream), engine {}, bus drops {}",
+        status.frame_sets,
+        elapsed.as_secs_f64(),
+        status.sync_missing,
+        status.engine,
+        status.bus_drops
+    );
+    println!("{:<22} {:>7} {:>9} {:>9} {:>9}", "stage", "frames", "mean ms", "p50 ms", "p99 ms");
+    for stage in &status.stages {
+        println!(
+            "{:<22} {:>7} {:>9.3} {:>9.3} {:>9.3}",
+            stage.name, stage.frames, stage.mean_ms, stage.p50_ms, stage.p99_ms
+        );
+    }
+    for device in &status.devices {
+        println!(
+            "device {:<8} {:<8} {:<9} frames {:>6} drops {:>4}{}",
+            device.name,
+            device.stream.name(),
+            device.state.name(),
+            device.frames,
+            device.drops,
+            device.last_error.as_ref().map(|e| format!("  last error: {e}")).unwrap_or_default()
+        );
+    }
+}

@@ -1,0 +1,354 @@
+//! Replay of MCAP recordings as a device: real time (optionally sped up), as fast as possible,
+//! or stepped on request; looping on request.
+//!
+//! Replayed frames are re-stamped on the host clock as if they had just arrived (the recorded
+//! spacing is kept, scaled by the speed), so the synchroniser and everything after it behave
+//! exactly as with live hardware. Device timestamps are kept as recorded. On each loop the
+//! sequence numbers continue instead of restarting, so consumers do not mistake a loop for a
+//! burst of drops.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use relight_core::frame::host_now_ns;
+use relight_core::recording::RecordingReader;
+use relight_core::{StreamKind, StreamMessage, Timestamp};
+
+use crate::device::{Device, DeviceContext, DeviceError, RunEnd};
+
+/// How fast a recording plays.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ReplayMode {
+    /// Keep the recorded spacing, divided by `speed` (2.0 plays twice as fast).
+    Realtime { speed: f64 },
+    /// As fast as the consumers take it.
+    Fast,
+    /// Only when [`crate::DeviceRunner::step`] asks, that many messages at a time.
+    Stepped,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReplayConfig {
+    pub path: PathBuf,
+    pub mode: ReplayMode,
+    pub looping: bool,
+}
+
+/// The replay device. Publishes every stream found in the recording.
+#[derive(Debug)]
+pub struct Replay {
+    config: ReplayConfig,
+    reader: Option<RecordingReader>,
+    streams: Vec<StreamKind>,
+}
+
+impl Replay {
+    /// Check the configuration and read the recording's channel list. The recording itself
+    /// is (re)read on every open.
+    pub fn new(config: ReplayConfig) -> Result<Self, DeviceError> {
+        if let ReplayMode::Realtime { speed } = config.mode
+            && !(speed.is_finite() && speed > 0.0)
+        {
+            return Err(DeviceError::Config {
+                device: "replay".into(),
+                reason: format!("speed must be a positive number, got {speed}"),
+            });
+        }
+        let mut replay = Self {
+            config,
+            reader: None,
+            streams: Vec::new(),
+        };
+        replay.open()?;
+        replay.streams = replay.scan_streams();
+        Ok(replay)
+    }
+
+    fn scan_streams(&self) -> Vec<StreamKind> {
+        let mut kinds: Vec<StreamKind> = self
+            .reader
+            .iter()
+            .flat_map(|r| r.messages())
+            .filter_map(Result::ok)
+            .map(|m| m.kind())
+            .collect();
+        kinds.sort();
+        kinds.dedup();
+        kinds
+    }
+
+    pub fn reader(&self) -> Option<&RecordingReader> {
+        self.reader.as_ref()
+    }
+}
+
+/// Shifts one pass over the recording onto the host clock and onto continuing sequence numbers.
+#[derive(Debug, Default)]
+struct Restamp {
+    /// Host time the recording's first message maps to.
+    host_origin_ns: u64,
+    /// The recording's first host stamp.
+    recorded_origin_ns: Option<u64>,
+    /// Per stream: offset added to sequence numbers, and the last sequence number published.
+    seq: BTreeMap<StreamKind, (u64, u64)>,
+    /// Last published host stamp, to start the next loop one frame period later.
+    last_host_ns: u64,
+}
+
+impl Restamp {
+    fn start_pass(&mut self, now_ns: u64) {
+        self.host_origin_ns = now_ns.max(self.last_host_ns + 1);
+        self.recorded_origin_ns = None;
+        for (offset, last) in self.seq.values_mut() {
+            *offset = *last + 1;
+        }
+    }
+
+    /// Where this message belongs on the host clock, relative to the pass start, in recorded ns.
+    fn recorded_offset_ns(&mut self, stamp: Timestamp) -> u64 {
+        let origin = *self.recorded_origin_ns.get_or_insert(stamp.host_ns);
+        stamp.host_ns.saturating_sub(origin)
+    }
+
+    fn apply(&mut self, msg: &mut StreamMessage, offset_ns: u64) {
+        let host_ns = self.host_origin_ns + offset_ns;
+        self.last_host_ns = self.last_host_ns.max(host_ns);
+        let entry = self.seq.entry(msg.kind()).or_insert((0, 0));
+        let seq_offset = entry.0;
+        let mut new_seq = 0;
+        with_frame_header(msg, |seq, stamp| {
+            *seq += seq_offset;
+            stamp.host_ns = host_ns;
+            new_seq = *seq;
+        });
+        entry.1 = entry.1.max(new_seq);
+    }
+}
+
+/// Edit a message's sequence number and stamp in place (the reader hands out unique Arcs, so
+/// this does not copy; a shared one is copied once).
+fn with_frame_header(msg: &mut StreamMessage, f: impl FnOnce(&mut u64, &mut Timestamp)) {
+    match msg {
+        StreamMessage::Depth(a) | StreamMessage::Color(a) => {
+            let frame = Arc::make_mut(a);
+            f(&mut frame.seq, &mut frame.stamp)
+        }
+        StreamMessage::Probe(a) => {
+            let frame = Arc::make_mut(a);
+            f(&mut frame.seq, &mut frame.stamp)
+        }
+        StreamMessage::Markers(a) => {
+            let frame = Arc::make_mut(a);
+            f(&mut frame.seq, &mut frame.stamp)
+        }
+        StreamMessage::Lamp(a) => {
+            let frame = Arc::make_mut(a);
+            f(&mut frame.seq, &mut frame.stamp)
+        }
+    }
+}
+
+impl Device for Replay {
+    fn backend(&self) -> &'static str {
+        "replay"
+    }
+
+    fn streams(&self) -> Vec<StreamKind> {
+        self.streams.clone()
+    }
+
+    fn open(&mut self) -> Result<(), DeviceError> {
+        let path = &self.config.path;
+        let reader = RecordingReader::open(path).map_err(|error| DeviceError::Config {
+            device: "replay".into(),
+            reason: format!("cannot read recording {}: {error}", path.display()),
+        })?;
+        for warning in reader.warnings() {
+            tracing::warn!(path = %path.display(), "{warning}");
+        }
+        self.reader = Some(reader);
+        Ok(())
+    }
+
+    fn run(&mut self, ctx: &DeviceContext) -> Result<RunEnd, DeviceError> {
+        let Some(reader) = self.reader.as_ref() else {
+            return Err(DeviceError::NotFound {
+                device: "replay".into(),
+                reason: "recording not open".into(),
+            });
+        };
+        let mut restamp = Restamp::default();
+        let mut steps_left = 0u32;
+        loop {
+            restamp.start_pass(host_now_ns());
+            let pass_start = Instant::now();
+            let mut published = 0u64;
+            for item in reader.messages() {
+                let mut msg = match item {
+                    Ok(msg) => msg,
+                    Err(error) => {
+                        tracing::error!(path = %self.config.path.display(), %error, "skipping unreadable part of the recording");
+                        ctx.count_drop();
+                        continue;
+                    }
+                };
+                let offset_ns = restamp.recorded_offset_ns(msg.stamp());
+                match self.config.mode {
+                    ReplayMode::Realtime { speed } => {
+                        let due = Duration::from_nanos((offset_ns as f64 / speed) as u64);
+                        let wait = due.saturating_sub(pass_start.elapsed());
+                        if !wait.is_zero() && !ctx.sleep(wait) {
+                            return Ok(RunEnd::StopRequested);
+                        }
+                        restamp.apply(&mut msg, (offset_ns as f64 / speed) as u64);
+                    }
+                    ReplayMode::Fast => restamp.apply(&mut msg, offset_ns),
+                    ReplayMode::Stepped => {
+                        while steps_left == 0 {
+                            match ctx.wait_step() {
+                                Some(n) => steps_left = n,
+                                None => return Ok(RunEnd::StopRequested),
+                            }
+                        }
+                        steps_left -= 1;
+                        restamp.apply(&mut msg, offset_ns);
+                    }
+                }
+                if ctx.should_stop() {
+                    return Ok(RunEnd::StopRequested);
+                }
+                ctx.publish(msg);
+                published += 1;
+            }
+            if !self.config.looping {
+                return Ok(RunEnd::EndOfStream);
+            }
+            if published == 0 {
+                return Err(DeviceError::Config {
+                    device: "replay".into(),
+                    reason: format!("{} holds no readable frame to loop over", self.config.path.display()),
+                });
+            }
+            tracing::debug!(path = %self.config.path.display(), "replay looping");
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::device::{Backoff, DeviceRunner, DeviceState};
+    use crate::synthetic::{SyntheticRig, SyntheticSettings};
+    use relight_core::bus::Bus;
+    use relight_core::recording::{RecordingMeta, RecordingWriter};
+
+    fn write_recording(dir: &std::path::Path, frames: u32) -> (PathBuf, Vec<StreamMessage>) {
+        let rig = SyntheticRig::new(SyntheticSettings {
+            width: 16,
+            height: 12,
+            probe_size: 8,
+            frames,
+            ..SyntheticSettings::default()
+        });
+        let path = dir.join("rec.mcap");
+        let meta = RecordingMeta {
+            calibration: Some(rig.calibration()),
+            source: "test".into(),
+        };
+        let mut writer = RecordingWriter::create(&path, &meta).unwrap();
+        let messages: Vec<_> = rig.messages().collect();
+        for msg in &messages {
+            writer.write(msg).unwrap();
+        }
+        writer.finish().unwrap();
+        (path, messages)
+    }
+
+    fn run_to_end(config: ReplayConfig, sub_capacity: usize) -> (Vec<StreamMessage>, Arc<crate::DeviceStatus>) {
+        let bus = Arc::new(Bus::new());
+        let sub = bus.all.subscribe(sub_capacity);
+        let replay = Replay::new(config).unwrap();
+        let mut runner = DeviceRunner::spawn("replay", Box::new(replay), bus, Backoff::default()).unwrap();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let mut got = Vec::new();
+        while !(runner.is_finished() && sub.is_empty()) && Instant::now() < deadline {
+            if let Some(msg) = sub.recv_timeout(Duration::from_millis(10)) {
+                got.push(msg);
+            }
+        }
+        runner.stop();
+        (got, runner.status().clone())
+    }
+
+    #[test]
+    fn fast_replay_publishes_every_frame_in_order_with_payloads_intact() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, source) = write_recording(dir.path(), 9);
+        let config = ReplayConfig { path, mode: ReplayMode::Fast, looping: false };
+        let (got, status) = run_to_end(config, 1024);
+        assert_eq!(status.state(), DeviceState::Stopped);
+        assert_eq!(got.len(), source.len());
+        for (g, s) in got.iter().zip(&source) {
+            assert_eq!((g.kind(), g.seq(), g.stamp().device_ns), (s.kind(), s.seq(), s.stamp().device_ns));
+        }
+        // Host stamps keep the recorded spacing.
+        let spacing = |m: &[StreamMessage]| m[5].stamp().host_ns - m[0].stamp().host_ns;
+        assert_eq!(spacing(&got), spacing(&source));
+    }
+
+    #[test]
+    fn looping_continues_sequence_numbers_and_time() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, source) = write_recording(dir.path(), 3);
+        let bus = Arc::new(Bus::new());
+        let sub = bus.depth.subscribe(64);
+        let config = ReplayConfig { path, mode: ReplayMode::Fast, looping: true };
+        let mut runner = DeviceRunner::spawn("replay", Box::new(Replay::new(config).unwrap()), bus, Backoff::default()).unwrap();
+        let mut frames = Vec::new();
+        while frames.len() < 9 {
+            if let Some(f) = sub.recv_timeout(Duration::from_secs(5)) {
+                frames.push(f);
+            } else {
+                panic!("replay stalled");
+            }
+        }
+        runner.stop();
+        let depth_in_source = source.iter().filter(|m| m.kind() == StreamKind::Depth).count();
+        assert_eq!(depth_in_source, 3);
+        let seqs: Vec<u64> = frames.iter().map(|f| f.seq).collect();
+        assert_eq!(seqs, (0..9).collect::<Vec<_>>());
+        assert!(frames.windows(2).all(|w| w[1].stamp.host_ns > w[0].stamp.host_ns));
+    }
+
+    #[test]
+    fn stepped_replay_advances_only_on_request() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, _) = write_recording(dir.path(), 6);
+        let bus = Arc::new(Bus::new());
+        let sub = bus.all.subscribe(256);
+        let config = ReplayConfig { path, mode: ReplayMode::Stepped, looping: false };
+        let mut runner = DeviceRunner::spawn("replay", Box::new(Replay::new(config).unwrap()), bus, Backoff::default()).unwrap();
+        assert!(sub.recv_timeout(Duration::from_millis(200)).is_none(), "nothing before a step");
+        runner.step(4);
+        let got: Vec<_> = (0..4).filter_map(|_| sub.recv_timeout(Duration::from_secs(5))).collect();
+        assert_eq!(got.len(), 4);
+        assert!(sub.recv_timeout(Duration::from_millis(200)).is_none(), "exactly four");
+        runner.stop();
+    }
+
+    #[test]
+    fn missing_or_garbage_recording_is_a_config_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = ReplayConfig { path: dir.path().join("nope.mcap"), mode: ReplayMode::Fast, looping: false };
+        let err = Replay::new(missing).unwrap_err();
+        assert!(matches!(err, DeviceError::Config { .. }) && err.to_string().contains("nope.mcap"), "{err}");
+        let garbage = dir.path().join("garbage.mcap");
+        std::fs::write(&garbage, b"this is not an mcap file").unwrap();
+        let err = Replay::new(ReplayConfig { path: garbage, mode: ReplayMode::Fast, looping: false }).unwrap_err();
+        assert!(err.to_string().contains("garbage.mcap"), "{err}");
+        let bad_speed = ReplayConfig { path: dir.path().join("x"), mode: ReplayMode::Realtime { speed: 0.0 }, looping: false };
+        assert!(Replay::new(bad_speed).unwrap_err().to_string().contains("speed"));
+    }
+}

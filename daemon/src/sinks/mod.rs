@@ -1,0 +1,4 @@
+//! Where relit frames and raw streams go: the MCAP recorder and PNG snapshots/outputs.
+
+pub mod png_out;
+pub mod recorder;

@@ -1,0 +1,269 @@
+//! End to end: `relightd` on a replay configuration with a temporary socket, driven by
+//! `relightctl` and by hostile raw requests; the recording it makes must read back frame-exact.
+
+use std::collections::HashMap;
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::net::UnixStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use relight_core::recording::RecordingReader;
+use relight_core::{StreamKind, StreamMessage};
+use serde_json::{Value, json};
+
+fn fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/demo.mcap")
+}
+
+struct Daemon {
+    child: Child,
+    socket: PathBuf,
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn start_daemon(dir: &Path) -> Daemon {
+    let socket = dir.join("control.sock");
+    let config = dir.join("relightd.toml");
+    std::fs::write(
+        &config,
+        format!(
+            r#"
+[daemon]
+socket = "{socket}"
+watchdog = false
+
+[replay]
+path = "{recording}"
+mode = "realtime"
+loop = true
+
+[engine]
+name = "passthrough"
+
+[recorder]
+dir = "{dir}/recordings"
+
+[snapshot]
+dir = "{dir}/snapshots"
+"#,
+            socket = socket.display(),
+            recording = fixture().display(),
+            dir = dir.display(),
+        ),
+    )
+    .unwrap();
+    let child = Command::new(env!("CARGO_BIN_EXE_relightd"))
+        .arg("--config")
+        .arg(&config)
+        .env("RELIGHT_LOG", "warn")
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("relightd starts");
+    let daemon = Daemon { child, socket };
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while UnixStream::connect(&daemon.socket).is_err() {
+        assert!(Instant::now() < deadline, "control socket never appeared");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    daemon
+}
+
+fn ctl(socket: &Path, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_relightctl"))
+        .arg("--socket")
+        .arg(socket)
+        .args(args)
+        .output()
+        .expect("relightctl runs")
+}
+
+fn ctl_json(socket: &Path, args: &[&str]) -> Value {
+    let mut full = vec!["--json"];
+    full.extend_from_slice(args);
+    let out = ctl(socket, &full);
+    assert!(
+        out.status.success(),
+        "relightctl {args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("relightctl --json prints JSON")
+}
+
+/// Send raw bytes on a fresh connection and read one response line.
+fn raw(socket: &Path, bytes: &[u8]) -> Value {
+    let mut stream = UnixStream::connect(socket).unwrap();
+    stream.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    stream.write_all(bytes).unwrap();
+    let mut line = String::new();
+    BufReader::new(stream).read_line(&mut line).unwrap();
+    serde_json::from_str(&line).unwrap_or_else(|e| panic!("bad response {line:?}: {e}"))
+}
+
+fn wait_for(socket: &Path, what: &str, mut ok: impl FnMut(&Value) -> bool) -> Value {
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let status = ctl_json(socket, &["status"]);
+        if ok(&status) {
+            return status;
+        }
+        assert!(Instant::now() < deadline, "timed out waiting for {what}: {status}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+#[test]
+fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact() {
+    let dir = tempfile::tempdir().unwrap();
+    let daemon = start_daemon(dir.path());
+    let socket = daemon.socket.clone();
+
+    // Status: the replay device runs and frame sets flow through the pipeline.
+    let status = wait_for(&socket, "frame sets", |s| s["frame_sets"].as_u64() > Some(5));
+    assert_eq!(status["engine"], "passthrough");
+    let devices = status["devices"].as_array().unwrap();
+    assert!(devices.iter().any(|d| d["backend"] == "replay" && d["state"] == "running"), "{status}");
+    let stages: Vec<&str> = status["stages"].as_array().unwrap().iter().map(|s| s["name"].as_str().unwrap()).collect();
+    assert!(stages.contains(&"sync") && stages.contains(&"render"), "{stages:?}");
+    let readable = ctl(&socket, &["status"]);
+    assert!(readable.status.success());
+    assert!(String::from_utf8_lossy(&readable.stdout).contains("replay"));
+
+    // Engines: list, switch at a frame boundary, refuse unknown names and bad parameters.
+    let engines = ctl_json(&socket, &["engine", "list"]);
+    let names: Vec<&str> = engines.as_array().unwrap().iter().map(|e| e["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["passthrough", "depth_preview"]);
+    let unknown = ctl(&socket, &["engine", "set", "dlvp"]);
+    assert_eq!(unknown.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&unknown.stderr).contains("passthrough"), "lists known engines");
+    ctl_json(&socket, &["engine", "set", "depth_preview"]);
+    wait_for(&socket, "engine switch", |s| s["engine"] == "depth_preview");
+    let params = ctl_json(&socket, &["engine", "params", "set", "opacity=0.25"]);
+    assert_eq!(params["opacity"], 0.25);
+    let bad = ctl(&socket, &["engine", "params", "set", "opacity=5"]);
+    assert_eq!(bad.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("outside"));
+
+    // Record about a second of the replay.
+    let recording = dir.path().join("e2e.mcap");
+    ctl_json(&socket, &["record", "start", recording.to_str().unwrap()]);
+    let again = ctl(&socket, &["record", "start", recording.to_str().unwrap()]);
+    assert_eq!(again.status.code(), Some(1), "a second start is refused");
+    std::thread::sleep(Duration::from_millis(1200));
+    let summary = ctl_json(&socket, &["record", "stop"]);
+    assert!(summary["messages"].as_u64().unwrap() > 10, "{summary}");
+
+    // Snapshot.
+    let snap_dir = dir.path().join("snap");
+    let snap = ctl_json(&socket, &["snapshot", snap_dir.to_str().unwrap()]);
+    let paths = snap["paths"].as_array().unwrap_or_else(|| panic!("{snap}"));
+    assert!(!paths.is_empty());
+    for path in paths {
+        let bytes = std::fs::read(path.as_str().unwrap()).unwrap();
+        assert_eq!(&bytes[1..4], b"PNG");
+    }
+
+    // Hostile requests: each gets the proper JSON-RPC error and the daemon keeps serving.
+    let code = |v: &Value| v["error"]["code"].as_i64();
+    assert_eq!(code(&raw(&socket, b"{not json\n")), Some(-32700));
+    assert_eq!(code(&raw(&socket, b"42\n")), Some(-32600));
+    assert_eq!(code(&raw(&socket, b"{\"jsonrpc\":\"1.0\",\"id\":1,\"method\":\"status\"}\n")), Some(-32600));
+    let unknown = raw(&socket, b"{\"jsonrpc\":\"2.0\",\"id\":2,\"method\":\"reboot\"}\n");
+    assert_eq!(code(&unknown), Some(-32601));
+    assert_eq!(unknown["id"], 2);
+    let wrong_type = raw(&socket, b"{\"jsonrpc\":\"2.0\",\"id\":3,\"method\":\"engine.set\",\"params\":{\"name\":7}}\n");
+    assert_eq!(code(&wrong_type), Some(-32602));
+    assert_eq!(code(&raw(&socket, b"\xff\xfe\n")), Some(-32700));
+    let mut huge = vec![b'['; 200_000];
+    huge.push(b'\n');
+    assert_eq!(code(&raw(&socket, &huge)), Some(-32600));
+    let batch = raw(
+        &socket,
+        json!([{"jsonrpc": "2.0", "id": 1, "method": "rpc.ping"}, {"jsonrpc": "2.0", "id": 2, "method": "nope"}])
+            .to_string()
+            .as_bytes(),
+    );
+    let batch = batch.as_array().expect("batch answered with an array");
+    assert_eq!(batch.len(), 2);
+    // A client that disconnects mid-request does not hurt.
+    {
+        let mut stream = UnixStream::connect(&socket).unwrap();
+        stream.write_all(b"{\"jsonrpc\":\"2.0\",\"id\":1,\"meth").unwrap();
+    }
+    let alive = wait_for(&socket, "progress after hostile requests", |s| {
+        s["frame_sets"].as_u64() > status["frame_sets"].as_u64()
+    });
+    assert_eq!(alive["engine"], "depth_preview");
+
+    // SIGTERM: a clean exit that removes the socket.
+    let mut daemon = daemon;
+    send_sigterm(daemon.child.id());
+    let deadline = Instant::now() + Duration::from_secs(15);
+    let exit = loop {
+        if let Some(exit) = daemon.child.try_wait().unwrap() {
+            break exit;
+        }
+        assert!(Instant::now() < deadline, "relightd did not stop on SIGTERM");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(exit.success(), "{exit:?}");
+    assert!(!socket.exists(), "socket removed on exit");
+
+    assert_recording_is_frame_exact(&recording);
+}
+
+fn send_sigterm(pid: u32) {
+    let status = Command::new("kill").arg("-TERM").arg(pid.to_string()).status().unwrap();
+    assert!(status.success());
+}
+
+/// Every recorded message equals the fixture's message of the same stream and device time
+/// (the replay re-stamps the host clock and continues sequence numbers across loops), and no
+/// stream has a gap in its sequence numbers.
+fn assert_recording_is_frame_exact(recording: &Path) {
+    let source = RecordingReader::open(&fixture()).unwrap();
+    let mut by_device_time: HashMap<(StreamKind, u64), StreamMessage> = HashMap::new();
+    let mut per_stream: HashMap<StreamKind, u64> = HashMap::new();
+    for msg in source.messages() {
+        let msg = msg.unwrap();
+        *per_stream.entry(msg.kind()).or_default() += 1;
+        by_device_time.insert((msg.kind(), msg.stamp().device_ns), msg);
+    }
+    let recorded = RecordingReader::open(recording).unwrap();
+    assert!(recorded.warnings().is_empty(), "{:?}", recorded.warnings());
+    assert_eq!(recorded.meta().calibration, source.meta().calibration, "calibration carried over");
+    let mut last_seq: HashMap<StreamKind, u64> = HashMap::new();
+    let mut count = 0;
+    for msg in recorded.messages() {
+        let msg = msg.unwrap();
+        count += 1;
+        let original = by_device_time
+            .get(&(msg.kind(), msg.stamp().device_ns))
+            .unwrap_or_else(|| panic!("{} frame at device time {} not in the fixture", msg.kind(), msg.stamp().device_ns));
+        let n = per_stream[&msg.kind()];
+        assert_eq!(msg.seq() % n, original.seq() % n);
+        assert!(same_payload(&msg, original), "{} seq {} differs", msg.kind(), msg.seq());
+        if let Some(prev) = last_seq.insert(msg.kind(), msg.seq()) {
+            assert_eq!(msg.seq(), prev + 1, "{} lost frames", msg.kind());
+        }
+    }
+    assert!(count > 10);
+}
+
+fn same_payload(a: &StreamMessage, b: &StreamMessage) -> bool {
+    match (a, b) {
+        (StreamMessage::Depth(a), StreamMessage::Depth(b)) | (StreamMessage::Color(a), StreamMessage::Color(b)) => {
+            a.payload == b.payload
+        }
+        (StreamMessage::Probe(a), StreamMessage::Probe(b)) => a.payload == b.payload,
+        (StreamMessage::Markers(a), StreamMessage::Markers(b)) => a.payload == b.payload,
+        (StreamMessage::Lamp(a), StreamMessage::Lamp(b)) => a.payload == b.payload,
+        _ => false,
+    }
+}
