@@ -23,7 +23,7 @@ need_debian_packages() {
 
 need_rust() {
     if ! command -v cargo >/dev/null; then
-        echo "relight needs a Rust toolchain (1.85 or newer) with cargo, rustfmt and clippy:" >&2
+        echo "relight needs a Rust toolchain (1.88 or newer) with cargo, rustfmt and clippy:" >&2
         echo "  https://rustup.rs, then: rustup component add rustfmt clippy" >&2
         exit 1
     fi

@@ -234,6 +234,7 @@ impl SyntheticRig {
                 }
             }
         }
+        projector_shadow(&mut depth);
         (depth, color)
     }
 
@@ -307,6 +308,27 @@ impl SyntheticRig {
     }
 }
 
+/// Kinect-like holes beside foreground edges: the IR projector sits to one side of the depth
+/// camera, so a surface just right of a nearer edge gets no pattern and no depth.
+fn projector_shadow(depth: &mut Image) {
+    const SHADOW_PX: usize = 2;
+    const STEP_MM: u16 = 50;
+    let w = depth.width() as usize;
+    let Some(d) = depth.as_u16_mut() else { return };
+    for row in d.chunks_mut(w.max(1)) {
+        let original = row.to_vec();
+        for x in 0..w {
+            let occluded = (1..=SHADOW_PX.min(x)).any(|k| {
+                let near = original[x - k];
+                near != 0 && original[x] > near.saturating_add(STEP_MM)
+            });
+            if occluded {
+                row[x] = 0;
+            }
+        }
+    }
+}
+
 /// Nearest hit of the ball or the floor: distance, normal, albedo.
 fn cast(origin: Vec3, dir: Vec3) -> Option<(f32, Vec3, Vec3)> {
     let mut best: Option<(f32, Vec3, Vec3)> = None;
@@ -375,8 +397,10 @@ mod tests {
         let eye = rig.world_from_camera(0).translation;
         let expected = (eye - BALL_CENTER).length() - BALL_RADIUS;
         assert!((centre_m - expected).abs() < 0.002, "{centre_m} vs {expected}");
-        let holes = depth.as_u16().unwrap().iter().filter(|&&d| d == 0).count();
-        assert!(holes > 0 && holes < (w * h / 4) as usize, "{holes} holes");
+        // Kinect-like holes: invalid pixels right of the ball's edge, with valid floor beyond.
+        let d = depth.as_u16().unwrap();
+        let holes = (0..d.len() - 3).filter(|&i| d[i] != 0 && d[i + 1] == 0 && d[i + 3] != 0).count();
+        assert!(holes > 4, "{holes} holes inside the image");
         let c = 3 * ((h / 2) * w + w / 2) as usize;
         let rgb = &color.as_u8().unwrap()[c..c + 3];
         assert!(rgb[0] > rgb[1] && rgb[0] > rgb[2], "the ball is red: {rgb:?}");
