@@ -1,6 +1,6 @@
 //! The device contract and the runner thread that enforces it.
 
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -154,7 +154,10 @@ impl DeviceStatus {
     }
 
     fn set_error(&self, error: &DeviceError) {
-        *self.last_error.lock().unwrap_or_else(PoisonError::into_inner) = Some(error.to_string());
+        *self
+            .last_error
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some(error.to_string());
     }
 
     fn count_frame(&self, stream: StreamKind) {
@@ -173,7 +176,10 @@ impl DeviceStatus {
 }
 
 fn stream_index(stream: StreamKind) -> usize {
-    StreamKind::ALL.iter().position(|&k| k == stream).unwrap_or(0)
+    StreamKind::ALL
+        .iter()
+        .position(|&k| k == stream)
+        .unwrap_or(0)
 }
 
 /// What a running device sees of the world: where to publish, whether to stop, and (for
@@ -282,7 +288,11 @@ impl DeviceRunner {
         backoff: Backoff,
     ) -> std::io::Result<Self> {
         let name = name.into();
-        let status = Arc::new(DeviceStatus::new(name.clone(), device.backend(), device.streams()));
+        let status = Arc::new(DeviceStatus::new(
+            name.clone(),
+            device.backend(),
+            device.streams(),
+        ));
         let stop = Arc::new(AtomicBool::new(false));
         let (steps_tx, steps_rx) = crossbeam_channel::unbounded();
         let ctx = DeviceContext {
@@ -440,7 +450,12 @@ mod tests {
             initial: Duration::from_millis(1),
             max: Duration::from_millis(4),
         };
-        let device = Flaky { per_run: 5, refusals: 2, seq: 0, runs: 0 };
+        let device = Flaky {
+            per_run: 5,
+            refusals: 2,
+            seq: 0,
+            runs: 0,
+        };
         let mut runner = DeviceRunner::spawn("lamp", Box::new(device), bus, backoff).unwrap();
         let deadline = Instant::now() + Duration::from_secs(10);
         while !runner.is_finished() && Instant::now() < deadline {
@@ -452,7 +467,9 @@ mod tests {
         assert_eq!(status.frames(), 15, "three runs of five frames");
         assert_eq!(status.reconnects(), 3);
         assert!(status.last_error().unwrap().contains("cable pulled"));
-        let seqs: Vec<u64> = std::iter::from_fn(|| sub.try_recv()).map(|f| f.seq).collect();
+        let seqs: Vec<u64> = std::iter::from_fn(|| sub.try_recv())
+            .map(|f| f.seq)
+            .collect();
         assert_eq!(seqs, (1..=15).collect::<Vec<_>>());
     }
 
@@ -478,7 +495,8 @@ mod tests {
     #[test]
     fn configuration_errors_are_not_retried() {
         let bus = Arc::new(Bus::new());
-        let mut runner = DeviceRunner::spawn("bad", Box::new(BadConfig), bus, Backoff::default()).unwrap();
+        let mut runner =
+            DeviceRunner::spawn("bad", Box::new(BadConfig), bus, Backoff::default()).unwrap();
         let deadline = Instant::now() + Duration::from_secs(5);
         while !runner.is_finished() && Instant::now() < deadline {
             std::thread::sleep(Duration::from_millis(2));
@@ -486,6 +504,12 @@ mod tests {
         assert!(runner.is_finished());
         runner.stop();
         assert_eq!(runner.status().state(), DeviceState::Stopped);
-        assert!(runner.status().last_error().unwrap().contains("no such file"));
+        assert!(
+            runner
+                .status()
+                .last_error()
+                .unwrap()
+                .contains("no such file")
+        );
     }
 }

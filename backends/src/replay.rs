@@ -228,7 +228,10 @@ impl Device for Replay {
             if published == 0 {
                 return Err(DeviceError::Config {
                     device: "replay".into(),
-                    reason: format!("{} holds no readable frame to loop over", self.config.path.display()),
+                    reason: format!(
+                        "{} holds no readable frame to loop over",
+                        self.config.path.display()
+                    ),
                 });
             }
             tracing::debug!(path = %self.config.path.display(), "replay looping");
@@ -266,11 +269,15 @@ mod tests {
         (path, messages)
     }
 
-    fn run_to_end(config: ReplayConfig, sub_capacity: usize) -> (Vec<StreamMessage>, Arc<crate::DeviceStatus>) {
+    fn run_to_end(
+        config: ReplayConfig,
+        sub_capacity: usize,
+    ) -> (Vec<StreamMessage>, Arc<crate::DeviceStatus>) {
         let bus = Arc::new(Bus::new());
         let sub = bus.all.subscribe(sub_capacity);
         let replay = Replay::new(config).unwrap();
-        let mut runner = DeviceRunner::spawn("replay", Box::new(replay), bus, Backoff::default()).unwrap();
+        let mut runner =
+            DeviceRunner::spawn("replay", Box::new(replay), bus, Backoff::default()).unwrap();
         let deadline = Instant::now() + Duration::from_secs(20);
         let mut got = Vec::new();
         while !(runner.is_finished() && sub.is_empty()) && Instant::now() < deadline {
@@ -286,12 +293,19 @@ mod tests {
     fn fast_replay_publishes_every_frame_in_order_with_payloads_intact() {
         let dir = tempfile::tempdir().unwrap();
         let (path, source) = write_recording(dir.path(), 9);
-        let config = ReplayConfig { path, mode: ReplayMode::Fast, looping: false };
+        let config = ReplayConfig {
+            path,
+            mode: ReplayMode::Fast,
+            looping: false,
+        };
         let (got, status) = run_to_end(config, 1024);
         assert_eq!(status.state(), DeviceState::Stopped);
         assert_eq!(got.len(), source.len());
         for (g, s) in got.iter().zip(&source) {
-            assert_eq!((g.kind(), g.seq(), g.stamp().device_ns), (s.kind(), s.seq(), s.stamp().device_ns));
+            assert_eq!(
+                (g.kind(), g.seq(), g.stamp().device_ns),
+                (s.kind(), s.seq(), s.stamp().device_ns)
+            );
         }
         // Host stamps keep the recorded spacing.
         let spacing = |m: &[StreamMessage]| m[5].stamp().host_ns - m[0].stamp().host_ns;
@@ -304,8 +318,20 @@ mod tests {
         let (path, source) = write_recording(dir.path(), 3);
         let bus = Arc::new(Bus::new());
         let sub = bus.depth.subscribe(64);
-        let config = ReplayConfig { path, mode: ReplayMode::Fast, looping: true };
-        let mut runner = DeviceRunner::spawn("replay", Box::new(Replay::new(config).unwrap()), bus, Backoff::default()).unwrap();
+        // Stepped, so a slow test thread cannot lose frames to drop-oldest: three passes.
+        let config = ReplayConfig {
+            path,
+            mode: ReplayMode::Stepped,
+            looping: true,
+        };
+        let mut runner = DeviceRunner::spawn(
+            "replay",
+            Box::new(Replay::new(config).unwrap()),
+            bus,
+            Backoff::default(),
+        )
+        .unwrap();
+        runner.step(3 * source.len() as u32);
         let mut frames = Vec::new();
         while frames.len() < 9 {
             if let Some(f) = sub.recv_timeout(Duration::from_secs(5)) {
@@ -315,11 +341,19 @@ mod tests {
             }
         }
         runner.stop();
-        let depth_in_source = source.iter().filter(|m| m.kind() == StreamKind::Depth).count();
+        let depth_in_source = source
+            .iter()
+            .filter(|m| m.kind() == StreamKind::Depth)
+            .count();
         assert_eq!(depth_in_source, 3);
         let seqs: Vec<u64> = frames.iter().map(|f| f.seq).collect();
         assert_eq!(seqs, (0..9).collect::<Vec<_>>());
-        assert!(frames.windows(2).all(|w| w[1].stamp.host_ns > w[0].stamp.host_ns));
+        assert!(
+            frames
+                .windows(2)
+                .all(|w| w[1].stamp.host_ns > w[0].stamp.host_ns)
+        );
+        assert_eq!(sub.dropped(), 0);
     }
 
     #[test]
@@ -328,27 +362,66 @@ mod tests {
         let (path, _) = write_recording(dir.path(), 6);
         let bus = Arc::new(Bus::new());
         let sub = bus.all.subscribe(256);
-        let config = ReplayConfig { path, mode: ReplayMode::Stepped, looping: false };
-        let mut runner = DeviceRunner::spawn("replay", Box::new(Replay::new(config).unwrap()), bus, Backoff::default()).unwrap();
-        assert!(sub.recv_timeout(Duration::from_millis(200)).is_none(), "nothing before a step");
+        let config = ReplayConfig {
+            path,
+            mode: ReplayMode::Stepped,
+            looping: false,
+        };
+        let mut runner = DeviceRunner::spawn(
+            "replay",
+            Box::new(Replay::new(config).unwrap()),
+            bus,
+            Backoff::default(),
+        )
+        .unwrap();
+        assert!(
+            sub.recv_timeout(Duration::from_millis(200)).is_none(),
+            "nothing before a step"
+        );
         runner.step(4);
-        let got: Vec<_> = (0..4).filter_map(|_| sub.recv_timeout(Duration::from_secs(5))).collect();
+        let got: Vec<_> = (0..4)
+            .filter_map(|_| sub.recv_timeout(Duration::from_secs(5)))
+            .collect();
         assert_eq!(got.len(), 4);
-        assert!(sub.recv_timeout(Duration::from_millis(200)).is_none(), "exactly four");
+        assert!(
+            sub.recv_timeout(Duration::from_millis(200)).is_none(),
+            "exactly four"
+        );
         runner.stop();
     }
 
     #[test]
     fn missing_or_garbage_recording_is_a_config_error() {
         let dir = tempfile::tempdir().unwrap();
-        let missing = ReplayConfig { path: dir.path().join("nope.mcap"), mode: ReplayMode::Fast, looping: false };
+        let missing = ReplayConfig {
+            path: dir.path().join("nope.mcap"),
+            mode: ReplayMode::Fast,
+            looping: false,
+        };
         let err = Replay::new(missing).unwrap_err();
-        assert!(matches!(err, DeviceError::Config { .. }) && err.to_string().contains("nope.mcap"), "{err}");
+        assert!(
+            matches!(err, DeviceError::Config { .. }) && err.to_string().contains("nope.mcap"),
+            "{err}"
+        );
         let garbage = dir.path().join("garbage.mcap");
         std::fs::write(&garbage, b"this is not an mcap file").unwrap();
-        let err = Replay::new(ReplayConfig { path: garbage, mode: ReplayMode::Fast, looping: false }).unwrap_err();
+        let err = Replay::new(ReplayConfig {
+            path: garbage,
+            mode: ReplayMode::Fast,
+            looping: false,
+        })
+        .unwrap_err();
         assert!(err.to_string().contains("garbage.mcap"), "{err}");
-        let bad_speed = ReplayConfig { path: dir.path().join("x"), mode: ReplayMode::Realtime { speed: 0.0 }, looping: false };
-        assert!(Replay::new(bad_speed).unwrap_err().to_string().contains("speed"));
+        let bad_speed = ReplayConfig {
+            path: dir.path().join("x"),
+            mode: ReplayMode::Realtime { speed: 0.0 },
+            looping: false,
+        };
+        assert!(
+            Replay::new(bad_speed)
+                .unwrap_err()
+                .to_string()
+                .contains("speed")
+        );
     }
 }

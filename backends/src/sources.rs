@@ -196,7 +196,7 @@ mod tests {
             if self.reads > self.frames {
                 return Ok(Capture::EndOfStream);
             }
-            if self.reads % 3 == 0 {
+            if self.reads.is_multiple_of(3) {
                 return Err(DeviceError::BadData {
                     device: "garbled".into(),
                     reason: "short USB transfer".into(),
@@ -217,8 +217,15 @@ mod tests {
     fn bad_frames_are_counted_and_good_ones_published() {
         let bus = Arc::new(Bus::new());
         let sub = bus.depth.subscribe(32);
-        let device = SourceDevice::new(Garbled { reads: 0, frames: 9 }, 16);
-        let mut runner = DeviceRunner::spawn("depth", Box::new(device), bus, Backoff::default()).unwrap();
+        let device = SourceDevice::new(
+            Garbled {
+                reads: 0,
+                frames: 9,
+            },
+            16,
+        );
+        let mut runner =
+            DeviceRunner::spawn("depth", Box::new(device), bus, Backoff::default()).unwrap();
         let deadline = Instant::now() + Duration::from_secs(5);
         while !runner.is_finished() && Instant::now() < deadline {
             std::thread::sleep(Duration::from_millis(2));
@@ -228,7 +235,14 @@ mod tests {
         assert_eq!(runner.status().drops(), 3);
         let mut seqs = Vec::new();
         while let Some(frame) = sub.try_recv() {
-            assert!(frame.payload.as_u16().unwrap().iter().all(|&d| u64::from(d) == frame.seq));
+            assert!(
+                frame
+                    .payload
+                    .as_u16()
+                    .unwrap()
+                    .iter()
+                    .all(|&d| u64::from(d) == frame.seq)
+            );
             seqs.push(frame.seq);
         }
         assert_eq!(seqs, vec![1, 2, 4, 5, 7, 8]);

@@ -169,7 +169,7 @@ impl SyntheticRig {
             ))),
         ];
         let probe_every = self.settings.probe_every.max(1);
-        if i % probe_every == 0 && !self.settings.probe_exposures_us.is_empty() {
+        if i.is_multiple_of(probe_every) && !self.settings.probe_exposures_us.is_empty() {
             let n = i / probe_every;
             let exposures = &self.settings.probe_exposures_us;
             let exposure_us = exposures[n as usize % exposures.len()];
@@ -180,7 +180,7 @@ impl SyntheticRig {
             ))));
         }
         let lamp_every = self.settings.lamp_every.max(1);
-        if i % lamp_every == 0 {
+        if i.is_multiple_of(lamp_every) {
             out.push(StreamMessage::Lamp(Arc::new(Frame::new(
                 u64::from(i / lamp_every),
                 self.stamp(i, 7_000_000),
@@ -207,7 +207,9 @@ impl SyntheticRig {
                     1.0,
                 );
                 let ray_in_camera = Vec3::new(ray_optical.x, -ray_optical.y, -ray_optical.z);
-                let dir = world_from_camera.transform_vector(ray_in_camera).normalize();
+                let dir = world_from_camera
+                    .transform_vector(ray_in_camera)
+                    .normalize();
                 let i_px = (y * w + x) as usize;
                 let Some((t, normal, albedo)) = cast(origin, dir) else {
                     continue;
@@ -225,7 +227,11 @@ impl SyntheticRig {
                 let dist2 = to_lamp.length_squared().max(1e-4);
                 let l = to_lamp / dist2.sqrt();
                 let lit = cast(point + normal * 1e-3, l).is_none_or(|(tl, _, _)| tl * tl > dist2);
-                let irradiance = if lit { normal.dot(l).max(0.0) / dist2 } else { 0.0 };
+                let irradiance = if lit {
+                    normal.dot(l).max(0.0) / dist2
+                } else {
+                    0.0
+                };
                 let radiance = albedo * (0.08 + 0.6 * irradiance);
                 if let Some(c) = color.as_u8_mut() {
                     for (k, v) in radiance.to_array().into_iter().enumerate() {
@@ -363,8 +369,16 @@ fn cast(origin: Vec3, dir: Vec3) -> Option<(f32, Vec3, Vec3)> {
 }
 
 fn srgb8(linear: f32) -> u8 {
-    let l = if linear.is_finite() { linear.clamp(0.0, 1.0) } else { 0.0 };
-    let c = if l <= 0.003_130_8 { l * 12.92 } else { 1.055 * l.powf(1.0 / 2.4) - 0.055 };
+    let l = if linear.is_finite() {
+        linear.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let c = if l <= 0.003_130_8 {
+        l * 12.92
+    } else {
+        1.055 * l.powf(1.0 / 2.4) - 0.055
+    };
     (c * 255.0).round() as u8
 }
 
@@ -375,11 +389,17 @@ mod tests {
 
     #[test]
     fn generation_is_deterministic_and_time_ordered() {
-        let rig = SyntheticRig::new(SyntheticSettings { frames: 6, ..Default::default() });
+        let rig = SyntheticRig::new(SyntheticSettings {
+            frames: 6,
+            ..Default::default()
+        });
         let a: Vec<_> = rig.messages().collect();
         let b: Vec<_> = rig.messages().collect();
         assert_eq!(a, b);
-        assert!(a.windows(2).all(|w| w[0].stamp().host_ns <= w[1].stamp().host_ns));
+        assert!(
+            a.windows(2)
+                .all(|w| w[0].stamp().host_ns <= w[1].stamp().host_ns)
+        );
         let count = |k| a.iter().filter(|m| m.kind() == k).count();
         assert_eq!(count(StreamKind::Depth), 6);
         assert_eq!(count(StreamKind::Color), 6);
@@ -396,14 +416,22 @@ mod tests {
         let centre_m = depth.depth_m(w / 2, h / 2).unwrap();
         let eye = rig.world_from_camera(0).translation;
         let expected = (eye - BALL_CENTER).length() - BALL_RADIUS;
-        assert!((centre_m - expected).abs() < 0.002, "{centre_m} vs {expected}");
+        assert!(
+            (centre_m - expected).abs() < 0.002,
+            "{centre_m} vs {expected}"
+        );
         // Kinect-like holes: invalid pixels right of the ball's edge, with valid floor beyond.
         let d = depth.as_u16().unwrap();
-        let holes = (0..d.len() - 3).filter(|&i| d[i] != 0 && d[i + 1] == 0 && d[i + 3] != 0).count();
+        let holes = (0..d.len() - 3)
+            .filter(|&i| d[i] != 0 && d[i + 1] == 0 && d[i + 3] != 0)
+            .count();
         assert!(holes > 4, "{holes} holes inside the image");
         let c = 3 * ((h / 2) * w + w / 2) as usize;
         let rgb = &color.as_u8().unwrap()[c..c + 3];
-        assert!(rgb[0] > rgb[1] && rgb[0] > rgb[2], "the ball is red: {rgb:?}");
+        assert!(
+            rgb[0] > rgb[1] && rgb[0] > rgb[2],
+            "the ball is red: {rgb:?}"
+        );
     }
 
     #[test]

@@ -8,7 +8,9 @@ use serde::{Deserialize, Serialize};
 ///
 /// Device clocks are monotonic per device but unrelated across devices; the synchroniser matches
 /// streams on `host_ns`, and `device_ns` is kept for drop detection and jitter analysis.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize,
+)]
 pub struct Timestamp {
     pub device_ns: u64,
     pub host_ns: u64,
@@ -22,7 +24,10 @@ impl Timestamp {
     /// A timestamp whose device and host clocks are both the host's wall clock now.
     pub fn now() -> Self {
         let host_ns = host_now_ns();
-        Self { device_ns: host_ns, host_ns }
+        Self {
+            device_ns: host_ns,
+            host_ns,
+        }
     }
 }
 
@@ -47,7 +52,11 @@ pub struct Frame<T> {
 
 impl<T> Frame<T> {
     pub fn new(seq: u64, stamp: Timestamp, payload: T) -> Self {
-        Self { seq, stamp, payload }
+        Self {
+            seq,
+            stamp,
+            payload,
+        }
     }
 }
 
@@ -285,7 +294,7 @@ impl Image {
         }
         let i = y as usize * self.width as usize + x as usize;
         let depth_m = match (self.format, &self.pixels) {
-            (PixelFormat::DepthU16Mm, Pixels::U16(v)) => f32::from(v[i]) * 1e-3,
+            (PixelFormat::DepthU16Mm, Pixels::U16(v)) => f32::from(v[i]) / 1000.0,
             (PixelFormat::DepthF32M, Pixels::F32(v)) => v[i],
             _ => return None,
         };
@@ -298,7 +307,7 @@ impl Image {
         out.reshape(self.width, self.height, PixelFormat::DepthF32M);
         if let (Pixels::U16(src), Pixels::F32(dst)) = (&self.pixels, &mut out.pixels) {
             for (d, s) in dst.iter_mut().zip(src) {
-                *d = f32::from(*s) * 1e-3;
+                *d = f32::from(*s) / 1000.0;
             }
         }
         Ok(())
@@ -310,8 +319,12 @@ impl Image {
         out.reserve(self.pixel_count() * self.format.bytes_per_pixel());
         match &self.pixels {
             Pixels::U8(v) => out.extend_from_slice(v),
-            Pixels::U16(v) => v.iter().for_each(|s| out.extend_from_slice(&s.to_le_bytes())),
-            Pixels::F32(v) => v.iter().for_each(|s| out.extend_from_slice(&s.to_le_bytes())),
+            Pixels::U16(v) => v
+                .iter()
+                .for_each(|s| out.extend_from_slice(&s.to_le_bytes())),
+            Pixels::F32(v) => v
+                .iter()
+                .for_each(|s| out.extend_from_slice(&s.to_le_bytes())),
         }
     }
 
@@ -347,7 +360,10 @@ impl Image {
                     .collect(),
             ),
         };
-        debug_assert_eq!(pixels.len(), width as usize * height as usize * format.channels());
+        debug_assert_eq!(
+            pixels.len(),
+            width as usize * height as usize * format.channels()
+        );
         Ok(Image {
             width,
             height,
@@ -367,22 +383,38 @@ mod tests {
             let mut image = Image::new(5, 3, format);
             match &mut image.pixels {
                 Pixels::U8(v) => v.iter_mut().enumerate().for_each(|(i, p)| *p = i as u8),
-                Pixels::U16(v) => v.iter_mut().enumerate().for_each(|(i, p)| *p = 1000 + i as u16),
-                Pixels::F32(v) => v.iter_mut().enumerate().for_each(|(i, p)| *p = i as f32 * 0.25),
+                Pixels::U16(v) => v
+                    .iter_mut()
+                    .enumerate()
+                    .for_each(|(i, p)| *p = 1000 + i as u16),
+                Pixels::F32(v) => v
+                    .iter_mut()
+                    .enumerate()
+                    .for_each(|(i, p)| *p = i as f32 * 0.25),
             }
             let mut bytes = Vec::new();
             image.write_bytes(&mut bytes);
             assert_eq!(bytes.len(), 15 * format.bytes_per_pixel());
             let back = Image::from_bytes(5, 3, format, &bytes).unwrap();
             assert_eq!(back, image);
-            assert_eq!(PixelFormat::from_ros_encoding(format.ros_encoding()), Some(format));
+            assert_eq!(
+                PixelFormat::from_ros_encoding(format.ros_encoding()),
+                Some(format)
+            );
         }
     }
 
     #[test]
     fn wrong_byte_count_is_an_error_not_a_panic() {
         let err = Image::from_bytes(4, 4, PixelFormat::DepthU16Mm, &[0; 31]).unwrap_err();
-        assert!(matches!(err, ImageError::SizeMismatch { expected: 32, actual: 31, .. }));
+        assert!(matches!(
+            err,
+            ImageError::SizeMismatch {
+                expected: 32,
+                actual: 31,
+                ..
+            }
+        ));
     }
 
     #[test]

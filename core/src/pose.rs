@@ -39,7 +39,8 @@ impl Pose {
     /// A camera pose at `eye` looking at `target` (camera looks down −Z, +Y up): `world_from_camera`.
     pub fn look_at(eye: Vec3, target: Vec3, up: Vec3) -> Self {
         let camera_from_world = Mat4::look_at_rh(eye, target, up);
-        let (_, rotation, translation) = camera_from_world.inverse().to_scale_rotation_translation();
+        let (_, rotation, translation) =
+            camera_from_world.inverse().to_scale_rotation_translation();
         Self::new(rotation, translation)
     }
 
@@ -89,7 +90,10 @@ mod tests {
 
     #[test]
     fn inverse_composes_to_identity() {
-        let world_from_camera = Pose::new(Quat::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 2.0), Vec3::new(1.0, -2.0, 0.5));
+        let world_from_camera = Pose::new(
+            Quat::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 2.0),
+            Vec3::new(1.0, -2.0, 0.5),
+        );
         let p = Vec3::new(0.2, 0.4, -3.0);
         let back = (world_from_camera.inverse() * world_from_camera).transform_point(p);
         assert!((back - p).length() < 1e-5);

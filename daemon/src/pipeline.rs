@@ -119,7 +119,12 @@ fn core_sync_config(sync: &config::SyncConfig) -> CoreSyncConfig {
 /// A recording without, say, a lamp channel would leave every frame set waiting for a lamp
 /// message that never comes; expect only what the recording holds, and say so.
 fn expect_only_recorded_streams(sync: &mut CoreSyncConfig, recorded: &[StreamKind], path: &Path) {
-    let absent: Vec<StreamKind> = sync.expected.iter().copied().filter(|k| !recorded.contains(k)).collect();
+    let absent: Vec<StreamKind> = sync
+        .expected
+        .iter()
+        .copied()
+        .filter(|k| !recorded.contains(k))
+        .collect();
     if !absent.is_empty() {
         tracing::warn!(path = %path.display(), ?absent, "recording lacks configured streams; not waiting for them");
         sync.expected.retain(|k| recorded.contains(k));
@@ -134,7 +139,7 @@ impl Pipeline {
     /// Open the configured sources, build the configured engine and start every thread.
     pub fn start(config: Config, options: PipelineOptions) -> anyhow::Result<Self> {
         let registry = EngineRegistry::new();
-        let (engine, engine_params) = registry
+        let built = registry
             .build(&config.engine.name, &params_map(&config.engine.params))
             .with_context(|| format!("{}: [engine]", config.path.display()))?;
         let bus = Arc::new(Bus::new());
@@ -150,7 +155,9 @@ impl Pipeline {
                 let device = Replay::new(ReplayConfig {
                     path: replay.path.clone(),
                     mode: match replay.mode {
-                        config::ReplayMode::Realtime => ReplayMode::Realtime { speed: replay.speed },
+                        config::ReplayMode::Realtime => ReplayMode::Realtime {
+                            speed: replay.speed,
+                        },
                         config::ReplayMode::Fast => ReplayMode::Fast,
                         config::ReplayMode::Stepped => ReplayMode::Stepped,
                     },
@@ -159,7 +166,12 @@ impl Pipeline {
                 .with_context(|| format!("{}: [replay]", config.path.display()))?;
                 meta.calibration = device.reader().and_then(|r| r.meta().calibration.clone());
                 expect_only_recorded_streams(&mut sync, &device.streams(), &replay.path);
-                runners.push(DeviceRunner::spawn("replay", Box::new(device), bus.clone(), Backoff::default())?);
+                runners.push(DeviceRunner::spawn(
+                    "replay",
+                    Box::new(device),
+                    bus.clone(),
+                    Backoff::default(),
+                )?);
             }
             SourceConfig::Sim(_) => anyhow::bail!(
                 "{}: [sim] sources are not built yet; record one with `relightd synth` and use [replay]",
@@ -179,13 +191,16 @@ impl Pipeline {
         let synchronizer = Synchronizer::new(sync)
             .with_context(|| format!("{}: [sync]", config.path.display()))?;
         let recorder = Recorder::spawn(&bus, config.recorder.queue_frames, meta)?;
-        let autostart = config.recorder.autostart.then(|| config.recorder.dir.clone());
+        let autostart = config
+            .recorder
+            .autostart
+            .then(|| config.recorder.dir.clone());
         let shared = Arc::new(Shared {
             started: Instant::now(),
             registry,
             bus,
             engine_name: Mutex::new(config.engine.name.clone()),
-            engine_params: Mutex::new(engine_params),
+            engine_params: Mutex::new(built.params),
             config: Mutex::new(config),
             pending: Mutex::new(None),
             pending_sync: Mutex::new(None),
@@ -217,7 +232,7 @@ impl Pipeline {
                     RenderLoop {
                         shared: &shared,
                         synchronizer,
-                        engine,
+                        engine: built.engine,
                         relit: RelitFrame::default(),
                         arrivals: VecDeque::new(),
                         exit_at_end: options.exit_at_end,
@@ -308,9 +323,10 @@ impl RenderLoop<'_> {
         // The synchroniser's clock: the wall clock, or the data when a replay runs ahead of it.
         let mut data_clock_ns = 0u64;
         while !shared.stop.load(Ordering::Acquire) {
-            shared
-                .heartbeat_ms
-                .store(shared.started.elapsed().as_millis() as u64, Ordering::Release);
+            shared.heartbeat_ms.store(
+                shared.started.elapsed().as_millis() as u64,
+                Ordering::Release,
+            );
             if let Some(sync) = lock(&shared.pending_sync).take() {
                 match Synchronizer::new(sync) {
                     Ok(s) => self.synchronizer = s,
@@ -334,13 +350,20 @@ impl RenderLoop<'_> {
             while let Some(set) = self.synchronizer.pop_ready(now_ns) {
                 self.process(set);
             }
-            let sources_ended = shared.devices.iter().all(|d| d.state() == BackendState::Stopped);
-            if sources_ended && subscription.is_empty() && !shared.finished.load(Ordering::Acquire) {
+            let sources_ended = shared
+                .devices
+                .iter()
+                .all(|d| d.state() == BackendState::Stopped);
+            if sources_ended && subscription.is_empty() && !shared.finished.load(Ordering::Acquire)
+            {
                 for set in self.synchronizer.flush() {
                     self.process(set);
                 }
                 shared.finished.store(true, Ordering::Release);
-                tracing::info!(frame_sets = shared.frame_sets.load(Ordering::Relaxed), "all sources ended");
+                tracing::info!(
+                    frame_sets = shared.frame_sets.load(Ordering::Relaxed),
+                    "all sources ended"
+                );
                 if self.exit_at_end {
                     break;
                 }
@@ -368,7 +391,11 @@ impl RenderLoop<'_> {
             return;
         };
         match pending {
-            Pending::Engine { engine, name, params } => {
+            Pending::Engine {
+                engine,
+                name,
+                params,
+            } => {
                 self.engine = engine;
                 *lock(&self.shared.engine_params) = params;
                 tracing::info!(engine = %name, "engine switched");
@@ -432,13 +459,14 @@ impl RenderLoop<'_> {
     fn write_output(&self, seq: u64) {
         let output = lock(&self.shared.config).output.clone();
         let Some(dir) = output.dir else { return };
-        if seq % u64::from(output.every_n.max(1)) != 0 {
+        if !seq.is_multiple_of(u64::from(output.every_n.max(1))) {
             return;
         }
         let path = dir.join(format!("composite_{seq:06}.png"));
-        if let Err(error) = std::fs::create_dir_all(&dir).map_err(|e| e.to_string()).and_then(|()| {
-            write_png(&path, &self.relit.composite).map_err(|e| e.to_string())
-        }) {
+        if let Err(error) = std::fs::create_dir_all(&dir)
+            .map_err(|e| e.to_string())
+            .and_then(|()| write_png(&path, &self.relit.composite).map_err(|e| e.to_string()))
+        {
             tracing::warn!(%error, "output frame not written");
         }
     }
@@ -456,7 +484,8 @@ impl RenderLoop<'_> {
     }
 
     fn write_snapshot(&self, dir: &Path) -> Result<Vec<PathBuf>, String> {
-        std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+        std::fs::create_dir_all(dir)
+            .map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
         let stem = format!("snapshot_{:06}", self.relit.seq);
         let path = dir.join(format!("{stem}_composite.png"));
         write_png(&path, &self.relit.composite).map_err(|e| e.to_string())?;
@@ -531,17 +560,26 @@ struct PipelineControl {
 }
 
 impl PipelineControl {
-    fn build_engine(&self, name: &str, params: &Map<String, Value>) -> Result<Pending, ControlError> {
-        let (engine, params) = self.shared.registry.build(name, params).map_err(|e| match e {
-            relight_engines::registry::RegistryError::UnknownEngine { .. } => {
-                ControlError::engine_unknown(name).with_data(json!({ "known": self.shared.registry.names() }))
-            }
-            other => ControlError::invalid_params(other.to_string()),
-        })?;
+    fn build_engine(
+        &self,
+        name: &str,
+        params: &Map<String, Value>,
+    ) -> Result<Pending, ControlError> {
+        let built = self
+            .shared
+            .registry
+            .build(name, params)
+            .map_err(|e| match e {
+                relight_engines::registry::RegistryError::UnknownEngine { .. } => {
+                    ControlError::engine_unknown(name)
+                        .with_data(json!({ "known": self.shared.registry.names() }))
+                }
+                other => ControlError::invalid_params(other.to_string()),
+            })?;
         Ok(Pending::Engine {
-            engine,
+            engine: built.engine,
             name: name.to_owned(),
-            params,
+            params: built.params,
         })
     }
 }
@@ -599,8 +637,9 @@ impl ControlTarget for PipelineControl {
             Some(path) => path,
             None => {
                 let dir = lock(&self.shared.config).recorder.dir.clone();
-                std::fs::create_dir_all(&dir)
-                    .map_err(|e| ControlError::io(format!("cannot create {}", dir.display()), &e))?;
+                std::fs::create_dir_all(&dir).map_err(|e| {
+                    ControlError::io(format!("cannot create {}", dir.display()), &e)
+                })?;
                 recording_path(&dir)
             }
         };
@@ -608,7 +647,10 @@ impl ControlTarget for PipelineControl {
     }
 
     fn record_stop(&self) -> Result<Value, ControlError> {
-        self.shared.recorder.stop_recording().map_err(ControlError::failed)
+        self.shared
+            .recorder
+            .stop_recording()
+            .map_err(ControlError::failed)
     }
 
     fn snapshot(&self, path: Option<PathBuf>) -> Result<Vec<PathBuf>, ControlError> {
@@ -659,7 +701,10 @@ impl ControlTarget for PipelineControl {
         for (name, changed) in [
             ("daemon", new.daemon != old.daemon),
             ("source", new.source != old.source),
-            ("recorder.queue_frames", new.recorder.queue_frames != old.recorder.queue_frames),
+            (
+                "recorder.queue_frames",
+                new.recorder.queue_frames != old.recorder.queue_frames,
+            ),
         ] {
             if changed {
                 restart_required.push(name);

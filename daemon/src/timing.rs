@@ -46,7 +46,11 @@ impl StageStats {
         self.last_ms
     }
     pub fn mean_ms(&self) -> f64 {
-        if self.frames == 0 { 0.0 } else { self.total_ms / self.frames as f64 }
+        if self.frames == 0 {
+            0.0
+        } else {
+            self.total_ms / self.frames as f64
+        }
     }
 
     /// The `q`-quantile (0..=1) of the recent window, nearest-rank.

@@ -99,7 +99,9 @@ fn ctl_json(socket: &Path, args: &[&str]) -> Value {
 /// Send raw bytes on a fresh connection and read one response line.
 fn raw(socket: &Path, bytes: &[u8]) -> Value {
     let mut stream = UnixStream::connect(socket).unwrap();
-    stream.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
     stream.write_all(bytes).unwrap();
     let mut line = String::new();
     BufReader::new(stream).read_line(&mut line).unwrap();
@@ -113,7 +115,10 @@ fn wait_for(socket: &Path, what: &str, mut ok: impl FnMut(&Value) -> bool) -> Va
         if ok(&status) {
             return status;
         }
-        assert!(Instant::now() < deadline, "timed out waiting for {what}: {status}");
+        assert!(
+            Instant::now() < deadline,
+            "timed out waiting for {what}: {status}"
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
 }
@@ -125,23 +130,46 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
     let socket = daemon.socket.clone();
 
     // Status: the replay device runs and frame sets flow through the pipeline.
-    let status = wait_for(&socket, "frame sets", |s| s["frame_sets"].as_u64() > Some(5));
+    let status = wait_for(&socket, "frame sets", |s| {
+        s["frame_sets"].as_u64() > Some(5)
+    });
     assert_eq!(status["engine"], "passthrough");
     let devices = status["devices"].as_array().unwrap();
-    assert!(devices.iter().any(|d| d["backend"] == "replay" && d["state"] == "running"), "{status}");
-    let stages: Vec<&str> = status["stages"].as_array().unwrap().iter().map(|s| s["name"].as_str().unwrap()).collect();
-    assert!(stages.contains(&"sync") && stages.contains(&"render"), "{stages:?}");
+    assert!(
+        devices
+            .iter()
+            .any(|d| d["backend"] == "replay" && d["state"] == "running"),
+        "{status}"
+    );
+    let stages: Vec<&str> = status["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["name"].as_str().unwrap())
+        .collect();
+    assert!(
+        stages.contains(&"sync") && stages.contains(&"render"),
+        "{stages:?}"
+    );
     let readable = ctl(&socket, &["status"]);
     assert!(readable.status.success());
     assert!(String::from_utf8_lossy(&readable.stdout).contains("replay"));
 
     // Engines: list, switch at a frame boundary, refuse unknown names and bad parameters.
     let engines = ctl_json(&socket, &["engine", "list"]);
-    let names: Vec<&str> = engines.as_array().unwrap().iter().map(|e| e["name"].as_str().unwrap()).collect();
+    let names: Vec<&str> = engines
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["name"].as_str().unwrap())
+        .collect();
     assert_eq!(names, ["passthrough", "depth_preview"]);
     let unknown = ctl(&socket, &["engine", "set", "dlvp"]);
     assert_eq!(unknown.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&unknown.stderr).contains("passthrough"), "lists known engines");
+    assert!(
+        String::from_utf8_lossy(&unknown.stderr).contains("passthrough"),
+        "lists known engines"
+    );
     ctl_json(&socket, &["engine", "set", "depth_preview"]);
     wait_for(&socket, "engine switch", |s| s["engine"] == "depth_preview");
     let params = ctl_json(&socket, &["engine", "params", "set", "opacity=0.25"]);
@@ -173,11 +201,23 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
     let code = |v: &Value| v["error"]["code"].as_i64();
     assert_eq!(code(&raw(&socket, b"{not json\n")), Some(-32700));
     assert_eq!(code(&raw(&socket, b"42\n")), Some(-32600));
-    assert_eq!(code(&raw(&socket, b"{\"jsonrpc\":\"1.0\",\"id\":1,\"method\":\"status\"}\n")), Some(-32600));
-    let unknown = raw(&socket, b"{\"jsonrpc\":\"2.0\",\"id\":2,\"method\":\"reboot\"}\n");
+    assert_eq!(
+        code(&raw(
+            &socket,
+            b"{\"jsonrpc\":\"1.0\",\"id\":1,\"method\":\"status\"}\n"
+        )),
+        Some(-32600)
+    );
+    let unknown = raw(
+        &socket,
+        b"{\"jsonrpc\":\"2.0\",\"id\":2,\"method\":\"reboot\"}\n",
+    );
     assert_eq!(code(&unknown), Some(-32601));
     assert_eq!(unknown["id"], 2);
-    let wrong_type = raw(&socket, b"{\"jsonrpc\":\"2.0\",\"id\":3,\"method\":\"engine.set\",\"params\":{\"name\":7}}\n");
+    let wrong_type = raw(
+        &socket,
+        b"{\"jsonrpc\":\"2.0\",\"id\":3,\"method\":\"engine.set\",\"params\":{\"name\":7}}\n",
+    );
     assert_eq!(code(&wrong_type), Some(-32602));
     assert_eq!(code(&raw(&socket, b"\xff\xfe\n")), Some(-32700));
     let mut huge = vec![b'['; 200_000];
@@ -187,14 +227,21 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
         &socket,
         json!([{"jsonrpc": "2.0", "id": 1, "method": "rpc.ping"}, {"jsonrpc": "2.0", "id": 2, "method": "nope"}])
             .to_string()
-            .as_bytes(),
+            .as_bytes()
+            .iter()
+            .chain(b"\n")
+            .copied()
+            .collect::<Vec<u8>>()
+            .as_slice(),
     );
     let batch = batch.as_array().expect("batch answered with an array");
     assert_eq!(batch.len(), 2);
     // A client that disconnects mid-request does not hurt.
     {
         let mut stream = UnixStream::connect(&socket).unwrap();
-        stream.write_all(b"{\"jsonrpc\":\"2.0\",\"id\":1,\"meth").unwrap();
+        stream
+            .write_all(b"{\"jsonrpc\":\"2.0\",\"id\":1,\"meth")
+            .unwrap();
     }
     let alive = wait_for(&socket, "progress after hostile requests", |s| {
         s["frame_sets"].as_u64() > status["frame_sets"].as_u64()
@@ -209,7 +256,10 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
         if let Some(exit) = daemon.child.try_wait().unwrap() {
             break exit;
         }
-        assert!(Instant::now() < deadline, "relightd did not stop on SIGTERM");
+        assert!(
+            Instant::now() < deadline,
+            "relightd did not stop on SIGTERM"
+        );
         std::thread::sleep(Duration::from_millis(50));
     };
     assert!(exit.success(), "{exit:?}");
@@ -219,7 +269,11 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
 }
 
 fn send_sigterm(pid: u32) {
-    let status = Command::new("kill").arg("-TERM").arg(pid.to_string()).status().unwrap();
+    let status = Command::new("kill")
+        .arg("-TERM")
+        .arg(pid.to_string())
+        .status()
+        .unwrap();
     assert!(status.success());
 }
 
@@ -237,7 +291,11 @@ fn assert_recording_is_frame_exact(recording: &Path) {
     }
     let recorded = RecordingReader::open(recording).unwrap();
     assert!(recorded.warnings().is_empty(), "{:?}", recorded.warnings());
-    assert_eq!(recorded.meta().calibration, source.meta().calibration, "calibration carried over");
+    assert_eq!(
+        recorded.meta().calibration,
+        source.meta().calibration,
+        "calibration carried over"
+    );
     let mut last_seq: HashMap<StreamKind, u64> = HashMap::new();
     let mut count = 0;
     for msg in recorded.messages() {
@@ -245,10 +303,21 @@ fn assert_recording_is_frame_exact(recording: &Path) {
         count += 1;
         let original = by_device_time
             .get(&(msg.kind(), msg.stamp().device_ns))
-            .unwrap_or_else(|| panic!("{} frame at device time {} not in the fixture", msg.kind(), msg.stamp().device_ns));
+            .unwrap_or_else(|| {
+                panic!(
+                    "{} frame at device time {} not in the fixture",
+                    msg.kind(),
+                    msg.stamp().device_ns
+                )
+            });
         let n = per_stream[&msg.kind()];
         assert_eq!(msg.seq() % n, original.seq() % n);
-        assert!(same_payload(&msg, original), "{} seq {} differs", msg.kind(), msg.seq());
+        assert!(
+            same_payload(&msg, original),
+            "{} seq {} differs",
+            msg.kind(),
+            msg.seq()
+        );
         if let Some(prev) = last_seq.insert(msg.kind(), msg.seq()) {
             assert_eq!(msg.seq(), prev + 1, "{} lost frames", msg.kind());
         }
@@ -258,9 +327,8 @@ fn assert_recording_is_frame_exact(recording: &Path) {
 
 fn same_payload(a: &StreamMessage, b: &StreamMessage) -> bool {
     match (a, b) {
-        (StreamMessage::Depth(a), StreamMessage::Depth(b)) | (StreamMessage::Color(a), StreamMessage::Color(b)) => {
-            a.payload == b.payload
-        }
+        (StreamMessage::Depth(a), StreamMessage::Depth(b))
+        | (StreamMessage::Color(a), StreamMessage::Color(b)) => a.payload == b.payload,
         (StreamMessage::Probe(a), StreamMessage::Probe(b)) => a.payload == b.payload,
         (StreamMessage::Markers(a), StreamMessage::Markers(b)) => a.payload == b.payload,
         (StreamMessage::Lamp(a), StreamMessage::Lamp(b)) => a.payload == b.payload,

@@ -12,7 +12,11 @@ pub fn srgb_to_linear(code: u8) -> f32 {
 
 /// Linear radiance (clamped to [0, 1]) → nearest 8-bit sRGB code value.
 pub fn linear_to_srgb(linear: f32) -> u8 {
-    let l = if linear.is_finite() { linear.clamp(0.0, 1.0) } else { 0.0 };
+    let l = if linear.is_finite() {
+        linear.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
     let c = if l <= 0.003_130_8 {
         l * 12.92
     } else {

@@ -76,7 +76,10 @@ impl Engine for DepthPreview {
                 stream: "depth",
             })?
             .payload;
-        if !matches!(depth.format(), PixelFormat::DepthU16Mm | PixelFormat::DepthF32M) {
+        if !matches!(
+            depth.format(),
+            PixelFormat::DepthU16Mm | PixelFormat::DepthF32M
+        ) {
             return Err(EngineError::UnsupportedFormat {
                 engine: Self::NAME,
                 stream: "depth",
@@ -91,9 +94,11 @@ impl Engine for DepthPreview {
             };
             for y in 0..height {
                 // Nearest-neighbour lookup so depth of another resolution still lines up.
-                let dy = (u64::from(y) * u64::from(depth.height()) / u64::from(height.max(1))) as u32;
+                let dy =
+                    (u64::from(y) * u64::from(depth.height()) / u64::from(height.max(1))) as u32;
                 for x in 0..width {
-                    let dx = (u64::from(x) * u64::from(depth.width()) / u64::from(width.max(1))) as u32;
+                    let dx =
+                        (u64::from(x) * u64::from(depth.width()) / u64::from(width.max(1))) as u32;
                     let i = 3 * (y as usize * width as usize + x as usize);
                     let (Some(s), Some(d)) = (src.get(i..i + 3), dst.get_mut(i..i + 3)) else {
                         continue;

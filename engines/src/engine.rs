@@ -30,7 +30,11 @@ pub struct PassTiming {
 
 impl PassTiming {
     /// Time `f` and record it under `pass`.
-    pub fn measure<T>(timings: &mut Vec<PassTiming>, pass: &'static str, f: impl FnOnce() -> T) -> T {
+    pub fn measure<T>(
+        timings: &mut Vec<PassTiming>,
+        pass: &'static str,
+        f: impl FnOnce() -> T,
+    ) -> T {
         let start = Instant::now();
         let out = f();
         timings.push(PassTiming {

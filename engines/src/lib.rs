@@ -15,4 +15,4 @@ mod passthrough;
 
 pub use engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 pub use params::{ParamError, ParamKind, ParamSpec, ParamsSchema};
-pub use registry::{EngineRegistry, EngineSpec};
+pub use registry::{BuiltEngine, EngineRegistry, EngineSpec};

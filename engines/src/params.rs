@@ -7,10 +7,23 @@ use serde_json::{Map, Value};
 #[derive(Debug, Clone, PartialEq, Serialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum ParamKind {
-    Float { min: f64, max: f64, default: f64 },
-    Int { min: i64, max: i64, default: i64 },
-    Bool { default: bool },
-    Choice { options: Vec<&'static str>, default: &'static str },
+    Float {
+        min: f64,
+        max: f64,
+        default: f64,
+    },
+    Int {
+        min: i64,
+        max: i64,
+        default: i64,
+    },
+    Bool {
+        default: bool,
+    },
+    Choice {
+        options: Vec<&'static str>,
+        default: &'static str,
+    },
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -82,14 +95,14 @@ impl ParamsSchema {
     ) -> Result<Map<String, Value>, ParamError> {
         let mut merged = current.clone();
         for (name, value) in update {
-            let spec = self
-                .params
-                .iter()
-                .find(|p| p.name == name)
-                .ok_or_else(|| ParamError::Unknown {
-                    name: name.clone(),
-                    known: self.known_names(),
-                })?;
+            let spec =
+                self.params
+                    .iter()
+                    .find(|p| p.name == name)
+                    .ok_or_else(|| ParamError::Unknown {
+                        name: name.clone(),
+                        known: self.known_names(),
+                    })?;
             merged.insert(name.clone(), spec.check(value)?);
         }
         Ok(merged)
@@ -170,12 +183,19 @@ mod tests {
             ParamSpec {
                 name: "steps",
                 doc: "propagation steps",
-                kind: ParamKind::Int { min: 1, max: 64, default: 32 },
+                kind: ParamKind::Int {
+                    min: 1,
+                    max: 64,
+                    default: 32,
+                },
             },
             ParamSpec {
                 name: "mode",
                 doc: "",
-                kind: ParamKind::Choice { options: vec!["a", "b"], default: "a" },
+                kind: ParamKind::Choice {
+                    options: vec!["a", "b"],
+                    default: "a",
+                },
             },
         ])
     }
@@ -187,7 +207,9 @@ mod tests {
     #[test]
     fn valid_update_is_merged_over_defaults() {
         let s = schema();
-        let merged = s.validate(&s.defaults(), &map(json!({"steps": 8}))).unwrap();
+        let merged = s
+            .validate(&s.defaults(), &map(json!({"steps": 8})))
+            .unwrap();
         assert_eq!(Value::Object(merged), json!({"steps": 8, "mode": "a"}));
     }
 
@@ -210,7 +232,10 @@ mod tests {
     fn nothing_is_applied_when_one_entry_is_bad() {
         let s = schema();
         let d = s.defaults();
-        assert!(s.validate(&d, &map(json!({"steps": 4, "mode": "zzz"}))).is_err());
+        assert!(
+            s.validate(&d, &map(json!({"steps": 4, "mode": "zzz"})))
+                .is_err()
+        );
         assert_eq!(d, s.defaults());
     }
 }

@@ -3,9 +3,9 @@
 
 use serde_json::{Map, Value};
 
+use crate::color;
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64};
-use crate::color;
 
 #[derive(Debug)]
 pub struct Passthrough {
@@ -68,7 +68,12 @@ mod tests {
 
     fn scene() -> SceneFrame {
         let mut image = Image::new(4, 2, PixelFormat::Rgb8);
-        image.as_u8_mut().unwrap().iter_mut().enumerate().for_each(|(i, p)| *p = (i * 10) as u8);
+        image
+            .as_u8_mut()
+            .unwrap()
+            .iter_mut()
+            .enumerate()
+            .for_each(|(i, p)| *p = (i * 10) as u8);
         SceneFrame {
             stamp: Timestamp::new(1, 2),
             seq: 7,

@@ -25,6 +25,21 @@ pub enum RegistryError {
     Params(#[from] ParamError),
 }
 
+/// An engine built by the registry, with the full parameter set it runs with.
+pub struct BuiltEngine {
+    pub engine: Box<dyn Engine>,
+    pub params: Map<String, Value>,
+}
+
+impl std::fmt::Debug for BuiltEngine {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BuiltEngine")
+            .field("engine", &self.engine.name())
+            .field("params", &self.params)
+            .finish()
+    }
+}
+
 /// All engines this build knows.
 #[derive(Debug, Clone)]
 pub struct EngineRegistry {
@@ -76,17 +91,16 @@ impl EngineRegistry {
     }
 
     /// Validate `params` (a partial update over the defaults) and build the engine with them.
-    /// Returns the engine and the full parameter set it runs with.
     pub fn build(
         &self,
         name: &str,
         params: &Map<String, Value>,
-    ) -> Result<(Box<dyn Engine>, Map<String, Value>), RegistryError> {
+    ) -> Result<BuiltEngine, RegistryError> {
         let spec = self.spec(name)?;
-        let full = spec.schema.validate(&spec.schema.defaults(), params)?;
+        let params = spec.schema.validate(&spec.schema.defaults(), params)?;
         let mut engine = (spec.build)();
-        engine.set_params(&full);
-        Ok((engine, full))
+        engine.set_params(&params);
+        Ok(BuiltEngine { engine, params })
     }
 }
 
@@ -96,7 +110,10 @@ mod tests {
 
     #[test]
     fn unknown_engine_lists_the_known_ones() {
-        let err = EngineRegistry::new().build("dlvp", &Map::new()).err().unwrap();
+        let err = EngineRegistry::new()
+            .build("dlvp", &Map::new())
+            .err()
+            .unwrap();
         assert_eq!(
             err.to_string(),
             "unknown engine `dlvp`; known engines: passthrough, depth_preview"
@@ -107,9 +124,9 @@ mod tests {
     fn every_engine_builds_with_defaults() {
         let registry = EngineRegistry::new();
         for name in registry.names() {
-            let (engine, params) = registry.build(name, &Map::new()).unwrap();
-            assert_eq!(engine.name(), name);
-            assert_eq!(params, registry.spec(name).unwrap().schema.defaults());
+            let built = registry.build(name, &Map::new()).unwrap();
+            assert_eq!(built.engine.name(), name);
+            assert_eq!(built.params, registry.spec(name).unwrap().schema.defaults());
         }
     }
 }

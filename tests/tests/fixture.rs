@@ -24,7 +24,10 @@ fn bundled_recording_is_the_synthetic_rig_and_carries_its_calibration() {
     let recorded: Vec<_> = reader.messages().collect::<Result<_, _>>().unwrap();
     let generated: Vec<_> = rig.messages().collect();
     assert_eq!(recorded.len(), generated.len());
-    assert!(recorded == generated, "regenerate with: relightd synth --out tests/fixtures/demo.mcap");
+    assert!(
+        recorded == generated,
+        "regenerate with: relightd synth --out tests/fixtures/demo.mcap"
+    );
 }
 
 #[test]
@@ -38,8 +41,13 @@ fn bundled_recording_replays_through_the_bus_frame_exact() {
         mode: ReplayMode::Fast,
         looping: false,
     };
-    let mut runner =
-        DeviceRunner::spawn("replay", Box::new(Replay::new(config).unwrap()), bus, Backoff::default()).unwrap();
+    let mut runner = DeviceRunner::spawn(
+        "replay",
+        Box::new(Replay::new(config).unwrap()),
+        bus,
+        Backoff::default(),
+    )
+    .unwrap();
     let deadline = Instant::now() + Duration::from_secs(30);
     let mut got = Vec::new();
     while got.len() < source.len() && Instant::now() < deadline {
@@ -49,6 +57,9 @@ fn bundled_recording_replays_through_the_bus_frame_exact() {
     assert_eq!(sub.dropped(), 0);
     assert_eq!(got.len(), source.len());
     for (g, s) in got.iter().zip(&source) {
-        assert_eq!((g.kind(), g.seq(), g.stamp().device_ns), (s.kind(), s.seq(), s.stamp().device_ns));
+        assert_eq!(
+            (g.kind(), g.seq(), g.stamp().device_ns),
+            (s.kind(), s.seq(), s.stamp().device_ns)
+        );
     }
 }

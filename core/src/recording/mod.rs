@@ -1,1 +1,196 @@
-//! MCAP recordings.
+//! MCAP recordings of a rig's streams: [`RecordingWriter`] and [`RecordingReader`].
+//!
+//! A recording is an [MCAP](https://mcap.dev/spec) file that other labs can open without relight
+//! (Foxglove, `mcap` CLI, the PyPI `mcap` + `mcap-ros2-support` packages;
+//! `tests/helpers/mcap_check.py` is the reference check).
+//!
+//! # Layout
+//!
+//! ```text
+//! magic, Header (library "relight-core <version>")
+//! Metadata "relight.recording"   {source, format_version}
+//! Metadata "relight.calibration" {toml}          (when the rig has a calibration)
+//! Attachment "calibration.toml"  application/toml (same TOML, for tools that list attachments)
+//! Chunk 0: the five Schema and Channel records only
+//! Chunk 1..: messages, zstd, ~1 MiB uncompressed each (`RecordingOptions::chunk_size_bytes`),
+//!            each followed by its MessageIndex records
+//! DataEnd, summary (schemas, channels, statistics, chunk/metadata/attachment indexes), Footer
+//! ```
+//!
+//! Metadata and calibration come before any message so that a file cut off mid-recording still
+//! says which rig it came from. Channel IDs are fixed (depth 1, color 2, probe 3, markers 4,
+//! lamp 5, see [`channel_id`]) so that the reader can still place messages when the chunk holding
+//! the Channel records is lost.
+//!
+//! # Channels and encodings
+//!
+//! | topic      | schema (encoding)                        | message encoding |
+//! |------------|------------------------------------------|------------------|
+//! | `/depth`   | `sensor_msgs/msg/Image` (`ros2msg`)      | `cdr`            |
+//! | `/color`   | `sensor_msgs/msg/Image` (`ros2msg`)      | `cdr`            |
+//! | `/probe`   | `sensor_msgs/msg/Image` (`ros2msg`)      | `cdr`            |
+//! | `/markers` | `relight.MarkerSet` (`jsonschema`)       | `json`           |
+//! | `/lamp`    | `relight.LampState` (`jsonschema`)       | `json`           |
+//!
+//! Images use ROS 2 `sensor_msgs/msg/Image` (CDR, little endian) because every ROS-aware tool and
+//! Foxglove's image panel decode it; the CDR is written by hand in [`schema`]. Image `encoding`
+//! is [`PixelFormat::ros_encoding`](crate::PixelFormat::ros_encoding) (`16UC1`, `32FC1`, `rgb8`,
+//! `mono8`, and the non-standard `rgba16f` for half-float RGBA), `is_bigendian` 0, `step` the
+//! packed row size, `data` the little-endian pixels.
+//!
+//! The fields of a [`Frame`](crate::Frame) that `sensor_msgs/Image` lacks are stored so that the
+//! round trip is exact:
+//! - host timestamp → MCAP `log_time` (ns), so tools order and seek by arrival time;
+//! - device timestamp → MCAP `publish_time` (ns, exact), and also the image `header.stamp`
+//!   (seconds saturate at `i32::MAX`; the reader takes `publish_time`);
+//! - `seq` → MCAP `sequence` when it fits in `u32`; otherwise `sequence` holds the low 32 bits
+//!   and the full value is written in the payload (`seq=N` in the image `frame_id`, a `"seq"`
+//!   member in JSON), which the reader prefers when present;
+//! - probe exposure and gain → the image `frame_id`, which is `depth`, `color` or
+//!   `probe?exposure_us=<u32>&gain_db=<f32>` (keys `&`-separated after `?`; floats written in
+//!   Rust's shortest round-trip form). The part before `?` names the camera as in the calibration.
+//!
+//! Markers and lamp are JSON objects described by the JSON Schemas in [`schema`]: a
+//! [`MarkerSet`](crate::MarkerSet) is `{"detections": [{"family", "marker_id", "corners_px":
+//! [[x,y]×4], "camera_from_marker": {"rotation": [x,y,z,w], "translation": [x,y,z]},
+//! "reprojection_rms_px"}]}`, a [`LampState`](crate::LampState) is `{"on", "position_in_world":
+//! [x,y,z], "intensity": [r,g,b]}`. JSON has no NaN or infinity, so the writer refuses such
+//! values with [`RecordingError::Encode`] rather than writing `null`.
+//!
+//! The calibration is the [`RigCalibration`] TOML, verbatim, in the `toml` key of the
+//! `relight.calibration` metadata record (and in the `calibration.toml` attachment), so
+//! `mcap get metadata --name relight.calibration` recovers it.
+//!
+//! # Reading damaged files
+//!
+//! [`RecordingReader`] loads the whole file with `std::fs::read` (no memory map) and walks its
+//! records linearly from the start; it never needs the summary section. Each chunk is
+//! decompressed and CRC-checked on its own, so a corrupt chunk costs its own messages and one
+//! [`RecordingError::CorruptChunk`], and a file cut off mid-write yields every message of every
+//! complete chunk plus a warning saying where it was cut.
+
+mod reader;
+pub mod schema;
+mod writer;
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+pub use reader::{ChunkInfo, Messages, RecordingReader};
+pub use writer::{RecordingCompression, RecordingOptions, RecordingWriter};
+
+use crate::rig::{RigCalibration, RigCalibrationError};
+use crate::stream::StreamKind;
+
+/// Version of the layout described in the module docs, stored in `relight.recording`.
+pub const FORMAT_VERSION: &str = "1";
+
+/// Name of the metadata record holding [`RecordingMeta::source`] and [`FORMAT_VERSION`].
+pub const RECORDING_METADATA: &str = "relight.recording";
+/// Name of the metadata record holding the calibration TOML under the key [`CALIBRATION_KEY`].
+pub const CALIBRATION_METADATA: &str = "relight.calibration";
+/// Key of the calibration TOML inside [`CALIBRATION_METADATA`].
+pub const CALIBRATION_KEY: &str = "toml";
+/// Name of the attachment holding the calibration TOML.
+pub const CALIBRATION_ATTACHMENT: &str = "calibration.toml";
+
+/// The MCAP topic of a stream: `/depth`, `/color`, `/probe`, `/markers`, `/lamp`.
+pub fn topic(kind: StreamKind) -> &'static str {
+    match kind {
+        StreamKind::Depth => "/depth",
+        StreamKind::Color => "/color",
+        StreamKind::Probe => "/probe",
+        StreamKind::Markers => "/markers",
+        StreamKind::Lamp => "/lamp",
+    }
+}
+
+/// The stream recorded on an MCAP topic, if it is one of relight's.
+pub fn stream_of_topic(topic: &str) -> Option<StreamKind> {
+    StreamKind::ALL
+        .into_iter()
+        .find(|&kind| self::topic(kind) == topic)
+}
+
+/// The fixed MCAP channel ID of a stream (1 to 5, in [`StreamKind::ALL`] order).
+pub fn channel_id(kind: StreamKind) -> u16 {
+    match kind {
+        StreamKind::Depth => 1,
+        StreamKind::Color => 2,
+        StreamKind::Probe => 3,
+        StreamKind::Markers => 4,
+        StreamKind::Lamp => 5,
+    }
+}
+
+/// What a recording says about itself besides its messages.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RecordingMeta {
+    /// The rig's calibration, if it had one when recording.
+    pub calibration: Option<RigCalibration>,
+    /// What wrote the recording, e.g. `relightd 0.1.0`.
+    pub source: String,
+}
+
+/// Counts and time span of a finished recording.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RecordingSummary {
+    /// Messages written per stream (streams without messages are absent).
+    pub messages: BTreeMap<StreamKind, u64>,
+    /// Earliest host timestamp (MCAP log time) of any message, ns; `None` when empty.
+    pub start_ns: Option<u64>,
+    /// Latest host timestamp (MCAP log time) of any message, ns; `None` when empty.
+    pub end_ns: Option<u64>,
+    /// Chunk records in the file, including the one holding schemas and channels.
+    pub chunks: u32,
+}
+
+impl RecordingSummary {
+    /// Messages over all streams.
+    pub fn total_messages(&self) -> u64 {
+        self.messages.values().sum()
+    }
+}
+
+/// Everything that can go wrong writing or reading a recording.
+#[derive(Debug, thiserror::Error)]
+pub enum RecordingError {
+    #[error("recording {path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("flushing recording: {0}")]
+    Flush(#[source] std::io::Error),
+    #[error("MCAP: {0}")]
+    Mcap(#[from] mcap::McapError),
+    #[error("not a readable MCAP recording: {reason}")]
+    NotMcap { reason: String },
+    #[error("chunk {index} at byte {offset} is corrupt: {reason}")]
+    CorruptChunk {
+        index: usize,
+        offset: u64,
+        reason: String,
+    },
+    #[error("record at byte {offset} (opcode {opcode:#04x}) is corrupt: {reason}")]
+    CorruptRecord {
+        offset: u64,
+        opcode: u8,
+        reason: String,
+    },
+    #[error("message seq {seq} on {channel} cannot be decoded: {reason}")]
+    Decode {
+        channel: String,
+        seq: u64,
+        reason: String,
+    },
+    #[error("message seq {seq} on {channel} cannot be encoded: {reason}")]
+    Encode {
+        channel: String,
+        seq: u64,
+        reason: String,
+    },
+    #[error("calibration: {0}")]
+    Calibration(#[from] RigCalibrationError),
+}

@@ -1,1 +1,332 @@
-fn main() {}
+//! relightctl: command-line client of relightd's control socket.
+//!
+//! Exit status: 0 on success, 1 when the daemon answers with an error (or the exchange fails after
+//! connecting), 2 when the socket cannot be reached or the command line is wrong.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Duration;
+
+use clap::{Parser, Subcommand};
+use relight_daemon::config::DEFAULT_SOCKET_PATH;
+use relight_daemon::control::{Client, ClientError, EngineInfo, StatusReport};
+use serde_json::{Map, Value, json};
+
+#[derive(Debug, Parser)]
+#[command(name = "relightctl", version, about = "Control a running relightd")]
+struct Cli {
+    /// The daemon's control socket.
+    #[arg(long, value_name = "PATH", default_value = DEFAULT_SOCKET_PATH)]
+    socket: PathBuf,
+    /// Print the raw JSON result instead of a readable summary.
+    #[arg(long)]
+    json: bool,
+    /// How long to wait for the daemon's answer.
+    #[arg(long, value_name = "N", default_value_t = 5000)]
+    timeout_ms: u64,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Devices, pipeline stage timings, synchronisation and recording state.
+    Status,
+    /// List, switch or tune relighting engines.
+    Engine {
+        #[command(subcommand)]
+        action: EngineAction,
+    },
+    /// Start or stop recording all streams to an MCAP file.
+    Record {
+        #[command(subcommand)]
+        action: RecordAction,
+    },
+    /// Write the current frame set's images (to PATH, or the configured snapshot directory).
+    Snapshot { path: Option<PathBuf> },
+    /// Re-read the configuration file.
+    Reload,
+    /// Call any JSON-RPC method; JSON is its params (an object or an array).
+    Call {
+        method: String,
+        #[arg(value_parser = parse_json_params)]
+        params: Option<Value>,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum EngineAction {
+    /// The registered engines.
+    List,
+    /// Switch to engine NAME (at the next frame boundary).
+    Set { name: String },
+    /// Show (default) or change the current engine's parameters.
+    Params {
+        #[command(subcommand)]
+        action: Option<ParamsAction>,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum ParamsAction {
+    /// Show the current engine's parameters.
+    Get,
+    /// Set parameters; VALUE is read as JSON when it parses (`2.5`, `true`, `[1,2]`), else as a
+    /// string.
+    Set {
+        #[arg(required = true, value_name = "KEY=VALUE", value_parser = parse_assignment)]
+        assignments: Vec<(String, Value)>,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum RecordAction {
+    /// Start recording (to PATH, or a new file in the configured recordings directory).
+    Start { path: Option<PathBuf> },
+    /// Stop recording and show its summary.
+    Stop,
+}
+
+fn parse_json_params(text: &str) -> Result<Value, String> {
+    match serde_json::from_str::<Value>(text) {
+        Ok(value @ (Value::Object(_) | Value::Array(_))) => Ok(value),
+        Ok(_) => Err("params must be a JSON object or array".to_owned()),
+        Err(err) => Err(format!("not valid JSON: {err}")),
+    }
+}
+
+fn parse_assignment(text: &str) -> Result<(String, Value), String> {
+    let (key, value) = text
+        .split_once('=')
+        .ok_or_else(|| format!("expected KEY=VALUE, got {text:?}"))?;
+    if key.is_empty() {
+        return Err(format!("empty key in {text:?}"));
+    }
+    let value = serde_json::from_str(value).unwrap_or_else(|_| Value::from(value));
+    Ok((key.to_owned(), value))
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let (method, params) = request(&cli.command);
+    let result = Client::connect(&cli.socket, Duration::from_millis(cli.timeout_ms))
+        .and_then(|mut client| client.call(method, params));
+    match result {
+        Ok(result) => {
+            if cli.json {
+                println!("{result}");
+            } else {
+                print!("{}", render(&cli.command, &result));
+            }
+            ExitCode::SUCCESS
+        }
+        Err(ClientError::Rpc(error)) => {
+            eprintln!("relightctl: {method}: {}", error.message);
+            if let Some(data) = &error.data {
+                eprintln!("{data:#}");
+            }
+            ExitCode::from(1)
+        }
+        Err(err @ ClientError::Connect { .. }) => {
+            eprintln!("relightctl: {err}");
+            ExitCode::from(2)
+        }
+        Err(err) => {
+            eprintln!("relightctl: {method}: {err}");
+            ExitCode::from(1)
+        }
+    }
+}
+
+/// The JSON-RPC method and params of a command.
+fn request(command: &Command) -> (&str, Option<Value>) {
+    match command {
+        Command::Status => ("status", None),
+        Command::Engine { action } => match action {
+            EngineAction::List => ("engine.list", None),
+            EngineAction::Set { name } => ("engine.set", Some(json!({ "name": name }))),
+            EngineAction::Params {
+                action: None | Some(ParamsAction::Get),
+            } => ("engine.params.get", None),
+            EngineAction::Params {
+                action: Some(ParamsAction::Set { assignments }),
+            } => {
+                let params: Map<String, Value> = assignments.iter().cloned().collect();
+                ("engine.params.set", Some(json!({ "params": params })))
+            }
+        },
+        Command::Record { action } => match action {
+            RecordAction::Start { path } => ("record.start", path_params(path.as_deref())),
+            RecordAction::Stop => ("record.stop", None),
+        },
+        Command::Snapshot { path } => ("snapshot", path_params(path.as_deref())),
+        Command::Reload => ("config.reload", None),
+        Command::Call { method, params } => (method.as_str(), params.clone()),
+    }
+}
+
+/// `{"path": ...}` with the path made absolute here: the daemon's working directory is not ours.
+fn path_params(path: Option<&Path>) -> Option<Value> {
+    let path = path?;
+    let path = std::path::absolute(path).unwrap_or_else(|_| path.to_owned());
+    Some(json!({ "path": path }))
+}
+
+/// A readable rendering of a command's result.
+fn render(command: &Command, result: &Value) -> String {
+    match command {
+        Command::Status => match serde_json::from_value::<StatusReport>(result.clone()) {
+            Ok(status) => render_status(&status),
+            Err(_) => pretty(result),
+        },
+        Command::Engine {
+            action: EngineAction::List,
+        } => match serde_json::from_value::<Vec<EngineInfo>>(result.clone()) {
+            Ok(engines) => table(
+                &["ENGINE", "DESCRIPTION"],
+                &[false, false],
+                engines
+                    .into_iter()
+                    .map(|e| vec![e.name, e.description])
+                    .collect(),
+            ),
+            Err(_) => pretty(result),
+        },
+        Command::Engine {
+            action: EngineAction::Set { name },
+        } => format!("engine set to {name}\n"),
+        Command::Record {
+            action: RecordAction::Start { .. },
+        } => match result.get("path").and_then(Value::as_str) {
+            Some(path) => format!("recording to {path}\n"),
+            None => pretty(result),
+        },
+        Command::Snapshot { .. } => match result.get("paths").and_then(Value::as_array) {
+            Some(paths) => paths
+                .iter()
+                .map(|p| format!("{}\n", p.as_str().unwrap_or_default()))
+                .collect(),
+            None => pretty(result),
+        },
+        _ => pretty(result),
+    }
+}
+
+fn pretty(value: &Value) -> String {
+    format!("{value:#}\n")
+}
+
+fn render_status(status: &StatusReport) -> String {
+    let recording = match &status.recording {
+        Some(r) => format!("{} ({} messages)", r.path.display(), r.messages),
+        None => "off".to_owned(),
+    };
+    let mut out = format!(
+        "engine      {}\nuptime      {}\nframe sets  {} ({} incomplete)\nbus drops   {}\nrecording   {}\n",
+        status.engine,
+        format_uptime(status.uptime_s),
+        status.frame_sets,
+        status.sync_missing,
+        status.bus_drops,
+        recording,
+    );
+    if !status.devices.is_empty() {
+        out.push('\n');
+        out.push_str(&table(
+            &[
+                "DEVICE",
+                "STREAM",
+                "BACKEND",
+                "STATE",
+                "FPS",
+                "FRAMES",
+                "DROPS",
+                "LAST ERROR",
+            ],
+            &[false, false, false, false, true, true, true, false],
+            status
+                .devices
+                .iter()
+                .map(|d| {
+                    vec![
+                        d.name.clone(),
+                        d.stream.to_string(),
+                        d.backend.clone(),
+                        d.state.name().to_owned(),
+                        format!("{:.1}", d.fps),
+                        d.frames.to_string(),
+                        d.drops.to_string(),
+                        d.last_error.clone().unwrap_or_else(|| "-".to_owned()),
+                    ]
+                })
+                .collect(),
+        ));
+    }
+    if !status.stages.is_empty() {
+        out.push('\n');
+        out.push_str(&table(
+            &["STAGE", "FRAMES", "LAST ms", "MEAN ms", "P50 ms", "P99 ms"],
+            &[false, true, true, true, true, true],
+            status
+                .stages
+                .iter()
+                .map(|s| {
+                    vec![
+                        s.name.clone(),
+                        s.frames.to_string(),
+                        format!("{:.2}", s.last_ms),
+                        format!("{:.2}", s.mean_ms),
+                        format!("{:.2}", s.p50_ms),
+                        format!("{:.2}", s.p99_ms),
+                    ]
+                })
+                .collect(),
+        ));
+    }
+    out
+}
+
+fn format_uptime(uptime_s: f64) -> String {
+    let total = if uptime_s.is_finite() && uptime_s > 0.0 {
+        uptime_s as u64
+    } else {
+        0
+    };
+    let (h, m, s) = (total / 3600, total / 60 % 60, total % 60);
+    if h > 0 {
+        format!("{h}h {m:02}m {s:02}s")
+    } else if m > 0 {
+        format!("{m}m {s:02}s")
+    } else {
+        format!("{s}s")
+    }
+}
+
+/// Columns padded to their widest cell; `right` right-aligns numeric columns.
+fn table(headers: &[&str], right: &[bool], rows: Vec<Vec<String>>) -> String {
+    let mut widths: Vec<usize> = headers.iter().map(|h| h.chars().count()).collect();
+    for row in &rows {
+        for (width, cell) in widths.iter_mut().zip(row) {
+            *width = (*width).max(cell.chars().count());
+        }
+    }
+    let header_row: Vec<String> = headers.iter().map(|h| (*h).to_owned()).collect();
+    let mut out = String::new();
+    for row in std::iter::once(&header_row).chain(&rows) {
+        let cells: Vec<String> = row
+            .iter()
+            .zip(&widths)
+            .zip(right.iter().chain(std::iter::repeat(&false)))
+            .map(|((cell, &width), &right)| {
+                if right {
+                    format!("{cell:>width$}")
+                } else {
+                    format!("{cell:<width$}")
+                }
+            })
+            .collect();
+        out.push_str(cells.join("  ").trim_end());
+        out.push('\n');
+    }
+    out
+}

@@ -137,7 +137,10 @@ fn run(cli: Cli) -> Result<()> {
                     loop_playback: looping,
                     speed,
                 }),
-                output: OutputConfig { dir: output, every_n },
+                output: OutputConfig {
+                    dir: output,
+                    every_n,
+                },
                 ..Config::default()
             };
             config.engine.name = engine;
@@ -145,7 +148,9 @@ fn run(cli: Cli) -> Result<()> {
                 config.daemon.socket = socket;
             }
             let serve_socket = config.daemon.socket != Path::new(config::DEFAULT_SOCKET_PATH);
-            let options = PipelineOptions { exit_at_end: !looping };
+            let options = PipelineOptions {
+                exit_at_end: !looping,
+            };
             serve(config, options, serve_socket)
         }
         Command::Record { out, seconds } => {
@@ -200,7 +205,8 @@ fn serve(config: Config, options: PipelineOptions, serve_socket: bool) -> Result
     notify_systemd(sd_notify::NotifyState::Ready);
     let started = Instant::now();
     let mut last_ping = Instant::now();
-    while !term.load(Ordering::Acquire) && !(exit_at_end && pipeline.is_finished()) {
+    let done = || term.load(Ordering::Acquire) || (exit_at_end && pipeline.is_finished());
+    while !done() {
         std::thread::sleep(Duration::from_millis(20));
         if let Some(interval) = watchdog
             && last_ping.elapsed() >= interval / 2
@@ -238,7 +244,9 @@ fn record(config: Config, out: &Path, seconds: Option<Duration>) -> Result<()> {
     }
     let mut pipeline = Pipeline::start(config, PipelineOptions { exit_at_end: true })?;
     let control = pipeline.control();
-    control.record_start(Some(out.to_path_buf())).map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    control
+        .record_start(Some(out.to_path_buf()))
+        .map_err(|e| anyhow::anyhow!("{}", e.message))?;
     let started = Instant::now();
     while !term.load(Ordering::Acquire)
         && !pipeline.is_finished()
@@ -246,7 +254,9 @@ fn record(config: Config, out: &Path, seconds: Option<Duration>) -> Result<()> {
     {
         std::thread::sleep(Duration::from_millis(20));
     }
-    let summary = control.record_stop().map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    let summary = control
+        .record_stop()
+        .map_err(|e| anyhow::anyhow!("{}", e.message))?;
     pipeline.shutdown();
     println!("{}", serde_json::to_string_pretty(&summary)?);
     Ok(())
@@ -273,7 +283,10 @@ fn synth(out: &Path, frames: u32, width: u32, height: u32) -> Result<()> {
     let messages = writer.messages_written();
     writer.finish()?;
     let bytes = std::fs::metadata(out).map(|m| m.len()).unwrap_or(0);
-    println!("{}: {messages} messages, {frames} frames of {width}×{height}, {bytes} bytes", out.display());
+    println!(
+        "{}: {messages} messages, {frames} frames of {width}×{height}, {bytes} bytes",
+        out.display()
+    );
     Ok(())
 }
 
@@ -286,7 +299,10 @@ fn print_summary(status: &StatusReport, elapsed: Duration) {
         status.engine,
         status.bus_drops
     );
-    println!("{:<22} {:>7} {:>9} {:>9} {:>9}", "stage", "frames", "mean ms", "p50 ms", "p99 ms");
+    println!(
+        "{:<22} {:>7} {:>9} {:>9} {:>9}",
+        "stage", "frames", "mean ms", "p50 ms", "p99 ms"
+    );
     for stage in &status.stages {
         println!(
             "{:<22} {:>7} {:>9.3} {:>9.3} {:>9.3}",
@@ -301,7 +317,11 @@ fn print_summary(status: &StatusReport, elapsed: Duration) {
             device.state.name(),
             device.frames,
             device.drops,
-            device.last_error.as_ref().map(|e| format!("  last error: {e}")).unwrap_or_default()
+            device
+                .last_error
+                .as_ref()
+                .map(|e| format!("  last error: {e}"))
+                .unwrap_or_default()
         );
     }
 }

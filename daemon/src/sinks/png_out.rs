@@ -53,7 +53,13 @@ pub fn write_png(path: &Path, image: &Image) -> Result<(), PngError> {
                 .as_f32()
                 .unwrap_or_default()
                 .iter()
-                .map(|&m| if m.is_finite() && m > 0.0 { (m * 1000.0).round().min(65535.0) as u16 } else { 0 })
+                .map(|&m| {
+                    if m.is_finite() && m > 0.0 {
+                        (m * 1000.0).round().min(65535.0) as u16
+                    } else {
+                        0
+                    }
+                })
                 .flat_map(u16::to_be_bytes)
                 .collect(),
         ),
@@ -86,19 +92,28 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("depth.png");
         let mut depth = Image::new(3, 1, PixelFormat::DepthF32M);
-        depth.as_f32_mut().unwrap().copy_from_slice(&[1.234, f32::NAN, 0.5]);
+        depth
+            .as_f32_mut()
+            .unwrap()
+            .copy_from_slice(&[1.234, f32::NAN, 0.5]);
         write_png(&path, &depth).unwrap();
         let decoder = ::png::Decoder::new(std::io::BufReader::new(File::open(&path).unwrap()));
         let mut reader = decoder.read_info().unwrap();
         let mut buf = vec![0; reader.output_buffer_size().unwrap()];
         reader.next_frame(&mut buf).unwrap();
-        let mm: Vec<u16> = buf.chunks(2).map(|c| u16::from_be_bytes([c[0], c[1]])).collect();
+        let mm: Vec<u16> = buf
+            .chunks(2)
+            .map(|c| u16::from_be_bytes([c[0], c[1]]))
+            .collect();
         assert_eq!(mm, vec![1234, 0, 500]);
     }
 
     #[test]
     fn unwritable_path_is_an_error() {
-        let err = write_png(Path::new("/nonexistent-dir/x.png"), &Image::new(1, 1, PixelFormat::Rgb8));
+        let err = write_png(
+            Path::new("/nonexistent-dir/x.png"),
+            &Image::new(1, 1, PixelFormat::Rgb8),
+        );
         assert!(matches!(err, Err(PngError::Create { .. })));
     }
 }

@@ -8,9 +8,9 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use crossbeam_channel::{Receiver, Sender, bounded};
+use relight_core::StreamMessage;
 use relight_core::bus::{Bus, Subscription};
 use relight_core::recording::{RecordingMeta, RecordingWriter};
-use relight_core::StreamMessage;
 use serde_json::{Value, json};
 
 enum Command {
@@ -37,7 +37,11 @@ impl RecorderStatus {
         if !self.active.load(Ordering::Acquire) {
             return None;
         }
-        let path = self.path.lock().unwrap_or_else(PoisonError::into_inner).clone()?;
+        let path = self
+            .path
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()?;
         Some((path, self.messages.load(Ordering::Relaxed)))
     }
 }
@@ -196,7 +200,11 @@ fn run(
     }
 }
 
-fn finish(rec: Active, subscription: &Subscription<StreamMessage>, status: &RecorderStatus) -> Result<Value, String> {
+fn finish(
+    rec: Active,
+    subscription: &Subscription<StreamMessage>,
+    status: &RecorderStatus,
+) -> Result<Value, String> {
     status.active.store(false, Ordering::Release);
     let messages = rec.writer.messages_written();
     let dropped = subscription.dropped() - rec.drops_at_start;
@@ -205,10 +213,21 @@ fn finish(rec: Active, subscription: &Subscription<StreamMessage>, status: &Reco
         .finish()
         .map_err(|e| format!("cannot finish {}: {e}", rec.path.display()))?;
     tracing::info!(path = %rec.path.display(), messages, dropped, "recording finished");
+    let per_stream: serde_json::Map<String, Value> = summary
+        .messages
+        .iter()
+        .map(|(kind, n)| (kind.name().to_owned(), Value::from(*n)))
+        .collect();
+    let duration_s = match (summary.start_ns, summary.end_ns) {
+        (Some(start), Some(end)) => end.saturating_sub(start) as f64 * 1e-9,
+        _ => 0.0,
+    };
     Ok(json!({
         "path": rec.path,
         "messages": messages,
         "dropped": dropped,
-        "summary": format!("{summary:?}"),
+        "per_stream": per_stream,
+        "duration_s": duration_s,
+        "chunks": summary.chunks,
     }))
 }

@@ -1,0 +1,888 @@
+//! [`RecordingReader`]: reads recordings back, including damaged ones.
+//!
+//! Records are framed by hand (opcode, u64 length, body) so that a cut or a bad length stops the
+//! walk instead of failing it; record bodies are parsed with [`mcap::parse_record`] and chunks
+//! are decompressed and CRC-checked one at a time with [`mcap::sans_io::LinearReader`], so a bad
+//! chunk is one error and the next chunk reads normally.
+
+use std::cmp::Ordering;
+use std::collections::{BTreeMap, BinaryHeap, HashMap};
+use std::fmt;
+use std::ops::Range;
+use std::path::Path;
+use std::sync::Arc;
+
+use mcap::records::{ChunkHeader, MessageHeader, Record, op};
+use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
+
+use super::schema::{self, CDR_MESSAGE_ENCODING, JSON_MESSAGE_ENCODING};
+use super::{
+    CALIBRATION_ATTACHMENT, CALIBRATION_KEY, CALIBRATION_METADATA, RECORDING_METADATA,
+    RecordingError, RecordingMeta, channel_id, stream_of_topic, topic,
+};
+use crate::frame::{Frame, Timestamp};
+use crate::rig::RigCalibration;
+use crate::stream::{ProbeImage, StreamKind, StreamMessage};
+
+/// Opcode (1 byte) and body length (u64) in front of every record.
+const RECORD_PREFIX_LEN: usize = 9;
+/// Serialized size of a Message record's header: channel id, sequence, log and publish time.
+const MESSAGE_HEADER_LEN: usize = 2 + 4 + 8 + 8;
+
+/// Where a chunk lies in the file and what its header says.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ChunkInfo {
+    /// Position among the file's chunk records, from 0 (the chunk of schemas and channels).
+    pub index: usize,
+    /// Byte offset of the chunk record (its opcode).
+    pub offset: u64,
+    /// Byte offset just past the chunk record.
+    pub end_offset: u64,
+    /// Byte offset of the compressed payload.
+    pub data_offset: u64,
+    pub compressed_size: u64,
+    pub uncompressed_size: u64,
+    pub compression: String,
+    /// Log-time (host) range of the chunk's messages, ns.
+    pub message_start_ns: u64,
+    pub message_end_ns: u64,
+}
+
+#[derive(Debug, Clone)]
+struct ChannelInfo {
+    topic: String,
+    message_encoding: String,
+    stream: Option<StreamKind>,
+}
+
+/// A unit the message iterator loads at once: a chunk, a chunk whose header did not parse, or a
+/// message outside any chunk.
+#[derive(Debug)]
+enum Block {
+    Chunk {
+        info: ChunkInfo,
+        body: Range<usize>,
+    },
+    BadChunk {
+        index: usize,
+        offset: u64,
+        reason: String,
+        start_ns: u64,
+    },
+    Message {
+        header: MessageHeader,
+        data: Range<usize>,
+    },
+}
+
+impl Block {
+    fn start_ns(&self) -> u64 {
+        match self {
+            Block::Chunk { info, .. } => info.message_start_ns,
+            Block::BadChunk { start_ns, .. } => *start_ns,
+            Block::Message { header, .. } => header.log_time,
+        }
+    }
+}
+
+/// How the linear walk over the records ended.
+enum WalkEnd {
+    /// A Footer record was read.
+    Footer,
+    /// The file ends exactly after a record, before any footer.
+    AtRecordBoundary,
+    /// The file ends inside the record starting at `offset`.
+    InsideRecord {
+        offset: usize,
+        opcode: Option<u8>,
+        length: Option<u64>,
+    },
+}
+
+/// A recording loaded into memory (`std::fs::read`, no memory map).
+///
+/// Opening walks the records once without decompressing chunks; [`messages`](Self::messages)
+/// decompresses chunk by chunk as it goes.
+pub struct RecordingReader {
+    bytes: Vec<u8>,
+    meta: RecordingMeta,
+    warnings: Vec<String>,
+    blocks: Vec<Block>,
+    channels: HashMap<u16, ChannelInfo>,
+    summary_present: bool,
+}
+
+impl fmt::Debug for RecordingReader {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("RecordingReader")
+            .field("bytes", &self.bytes.len())
+            .field("meta", &self.meta)
+            .field("warnings", &self.warnings)
+            .field("blocks", &self.blocks.len())
+            .field("summary_present", &self.summary_present)
+            .finish()
+    }
+}
+
+impl RecordingReader {
+    /// Read the file at `path` into memory and index it.
+    pub fn open(path: &Path) -> Result<Self, RecordingError> {
+        let bytes = std::fs::read(path).map_err(|source| RecordingError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        let reader = Self::from_bytes(bytes)?;
+        for warning in &reader.warnings {
+            tracing::warn!(path = %path.display(), "{warning}");
+        }
+        Ok(reader)
+    }
+
+    /// Index a recording held in memory. Fails only when the bytes do not start with an MCAP
+    /// magic and header record; any later damage becomes a warning or a per-chunk error.
+    pub fn from_bytes(bytes: Vec<u8>) -> Result<Self, RecordingError> {
+        let mut reader = RecordingReader {
+            bytes,
+            meta: RecordingMeta::default(),
+            warnings: Vec::new(),
+            blocks: Vec::new(),
+            channels: HashMap::new(),
+            summary_present: false,
+        };
+        reader.index()?;
+        Ok(reader)
+    }
+
+    pub fn meta(&self) -> &RecordingMeta {
+        &self.meta
+    }
+
+    /// Problems found while indexing: truncation (with where it was cut and how many complete
+    /// messages remain), corrupt non-chunk records, an unreadable calibration. Corrupt chunks
+    /// are reported by [`messages`](Self::messages) instead. [`open`](Self::open) also logs each
+    /// at WARN with the file's path, so callers of `open` need not log them again.
+    pub fn warnings(&self) -> Vec<String> {
+        self.warnings.clone()
+    }
+
+    /// Whether the file has a complete summary section and footer.
+    pub fn has_summary(&self) -> bool {
+        self.summary_present
+    }
+
+    /// The chunks whose record and header are intact, in file order.
+    pub fn chunks(&self) -> Vec<ChunkInfo> {
+        self.blocks
+            .iter()
+            .filter_map(|block| match block {
+                Block::Chunk { info, .. } => Some(info.clone()),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Every complete message in log-time (host) order; messages with equal log time come in
+    /// file order. A corrupt chunk yields one [`RecordingError::CorruptChunk`] where its
+    /// messages would have been and reading goes on with the next chunk; a message that does
+    /// not decode yields [`RecordingError::Decode`]. Messages on topics that are not relight
+    /// streams are skipped.
+    pub fn messages(&self) -> Messages<'_> {
+        let mut order: Vec<usize> = (0..self.blocks.len()).collect();
+        order.sort_by_key(|&i| self.blocks.get(i).map(Block::start_ns));
+        Messages {
+            reader: self,
+            order,
+            next_block: 0,
+            pending: BinaryHeap::new(),
+            channels: self.channels.clone(),
+            serial: 0,
+        }
+    }
+
+    /// Walk every record once: collect chunks, loose messages, channels, metadata and the
+    /// calibration attachment, and note how the file ends.
+    fn index(&mut self) -> Result<(), RecordingError> {
+        let bytes = std::mem::take(&mut self.bytes);
+        let result = self.index_bytes(&bytes);
+        self.bytes = bytes;
+        result
+    }
+
+    fn index_bytes(&mut self, bytes: &[u8]) -> Result<(), RecordingError> {
+        let len = bytes.len();
+        match bytes.get(..mcap::MAGIC.len()) {
+            Some(magic) if magic == mcap::MAGIC => {}
+            Some(_) => {
+                return Err(RecordingError::NotMcap {
+                    reason: "the file does not start with the MCAP magic bytes".into(),
+                });
+            }
+            None if mcap::MAGIC.starts_with(bytes) => {
+                return Err(RecordingError::NotMcap {
+                    reason: format!("the file is cut off inside the magic bytes ({len} bytes)"),
+                });
+            }
+            None => {
+                return Err(RecordingError::NotMcap {
+                    reason: format!("{len} bytes, not an MCAP file"),
+                });
+            }
+        }
+        let mut pos = mcap::MAGIC.len();
+
+        let (header_opcode, header_body) = match frame_record(bytes, pos) {
+            Framed::Record { opcode, body } => (opcode, body),
+            Framed::End | Framed::Cut { .. } => {
+                return Err(RecordingError::NotMcap {
+                    reason: format!("the file is cut off inside the header record ({len} bytes)"),
+                });
+            }
+        };
+        let library =
+            match body_of(bytes, &header_body).map(|b| mcap::parse_record(header_opcode, b)) {
+                Some(Ok(Record::Header(header))) => header.library,
+                Some(Ok(_)) | None => {
+                    return Err(RecordingError::NotMcap {
+                        reason: format!(
+                            "the first record has opcode {header_opcode:#04x}, not a header"
+                        ),
+                    });
+                }
+                Some(Err(e)) => {
+                    return Err(RecordingError::NotMcap {
+                        reason: format!("the header record does not parse: {e}"),
+                    });
+                }
+            };
+        pos = header_body.end;
+
+        let mut metadata: BTreeMap<String, BTreeMap<String, String>> = BTreeMap::new();
+        let mut calibration_attachment: Option<Range<usize>> = None;
+        let mut chunk_count = 0usize;
+        let mut data_end_seen = false;
+        let walk_end = loop {
+            let (opcode, body_range) = match frame_record(bytes, pos) {
+                Framed::Record { opcode, body } => (opcode, body),
+                Framed::End => break WalkEnd::AtRecordBoundary,
+                Framed::Cut { opcode, length } => {
+                    break WalkEnd::InsideRecord {
+                        offset: pos,
+                        opcode,
+                        length,
+                    };
+                }
+            };
+            let record_offset = pos;
+            pos = body_range.end;
+            let Some(body) = body_of(bytes, &body_range) else {
+                break WalkEnd::InsideRecord {
+                    offset: record_offset,
+                    opcode: Some(opcode),
+                    length: None,
+                };
+            };
+            let mut corrupt = |reason: String| {
+                self.warnings.push(
+                    RecordingError::CorruptRecord {
+                        offset: record_offset as u64,
+                        opcode,
+                        reason,
+                    }
+                    .to_string(),
+                );
+            };
+            match opcode {
+                op::CHUNK => {
+                    let index = chunk_count;
+                    chunk_count += 1;
+                    match mcap::parse_record(opcode, body) {
+                        Ok(Record::Chunk { header, .. }) => self.blocks.push(Block::Chunk {
+                            info: chunk_info(index, record_offset, pos, &header),
+                            body: body_range,
+                        }),
+                        Ok(_) => {}
+                        Err(e) => {
+                            let start_ns = self.blocks.last().map(Block::start_ns).unwrap_or(0);
+                            self.blocks.push(Block::BadChunk {
+                                index,
+                                offset: record_offset as u64,
+                                reason: format!("chunk header does not parse: {e}"),
+                                start_ns,
+                            });
+                        }
+                    }
+                }
+                op::MESSAGE => match mcap::parse_record(opcode, body) {
+                    Ok(Record::Message { header, .. }) => self.blocks.push(Block::Message {
+                        header,
+                        data: body_range.start + MESSAGE_HEADER_LEN..body_range.end,
+                    }),
+                    Ok(_) => {}
+                    Err(e) => corrupt(e.to_string()),
+                },
+                op::CHANNEL => match mcap::parse_record(opcode, body) {
+                    Ok(Record::Channel(channel)) => {
+                        self.channels.entry(channel.id).or_insert_with(|| {
+                            channel_info(&channel.topic, &channel.message_encoding)
+                        });
+                    }
+                    Ok(_) => {}
+                    Err(e) => corrupt(e.to_string()),
+                },
+                op::METADATA => match mcap::parse_record(opcode, body) {
+                    Ok(Record::Metadata(record)) => {
+                        metadata.entry(record.name).or_insert(record.metadata);
+                    }
+                    Ok(_) => {}
+                    Err(e) => corrupt(e.to_string()),
+                },
+                op::ATTACHMENT => match attachment_name_and_data(body) {
+                    Ok((name, data)) => {
+                        // parse_record only after the lengths are known to be consistent: it
+                        // slices by them unchecked. It verifies the CRC.
+                        match mcap::parse_record(opcode, body) {
+                            Ok(_) if name == CALIBRATION_ATTACHMENT => {
+                                calibration_attachment = Some(
+                                    body_range.start + data.start..body_range.start + data.end,
+                                );
+                            }
+                            Ok(_) => {}
+                            Err(e) => corrupt(e.to_string()),
+                        }
+                    }
+                    Err(reason) => corrupt(reason),
+                },
+                op::DATA_END => data_end_seen = true,
+                op::FOOTER => break WalkEnd::Footer,
+                _ => {}
+            }
+        };
+
+        self.meta.source = metadata
+            .get(RECORDING_METADATA)
+            .and_then(|m| m.get("source"))
+            .cloned()
+            .unwrap_or(library);
+        let calibration_toml = metadata
+            .get(CALIBRATION_METADATA)
+            .and_then(|m| m.get(CALIBRATION_KEY))
+            .map(|toml| (CALIBRATION_METADATA, toml.clone()))
+            .or_else(|| {
+                let data = calibration_attachment.and_then(|range| bytes.get(range))?;
+                match std::str::from_utf8(data) {
+                    Ok(text) => Some((CALIBRATION_ATTACHMENT, text.to_owned())),
+                    Err(e) => {
+                        self.warnings
+                            .push(format!("calibration attachment is not UTF-8: {e}"));
+                        None
+                    }
+                }
+            });
+        if let Some((origin, toml)) = calibration_toml {
+            match RigCalibration::from_toml(&toml) {
+                Ok(calibration) => self.meta.calibration = Some(calibration),
+                Err(e) => self
+                    .warnings
+                    .push(format!("calibration in {origin} does not parse: {e}")),
+            }
+        }
+
+        // A relight recording uses fixed channel IDs, so its messages stay readable when the
+        // chunk holding the Channel records is lost.
+        if metadata.contains_key(RECORDING_METADATA) {
+            for kind in StreamKind::ALL {
+                let schema = schema::channel_schema(kind);
+                self.channels
+                    .entry(channel_id(kind))
+                    .or_insert_with(|| channel_info(topic(kind), schema.message_encoding));
+            }
+        }
+
+        match walk_end {
+            WalkEnd::Footer => {
+                self.summary_present = true;
+                let trailer = bytes.get(pos..).unwrap_or_default();
+                if trailer.len() < mcap::MAGIC.len() && mcap::MAGIC.starts_with(trailer) {
+                    let complete = self.count_complete_messages(bytes);
+                    self.warnings.push(format!(
+                        "recording truncated at byte {len} inside the closing magic bytes: \
+                         summary section complete; read {complete} complete messages"
+                    ));
+                } else if trailer != mcap::MAGIC {
+                    self.warnings.push(format!(
+                        "footer at byte {pos} is followed by {} bytes that are not the closing magic",
+                        trailer.len()
+                    ));
+                }
+            }
+            WalkEnd::AtRecordBoundary | WalkEnd::InsideRecord { .. } => {
+                let place = match walk_end {
+                    WalkEnd::InsideRecord {
+                        offset,
+                        opcode,
+                        length,
+                    } => {
+                        let what = opcode.map_or("record", opcode_name);
+                        match length {
+                            Some(length) => format!(
+                                "inside the {what} record at byte {offset} ({length}-byte body, {} bytes present)",
+                                len.saturating_sub(offset + RECORD_PREFIX_LEN)
+                            ),
+                            None => format!("inside the {what} record at byte {offset}"),
+                        }
+                    }
+                    _ => "after a complete record".to_string(),
+                };
+                let section = if data_end_seen {
+                    "data section complete, summary section cut"
+                } else {
+                    "summary section missing"
+                };
+                let complete = self.count_complete_messages(bytes);
+                self.warnings.push(format!(
+                    "recording truncated at byte {len} {place}: {section}; read {complete} complete messages"
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Messages in loose records and in chunks that decompress cleanly. Used only for the
+    /// truncation warning, when the summary's statistics are not there.
+    fn count_complete_messages(&self, bytes: &[u8]) -> u64 {
+        self.blocks
+            .iter()
+            .map(|block| match block {
+                Block::Message { .. } => 1,
+                Block::BadChunk { .. } => 0,
+                Block::Chunk { info, body } => {
+                    match load_chunk(bytes, info.offset as usize..body.end) {
+                        Ok(records) => records
+                            .iter()
+                            .filter(|r| matches!(r, Record::Message { .. }))
+                            .count() as u64,
+                        Err(_) => 0,
+                    }
+                }
+            })
+            .sum()
+    }
+}
+
+/// Result of framing one record at a position.
+enum Framed {
+    Record {
+        opcode: u8,
+        body: Range<usize>,
+    },
+    /// The file ends exactly here.
+    End,
+    /// The file ends inside this record (its opcode and length if they were read).
+    Cut {
+        opcode: Option<u8>,
+        length: Option<u64>,
+    },
+}
+
+fn frame_record(bytes: &[u8], pos: usize) -> Framed {
+    if pos >= bytes.len() {
+        return Framed::End;
+    }
+    let opcode = bytes.get(pos).copied();
+    let Some(prefix) = bytes.get(pos..pos + RECORD_PREFIX_LEN) else {
+        return Framed::Cut {
+            opcode,
+            length: None,
+        };
+    };
+    let mut length_bytes = [0u8; 8];
+    length_bytes.copy_from_slice(prefix.get(1..).unwrap_or(&[0; 8]));
+    let length = u64::from_le_bytes(length_bytes);
+    let start = pos + RECORD_PREFIX_LEN;
+    let end = usize::try_from(length)
+        .ok()
+        .and_then(|length| start.checked_add(length))
+        .filter(|&end| end <= bytes.len());
+    match (opcode, end) {
+        (Some(opcode), Some(end)) => Framed::Record {
+            opcode,
+            body: start..end,
+        },
+        _ => Framed::Cut {
+            opcode,
+            length: Some(length),
+        },
+    }
+}
+
+fn body_of<'a>(bytes: &'a [u8], range: &Range<usize>) -> Option<&'a [u8]> {
+    bytes.get(range.clone())
+}
+
+fn opcode_name(opcode: u8) -> &'static str {
+    match opcode {
+        op::HEADER => "header",
+        op::FOOTER => "footer",
+        op::SCHEMA => "schema",
+        op::CHANNEL => "channel",
+        op::MESSAGE => "message",
+        op::CHUNK => "chunk",
+        op::MESSAGE_INDEX => "message index",
+        op::CHUNK_INDEX => "chunk index",
+        op::ATTACHMENT => "attachment",
+        op::ATTACHMENT_INDEX => "attachment index",
+        op::STATISTICS => "statistics",
+        op::METADATA => "metadata",
+        op::METADATA_INDEX => "metadata index",
+        op::SUMMARY_OFFSET => "summary offset",
+        op::DATA_END => "data end",
+        _ => "unknown",
+    }
+}
+
+fn channel_info(topic: &str, message_encoding: &str) -> ChannelInfo {
+    ChannelInfo {
+        topic: topic.to_owned(),
+        message_encoding: message_encoding.to_owned(),
+        stream: stream_of_topic(topic),
+    }
+}
+
+fn chunk_info(index: usize, offset: usize, end_offset: usize, header: &ChunkHeader) -> ChunkInfo {
+    // Chunk body: start, end, uncompressed size (3 × u64), crc (u32), compression (u32 length
+    // + bytes), compressed size (u64), then the compressed bytes.
+    let data_offset = offset + RECORD_PREFIX_LEN + 8 * 3 + 4 + 4 + header.compression.len() + 8;
+    ChunkInfo {
+        index,
+        offset: offset as u64,
+        end_offset: end_offset as u64,
+        data_offset: data_offset as u64,
+        compressed_size: header.compressed_size,
+        uncompressed_size: header.uncompressed_size,
+        compression: header.compression.clone(),
+        message_start_ns: header.message_start_time,
+        message_end_ns: header.message_end_time,
+    }
+}
+
+/// Read an Attachment body's name and the range of its data, checking that every length field
+/// fits: log time, create time (u64 each), name, media type (u32-prefixed strings), data length
+/// (u64), data, CRC (u32).
+fn attachment_name_and_data(body: &[u8]) -> Result<(String, Range<usize>), String> {
+    let mut pos = 16usize;
+    let string = |pos: &mut usize| -> Result<String, String> {
+        let len = read_u32(body, *pos)? as usize;
+        let start = *pos + 4;
+        let text = body
+            .get(start..start.saturating_add(len))
+            .ok_or("attachment string runs past the record")?;
+        *pos = start + len;
+        String::from_utf8(text.to_vec()).map_err(|e| e.to_string())
+    };
+    let name = string(&mut pos)?;
+    let _media_type = string(&mut pos)?;
+    let data_len = read_u64(body, pos)?;
+    let start = pos + 8;
+    let end = usize::try_from(data_len)
+        .ok()
+        .and_then(|n| start.checked_add(n))
+        .filter(|&end| end.checked_add(4) == Some(body.len()))
+        .ok_or_else(|| {
+            format!(
+                "attachment data length {data_len} does not match its {}-byte record",
+                body.len()
+            )
+        })?;
+    Ok((name, start..end))
+}
+
+fn read_u32(body: &[u8], pos: usize) -> Result<u32, String> {
+    body.get(pos..pos.saturating_add(4))
+        .and_then(|b| b.try_into().ok())
+        .map(u32::from_le_bytes)
+        .ok_or_else(|| format!("u32 at {pos} runs past the record"))
+}
+
+fn read_u64(body: &[u8], pos: usize) -> Result<u64, String> {
+    body.get(pos..pos.saturating_add(8))
+        .and_then(|b| b.try_into().ok())
+        .map(u64::from_le_bytes)
+        .ok_or_else(|| format!("u64 at {pos} runs past the record"))
+}
+
+/// Largest record a chunk may hold (beyond the chunk's own compressed size). Bounds what a
+/// corrupt length field can make the reader allocate; a 4096×4096 `Rgba16F` image is 128 MiB.
+const MAX_RECORD_BYTES: usize = 256 << 20;
+
+/// Decompress one chunk record (`opcode..end` in `bytes`) and parse all its records; any failure
+/// (decompression, CRC, framing, a record over [`MAX_RECORD_BYTES`]) fails the whole chunk, so
+/// that no message of a chunk with a bad CRC escapes.
+fn load_chunk(bytes: &[u8], record: Range<usize>) -> Result<Vec<Record<'static>>, String> {
+    let mut input = bytes
+        .get(record)
+        .ok_or("chunk record lies outside the file")?;
+    let limit = input.len().max(MAX_RECORD_BYTES);
+    let mut reader = LinearReader::new_with_options(
+        LinearReaderOptions::default()
+            .with_skip_start_magic(true)
+            .with_skip_end_magic(true)
+            .with_emit_chunks(false)
+            .with_validate_chunk_crcs(true)
+            .with_record_length_limit(limit),
+    );
+    let mut records = Vec::new();
+    while let Some(event) = reader.next_event() {
+        match event.map_err(|e| e.to_string())? {
+            LinearReadEvent::ReadRequest(wanted) => {
+                let len = wanted.min(input.len());
+                let (now, rest) = input.split_at(len);
+                reader.insert(len).copy_from_slice(now);
+                reader.notify_read(len);
+                input = rest;
+            }
+            LinearReadEvent::Record { data, opcode } => {
+                let record = mcap::parse_record(opcode, data).map_err(|e| e.to_string())?;
+                records.push(record.into_owned());
+            }
+        }
+    }
+    Ok(records)
+}
+
+/// A message waiting in the merge heap, ordered by log time, then by arrival (file order).
+struct Pending {
+    log_time: u64,
+    serial: u64,
+    header: MessageHeader,
+    data: PendingData,
+}
+
+enum PendingData {
+    Owned(Vec<u8>),
+    InFile(Range<usize>),
+}
+
+impl PartialEq for Pending {
+    fn eq(&self, other: &Self) -> bool {
+        self.cmp(other) == Ordering::Equal
+    }
+}
+impl Eq for Pending {}
+impl PartialOrd for Pending {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Pending {
+    /// Reversed, so that `BinaryHeap` (a max-heap) pops the earliest message first.
+    fn cmp(&self, other: &Self) -> Ordering {
+        (other.log_time, other.serial).cmp(&(self.log_time, self.serial))
+    }
+}
+
+/// Iterator of [`RecordingReader::messages`].
+///
+/// Blocks (chunks, loose messages) are loaded in order of their first log time; a message is
+/// handed out once no unloaded block can hold an earlier one, so overlapping chunks merge
+/// correctly while at most the overlapping chunks are held decompressed.
+pub struct Messages<'a> {
+    reader: &'a RecordingReader,
+    order: Vec<usize>,
+    next_block: usize,
+    pending: BinaryHeap<Pending>,
+    channels: HashMap<u16, ChannelInfo>,
+    serial: u64,
+}
+
+impl fmt::Debug for Messages<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Messages")
+            .field("blocks_loaded", &self.next_block)
+            .field("blocks", &self.order.len())
+            .field("pending", &self.pending.len())
+            .finish()
+    }
+}
+
+impl Iterator for Messages<'_> {
+    type Item = Result<StreamMessage, RecordingError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            let next_block = self
+                .order
+                .get(self.next_block)
+                .and_then(|&i| self.reader.blocks.get(i));
+            let earliest_pending = self.pending.peek().map(|p| p.log_time);
+            match (next_block, earliest_pending) {
+                (Some(block), Some(log_time)) if block.start_ns() <= log_time => {
+                    self.next_block += 1;
+                    if let Err(e) = self.load(block) {
+                        return Some(Err(e));
+                    }
+                }
+                (Some(block), None) => {
+                    self.next_block += 1;
+                    if let Err(e) = self.load(block) {
+                        return Some(Err(e));
+                    }
+                }
+                (_, Some(_)) => {
+                    let pending = self.pending.pop()?;
+                    if let Some(result) = self.decode(pending) {
+                        return Some(result);
+                    }
+                }
+                (None, None) => return None,
+            }
+        }
+    }
+}
+
+impl<'a> Messages<'a> {
+    fn push(&mut self, header: MessageHeader, data: PendingData) {
+        self.serial += 1;
+        self.pending.push(Pending {
+            log_time: header.log_time,
+            serial: self.serial,
+            header,
+            data,
+        });
+    }
+
+    fn load(&mut self, block: &'a Block) -> Result<(), RecordingError> {
+        match block {
+            Block::Message { header, data } => {
+                self.push(*header, PendingData::InFile(data.clone()));
+                Ok(())
+            }
+            Block::BadChunk {
+                index,
+                offset,
+                reason,
+                ..
+            } => Err(RecordingError::CorruptChunk {
+                index: *index,
+                offset: *offset,
+                reason: reason.clone(),
+            }),
+            Block::Chunk { info, body } => {
+                let records = load_chunk(&self.reader.bytes, info.offset as usize..body.end)
+                    .map_err(|reason| RecordingError::CorruptChunk {
+                        index: info.index,
+                        offset: info.offset,
+                        reason,
+                    })?;
+                for record in records {
+                    match record {
+                        Record::Channel(channel) => {
+                            self.channels.entry(channel.id).or_insert_with(|| {
+                                channel_info(&channel.topic, &channel.message_encoding)
+                            });
+                        }
+                        Record::Message { header, data } => {
+                            self.push(header, PendingData::Owned(data.into_owned()));
+                        }
+                        _ => {}
+                    }
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// Decode one message; `None` for messages on topics that are not relight streams.
+    fn decode(&self, pending: Pending) -> Option<Result<StreamMessage, RecordingError>> {
+        let header = pending.header;
+        let data: &[u8] = match &pending.data {
+            PendingData::Owned(data) => data,
+            PendingData::InFile(range) => self.reader.bytes.get(range.clone()).unwrap_or_default(),
+        };
+        let Some(channel) = self.channels.get(&header.channel_id) else {
+            return Some(Err(RecordingError::Decode {
+                channel: format!("channel {}", header.channel_id),
+                seq: u64::from(header.sequence),
+                reason: "no Channel record describes this channel".into(),
+            }));
+        };
+        let Some(stream) = channel.stream else {
+            tracing::trace!(topic = %channel.topic, "skipping message of a foreign topic");
+            return None;
+        };
+        Some(
+            decode_message(stream, &channel.message_encoding, &header, data).map_err(|reason| {
+                RecordingError::Decode {
+                    channel: channel.topic.clone(),
+                    seq: u64::from(header.sequence),
+                    reason,
+                }
+            }),
+        )
+    }
+}
+
+/// Turn one message back into a [`StreamMessage`] (inverse of the writer; see the module docs).
+fn decode_message(
+    stream: StreamKind,
+    message_encoding: &str,
+    header: &MessageHeader,
+    data: &[u8],
+) -> Result<StreamMessage, String> {
+    let stamp = Timestamp::new(header.publish_time, header.log_time);
+    let short_seq = u64::from(header.sequence);
+    let expect_encoding = |expected: &str| {
+        if message_encoding == expected {
+            Ok(())
+        } else {
+            Err(format!(
+                "message encoding `{message_encoding}`, expected `{expected}`"
+            ))
+        }
+    };
+    match stream {
+        StreamKind::Depth | StreamKind::Color | StreamKind::Probe => {
+            expect_encoding(CDR_MESSAGE_ENCODING)?;
+            let decoded = schema::decode_image(data)?;
+            let (_, extras) = schema::parse_frame_id(&decoded.frame_id)?;
+            let seq = extras.seq.unwrap_or(short_seq);
+            Ok(match stream {
+                StreamKind::Depth => {
+                    StreamMessage::Depth(Arc::new(Frame::new(seq, stamp, decoded.image)))
+                }
+                StreamKind::Color => {
+                    StreamMessage::Color(Arc::new(Frame::new(seq, stamp, decoded.image)))
+                }
+                _ => {
+                    let exposure_us = extras
+                        .exposure_us
+                        .ok_or("probe frame_id lacks exposure_us")?;
+                    let gain_db = extras.gain_db.ok_or("probe frame_id lacks gain_db")?;
+                    let probe = ProbeImage {
+                        image: decoded.image,
+                        exposure_us,
+                        gain_db,
+                    };
+                    StreamMessage::Probe(Arc::new(Frame::new(seq, stamp, probe)))
+                }
+            })
+        }
+        StreamKind::Markers => {
+            expect_encoding(JSON_MESSAGE_ENCODING)?;
+            let (markers, seq) = schema::decode_markers(data)?;
+            Ok(StreamMessage::Markers(Arc::new(Frame::new(
+                seq.unwrap_or(short_seq),
+                stamp,
+                markers,
+            ))))
+        }
+        StreamKind::Lamp => {
+            expect_encoding(JSON_MESSAGE_ENCODING)?;
+            let (lamp, seq) = schema::decode_lamp(data)?;
+            Ok(StreamMessage::Lamp(Arc::new(Frame::new(
+                seq.unwrap_or(short_seq),
+                stamp,
+                lamp,
+            ))))
+        }
+    }
+}

@@ -1,0 +1,644 @@
+//! Schemas of the recording channels and the encoders/decoders of their messages.
+//!
+//! Images: ROS 2 `sensor_msgs/msg/Image` in little-endian CDR (OMG XCDR1 as ROS 2 writes it:
+//! a 4-byte encapsulation header, then fields aligned to their own size relative to the end of
+//! that header). Markers and lamp: JSON described by a JSON Schema (draft-07, no `$ref`, so
+//! Foxglove's schema parser handles it). The module docs of [`crate::recording`] list which
+//! frame field goes where.
+
+use std::fmt::Write as _;
+
+use serde::{Deserialize, Serialize};
+
+use crate::frame::{Image, PixelFormat, Pixels};
+use crate::stream::{LampState, MarkerDetection, MarkerSet, StreamKind};
+
+/// ROS 2 type name of the image schema.
+pub const IMAGE_SCHEMA_NAME: &str = "sensor_msgs/msg/Image";
+/// MCAP schema encoding of ROS 2 message definitions.
+pub const ROS2MSG_SCHEMA_ENCODING: &str = "ros2msg";
+/// MCAP message encoding of ROS 2 CDR.
+pub const CDR_MESSAGE_ENCODING: &str = "cdr";
+/// `sensor_msgs/msg/Image` with its dependencies, in the concatenated form of ROS 2 bags
+/// (`rosbag2` / `mcap-ros2-support`).
+pub const IMAGE_SCHEMA: &str = "\
+std_msgs/Header header
+uint32 height
+uint32 width
+string encoding
+uint8 is_bigendian
+uint32 step
+uint8[] data
+================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+";
+
+/// MCAP schema encoding of JSON Schema.
+pub const JSON_SCHEMA_ENCODING: &str = "jsonschema";
+/// MCAP message encoding of JSON messages.
+pub const JSON_MESSAGE_ENCODING: &str = "json";
+pub const MARKERS_SCHEMA_NAME: &str = "relight.MarkerSet";
+pub const LAMP_SCHEMA_NAME: &str = "relight.LampState";
+
+/// JSON Schema of a `/markers` message ([`MarkerSet`]).
+pub const MARKERS_JSON_SCHEMA: &str = r##"{
+  "$schema": "http://json-schema.org/draft-07/schema#",
+  "title": "relight.MarkerSet",
+  "description": "Square markers (AprilTag / ArUco) detected in one camera image. MCAP log_time = host clock ns, publish_time = device clock ns, sequence = frame sequence number.",
+  "type": "object",
+  "properties": {
+    "seq": {
+      "description": "Full frame sequence number; present only when it does not fit the 32-bit MCAP sequence field.",
+      "type": "integer",
+      "minimum": 0
+    },
+    "detections": {
+      "type": "array",
+      "items": {
+        "type": "object",
+        "properties": {
+          "family": { "description": "Tag family, e.g. tag36h11, aruco_4x4_50.", "type": "string" },
+          "marker_id": { "type": "integer", "minimum": 0, "maximum": 4294967295 },
+          "corners_px": {
+            "description": "Corners in pixels [x, y], counter-clockwise from the tag's lower-left as seen in the image.",
+            "type": "array",
+            "items": { "type": "array", "items": { "type": "number" }, "minItems": 2, "maxItems": 2 },
+            "minItems": 4,
+            "maxItems": 4
+          },
+          "camera_from_marker": {
+            "description": "The marker's pose in the observing camera's frame: point_in_camera = rotation * point_in_marker + translation (metres).",
+            "type": "object",
+            "properties": {
+              "rotation": {
+                "description": "Unit quaternion [x, y, z, w].",
+                "type": "array", "items": { "type": "number" }, "minItems": 4, "maxItems": 4
+              },
+              "translation": {
+                "description": "Metres [x, y, z].",
+                "type": "array", "items": { "type": "number" }, "minItems": 3, "maxItems": 3
+              }
+            },
+            "required": ["rotation", "translation"]
+          },
+          "reprojection_rms_px": {
+            "description": "Reprojection RMS of the pose fit, pixels.",
+            "type": "number",
+            "minimum": 0
+          }
+        },
+        "required": ["family", "marker_id", "corners_px", "camera_from_marker", "reprojection_rms_px"]
+      }
+    }
+  },
+  "required": ["detections"]
+}
+"##;
+
+/// JSON Schema of a `/lamp` message ([`LampState`]).
+pub const LAMP_JSON_SCHEMA: &str = r##"{
+  "$schema": "http://json-schema.org/draft-07/schema#",
+  "title": "relight.LampState",
+  "description": "The tracked pocket lamp. MCAP log_time = host clock ns, publish_time = device clock ns, sequence = frame sequence number.",
+  "type": "object",
+  "properties": {
+    "seq": {
+      "description": "Full frame sequence number; present only when it does not fit the 32-bit MCAP sequence field.",
+      "type": "integer",
+      "minimum": 0
+    },
+    "on": { "type": "boolean" },
+    "position_in_world": {
+      "description": "The light's centre in the world frame, metres [x, y, z].",
+      "type": "array", "items": { "type": "number" }, "minItems": 3, "maxItems": 3
+    },
+    "intensity": {
+      "description": "Radiant intensity, linear RGB, W/sr [r, g, b].",
+      "type": "array", "items": { "type": "number" }, "minItems": 3, "maxItems": 3
+    }
+  },
+  "required": ["on", "position_in_world", "intensity"]
+}
+"##;
+
+/// The schema and encodings of one stream's channel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ChannelSchema {
+    pub schema_name: &'static str,
+    pub schema_encoding: &'static str,
+    pub schema_data: &'static str,
+    pub message_encoding: &'static str,
+}
+
+/// The channel schema of each stream.
+pub fn channel_schema(kind: StreamKind) -> ChannelSchema {
+    match kind {
+        StreamKind::Depth | StreamKind::Color | StreamKind::Probe => ChannelSchema {
+            schema_name: IMAGE_SCHEMA_NAME,
+            schema_encoding: ROS2MSG_SCHEMA_ENCODING,
+            schema_data: IMAGE_SCHEMA,
+            message_encoding: CDR_MESSAGE_ENCODING,
+        },
+        StreamKind::Markers => ChannelSchema {
+            schema_name: MARKERS_SCHEMA_NAME,
+            schema_encoding: JSON_SCHEMA_ENCODING,
+            schema_data: MARKERS_JSON_SCHEMA,
+            message_encoding: JSON_MESSAGE_ENCODING,
+        },
+        StreamKind::Lamp => ChannelSchema {
+            schema_name: LAMP_SCHEMA_NAME,
+            schema_encoding: JSON_SCHEMA_ENCODING,
+            schema_data: LAMP_JSON_SCHEMA,
+            message_encoding: JSON_MESSAGE_ENCODING,
+        },
+    }
+}
+
+/// The value written in MCAP's 32-bit `sequence` field, and the full `seq` when it does not fit
+/// (then also written in the payload).
+pub fn split_seq(seq: u64) -> (u32, Option<u64>) {
+    match u32::try_from(seq) {
+        Ok(short) => (short, None),
+        Err(_) => ((seq & u64::from(u32::MAX)) as u32, Some(seq)),
+    }
+}
+
+/// Per-frame values carried in an image's `frame_id` after `?`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FrameIdExtras {
+    pub seq: Option<u64>,
+    pub exposure_us: Option<u32>,
+    pub gain_db: Option<f32>,
+}
+
+/// Write `camera[?key=value&…]` into `out` (cleared first). Floats use Rust's shortest
+/// representation that parses back to the same value.
+pub fn write_frame_id(out: &mut String, camera: &str, extras: &FrameIdExtras) {
+    out.clear();
+    out.push_str(camera);
+    let mut separator = '?';
+    let mut push = |out: &mut String, key: &str, value: &dyn std::fmt::Display| {
+        // Writing to a String cannot fail.
+        let _ = write!(out, "{separator}{key}={value}");
+        separator = '&';
+    };
+    if let Some(exposure_us) = extras.exposure_us {
+        push(out, "exposure_us", &exposure_us);
+    }
+    if let Some(gain_db) = extras.gain_db {
+        push(out, "gain_db", &gain_db);
+    }
+    if let Some(seq) = extras.seq {
+        push(out, "seq", &seq);
+    }
+}
+
+/// Split a `frame_id` into the camera name and its extras. Unknown keys are ignored (they may
+/// come from a later format version); a known key with a bad value is an error.
+pub fn parse_frame_id(frame_id: &str) -> Result<(&str, FrameIdExtras), String> {
+    let (camera, query) = frame_id.split_once('?').unwrap_or((frame_id, ""));
+    let mut extras = FrameIdExtras::default();
+    for pair in query.split('&').filter(|p| !p.is_empty()) {
+        let (key, value) = pair
+            .split_once('=')
+            .ok_or_else(|| format!("frame_id `{frame_id}`: `{pair}` is not key=value"))?;
+        let bad = |e: &dyn std::fmt::Display| format!("frame_id `{frame_id}`: {key}: {e}");
+        match key {
+            "seq" => extras.seq = Some(value.parse().map_err(|e| bad(&e))?),
+            "exposure_us" => extras.exposure_us = Some(value.parse().map_err(|e| bad(&e))?),
+            "gain_db" => extras.gain_db = Some(value.parse().map_err(|e| bad(&e))?),
+            _ => {}
+        }
+    }
+    Ok((camera, extras))
+}
+
+/// CDR encapsulation header of little-endian plain CDR (`CDR_LE`).
+const CDR_LE_HEADER: [u8; 4] = [0x00, 0x01, 0x00, 0x00];
+
+/// Appends CDR fields, aligning each to its size relative to the end of the encapsulation header.
+struct CdrWriter<'a> {
+    out: &'a mut Vec<u8>,
+    body_start: usize,
+}
+
+impl<'a> CdrWriter<'a> {
+    fn new(out: &'a mut Vec<u8>) -> Self {
+        out.extend_from_slice(&CDR_LE_HEADER);
+        let body_start = out.len();
+        Self { out, body_start }
+    }
+
+    fn align(&mut self, size: usize) {
+        let pos = self.out.len() - self.body_start;
+        let padding = (size - pos % size) % size;
+        self.out.resize(self.out.len() + padding, 0);
+    }
+
+    fn u8(&mut self, value: u8) {
+        self.out.push(value);
+    }
+
+    fn u32(&mut self, value: u32) {
+        self.align(4);
+        self.out.extend_from_slice(&value.to_le_bytes());
+    }
+
+    fn i32(&mut self, value: i32) {
+        self.align(4);
+        self.out.extend_from_slice(&value.to_le_bytes());
+    }
+
+    /// A CDR string: length including the terminating NUL, bytes, NUL.
+    fn string(&mut self, value: &str) -> Result<(), String> {
+        let len = u32::try_from(value.len() + 1)
+            .map_err(|_| format!("string of {} bytes is too long for CDR", value.len()))?;
+        self.u32(len);
+        self.out.extend_from_slice(value.as_bytes());
+        self.out.push(0);
+        Ok(())
+    }
+}
+
+/// Reads CDR fields with bounds checks; every failure is a reason string.
+struct CdrReader<'a> {
+    body: &'a [u8],
+    pos: usize,
+}
+
+impl<'a> CdrReader<'a> {
+    fn new(data: &'a [u8]) -> Result<Self, String> {
+        let (header, body) = data
+            .split_first_chunk::<4>()
+            .ok_or_else(|| format!("{} bytes is too short for a CDR header", data.len()))?;
+        match header {
+            [0x00, 0x01, _, _] => Ok(Self { body, pos: 0 }),
+            [0x00, 0x00, _, _] => Err("big-endian CDR is not supported".into()),
+            other => Err(format!("unknown CDR encapsulation {other:02x?}")),
+        }
+    }
+
+    fn take(&mut self, len: usize) -> Result<&'a [u8], String> {
+        let end = self
+            .pos
+            .checked_add(len)
+            .filter(|&end| end <= self.body.len())
+            .ok_or_else(|| {
+                format!(
+                    "CDR field of {len} bytes at body offset {} runs past the {}-byte message",
+                    self.pos,
+                    self.body.len()
+                )
+            })?;
+        let bytes = self.body.get(self.pos..end).unwrap_or_default();
+        self.pos = end;
+        Ok(bytes)
+    }
+
+    fn align(&mut self, size: usize) {
+        self.pos += (size - self.pos % size) % size;
+    }
+
+    fn u8(&mut self) -> Result<u8, String> {
+        let bytes = self.take(1)?;
+        Ok(bytes.first().copied().unwrap_or_default())
+    }
+
+    fn u32(&mut self) -> Result<u32, String> {
+        self.align(4);
+        let bytes = self.take(4)?;
+        let array: [u8; 4] = bytes.try_into().map_err(|_| "short u32".to_string())?;
+        Ok(u32::from_le_bytes(array))
+    }
+
+    fn i32(&mut self) -> Result<i32, String> {
+        self.u32().map(|v| v as i32)
+    }
+
+    fn string(&mut self, field: &str) -> Result<&'a str, String> {
+        let len = self.u32()? as usize;
+        let bytes = self.take(len)?;
+        let text = match bytes.split_last() {
+            Some((0, text)) => text,
+            Some(_) => return Err(format!("{field}: string is not NUL-terminated")),
+            None => &[],
+        };
+        std::str::from_utf8(text).map_err(|e| format!("{field}: {e}"))
+    }
+}
+
+/// Encode `image` as a CDR `sensor_msgs/msg/Image` into `out` (cleared first). `header.stamp` is
+/// `stamp_ns` split into seconds (saturating at `i32::MAX`) and nanoseconds.
+pub fn encode_image(
+    out: &mut Vec<u8>,
+    stamp_ns: u64,
+    frame_id: &str,
+    image: &Image,
+) -> Result<(), String> {
+    out.clear();
+    let format = image.format();
+    let data_len = image.pixel_count() * format.bytes_per_pixel();
+    let data_len_u32 = u32::try_from(data_len)
+        .map_err(|_| format!("image of {data_len} bytes is too large for sensor_msgs/Image"))?;
+    let step = u32::try_from(image.stride())
+        .map_err(|_| format!("row of {} bytes is too large", image.stride()))?;
+    out.reserve(data_len + 64 + frame_id.len());
+
+    let mut cdr = CdrWriter::new(out);
+    let sec = i32::try_from(stamp_ns / 1_000_000_000).unwrap_or(i32::MAX);
+    cdr.i32(sec);
+    cdr.u32((stamp_ns % 1_000_000_000) as u32);
+    cdr.string(frame_id)?;
+    cdr.u32(image.height());
+    cdr.u32(image.width());
+    cdr.string(format.ros_encoding())?;
+    cdr.u8(0);
+    cdr.u32(step);
+    cdr.u32(data_len_u32);
+    append_le_pixels(cdr.out, image.pixels());
+    Ok(())
+}
+
+/// Append pixels as packed little-endian scalars, writing into a pre-sized tail so the loop
+/// compiles to plain stores.
+fn append_le_pixels(out: &mut Vec<u8>, pixels: &Pixels) {
+    match pixels {
+        Pixels::U8(values) => out.extend_from_slice(values),
+        Pixels::U16(values) => {
+            let start = out.len();
+            out.resize(start + values.len() * 2, 0);
+            for (dst, value) in out[start..].chunks_exact_mut(2).zip(values) {
+                dst.copy_from_slice(&value.to_le_bytes());
+            }
+        }
+        Pixels::F32(values) => {
+            let start = out.len();
+            out.resize(start + values.len() * 4, 0);
+            for (dst, value) in out[start..].chunks_exact_mut(4).zip(values) {
+                dst.copy_from_slice(&value.to_le_bytes());
+            }
+        }
+    }
+}
+
+/// A decoded `sensor_msgs/msg/Image`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DecodedImage {
+    /// `header.stamp` in ns (negative seconds clamp to 0).
+    pub stamp_ns: u64,
+    pub frame_id: String,
+    pub image: Image,
+}
+
+/// Decode a CDR `sensor_msgs/msg/Image`. Rows padded beyond the packed width (`step` larger than
+/// width × bytes per pixel, as some drivers write) are repacked.
+pub fn decode_image(data: &[u8]) -> Result<DecodedImage, String> {
+    let mut cdr = CdrReader::new(data)?;
+    let sec = cdr.i32()?;
+    let nanosec = cdr.u32()?;
+    let frame_id = cdr.string("header.frame_id")?.to_owned();
+    let height = cdr.u32()?;
+    let width = cdr.u32()?;
+    let encoding = cdr.string("encoding")?;
+    let is_bigendian = cdr.u8()?;
+    let step = cdr.u32()? as usize;
+    let data_len = cdr.u32()? as usize;
+    let pixel_bytes = cdr.take(data_len)?;
+
+    let format = PixelFormat::from_ros_encoding(encoding)
+        .ok_or_else(|| format!("unsupported image encoding `{encoding}`"))?;
+    if is_bigendian != 0 && format.bytes_per_pixel() > 1 {
+        return Err("big-endian pixel data is not supported".into());
+    }
+    let stride = width as usize * format.bytes_per_pixel();
+    let rows = height as usize;
+    let needed = step
+        .checked_mul(rows.saturating_sub(1))
+        .and_then(|n| n.checked_add(if rows == 0 { 0 } else { stride }))
+        .ok_or_else(|| "image size overflows".to_string())?;
+    if step < stride || pixel_bytes.len() < needed {
+        return Err(format!(
+            "{width}×{height} {encoding} with step {step} needs {needed} bytes of data (step ≥ {stride}), got {}",
+            pixel_bytes.len()
+        ));
+    }
+    let image = if step == stride {
+        Image::from_bytes(
+            width,
+            height,
+            format,
+            pixel_bytes.get(..needed).unwrap_or_default(),
+        )
+    } else {
+        let packed: Vec<u8> = pixel_bytes
+            .chunks(step)
+            .take(rows)
+            .flat_map(|row| row.get(..stride).unwrap_or_default())
+            .copied()
+            .collect();
+        Image::from_bytes(width, height, format, &packed)
+    }
+    .map_err(|e| e.to_string())?;
+
+    let stamp_ns = u64::try_from(sec).unwrap_or(0) * 1_000_000_000 + u64::from(nanosec);
+    Ok(DecodedImage {
+        stamp_ns,
+        frame_id,
+        image,
+    })
+}
+
+#[derive(Serialize)]
+struct MarkersOut<'a> {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    seq: Option<u64>,
+    detections: &'a [MarkerDetection],
+}
+
+#[derive(Deserialize)]
+struct MarkersIn {
+    #[serde(default)]
+    seq: Option<u64>,
+    detections: Vec<MarkerDetection>,
+}
+
+#[derive(Serialize)]
+struct LampOut {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    seq: Option<u64>,
+    on: bool,
+    position_in_world: [f32; 3],
+    intensity: [f32; 3],
+}
+
+#[derive(Deserialize)]
+struct LampIn {
+    #[serde(default)]
+    seq: Option<u64>,
+    on: bool,
+    position_in_world: [f32; 3],
+    intensity: [f32; 3],
+}
+
+/// Encode a marker set as JSON into `out` (cleared first); `seq` is written only when given.
+/// Non-finite numbers are refused: JSON cannot hold them.
+pub fn encode_markers(
+    out: &mut Vec<u8>,
+    seq: Option<u64>,
+    markers: &MarkerSet,
+) -> Result<(), String> {
+    out.clear();
+    for (i, d) in markers.detections.iter().enumerate() {
+        let finite = d.corners_px.iter().all(|c| c.is_finite())
+            && d.camera_from_marker.rotation.is_finite()
+            && d.camera_from_marker.translation.is_finite()
+            && d.reprojection_rms_px.is_finite();
+        if !finite {
+            return Err(format!(
+                "detection {i} (marker {}) holds a non-finite number",
+                d.marker_id
+            ));
+        }
+    }
+    let message = MarkersOut {
+        seq,
+        detections: &markers.detections,
+    };
+    serde_json::to_writer(out, &message).map_err(|e| e.to_string())
+}
+
+/// Decode a `/markers` JSON message; returns the set and the `seq` member if present.
+pub fn decode_markers(data: &[u8]) -> Result<(MarkerSet, Option<u64>), String> {
+    let message: MarkersIn = serde_json::from_slice(data).map_err(|e| e.to_string())?;
+    Ok((
+        MarkerSet {
+            detections: message.detections,
+        },
+        message.seq,
+    ))
+}
+
+/// Encode a lamp state as JSON into `out` (cleared first); `seq` is written only when given.
+pub fn encode_lamp(out: &mut Vec<u8>, seq: Option<u64>, lamp: &LampState) -> Result<(), String> {
+    out.clear();
+    if !(lamp.position_in_world.is_finite() && lamp.intensity.is_finite()) {
+        return Err("lamp state holds a non-finite number".into());
+    }
+    let message = LampOut {
+        seq,
+        on: lamp.on,
+        position_in_world: lamp.position_in_world.to_array(),
+        intensity: lamp.intensity.to_array(),
+    };
+    serde_json::to_writer(out, &message).map_err(|e| e.to_string())
+}
+
+/// Decode a `/lamp` JSON message; returns the state and the `seq` member if present.
+pub fn decode_lamp(data: &[u8]) -> Result<(LampState, Option<u64>), String> {
+    let message: LampIn = serde_json::from_slice(data).map_err(|e| e.to_string())?;
+    Ok((
+        LampState {
+            on: message.on,
+            position_in_world: message.position_in_world.into(),
+            intensity: message.intensity.into(),
+        },
+        message.seq,
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_id_round_trips_extras_exactly() {
+        let extras = FrameIdExtras {
+            seq: Some(u64::MAX),
+            exposure_us: Some(33_333),
+            gain_db: Some(0.1 + f32::EPSILON),
+        };
+        let mut text = String::new();
+        write_frame_id(&mut text, "probe", &extras);
+        let (camera, back) = parse_frame_id(&text).unwrap();
+        assert_eq!(camera, "probe");
+        assert_eq!(back, extras);
+        write_frame_id(&mut text, "depth", &FrameIdExtras::default());
+        assert_eq!(text, "depth");
+        assert!(parse_frame_id("probe?gain_db=loud").is_err());
+    }
+
+    #[test]
+    fn image_cdr_layout_matches_ros2() {
+        let mut image = Image::new(2, 1, PixelFormat::DepthU16Mm);
+        image
+            .as_u16_mut()
+            .unwrap()
+            .copy_from_slice(&[0x0102, 0x0304]);
+        let mut out = Vec::new();
+        encode_image(&mut out, 3_000_000_005, "ab", &image).unwrap();
+        #[rustfmt::skip]
+        let expected: Vec<u8> = [
+            &[0x00, 0x01, 0x00, 0x00][..],      // CDR_LE
+            &3i32.to_le_bytes(), &5u32.to_le_bytes(),
+            &3u32.to_le_bytes(), b"ab\0", &[0],  // frame_id + pad to 4
+            &1u32.to_le_bytes(), &2u32.to_le_bytes(),
+            &6u32.to_le_bytes(), b"16UC1\0",     // encoding
+            &[0],                                 // is_bigendian
+            &[0],                                 // pad to 4
+            &4u32.to_le_bytes(),                  // step
+            &4u32.to_le_bytes(), &[0x02, 0x01, 0x04, 0x03],
+        ]
+        .concat();
+        assert_eq!(out, expected);
+        let decoded = decode_image(&out).unwrap();
+        assert_eq!(decoded.image, image);
+        assert_eq!(decoded.stamp_ns, 3_000_000_005);
+        assert_eq!(decoded.frame_id, "ab");
+    }
+
+    #[test]
+    fn padded_rows_are_repacked() {
+        let mut out = Vec::new();
+        let mut cdr = CdrWriter::new(&mut out);
+        cdr.i32(0);
+        cdr.u32(0);
+        cdr.string("color").unwrap();
+        cdr.u32(2);
+        cdr.u32(1);
+        cdr.string("mono8").unwrap();
+        cdr.u8(0);
+        cdr.u32(4);
+        cdr.u32(8);
+        cdr.out.extend_from_slice(&[7, 9, 9, 9, 8, 9, 9, 9]);
+        let decoded = decode_image(&out).unwrap();
+        assert_eq!(decoded.image.as_u8().unwrap(), &[7, 8]);
+    }
+
+    #[test]
+    fn truncated_or_lying_images_are_errors() {
+        let image = Image::new(4, 4, PixelFormat::Rgb8);
+        let mut out = Vec::new();
+        encode_image(&mut out, 0, "color", &image).unwrap();
+        for len in 0..out.len() {
+            assert!(
+                decode_image(&out[..len]).is_err(),
+                "prefix of {len} bytes decoded"
+            );
+        }
+    }
+
+    #[test]
+    fn non_finite_json_is_refused() {
+        let lamp = LampState {
+            intensity: glam::Vec3::new(1.0, f32::NAN, 0.0),
+            ..Default::default()
+        };
+        assert!(encode_lamp(&mut Vec::new(), None, &lamp).is_err());
+    }
+}

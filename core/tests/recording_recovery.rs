@@ -1,0 +1,188 @@
+//! Damaged recordings: cut off mid-write, a corrupt chunk, no summary. The reader never panics,
+//! gives back every message it can, and says what it lost.
+
+mod recording_support;
+
+use recording_support::{Rng, meta, record, small_chunks, traffic};
+use relight_core::StreamMessage;
+use relight_core::recording::{ChunkInfo, RecordingError, RecordingReader};
+
+/// A recording of many chunks and the messages written to it (host times strictly increase in
+/// write order, so each chunk holds exactly the messages inside its time range).
+fn fixture() -> (Vec<u8>, Vec<StreamMessage>, Vec<ChunkInfo>) {
+    let messages = traffic(24, 48, 32, 42);
+    let bytes = record(&messages, &small_chunks());
+    let chunks = RecordingReader::from_bytes(bytes.clone()).unwrap().chunks();
+    let with_messages = chunks.iter().filter(|c| c.uncompressed_size > 0).count();
+    assert!(
+        with_messages >= 4,
+        "fixture needs 4+ message chunks, has {with_messages}"
+    );
+    (bytes, messages, chunks)
+}
+
+fn in_chunk(msg: &StreamMessage, chunk: &ChunkInfo) -> bool {
+    let host_ns = msg.stamp().host_ns;
+    chunk.message_start_ns <= host_ns && host_ns <= chunk.message_end_ns
+}
+
+/// Chunks that hold messages (chunk 0 holds only schemas and channels).
+fn message_chunks(chunks: &[ChunkInfo]) -> Vec<&ChunkInfo> {
+    chunks.iter().filter(|c| c.message_end_ns > 0).collect()
+}
+
+#[test]
+fn cut_anywhere_keeps_every_complete_chunk_and_says_where() {
+    let (bytes, messages, chunks) = fixture();
+    let header_end = {
+        // magic, then the header record: opcode, u64 length, body.
+        let length = u64::from_le_bytes(bytes[9..17].try_into().unwrap()) as usize;
+        8 + 9 + length
+    };
+    let mut cuts: Vec<usize> = (1..15).map(|i| bytes.len() * i * 7 / 100).collect();
+    let last = chunks.last().unwrap();
+    cuts.extend([
+        header_end,
+        header_end + 1,
+        last.offset as usize + 3,
+        last.data_offset as usize + last.compressed_size as usize / 2,
+        last.end_offset as usize,
+        last.end_offset as usize + 1,
+        bytes.len() - 1,
+        bytes.len() - 8,
+    ]);
+    cuts.extend(chunks.iter().map(|c| c.end_offset as usize));
+    cuts.extend(chunks.iter().map(|c| c.end_offset as usize - 1));
+
+    for cut in cuts {
+        let reader = RecordingReader::from_bytes(bytes[..cut].to_vec())
+            .unwrap_or_else(|e| panic!("cut at {cut}: {e}"));
+        let complete: Vec<&ChunkInfo> = chunks
+            .iter()
+            .filter(|c| c.end_offset as usize <= cut)
+            .collect();
+        let expected: Vec<&StreamMessage> = messages
+            .iter()
+            .filter(|m| complete.iter().any(|c| in_chunk(m, c)))
+            .collect();
+        let read: Vec<StreamMessage> = reader
+            .messages()
+            .collect::<Result<_, _>>()
+            .unwrap_or_else(|e| panic!("cut at {cut}: {e}"));
+        assert_eq!(read.len(), expected.len(), "cut at {cut}");
+        assert!(
+            read.iter().zip(&expected).all(|(r, e)| r == *e),
+            "cut at {cut}"
+        );
+
+        let warnings = reader.warnings();
+        let truncation = warnings
+            .iter()
+            .find(|w| w.starts_with("recording truncated"))
+            .unwrap_or_else(|| panic!("cut at {cut}: no truncation warning in {warnings:?}"));
+        assert!(truncation.contains(&format!("byte {cut}")), "{truncation}");
+        assert!(
+            truncation.contains(&format!("read {} complete messages", expected.len())),
+            "{truncation}"
+        );
+        if cut >= last.end_offset as usize {
+            assert_eq!(reader.meta(), &meta(), "cut at {cut}");
+        }
+    }
+}
+
+#[test]
+fn cut_inside_magic_or_header_is_a_clear_error() {
+    let (bytes, _, _) = fixture();
+    let length = u64::from_le_bytes(bytes[9..17].try_into().unwrap()) as usize;
+    for cut in (0..8 + 9 + length).step_by(3) {
+        match RecordingReader::from_bytes(bytes[..cut].to_vec()) {
+            Err(RecordingError::NotMcap { reason }) => {
+                assert!(reason.contains("cut off"), "cut at {cut}: {reason}");
+            }
+            other => panic!("cut at {cut}: expected NotMcap, got {other:?}"),
+        }
+    }
+    let err = RecordingReader::from_bytes(b"PK\x03\x04 not an mcap at all".to_vec()).unwrap_err();
+    assert!(err.to_string().contains("magic"), "{err}");
+}
+
+#[test]
+fn corrupt_chunk_costs_only_its_own_messages() {
+    let (bytes, messages, chunks) = fixture();
+    for chunk in message_chunks(&chunks) {
+        let mut damaged = bytes.clone();
+        let middle = chunk.data_offset as usize + chunk.compressed_size as usize / 2;
+        for byte in &mut damaged[middle..middle + 16] {
+            *byte ^= 0x5a;
+        }
+        let reader = RecordingReader::from_bytes(damaged).unwrap();
+        let mut read = Vec::new();
+        let mut errors = Vec::new();
+        for item in reader.messages() {
+            match item {
+                Ok(msg) => read.push(msg),
+                Err(e) => errors.push(e),
+            }
+        }
+        assert_eq!(errors.len(), 1, "chunk {}: {errors:?}", chunk.index);
+        match &errors[0] {
+            RecordingError::CorruptChunk { index, offset, .. } => {
+                assert_eq!((*index, *offset), (chunk.index, chunk.offset));
+                let text = errors[0].to_string();
+                assert!(text.contains(&format!("chunk {}", chunk.index)), "{text}");
+            }
+            other => panic!("expected CorruptChunk, got {other}"),
+        }
+        let expected: Vec<&StreamMessage> =
+            messages.iter().filter(|m| !in_chunk(m, chunk)).collect();
+        assert_eq!(read.len(), expected.len(), "chunk {}", chunk.index);
+        assert!(read.iter().zip(&expected).all(|(r, e)| r == *e));
+    }
+}
+
+#[test]
+fn missing_summary_still_reads_linearly() {
+    let (bytes, messages, _) = fixture();
+    let footer = mcap::read::footer(&bytes).unwrap();
+    let summary_start = footer.summary_start as usize;
+    // Without the summary but with the data end record, and without both.
+    for cut in [summary_start, summary_start - 13] {
+        let reader = RecordingReader::from_bytes(bytes[..cut].to_vec()).unwrap();
+        assert!(!reader.has_summary());
+        let read: Vec<StreamMessage> = reader.messages().collect::<Result<_, _>>().unwrap();
+        assert_eq!(read, messages, "cut at {cut}");
+        assert_eq!(reader.meta(), &meta());
+        assert_eq!(reader.warnings().len(), 1, "{:?}", reader.warnings());
+    }
+    // A summary section that is garbage (footer intact) is not needed either.
+    let mut damaged = bytes.clone();
+    let footer_start = bytes.len() - 8 - 9 - 20;
+    for byte in &mut damaged[summary_start..footer_start] {
+        *byte = 0xff;
+    }
+    let reader = RecordingReader::from_bytes(damaged).unwrap();
+    let read: Vec<StreamMessage> = reader.messages().collect::<Result<_, _>>().unwrap();
+    assert_eq!(read, messages);
+}
+
+#[test]
+fn random_damage_never_panics() {
+    let (bytes, messages, _) = fixture();
+    let mut rng = Rng::new(99);
+    for _ in 0..150 {
+        let mut damaged = bytes.clone();
+        for _ in 0..1 + rng.next_u64() % 8 {
+            let at = (rng.next_u64() % damaged.len() as u64) as usize;
+            damaged[at] = rng.next_u64() as u8;
+        }
+        if rng.unit_f32() < 0.33 {
+            damaged.truncate((rng.next_u64() % damaged.len() as u64) as usize);
+        }
+        if let Ok(reader) = RecordingReader::from_bytes(damaged) {
+            let _ = reader.warnings();
+            let read = reader.messages().filter(Result::is_ok).count();
+            assert!(read <= messages.len() + 1);
+        }
+    }
+}

@@ -1,0 +1,234 @@
+//! A recording gives back exactly what was written: every stream, every pixel format, every
+//! frame field, the calibration and the source.
+
+mod recording_support;
+
+use std::io::Cursor;
+use std::sync::Arc;
+
+use glam::{Vec2, Vec3};
+use recording_support::{calibration, meta, record, small_chunks, traffic};
+use relight_core::recording::{
+    RecordingCompression, RecordingError, RecordingMeta, RecordingOptions, RecordingReader,
+    RecordingWriter,
+};
+use relight_core::{
+    Frame, Image, LampState, MarkerDetection, MarkerSet, PixelFormat, Pose, StreamKind,
+    StreamMessage, Timestamp,
+};
+
+fn read_all(reader: &RecordingReader) -> Vec<StreamMessage> {
+    reader
+        .messages()
+        .collect::<Result<Vec<_>, _>>()
+        .expect("every message reads back")
+}
+
+#[test]
+fn every_stream_and_pixel_format_round_trips_frame_exact() {
+    let messages = traffic(30, 40, 30, 7);
+    let bytes = record(&messages, &small_chunks());
+    let reader = RecordingReader::from_bytes(bytes).unwrap();
+    assert!(reader.warnings().is_empty(), "{:?}", reader.warnings());
+    assert!(reader.has_summary());
+    assert!(
+        reader.chunks().len() >= 4,
+        "small chunks make several chunks"
+    );
+    let back = read_all(&reader);
+    assert_eq!(back.len(), messages.len());
+    for (i, (written, read)) in messages.iter().zip(&back).enumerate() {
+        assert_eq!(written, read, "message {i} ({})", written.kind());
+    }
+
+    let formats: std::collections::BTreeSet<_> = back
+        .iter()
+        .filter_map(|m| match m {
+            StreamMessage::Depth(f) | StreamMessage::Color(f) => Some(f.payload.format()),
+            StreamMessage::Probe(f) => Some(f.payload.image.format()),
+            _ => None,
+        })
+        .map(|f| f.ros_encoding())
+        .collect();
+    assert_eq!(formats.len(), PixelFormat::ALL.len(), "{formats:?}");
+}
+
+#[test]
+fn calibration_and_source_come_back() {
+    let bytes = record(&traffic(1, 8, 8, 1), &RecordingOptions::default());
+    let reader = RecordingReader::from_bytes(bytes).unwrap();
+    assert_eq!(reader.meta(), &meta());
+    assert_eq!(reader.meta().calibration, Some(calibration()));
+}
+
+#[test]
+fn recording_without_calibration_has_none() {
+    let meta = RecordingMeta {
+        calibration: None,
+        source: "bare".into(),
+    };
+    let writer = RecordingWriter::new(Cursor::new(Vec::new()), &meta).unwrap();
+    let (summary, cursor) = writer.finish_into_inner().unwrap();
+    assert_eq!(summary.total_messages(), 0);
+    assert_eq!(summary.start_ns, None);
+    let reader = RecordingReader::from_bytes(cursor.into_inner()).unwrap();
+    assert_eq!(reader.meta(), &meta);
+    assert!(reader.warnings().is_empty(), "{:?}", reader.warnings());
+    assert_eq!(reader.messages().count(), 0);
+}
+
+#[test]
+fn file_round_trip_reports_counts_and_time_span() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("take.mcap");
+    let messages = traffic(6, 16, 12, 3);
+    let mut writer = RecordingWriter::create(&path, &meta()).unwrap();
+    for msg in &messages {
+        writer.write(msg).unwrap();
+    }
+    assert_eq!(writer.messages_written(), messages.len() as u64);
+    let summary = writer.finish().unwrap();
+    for kind in StreamKind::ALL {
+        assert_eq!(summary.messages.get(&kind), Some(&6), "{kind}");
+    }
+    let host: Vec<u64> = messages.iter().map(|m| m.stamp().host_ns).collect();
+    assert_eq!(summary.start_ns, host.iter().min().copied());
+    assert_eq!(summary.end_ns, host.iter().max().copied());
+
+    let reader = RecordingReader::open(&path).unwrap();
+    assert_eq!(read_all(&reader), messages);
+}
+
+#[test]
+fn messages_come_back_in_host_time_order() {
+    // A lamp reading that arrives late (older host stamp than frames written before it) and
+    // chunks small enough that the two end up in different chunks.
+    let image = |seq: u64, host_ns: u64| {
+        StreamMessage::Depth(Arc::new(Frame::new(
+            seq,
+            Timestamp::new(seq, host_ns),
+            Image::new(64, 64, PixelFormat::DepthU16Mm),
+        )))
+    };
+    let late_lamp = StreamMessage::Lamp(Arc::new(Frame::new(
+        9,
+        Timestamp::new(1, 1_500),
+        LampState::default(),
+    )));
+    let written = vec![
+        image(0, 1_000),
+        image(1, 2_000),
+        image(2, 3_000),
+        late_lamp.clone(),
+    ];
+    let options = RecordingOptions {
+        chunk_size_bytes: 1024,
+        ..Default::default()
+    };
+    let reader = RecordingReader::from_bytes(record(&written, &options)).unwrap();
+    let hosts: Vec<u64> = read_all(&reader)
+        .iter()
+        .map(|m| m.stamp().host_ns)
+        .collect();
+    assert_eq!(hosts, [1_000, 1_500, 2_000, 3_000]);
+}
+
+#[test]
+fn every_compression_reads_back() {
+    let messages = traffic(4, 16, 16, 11);
+    for compression in [
+        RecordingCompression::Zstd,
+        RecordingCompression::Lz4,
+        RecordingCompression::None,
+    ] {
+        let options = RecordingOptions {
+            compression,
+            ..small_chunks()
+        };
+        let reader = RecordingReader::from_bytes(record(&messages, &options)).unwrap();
+        let expected = match compression {
+            RecordingCompression::Zstd => "zstd",
+            RecordingCompression::Lz4 => "lz4",
+            RecordingCompression::None => "",
+        };
+        assert!(reader.chunks().iter().all(|c| c.compression == expected));
+        assert_eq!(read_all(&reader), messages, "{compression:?}");
+    }
+}
+
+#[test]
+fn non_finite_marker_is_refused_and_writer_goes_on() {
+    let mut writer = RecordingWriter::new(Cursor::new(Vec::new()), &meta()).unwrap();
+    let bad = StreamMessage::Markers(Arc::new(Frame::new(
+        4,
+        Timestamp::new(1, 1),
+        MarkerSet {
+            detections: vec![MarkerDetection {
+                family: "tag36h11".into(),
+                marker_id: 3,
+                corners_px: [Vec2::ZERO, Vec2::X, Vec2::ONE, Vec2::new(f32::NAN, 0.0)],
+                camera_from_marker: Pose::IDENTITY,
+                reprojection_rms_px: 0.1,
+            }],
+        },
+    )));
+    let err = writer.write(&bad).unwrap_err();
+    assert!(
+        matches!(&err, RecordingError::Encode { channel, seq: 4, .. } if channel == "/markers"),
+        "{err}"
+    );
+    let good = StreamMessage::Lamp(Arc::new(Frame::new(
+        5,
+        Timestamp::new(2, 2),
+        LampState {
+            on: true,
+            position_in_world: Vec3::ONE,
+            intensity: Vec3::splat(0.5),
+        },
+    )));
+    writer.write(&good).unwrap();
+    assert_eq!(writer.messages_written(), 1);
+    let (_, cursor) = writer.finish_into_inner().unwrap();
+    let reader = RecordingReader::from_bytes(cursor.into_inner()).unwrap();
+    assert_eq!(read_all(&reader), vec![good]);
+}
+
+#[test]
+fn channels_use_documented_topics_and_schemas() {
+    let bytes = record(&traffic(1, 4, 4, 5), &RecordingOptions::default());
+    let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+    let mut channels: Vec<(String, String, String, String)> = summary
+        .channels
+        .values()
+        .map(|c| {
+            let schema = c.schema.as_ref().unwrap();
+            (
+                c.topic.clone(),
+                c.message_encoding.clone(),
+                schema.name.clone(),
+                schema.encoding.clone(),
+            )
+        })
+        .collect();
+    channels.sort();
+    let row = |t: &str, m: &str, s: &str, e: &str| (t.into(), m.into(), s.into(), e.into());
+    assert_eq!(
+        channels,
+        vec![
+            row("/color", "cdr", "sensor_msgs/msg/Image", "ros2msg"),
+            row("/depth", "cdr", "sensor_msgs/msg/Image", "ros2msg"),
+            row("/lamp", "json", "relight.LampState", "jsonschema"),
+            row("/markers", "json", "relight.MarkerSet", "jsonschema"),
+            row("/probe", "cdr", "sensor_msgs/msg/Image", "ros2msg"),
+        ]
+    );
+    let stats = summary.stats.unwrap();
+    assert_eq!(stats.message_count, 5);
+    assert!(!summary.chunk_indexes.is_empty());
+    let names: Vec<&str> = summary
+        .metadata_indexes
+        .iter()
+        .map(|m| m.name.as_str())
+        .collect();
+    assert_eq!(names, ["relight.recording", "relight.calibration"]);
+}

@@ -1,0 +1,1217 @@
+//! relightd's configuration file (`/etc/relightd/relightd.toml`), validated with line-precise errors.
+//!
+//! Loading happens in three steps so that every error can name the file, the line, the column and
+//! the key path (`relightd.toml:12:1: sync.tolerance_ms: must be > 0, got -3`):
+//!
+//! 1. the text is parsed into a spanned document ([`toml::de::DeTable`]); syntax errors stop here;
+//! 2. the document is deserialized into raw section structs that deny unknown keys; type errors
+//!    carry a byte span, which the [`Locator`] maps back to the key path that contains it;
+//! 3. the raw sections are validated and converted into [`Config`]; each check names its key path,
+//!    and the locator finds that key's position in the text.
+//!
+//! Sources: `[replay]` (an MCAP recording), `[sim]` (the synthetic rig) and the hardware device
+//! sections `[depth]`, `[color]`, `[probe]`, `[markers]`, `[lamp]` are mutually exclusive, because a
+//! recording or the simulator supplies every stream on its own clock. A device section holds
+//! `backend = "..."` (checked against the stream) and free backend settings, which are passed on
+//! as JSON for the backend's own typed config to validate. `[sim]` is likewise a free table.
+//! See `systemd/relightd.toml` for every key with its unit and default.
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use relight_core::StreamKind;
+use serde::Deserialize;
+use toml::de::{DeTable, DeValue};
+
+/// Where relightd reads its configuration unless `--config` says otherwise.
+pub const DEFAULT_CONFIG_PATH: &str = "/etc/relightd/relightd.toml";
+/// Default control socket path (inside systemd's `RuntimeDirectory=relightd`).
+pub const DEFAULT_SOCKET_PATH: &str = "/run/relightd/control.sock";
+/// Default permission bits of the control socket.
+pub const DEFAULT_SOCKET_MODE: u32 = 0o660;
+/// Default cap on one JSON-RPC request line, bytes.
+pub const DEFAULT_MAX_REQUEST_BYTES: usize = 65_536;
+/// Default directory of MCAP recordings (inside systemd's `StateDirectory=relightd`).
+pub const DEFAULT_RECORDINGS_DIR: &str = "/var/lib/relightd/recordings";
+/// Default directory of snapshots.
+pub const DEFAULT_SNAPSHOTS_DIR: &str = "/var/lib/relightd/snapshots";
+
+/// Smallest accepted `daemon.max_request_bytes`: a status request must always fit.
+const MIN_REQUEST_BYTES: i64 = 256;
+/// Largest accepted `daemon.max_request_bytes`: the line buffer is allocated up to this size.
+const MAX_REQUEST_BYTES: i64 = 16 * 1024 * 1024;
+/// `sun_path` of `sockaddr_un` holds 108 bytes including the terminating NUL.
+const MAX_SOCKET_PATH_BYTES: usize = 107;
+
+/// The validated configuration of relightd.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Config {
+    /// The file this configuration was read from (used by `config.reload`).
+    pub path: PathBuf,
+    pub daemon: DaemonConfig,
+    pub source: SourceConfig,
+    pub sync: SyncConfig,
+    pub engine: EngineConfig,
+    pub recorder: RecorderConfig,
+    pub snapshot: SnapshotConfig,
+    pub output: OutputConfig,
+}
+
+/// `[daemon]`: the service itself and its control socket.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DaemonConfig {
+    pub socket: PathBuf,
+    /// Permission bits of the socket file, e.g. `0o660`.
+    pub socket_mode: u32,
+    /// Group whose members may connect, besides root and the daemon's own user.
+    pub socket_group: Option<GroupSpec>,
+    pub max_request_bytes: usize,
+    /// Send `WATCHDOG=1` to systemd (only has an effect when the unit sets `WatchdogSec=`).
+    pub watchdog: bool,
+}
+
+/// A group named in the config, by name or by numeric gid.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum GroupSpec {
+    Name(String),
+    Gid(u32),
+}
+
+/// Where the frames come from. An empty device map means no source is configured: the daemon
+/// still serves its control socket.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SourceConfig {
+    Replay(ReplayConfig),
+    Sim(SimConfig),
+    Devices(BTreeMap<StreamKind, DeviceConfig>),
+}
+
+/// `[replay]`: play an MCAP recording instead of live devices.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReplayConfig {
+    pub path: PathBuf,
+    pub mode: ReplayMode,
+    /// Start again from the beginning at the end of the file (`loop` in the file).
+    pub loop_playback: bool,
+    /// Playback speed factor for `realtime` mode (1.0 = recorded speed).
+    pub speed: f64,
+}
+
+/// How a recording is paced.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ReplayMode {
+    /// Messages are published at their recorded times, scaled by `speed`.
+    Realtime,
+    /// As fast as the pipeline consumes them.
+    Fast,
+    /// One frame set per step command.
+    Stepped,
+}
+
+impl ReplayMode {
+    pub const ALL: [ReplayMode; 3] = [ReplayMode::Realtime, ReplayMode::Fast, ReplayMode::Stepped];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            ReplayMode::Realtime => "realtime",
+            ReplayMode::Fast => "fast",
+            ReplayMode::Stepped => "stepped",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|m| m.name() == name)
+    }
+}
+
+/// `[sim]`: the synthetic rig. Its settings are validated by the simulator's own config type.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimConfig {
+    /// The `[sim]` table as a JSON object.
+    pub settings: serde_json::Value,
+}
+
+/// A hardware device section (`[depth]`, `[color]`, `[probe]`, `[markers]`, `[lamp]`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DeviceConfig {
+    pub backend: DeviceBackend,
+    /// Every key of the section except `backend`, as a JSON object for the backend's typed config.
+    pub settings: serde_json::Value,
+}
+
+/// The hardware backends, each behind a cargo feature of `relight-backends`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum DeviceBackend {
+    Openni2,
+    Freenect,
+    V4l2,
+    Ueye,
+    Apriltag,
+    Aruco,
+    LampSerial,
+}
+
+impl DeviceBackend {
+    pub const ALL: [DeviceBackend; 7] = [
+        DeviceBackend::Openni2,
+        DeviceBackend::Freenect,
+        DeviceBackend::V4l2,
+        DeviceBackend::Ueye,
+        DeviceBackend::Apriltag,
+        DeviceBackend::Aruco,
+        DeviceBackend::LampSerial,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            DeviceBackend::Openni2 => "openni2",
+            DeviceBackend::Freenect => "freenect",
+            DeviceBackend::V4l2 => "v4l2",
+            DeviceBackend::Ueye => "ueye",
+            DeviceBackend::Apriltag => "apriltag",
+            DeviceBackend::Aruco => "aruco",
+            DeviceBackend::LampSerial => "lamp_serial",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|b| b.name() == name)
+    }
+
+    /// The streams this backend can supply.
+    pub fn streams(self) -> &'static [StreamKind] {
+        match self {
+            DeviceBackend::Openni2 | DeviceBackend::Freenect => {
+                &[StreamKind::Depth, StreamKind::Color]
+            }
+            DeviceBackend::V4l2 | DeviceBackend::Ueye => &[StreamKind::Color, StreamKind::Probe],
+            DeviceBackend::Apriltag | DeviceBackend::Aruco => &[StreamKind::Markers],
+            DeviceBackend::LampSerial => &[StreamKind::Lamp],
+        }
+    }
+}
+
+impl fmt::Display for DeviceBackend {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// `[sync]`: how frames of different streams are grouped into one frame set.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SyncConfig {
+    /// Largest timestamp distance from the reference frame for a frame to join its set.
+    pub tolerance: Duration,
+    /// How long a frame set waits for missing streams before it is emitted incomplete.
+    pub max_wait: Duration,
+    /// The streams a frame set contains, in file order, without duplicates.
+    pub streams: Vec<StreamKind>,
+    /// The stream whose frames define the frame-set clock.
+    pub reference: StreamKind,
+}
+
+/// `[engine]`: the relighting engine started at boot.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EngineConfig {
+    pub name: String,
+    /// Engine parameters (a JSON object), validated by the engine registry.
+    pub params: serde_json::Value,
+}
+
+/// `[recorder]`: the MCAP recorder sink.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RecorderConfig {
+    pub dir: PathBuf,
+    /// Start recording when the daemon starts.
+    pub autostart: bool,
+    /// Frames buffered between the bus and the writer before the oldest are dropped.
+    pub queue_frames: usize,
+}
+
+/// `[snapshot]`: where `snapshot` writes its images when no path is given.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SnapshotConfig {
+    pub dir: PathBuf,
+}
+
+/// `[output]`: composite PNGs written every `every_n`-th frame (for demos); off without `dir`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OutputConfig {
+    pub dir: Option<PathBuf>,
+    pub every_n: u32,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            path: PathBuf::from(DEFAULT_CONFIG_PATH),
+            daemon: DaemonConfig::default(),
+            source: SourceConfig::Devices(BTreeMap::new()),
+            sync: SyncConfig::default(),
+            engine: EngineConfig::default(),
+            recorder: RecorderConfig::default(),
+            snapshot: SnapshotConfig::default(),
+            output: OutputConfig::default(),
+        }
+    }
+}
+
+impl Default for DaemonConfig {
+    fn default() -> Self {
+        Self {
+            socket: PathBuf::from(DEFAULT_SOCKET_PATH),
+            socket_mode: DEFAULT_SOCKET_MODE,
+            socket_group: None,
+            max_request_bytes: DEFAULT_MAX_REQUEST_BYTES,
+            watchdog: true,
+        }
+    }
+}
+
+impl Default for SyncConfig {
+    fn default() -> Self {
+        Self {
+            tolerance: Duration::from_millis(20),
+            max_wait: Duration::from_millis(100),
+            streams: StreamKind::ALL.to_vec(),
+            reference: StreamKind::Depth,
+        }
+    }
+}
+
+impl Default for EngineConfig {
+    fn default() -> Self {
+        Self {
+            name: "passthrough".to_owned(),
+            params: serde_json::Value::Object(serde_json::Map::new()),
+        }
+    }
+}
+
+impl Default for RecorderConfig {
+    fn default() -> Self {
+        Self {
+            dir: PathBuf::from(DEFAULT_RECORDINGS_DIR),
+            autostart: false,
+            queue_frames: 64,
+        }
+    }
+}
+
+impl Default for SnapshotConfig {
+    fn default() -> Self {
+        Self {
+            dir: PathBuf::from(DEFAULT_SNAPSHOTS_DIR),
+        }
+    }
+}
+
+impl Default for OutputConfig {
+    fn default() -> Self {
+        Self {
+            dir: None,
+            every_n: 30,
+        }
+    }
+}
+
+/// One located problem in a config file.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Diagnostic {
+    pub file: PathBuf,
+    /// 1-based line.
+    pub line: usize,
+    /// 1-based column, in characters.
+    pub column: usize,
+    /// Dotted key path (`sync.streams[2]`), when the problem belongs to a key.
+    pub key: Option<String>,
+    pub message: String,
+}
+
+impl fmt::Display for Diagnostic {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}:{}:{}: ", self.file.display(), self.line, self.column)?;
+        if let Some(key) = &self.key {
+            write!(f, "{key}: ")?;
+        }
+        f.write_str(&self.message)
+    }
+}
+
+/// Why a configuration could not be loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{}: cannot read config: {source}", path.display())]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// The text is not valid TOML.
+    #[error("{0}")]
+    Syntax(Diagnostic),
+    /// The TOML does not describe a valid configuration; one diagnostic per problem, in file order.
+    #[error("{}", DiagnosticList(.0))]
+    Invalid(Vec<Diagnostic>),
+}
+
+impl ConfigError {
+    /// The located problems (empty for read errors).
+    pub fn diagnostics(&self) -> &[Diagnostic] {
+        match self {
+            ConfigError::Read { .. } => &[],
+            ConfigError::Syntax(d) => std::slice::from_ref(d),
+            ConfigError::Invalid(list) => list,
+        }
+    }
+}
+
+struct DiagnosticList<'a>(&'a [Diagnostic]);
+
+impl fmt::Display for DiagnosticList<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, d) in self.0.iter().enumerate() {
+            if i > 0 {
+                f.write_str("\n")?;
+            }
+            write!(f, "{d}")?;
+        }
+        Ok(())
+    }
+}
+
+impl Config {
+    /// Reads and validates the configuration file at `path`.
+    pub fn load(path: impl AsRef<Path>) -> Result<Config, ConfigError> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        Config::parse(&text, path)
+    }
+
+    /// Parses and validates configuration text; `path` names the file in messages and is kept in
+    /// [`Config::path`].
+    pub fn parse(text: &str, path: impl AsRef<Path>) -> Result<Config, ConfigError> {
+        let path = path.as_ref();
+        let doc = match DeTable::parse(text) {
+            Ok(doc) => doc,
+            Err(err) => {
+                let (partial, _) = DeTable::parse_recoverable(text);
+                let locator = Locator::new(partial.get_ref());
+                let offset = err.span().map_or(0, |s| s.start);
+                let key = locator.path_near(text, offset);
+                return Err(ConfigError::Syntax(diagnostic(
+                    path,
+                    text,
+                    offset,
+                    key,
+                    err.message().trim_end().to_owned(),
+                )));
+            }
+        };
+        let locator = Locator::new(doc.get_ref());
+        let raw: RawConfig = match toml::from_str(text) {
+            Ok(raw) => raw,
+            Err(err) => {
+                let offset = err.span().map_or(0, |s| s.start);
+                let message = friendly_serde_message(err.message());
+                let mut key = locator.path_at(offset);
+                if let Some(field) = missing_field(&message) {
+                    key = Some(match key {
+                        Some(parent) => format!("{parent}.{field}"),
+                        None => field.to_owned(),
+                    });
+                }
+                return Err(ConfigError::Invalid(vec![diagnostic(
+                    path, text, offset, key, message,
+                )]));
+            }
+        };
+        let mut v = Validator {
+            file: path,
+            text,
+            locator: &locator,
+            errors: Vec::new(),
+        };
+        let config = v.config(raw, path);
+        if v.errors.is_empty() {
+            Ok(config)
+        } else {
+            let mut errors = v.errors;
+            errors.sort_by_key(|d| (d.line, d.column));
+            Err(ConfigError::Invalid(errors))
+        }
+    }
+}
+
+impl GroupSpec {
+    /// The numeric gid of this group, looking names up in `/etc/group`.
+    pub fn resolve_gid(&self) -> Result<u32, GroupLookupError> {
+        match self {
+            GroupSpec::Gid(gid) => Ok(*gid),
+            GroupSpec::Name(name) => {
+                let text = std::fs::read_to_string("/etc/group").map_err(|source| {
+                    GroupLookupError::Read {
+                        path: PathBuf::from("/etc/group"),
+                        source,
+                    }
+                })?;
+                gid_in_group_file(&text, name)
+                    .ok_or_else(|| GroupLookupError::Unknown { name: name.clone() })
+            }
+        }
+    }
+}
+
+impl fmt::Display for GroupSpec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            GroupSpec::Name(name) => f.write_str(name),
+            GroupSpec::Gid(gid) => write!(f, "{gid}"),
+        }
+    }
+}
+
+/// Why a group name could not be turned into a gid.
+#[derive(Debug, thiserror::Error)]
+pub enum GroupLookupError {
+    #[error("{}: cannot read: {source}", path.display())]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("group `{name}` does not exist (see /etc/group)")]
+    Unknown { name: String },
+}
+
+/// Finds `name`'s gid in the text of an `/etc/group` file (`name:password:gid:members`).
+pub fn gid_in_group_file(text: &str, name: &str) -> Option<u32> {
+    text.lines().find_map(|line| {
+        let mut fields = line.split(':');
+        let group = fields.next()?;
+        let _password = fields.next()?;
+        let gid = fields.next()?;
+        (group == name).then(|| gid.trim().parse().ok()).flatten()
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Raw sections, as they appear in the file. Integers are i64 so that range checks can report the
+// value that was written; every key is optional so that defaults are applied in one place.
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawConfig {
+    daemon: RawDaemon,
+    replay: Option<RawReplay>,
+    sim: Option<toml::Table>,
+    depth: Option<toml::Table>,
+    color: Option<toml::Table>,
+    probe: Option<toml::Table>,
+    markers: Option<toml::Table>,
+    lamp: Option<toml::Table>,
+    sync: RawSync,
+    engine: RawEngine,
+    recorder: RawRecorder,
+    snapshot: RawSnapshot,
+    output: RawOutput,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawDaemon {
+    socket: Option<String>,
+    socket_mode: Option<String>,
+    socket_group: Option<toml::Value>,
+    max_request_bytes: Option<i64>,
+    watchdog: Option<bool>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawReplay {
+    path: Option<String>,
+    mode: Option<String>,
+    #[serde(rename = "loop")]
+    loop_playback: Option<bool>,
+    speed: Option<f64>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawSync {
+    tolerance_ms: Option<f64>,
+    max_wait_ms: Option<f64>,
+    streams: Option<Vec<String>>,
+    reference: Option<String>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawEngine {
+    name: Option<String>,
+    params: Option<toml::Table>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawRecorder {
+    dir: Option<String>,
+    autostart: Option<bool>,
+    queue_frames: Option<i64>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawSnapshot {
+    dir: Option<String>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawOutput {
+    dir: Option<String>,
+    every_n: Option<i64>,
+}
+
+// ---------------------------------------------------------------------------------------------
+
+struct Validator<'a> {
+    file: &'a Path,
+    text: &'a str,
+    locator: &'a Locator,
+    errors: Vec<Diagnostic>,
+}
+
+impl Validator<'_> {
+    fn error(&mut self, key: &str, message: String) {
+        let offset = self.locator.offset_of(key).unwrap_or(0);
+        self.errors.push(diagnostic(
+            self.file,
+            self.text,
+            offset,
+            Some(key.to_owned()),
+            message,
+        ));
+    }
+
+    fn config(&mut self, raw: RawConfig, path: &Path) -> Config {
+        let source = self.source(&raw);
+        Config {
+            path: path.to_owned(),
+            daemon: self.daemon(raw.daemon),
+            source,
+            sync: self.sync(raw.sync),
+            engine: self.engine(raw.engine),
+            recorder: self.recorder(raw.recorder),
+            snapshot: SnapshotConfig {
+                dir: self
+                    .dir("snapshot.dir", raw.snapshot.dir)
+                    .unwrap_or_else(|| PathBuf::from(DEFAULT_SNAPSHOTS_DIR)),
+            },
+            output: self.output(raw.output),
+        }
+    }
+
+    fn daemon(&mut self, raw: RawDaemon) -> DaemonConfig {
+        let mut daemon = DaemonConfig::default();
+        if let Some(socket) = raw.socket {
+            if socket.is_empty() {
+                self.error("daemon.socket", "must not be empty".to_owned());
+            } else if socket.len() > MAX_SOCKET_PATH_BYTES {
+                self.error(
+                    "daemon.socket",
+                    format!(
+                        "a Unix socket path holds at most {MAX_SOCKET_PATH_BYTES} bytes, got {}",
+                        socket.len()
+                    ),
+                );
+            } else {
+                daemon.socket = PathBuf::from(socket);
+            }
+        }
+        if let Some(mode) = raw.socket_mode {
+            match parse_octal_mode(&mode) {
+                Some(bits) => daemon.socket_mode = bits,
+                None => self.error(
+                    "daemon.socket_mode",
+                    format!("must be an octal mode between \"0000\" and \"0777\" like \"0660\", got {mode:?}"),
+                ),
+            }
+        }
+        if let Some(group) = raw.socket_group {
+            daemon.socket_group = self.group("daemon.socket_group", group);
+        }
+        if let Some(bytes) = raw.max_request_bytes {
+            if (MIN_REQUEST_BYTES..=MAX_REQUEST_BYTES).contains(&bytes) {
+                daemon.max_request_bytes = bytes as usize;
+            } else {
+                self.error(
+                    "daemon.max_request_bytes",
+                    format!(
+                        "must be between {MIN_REQUEST_BYTES} and {MAX_REQUEST_BYTES}, got {bytes}"
+                    ),
+                );
+            }
+        }
+        if let Some(watchdog) = raw.watchdog {
+            daemon.watchdog = watchdog;
+        }
+        daemon
+    }
+
+    fn group(&mut self, key: &str, value: toml::Value) -> Option<GroupSpec> {
+        match value {
+            toml::Value::String(name) if valid_group_name(&name) => Some(GroupSpec::Name(name)),
+            toml::Value::String(name) => {
+                self.error(key, format!("not a valid group name: {name:?}"));
+                None
+            }
+            toml::Value::Integer(gid) => match u32::try_from(gid) {
+                Ok(gid) => Some(GroupSpec::Gid(gid)),
+                Err(_) => {
+                    self.error(
+                        key,
+                        format!("a gid is between 0 and {}, got {gid}", u32::MAX),
+                    );
+                    None
+                }
+            },
+            other => {
+                self.error(
+                    key,
+                    format!(
+                        "expected a group name or a numeric gid, got a {}",
+                        other.type_str()
+                    ),
+                );
+                None
+            }
+        }
+    }
+
+    fn source(&mut self, raw: &RawConfig) -> SourceConfig {
+        let device_sections = [
+            (StreamKind::Depth, &raw.depth),
+            (StreamKind::Color, &raw.color),
+            (StreamKind::Probe, &raw.probe),
+            (StreamKind::Markers, &raw.markers),
+            (StreamKind::Lamp, &raw.lamp),
+        ];
+        let mut devices = BTreeMap::new();
+        for (stream, section) in device_sections {
+            if let Some(table) = section
+                && let Some(device) = self.device(stream, table)
+            {
+                devices.insert(stream, device);
+            }
+        }
+        let first_device = devices.keys().next().copied();
+        match (&raw.replay, &raw.sim) {
+            (Some(_), Some(_)) => {
+                self.error(
+                    "sim",
+                    "[replay] and [sim] are both set; choose one source".to_owned(),
+                );
+                SourceConfig::Devices(devices)
+            }
+            (Some(replay), None) => {
+                if let Some(stream) = first_device {
+                    self.error(
+                        stream.name(),
+                        "a device section cannot be combined with [replay]; remove one".to_owned(),
+                    );
+                }
+                match self.replay(replay) {
+                    Some(replay) => SourceConfig::Replay(replay),
+                    None => SourceConfig::Devices(devices),
+                }
+            }
+            (None, Some(sim)) => {
+                if let Some(stream) = first_device {
+                    self.error(
+                        stream.name(),
+                        "a device section cannot be combined with [sim]; remove one".to_owned(),
+                    );
+                }
+                SourceConfig::Sim(SimConfig {
+                    settings: self.table_to_json("sim", sim),
+                })
+            }
+            (None, None) => SourceConfig::Devices(devices),
+        }
+    }
+
+    fn replay(&mut self, raw: &RawReplay) -> Option<ReplayConfig> {
+        let mut ok = true;
+        let path = match &raw.path {
+            Some(path) if !path.is_empty() => Some(PathBuf::from(path)),
+            Some(_) => {
+                self.error("replay.path", "must not be empty".to_owned());
+                None
+            }
+            None => {
+                self.error(
+                    "replay.path",
+                    "missing: [replay] needs the MCAP file to play".to_owned(),
+                );
+                None
+            }
+        };
+        let mode = match raw.mode.as_deref() {
+            None => ReplayMode::Realtime,
+            Some(name) => ReplayMode::from_name(name).unwrap_or_else(|| {
+                ok = false;
+                ReplayMode::Realtime
+            }),
+        };
+        if !ok {
+            self.error(
+                "replay.mode",
+                format!(
+                    "must be one of \"realtime\", \"fast\", \"stepped\", got {:?}",
+                    raw.mode.as_deref().unwrap_or_default()
+                ),
+            );
+        }
+        let speed = raw.speed.unwrap_or(1.0);
+        if !(speed.is_finite() && speed > 0.0) {
+            self.error("replay.speed", format!("must be > 0, got {speed}"));
+            ok = false;
+        }
+        Some(ReplayConfig {
+            path: path?,
+            mode,
+            loop_playback: raw.loop_playback.unwrap_or(false),
+            speed,
+        })
+        .filter(|_| ok)
+    }
+
+    fn device(&mut self, stream: StreamKind, table: &toml::Table) -> Option<DeviceConfig> {
+        let section = stream.name();
+        let key = format!("{section}.backend");
+        let backend = match table.get("backend") {
+            None => {
+                self.error(
+                    &key,
+                    format!(
+                        "missing: [{section}] needs a backend, one of {}",
+                        backends_for(stream)
+                    ),
+                );
+                return None;
+            }
+            Some(toml::Value::String(name)) => match DeviceBackend::from_name(name) {
+                Some(b) if b.streams().contains(&stream) => b,
+                Some(b) => {
+                    self.error(
+                        &key,
+                        format!(
+                            "backend \"{b}\" cannot supply the {stream} stream; use one of {}",
+                            backends_for(stream)
+                        ),
+                    );
+                    return None;
+                }
+                None => {
+                    self.error(
+                        &key,
+                        format!(
+                            "unknown backend {name:?}; the {stream} stream takes one of {}",
+                            backends_for(stream)
+                        ),
+                    );
+                    return None;
+                }
+            },
+            Some(other) => {
+                self.error(
+                    &key,
+                    format!("expected a string, got a {}", other.type_str()),
+                );
+                return None;
+            }
+        };
+        let mut settings = table.clone();
+        settings.remove("backend");
+        Some(DeviceConfig {
+            backend,
+            settings: self.table_to_json(section, &settings),
+        })
+    }
+
+    fn sync(&mut self, raw: RawSync) -> SyncConfig {
+        let mut sync = SyncConfig::default();
+        if let Some(ms) = raw.tolerance_ms {
+            match positive_ms(ms) {
+                Some(d) => sync.tolerance = d,
+                None => self.error("sync.tolerance_ms", format!("must be > 0, got {ms}")),
+            }
+        }
+        if let Some(ms) = raw.max_wait_ms {
+            match non_negative_ms(ms) {
+                Some(d) => sync.max_wait = d,
+                None => self.error("sync.max_wait_ms", format!("must be >= 0, got {ms}")),
+            }
+        }
+        if let Some(names) = raw.streams {
+            if names.is_empty() {
+                self.error("sync.streams", "must name at least one stream".to_owned());
+            }
+            let mut streams = Vec::with_capacity(names.len());
+            for (i, name) in names.iter().enumerate() {
+                let key = format!("sync.streams[{i}]");
+                match StreamKind::from_name(name) {
+                    Some(kind) if streams.contains(&kind) => {
+                        self.error(&key, format!("stream \"{kind}\" is listed twice"));
+                    }
+                    Some(kind) => streams.push(kind),
+                    None => self.error(
+                        &key,
+                        format!(
+                            "unknown stream {name:?}; expected one of {}",
+                            stream_names()
+                        ),
+                    ),
+                }
+            }
+            if !streams.is_empty() {
+                sync.streams = streams;
+            }
+        }
+        match raw.reference {
+            Some(name) => match StreamKind::from_name(&name) {
+                Some(kind) if sync.streams.contains(&kind) => sync.reference = kind,
+                Some(kind) => self.error(
+                    "sync.reference",
+                    format!("stream \"{kind}\" is not in sync.streams"),
+                ),
+                None => self.error(
+                    "sync.reference",
+                    format!(
+                        "unknown stream {name:?}; expected one of {}",
+                        stream_names()
+                    ),
+                ),
+            },
+            None => {
+                if !sync.streams.contains(&sync.reference)
+                    && let Some(&first) = sync.streams.first()
+                {
+                    sync.reference = first;
+                }
+            }
+        }
+        sync
+    }
+
+    fn engine(&mut self, raw: RawEngine) -> EngineConfig {
+        let mut engine = EngineConfig::default();
+        if let Some(name) = raw.name {
+            if name.trim().is_empty() {
+                self.error("engine.name", "must not be empty".to_owned());
+            } else {
+                engine.name = name;
+            }
+        }
+        if let Some(params) = raw.params {
+            engine.params = self.table_to_json("engine.params", &params);
+        }
+        engine
+    }
+
+    fn recorder(&mut self, raw: RawRecorder) -> RecorderConfig {
+        let mut recorder = RecorderConfig::default();
+        if let Some(dir) = self.dir("recorder.dir", raw.dir) {
+            recorder.dir = dir;
+        }
+        if let Some(autostart) = raw.autostart {
+            recorder.autostart = autostart;
+        }
+        if let Some(frames) = raw.queue_frames {
+            match usize::try_from(frames) {
+                Ok(n) if n > 0 => recorder.queue_frames = n,
+                _ => self.error(
+                    "recorder.queue_frames",
+                    format!("must be > 0, got {frames}"),
+                ),
+            }
+        }
+        recorder
+    }
+
+    fn output(&mut self, raw: RawOutput) -> OutputConfig {
+        let mut output = OutputConfig {
+            dir: self.dir("output.dir", raw.dir),
+            ..OutputConfig::default()
+        };
+        if let Some(n) = raw.every_n {
+            match u32::try_from(n) {
+                Ok(n) if n > 0 => output.every_n = n,
+                _ => self.error("output.every_n", format!("must be > 0, got {n}")),
+            }
+        }
+        output
+    }
+
+    fn dir(&mut self, key: &str, value: Option<String>) -> Option<PathBuf> {
+        match value {
+            Some(dir) if dir.is_empty() => {
+                self.error(key, "must not be empty".to_owned());
+                None
+            }
+            Some(dir) => Some(PathBuf::from(dir)),
+            None => None,
+        }
+    }
+
+    fn table_to_json(&mut self, key: &str, table: &toml::Table) -> serde_json::Value {
+        match serde_json::to_value(table) {
+            Ok(value) => value,
+            Err(err) => {
+                self.error(key, format!("cannot be represented as JSON: {err}"));
+                serde_json::Value::Object(serde_json::Map::new())
+            }
+        }
+    }
+}
+
+fn parse_octal_mode(text: &str) -> Option<u32> {
+    let digits = text.strip_prefix("0o").unwrap_or(text);
+    if digits.is_empty() || digits.len() > 4 || !digits.bytes().all(|b| (b'0'..=b'7').contains(&b))
+    {
+        return None;
+    }
+    u32::from_str_radix(digits, 8)
+        .ok()
+        .filter(|&bits| bits <= 0o777)
+}
+
+fn valid_group_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 32
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'_' | b'-' | b'.'))
+}
+
+fn positive_ms(ms: f64) -> Option<Duration> {
+    (ms.is_finite() && ms > 0.0).then(|| Duration::from_secs_f64(ms / 1e3))
+}
+
+fn non_negative_ms(ms: f64) -> Option<Duration> {
+    (ms.is_finite() && ms >= 0.0).then(|| Duration::from_secs_f64(ms / 1e3))
+}
+
+fn stream_names() -> String {
+    StreamKind::ALL.map(StreamKind::name).join(", ")
+}
+
+fn backends_for(stream: StreamKind) -> String {
+    DeviceBackend::ALL
+        .into_iter()
+        .filter(|b| b.streams().contains(&stream))
+        .map(|b| format!("\"{b}\""))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// serde names Rust types in its messages; say what the file should contain instead.
+fn friendly_serde_message(message: &str) -> String {
+    message
+        .trim_end()
+        .replace("expected i64", "expected an integer")
+        .replace("expected f64", "expected a number")
+        .replace("expected a boolean", "expected true or false")
+        .replace("expected a map", "expected a table")
+        .replace("unknown field", "unknown key")
+}
+
+fn is_bare_key_char(c: char) -> bool {
+    c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.')
+}
+
+fn missing_field(message: &str) -> Option<&str> {
+    let rest = message.strip_prefix("missing field `")?;
+    rest.split('`').next()
+}
+
+fn diagnostic(
+    file: &Path,
+    text: &str,
+    offset: usize,
+    key: Option<String>,
+    message: String,
+) -> Diagnostic {
+    let (line, column) = line_column(text, offset);
+    Diagnostic {
+        file: file.to_owned(),
+        line,
+        column,
+        key,
+        message,
+    }
+}
+
+/// 1-based line and character column of a byte offset (clamped to the text).
+fn line_column(text: &str, offset: usize) -> (usize, usize) {
+    let mut offset = offset.min(text.len());
+    while !text.is_char_boundary(offset) {
+        offset -= 1;
+    }
+    let before = text.get(..offset).unwrap_or_default();
+    let line = before.matches('\n').count() + 1;
+    let line_start = before.rfind('\n').map_or(0, |i| i + 1);
+    let column = before.get(line_start..).unwrap_or_default().chars().count() + 1;
+    (line, column)
+}
+
+/// Maps byte offsets to key paths and key paths to offsets, from the spanned TOML document.
+struct Locator {
+    entries: Vec<LocatedKey>,
+}
+
+struct LocatedKey {
+    path: String,
+    /// The key itself, or the element for array items.
+    key_span: Range<usize>,
+    /// The value; for a `[table]` header only the header, since its keys follow separately.
+    value_span: Range<usize>,
+}
+
+impl Locator {
+    fn new(root: &DeTable<'_>) -> Self {
+        let mut entries = Vec::new();
+        Self::walk_table(root, "", &mut entries);
+        Self { entries }
+    }
+
+    fn walk_table(table: &DeTable<'_>, prefix: &str, out: &mut Vec<LocatedKey>) {
+        for (key, value) in table {
+            let path = if prefix.is_empty() {
+                key.get_ref().to_string()
+            } else {
+                format!("{prefix}.{}", key.get_ref())
+            };
+            out.push(LocatedKey {
+                path: path.clone(),
+                key_span: key.span(),
+                value_span: value.span(),
+            });
+            Self::walk_value(value.get_ref(), &path, out);
+        }
+    }
+
+    fn walk_value(value: &DeValue<'_>, path: &str, out: &mut Vec<LocatedKey>) {
+        match value {
+            DeValue::Table(table) => Self::walk_table(table, path, out),
+            DeValue::Array(items) => {
+                for (i, item) in items.iter().enumerate() {
+                    let item_path = format!("{path}[{i}]");
+                    out.push(LocatedKey {
+                        path: item_path.clone(),
+                        key_span: item.span(),
+                        value_span: item.span(),
+                    });
+                    Self::walk_value(item.get_ref(), &item_path, out);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    /// The most deeply nested key whose key or value contains `offset`.
+    fn path_at(&self, offset: usize) -> Option<String> {
+        let contains = |r: &Range<usize>| r.start <= offset && offset < r.end.max(r.start + 1);
+        self.entries
+            .iter()
+            .filter(|e| contains(&e.key_span) || contains(&e.value_span))
+            .max_by_key(|e| (e.path.matches(['.', '[']).count(), e.path.len()))
+            .map(|e| e.path.clone())
+    }
+
+    /// [`Self::path_at`], or else the last key that starts on the same line before `offset`
+    /// (a syntax error usually follows the key it belongs to), or else the bare key written at
+    /// `offset` under the nearest `[table]` header above it (e.g. a duplicate key, which the
+    /// parser drops from the document).
+    fn path_near(&self, text: &str, offset: usize) -> Option<String> {
+        if let Some(path) = self.path_at(offset) {
+            return Some(path);
+        }
+        let (line, _) = line_column(text, offset);
+        let on_line = self
+            .entries
+            .iter()
+            .filter(|e| e.key_span.start <= offset && line_column(text, e.key_span.start).0 == line)
+            .max_by_key(|e| e.key_span.start)
+            .map(|e| e.path.clone());
+        on_line.or_else(|| {
+            let rest = text.get(offset..)?;
+            let key: String = rest.chars().take_while(|&c| is_bare_key_char(c)).collect();
+            if key.is_empty() {
+                return None;
+            }
+            let before = text.get(..offset)?;
+            let header = before.lines().rev().find_map(|l| {
+                let l = l.trim();
+                l.starts_with('[')
+                    .then(|| l.trim_matches(|c| c == '[' || c == ']').trim().to_owned())
+            });
+            Some(match header {
+                Some(table) if !table.is_empty() => format!("{table}.{key}"),
+                _ => key,
+            })
+        })
+    }
+
+    /// Where `path` (or its nearest ancestor present in the file) starts.
+    fn offset_of(&self, path: &str) -> Option<usize> {
+        let mut path = path;
+        loop {
+            if let Some(e) = self.entries.iter().find(|e| e.path == path) {
+                return Some(e.key_span.start);
+            }
+            let cut = path.rfind(['.', '['])?;
+            path = path.get(..cut)?;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn octal_modes() {
+        assert_eq!(parse_octal_mode("0660"), Some(0o660));
+        assert_eq!(parse_octal_mode("600"), Some(0o600));
+        assert_eq!(parse_octal_mode("0o770"), Some(0o770));
+        assert_eq!(parse_octal_mode("0999"), None);
+        assert_eq!(parse_octal_mode("1777"), None);
+        assert_eq!(parse_octal_mode(""), None);
+        assert_eq!(parse_octal_mode("rw-rw----"), None);
+    }
+
+    #[test]
+    fn line_column_counts_characters() {
+        let text = "a = 1\nbé = 2\n";
+        assert_eq!(line_column(text, 0), (1, 1));
+        assert_eq!(line_column(text, 6), (2, 1));
+        assert_eq!(line_column(text, 9), (2, 3));
+        assert_eq!(line_column(text, 1000), (3, 1));
+    }
+
+    #[test]
+    fn group_file_lookup() {
+        let text = "root:x:0:\nvideo:x:44:alice,bob\nbroken\nplugdev:x:46:\n";
+        assert_eq!(gid_in_group_file(text, "video"), Some(44));
+        assert_eq!(gid_in_group_file(text, "plugdev"), Some(46));
+        assert_eq!(gid_in_group_file(text, "vid"), None);
+        assert_eq!(gid_in_group_file(text, "broken"), None);
+    }
+}

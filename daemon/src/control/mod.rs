@@ -1,0 +1,20 @@
+//! The control socket: JSON-RPC 2.0 over a Unix stream socket, one request per line.
+//!
+//! - [`types`]: the [`ControlTarget`] trait the pipeline implements and the reports it returns;
+//! - [`rpc`]: request parsing and dispatch (transport-free, so it is tested without sockets);
+//! - [`server`]: the socket, peer-credential checks, one thread per connection;
+//! - [`client`]: the blocking client used by `relightctl` and the end-to-end tests.
+
+pub mod client;
+pub mod rpc;
+pub mod server;
+pub mod types;
+
+pub use client::{Client, ClientError};
+pub use server::{
+    ControlServer, ControlServerHandle, PeerCred, ServerError, ServerOptions, peer_allowed,
+};
+pub use types::{
+    ControlError, ControlTarget, DeviceState, DeviceStatus, EngineInfo, RecordingStatus,
+    StageTiming, StatusReport, codes,
+};

@@ -1,0 +1,395 @@
+//! JSON-RPC 2.0 request handling, independent of the transport: one request line in, at most one
+//! response line out (<https://www.jsonrpc.org/specification>).
+//!
+//! Methods and their params (by name, or by position in the order listed):
+//!
+//! | method              | params                         | result                         |
+//! |---------------------|--------------------------------|--------------------------------|
+//! | `status`            | —                              | [`StatusReport`]               |
+//! | `engine.list`       | —                              | `[`[`EngineInfo`]`]`           |
+//! | `engine.set`        | `name`                         | `null`                         |
+//! | `engine.params.get` | —                              | the parameter object           |
+//! | `engine.params.set` | `params` (object), see below   | the full new parameter object  |
+//! | `record.start`      | `path`?                        | `{"path": ...}`                |
+//! | `record.stop`       | —                              | the recording summary          |
+//! | `snapshot`          | `path`?                        | `{"paths": [...]}`             |
+//! | `config.reload`     | —                              | what changed                   |
+//! | `rpc.ping`          | —                              | `"pong"`                       |
+//! | `version`           | —                              | `{"name", "version", "protocol"}` |
+//!
+//! `engine.params.set` accepts `{"params": {...}}`, `[{...}]`, or the parameter object itself
+//! (`{"exposure": 2.0}`); an object whose only key is `params` is always read as the wrapped form.
+//! Optional params may be `null`. Blank lines are ignored.
+
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::path::PathBuf;
+
+use serde::Serialize;
+use serde_json::{Map, Value, json};
+
+use super::types::{ControlError, ControlTarget};
+#[cfg(doc)]
+use super::types::{EngineInfo, StatusReport};
+
+/// Every method the server answers, for `method not found` hints.
+pub const METHODS: [&str; 11] = [
+    "status",
+    "engine.list",
+    "engine.set",
+    "engine.params.get",
+    "engine.params.set",
+    "record.start",
+    "record.stop",
+    "snapshot",
+    "config.reload",
+    "rpc.ping",
+    "version",
+];
+
+/// Handles one request line (without its newline). Returns the response line (without newline),
+/// or `None` when nothing must be sent back (notifications, blank lines).
+pub fn handle_line(line: &[u8], target: &dyn ControlTarget) -> Option<String> {
+    let text = match std::str::from_utf8(line) {
+        Ok(text) => text,
+        Err(err) => {
+            let error = ControlError::parse_error(format!(
+                "parse error: invalid UTF-8 at byte {}",
+                err.valid_up_to()
+            ));
+            return Some(error_response(Value::Null, &error).to_string());
+        }
+    };
+    let text = text.trim();
+    if text.is_empty() {
+        return None;
+    }
+    let response = match serde_json::from_str::<Value>(text) {
+        Ok(value) => handle_value(value, target)?,
+        Err(err) => error_response(
+            Value::Null,
+            &ControlError::parse_error(format!("parse error: {err}")),
+        ),
+    };
+    Some(response.to_string())
+}
+
+/// Handles one parsed request or batch; `None` when no response is due.
+pub fn handle_value(value: Value, target: &dyn ControlTarget) -> Option<Value> {
+    match value {
+        Value::Array(batch) if batch.is_empty() => Some(error_response(
+            Value::Null,
+            &ControlError::invalid_request("invalid request: empty batch"),
+        )),
+        Value::Array(batch) => {
+            let responses: Vec<Value> = batch
+                .into_iter()
+                .filter_map(|request| handle_request(request, target))
+                .collect();
+            (!responses.is_empty()).then_some(Value::Array(responses))
+        }
+        request => handle_request(request, target),
+    }
+}
+
+/// A successful response object.
+pub fn result_response(id: Value, result: Value) -> Value {
+    json!({ "jsonrpc": "2.0", "result": result, "id": id })
+}
+
+/// An error response object.
+pub fn error_response(id: Value, error: &ControlError) -> Value {
+    let mut object = Map::new();
+    object.insert("code".to_owned(), Value::from(error.code));
+    object.insert("message".to_owned(), Value::from(error.message.clone()));
+    if let Some(data) = &error.data {
+        object.insert("data".to_owned(), data.clone());
+    }
+    json!({ "jsonrpc": "2.0", "error": Value::Object(object), "id": id })
+}
+
+fn handle_request(request: Value, target: &dyn ControlTarget) -> Option<Value> {
+    let Value::Object(mut request) = request else {
+        let error = ControlError::invalid_request(format!(
+            "invalid request: expected a JSON object, got {}",
+            type_name(&request)
+        ));
+        return Some(error_response(Value::Null, &error));
+    };
+    let id = request.remove("id");
+    let reply_id = match &id {
+        None => Value::Null,
+        Some(id @ (Value::String(_) | Value::Number(_) | Value::Null)) => id.clone(),
+        Some(other) => {
+            let error = ControlError::invalid_request(format!(
+                "invalid request: `id` must be a string, a number or null, got {}",
+                type_name(other)
+            ));
+            return Some(error_response(Value::Null, &error));
+        }
+    };
+    if let Err(error) = check_envelope(&request) {
+        return Some(error_response(reply_id, &error));
+    }
+    let method = match request.remove("method") {
+        Some(Value::String(method)) => method,
+        _ => {
+            return Some(error_response(
+                reply_id,
+                &ControlError::internal("method vanished"),
+            ));
+        }
+    };
+    let params = request.remove("params");
+    let outcome = catch_unwind(AssertUnwindSafe(|| dispatch(&method, params, target)))
+        .unwrap_or_else(|_| {
+            Err(ControlError::internal(format!(
+                "internal error: `{method}` handler panicked"
+            )))
+        });
+    if id.is_none() {
+        if let Err(error) = &outcome {
+            tracing::debug!(method, %error, "control notification failed");
+        }
+        return None;
+    }
+    Some(match outcome {
+        Ok(result) => result_response(reply_id, result),
+        Err(error) => {
+            tracing::debug!(method, %error, "control request failed");
+            error_response(reply_id, &error)
+        }
+    })
+}
+
+/// Checks `jsonrpc`, `method` and the shape of `params` (the spec's "invalid request" cases).
+fn check_envelope(request: &Map<String, Value>) -> Result<(), ControlError> {
+    match request.get("jsonrpc") {
+        Some(Value::String(v)) if v == "2.0" => {}
+        Some(other) => {
+            return Err(ControlError::invalid_request(format!(
+                "invalid request: `jsonrpc` must be \"2.0\", got {other}"
+            )));
+        }
+        None => {
+            return Err(ControlError::invalid_request(
+                "invalid request: missing `jsonrpc`: \"2.0\"",
+            ));
+        }
+    }
+    match request.get("method") {
+        Some(Value::String(_)) => {}
+        Some(other) => {
+            return Err(ControlError::invalid_request(format!(
+                "invalid request: `method` must be a string, got {}",
+                type_name(other)
+            )));
+        }
+        None => {
+            return Err(ControlError::invalid_request(
+                "invalid request: missing `method`",
+            ));
+        }
+    }
+    match request.get("params") {
+        None | Some(Value::Object(_) | Value::Array(_)) => Ok(()),
+        Some(other) => Err(ControlError::invalid_request(format!(
+            "invalid request: `params` must be an object or an array, got {}",
+            type_name(other)
+        ))),
+    }
+}
+
+fn dispatch(
+    method: &str,
+    params: Option<Value>,
+    target: &dyn ControlTarget,
+) -> Result<Value, ControlError> {
+    match method {
+        "status" => {
+            no_params(method, params)?;
+            to_json(&target.status())
+        }
+        "engine.list" => {
+            no_params(method, params)?;
+            to_json(&target.engine_list())
+        }
+        "engine.set" => {
+            let [name] = named_params(method, params, ["name"])?;
+            let name = required_string(method, "name", name)?;
+            target.engine_set(&name)?;
+            Ok(Value::Null)
+        }
+        "engine.params.get" => {
+            no_params(method, params)?;
+            Ok(target.engine_params_get())
+        }
+        "engine.params.set" => {
+            let params = engine_params(method, params)?;
+            target.engine_params_set(params)
+        }
+        "record.start" => {
+            let [path] = named_params(method, params, ["path"])?;
+            let path = optional_path(method, "path", path)?;
+            let path = target.record_start(path)?;
+            Ok(json!({ "path": path }))
+        }
+        "record.stop" => {
+            no_params(method, params)?;
+            target.record_stop()
+        }
+        "snapshot" => {
+            let [path] = named_params(method, params, ["path"])?;
+            let path = optional_path(method, "path", path)?;
+            let paths = target.snapshot(path)?;
+            Ok(json!({ "paths": paths }))
+        }
+        "config.reload" => {
+            no_params(method, params)?;
+            target.config_reload()
+        }
+        "rpc.ping" => {
+            no_params(method, params)?;
+            Ok(Value::from("pong"))
+        }
+        "version" => {
+            no_params(method, params)?;
+            Ok(json!({
+                "name": "relightd",
+                "version": env!("CARGO_PKG_VERSION"),
+                "protocol": "jsonrpc-2.0",
+            }))
+        }
+        _ => Err(ControlError::method_not_found(method).with_data(json!({ "methods": METHODS }))),
+    }
+}
+
+fn to_json<T: Serialize>(value: &T) -> Result<Value, ControlError> {
+    serde_json::to_value(value)
+        .map_err(|err| ControlError::internal(format!("cannot encode result: {err}")))
+}
+
+fn no_params(method: &str, params: Option<Value>) -> Result<(), ControlError> {
+    named_params(method, params, []).map(|[]| ())
+}
+
+/// Reads params given by name (an object) or by position (an array) into `names`' order; absent
+/// and `null` params are `None`. Unknown names and surplus positions are errors.
+fn named_params<const N: usize>(
+    method: &str,
+    params: Option<Value>,
+    names: [&str; N],
+) -> Result<[Option<Value>; N], ControlError> {
+    let mut out: [Option<Value>; N] = std::array::from_fn(|_| None);
+    match params {
+        None => {}
+        Some(Value::Object(mut map)) => {
+            if let Some(unknown) = map.keys().find(|k| !names.contains(&k.as_str())) {
+                return Err(ControlError::invalid_params(match N {
+                    0 => format!("{method} takes no params, got `{unknown}`"),
+                    _ => format!(
+                        "{method}: unknown param `{unknown}` (expected {})",
+                        names.map(|n| format!("`{n}`")).join(", ")
+                    ),
+                }));
+            }
+            for (slot, name) in out.iter_mut().zip(names) {
+                *slot = map.remove(name).filter(|v| !v.is_null());
+            }
+        }
+        Some(Value::Array(items)) => {
+            if items.len() > N {
+                return Err(ControlError::invalid_params(format!(
+                    "{method} takes at most {N} positional params, got {}",
+                    items.len()
+                )));
+            }
+            for (slot, item) in out.iter_mut().zip(items) {
+                *slot = Some(item).filter(|v| !v.is_null());
+            }
+        }
+        Some(other) => {
+            return Err(ControlError::invalid_params(format!(
+                "{method}: params must be an object or an array, got {}",
+                type_name(&other)
+            )));
+        }
+    }
+    Ok(out)
+}
+
+fn required_string(method: &str, name: &str, value: Option<Value>) -> Result<String, ControlError> {
+    match value {
+        Some(Value::String(s)) => Ok(s),
+        Some(other) => Err(ControlError::invalid_params(format!(
+            "{method}: `{name}` must be a string, got {}",
+            type_name(&other)
+        ))),
+        None => Err(ControlError::invalid_params(format!(
+            "{method}: missing param `{name}`"
+        ))),
+    }
+}
+
+fn optional_path(
+    method: &str,
+    name: &str,
+    value: Option<Value>,
+) -> Result<Option<PathBuf>, ControlError> {
+    match value {
+        None => Ok(None),
+        Some(Value::String(s)) if s.is_empty() => Err(ControlError::invalid_params(format!(
+            "{method}: `{name}` must not be empty"
+        ))),
+        Some(Value::String(s)) => Ok(Some(PathBuf::from(s))),
+        Some(other) => Err(ControlError::invalid_params(format!(
+            "{method}: `{name}` must be a string, got {}",
+            type_name(&other)
+        ))),
+    }
+}
+
+/// The three accepted shapes of `engine.params.set` params (see the module docs).
+fn engine_params(method: &str, params: Option<Value>) -> Result<Map<String, Value>, ControlError> {
+    let not_object = |value: &Value| {
+        ControlError::invalid_params(format!(
+            "{method}: `params` must be an object, got {}",
+            type_name(value)
+        ))
+    };
+    match params {
+        None => Err(ControlError::invalid_params(format!(
+            "{method}: missing param `params`"
+        ))),
+        Some(Value::Object(mut map)) if map.len() == 1 && map.contains_key("params") => {
+            match map.remove("params") {
+                Some(Value::Object(inner)) => Ok(inner),
+                Some(other) => Err(not_object(&other)),
+                None => Ok(Map::new()),
+            }
+        }
+        Some(Value::Object(map)) => Ok(map),
+        Some(Value::Array(items)) => {
+            let count = items.len();
+            let mut items = items.into_iter();
+            match (items.next(), count) {
+                (Some(Value::Object(inner)), 1) => Ok(inner),
+                (Some(other), 1) => Err(not_object(&other)),
+                _ => Err(ControlError::invalid_params(format!(
+                    "{method} takes exactly 1 positional param (the object), got {count}"
+                ))),
+            }
+        }
+        Some(other) => Err(not_object(&other)),
+    }
+}
+
+fn type_name(value: &Value) -> &'static str {
+    match value {
+        Value::Null => "null",
+        Value::Bool(_) => "a boolean",
+        Value::Number(_) => "a number",
+        Value::String(_) => "a string",
+        Value::Array(_) => "an array",
+        Value::Object(_) => "an object",
+    }
+}

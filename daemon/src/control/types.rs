@@ -1,0 +1,211 @@
+//! What the control socket talks about: the [`ControlTarget`] the pipeline implements, the reports
+//! it returns, and the errors it raises.
+
+use std::path::PathBuf;
+
+use relight_core::StreamKind;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+/// JSON-RPC 2.0 error codes: the five the spec defines, then relightd's application codes
+/// (the spec reserves −32000..−32099 for implementation-defined server errors).
+pub mod codes {
+    pub const PARSE_ERROR: i64 = -32700;
+    pub const INVALID_REQUEST: i64 = -32600;
+    pub const METHOD_NOT_FOUND: i64 = -32601;
+    pub const INVALID_PARAMS: i64 = -32602;
+    pub const INTERNAL_ERROR: i64 = -32603;
+    /// The request was valid but the pipeline could not carry it out.
+    pub const FAILED: i64 = -32000;
+    /// No engine of that name is registered.
+    pub const ENGINE_UNKNOWN: i64 = -32001;
+    /// The pipeline is busy with something that excludes the request (e.g. already recording).
+    pub const BUSY: i64 = -32002;
+    /// A file could not be read or written.
+    pub const IO: i64 = -32003;
+    /// The peer's credentials do not allow it to use the socket.
+    pub const PERMISSION_DENIED: i64 = -32004;
+    /// The server already serves its maximum number of connections.
+    pub const TOO_MANY_CONNECTIONS: i64 = -32005;
+}
+
+/// The pipeline, as seen from the control socket. Every method is called from a connection
+/// thread, possibly concurrently; implementations hand commands to the pipeline and return.
+pub trait ControlTarget: Send + Sync + 'static {
+    fn status(&self) -> StatusReport;
+    fn engine_list(&self) -> Vec<EngineInfo>;
+    /// Switches engines at the next frame boundary.
+    fn engine_set(&self, name: &str) -> Result<(), ControlError>;
+    fn engine_params_get(&self) -> Value;
+    /// Merges `params` into the current engine's parameters and returns the full new set.
+    fn engine_params_set(
+        &self,
+        params: serde_json::Map<String, Value>,
+    ) -> Result<Value, ControlError>;
+    /// Starts recording to `path` (or a timestamped file in the recorder directory); returns the
+    /// file being written.
+    fn record_start(&self, path: Option<PathBuf>) -> Result<PathBuf, ControlError>;
+    /// Stops recording; returns a summary (file, messages, bytes, duration…).
+    fn record_stop(&self) -> Result<Value, ControlError>;
+    /// Writes the current frame set's images to `path` (a directory or file stem) or the snapshot
+    /// directory; returns the files written.
+    fn snapshot(&self, path: Option<PathBuf>) -> Result<Vec<PathBuf>, ControlError>;
+    /// Re-reads the configuration file and applies what can change at run time; returns what
+    /// changed.
+    fn config_reload(&self) -> Result<Value, ControlError>;
+}
+
+/// A JSON-RPC error object, as returned by a [`ControlTarget`] or raised by the server.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, thiserror::Error)]
+#[error("{message} (code {code})")]
+pub struct ControlError {
+    pub code: i64,
+    pub message: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub data: Option<Value>,
+}
+
+impl ControlError {
+    pub fn new(code: i64, message: impl Into<String>) -> Self {
+        Self {
+            code,
+            message: message.into(),
+            data: None,
+        }
+    }
+
+    /// Attaches structured detail (the `data` member of the error object).
+    pub fn with_data(mut self, data: Value) -> Self {
+        self.data = Some(data);
+        self
+    }
+
+    pub fn parse_error(message: impl Into<String>) -> Self {
+        Self::new(codes::PARSE_ERROR, message)
+    }
+
+    pub fn invalid_request(message: impl Into<String>) -> Self {
+        Self::new(codes::INVALID_REQUEST, message)
+    }
+
+    pub fn method_not_found(method: &str) -> Self {
+        Self::new(
+            codes::METHOD_NOT_FOUND,
+            format!("method not found: {method}"),
+        )
+    }
+
+    pub fn invalid_params(message: impl Into<String>) -> Self {
+        Self::new(codes::INVALID_PARAMS, message)
+    }
+
+    pub fn internal(message: impl Into<String>) -> Self {
+        Self::new(codes::INTERNAL_ERROR, message)
+    }
+
+    /// A valid request the pipeline could not carry out (generic application error).
+    pub fn failed(message: impl Into<String>) -> Self {
+        Self::new(codes::FAILED, message)
+    }
+
+    pub fn engine_unknown(name: &str) -> Self {
+        Self::new(codes::ENGINE_UNKNOWN, format!("unknown engine: {name}"))
+    }
+
+    pub fn busy(message: impl Into<String>) -> Self {
+        Self::new(codes::BUSY, message)
+    }
+
+    /// An I/O failure, with what was being done: `ControlError::io("cannot create /x", &err)`.
+    pub fn io(context: impl std::fmt::Display, err: &std::io::Error) -> Self {
+        Self::new(codes::IO, format!("{context}: {err}"))
+    }
+
+    pub fn permission_denied(uid: u32) -> Self {
+        Self::new(
+            codes::PERMISSION_DENIED,
+            format!("permission denied: uid {uid} not allowed"),
+        )
+    }
+}
+
+/// Everything `relightctl status` shows.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct StatusReport {
+    pub uptime_s: f64,
+    /// The engine rendering now.
+    pub engine: String,
+    pub devices: Vec<DeviceStatus>,
+    /// Pipeline stages in data-flow order.
+    pub stages: Vec<StageTiming>,
+    /// Frame sets emitted by the synchroniser.
+    pub frame_sets: u64,
+    /// Frame sets emitted with a stream missing (after `sync.max_wait_ms`).
+    pub sync_missing: u64,
+    /// Frames dropped by bus queues (drop-oldest).
+    pub bus_drops: u64,
+    pub recording: Option<RecordingStatus>,
+}
+
+/// One source device (or the replay/sim source of one stream).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DeviceStatus {
+    pub name: String,
+    pub stream: StreamKind,
+    pub backend: String,
+    pub state: DeviceState,
+    /// Frames per second over the last few seconds.
+    pub fps: f64,
+    pub frames: u64,
+    pub drops: u64,
+    pub last_error: Option<String>,
+}
+
+/// A device's life cycle as reported on the control socket.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DeviceState {
+    Connecting,
+    Running,
+    /// Disconnected; the backend retries with backoff.
+    Lost,
+    Stopped,
+}
+
+impl DeviceState {
+    pub fn name(self) -> &'static str {
+        match self {
+            DeviceState::Connecting => "connecting",
+            DeviceState::Running => "running",
+            DeviceState::Lost => "lost",
+            DeviceState::Stopped => "stopped",
+        }
+    }
+}
+
+/// Wall-clock time of one pipeline stage per frame set, milliseconds.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct StageTiming {
+    pub name: String,
+    pub frames: u64,
+    pub last_ms: f64,
+    pub mean_ms: f64,
+    pub p50_ms: f64,
+    pub p99_ms: f64,
+}
+
+/// The recording in progress.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RecordingStatus {
+    pub path: PathBuf,
+    /// Messages written so far.
+    pub messages: u64,
+}
+
+/// A registered engine and the JSON schema of its parameters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EngineInfo {
+    pub name: String,
+    pub description: String,
+    pub params_schema: Value,
+}

@@ -1,0 +1,403 @@
+//! Config loading: defaults, the example file, and errors that point at the right line and key.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use relight_core::StreamKind;
+use relight_daemon::config::{
+    Config, ConfigError, DeviceBackend, Diagnostic, GroupSpec, ReplayMode, SourceConfig,
+};
+use serde_json::json;
+
+fn parse(text: &str) -> Result<Config, ConfigError> {
+    Config::parse(text, "relightd.toml")
+}
+
+/// The single diagnostic of a config that must fail.
+fn only_error(text: &str) -> Diagnostic {
+    match parse(text) {
+        Ok(config) => panic!("config should be rejected:\n{text}\nparsed as {config:?}"),
+        Err(err) => match err.diagnostics() {
+            [one] => one.clone(),
+            many => panic!("expected one diagnostic, got {many:?}"),
+        },
+    }
+}
+
+fn assert_at(d: &Diagnostic, line: usize, key: &str, message_part: &str) {
+    assert_eq!(d.line, line, "{d}");
+    assert_eq!(d.key.as_deref(), Some(key), "{d}");
+    assert!(d.message.contains(message_part), "{d}");
+    let shown = d.to_string();
+    assert!(
+        shown.starts_with(&format!("relightd.toml:{line}:")),
+        "{shown}"
+    );
+    assert!(shown.contains(key), "{shown}");
+}
+
+#[test]
+fn empty_file_gives_defaults() {
+    let config = parse("").expect("empty config is valid");
+    assert_eq!(
+        config,
+        Config {
+            path: PathBuf::from("relightd.toml"),
+            ..Config::default()
+        }
+    );
+    assert_eq!(
+        config.daemon.socket,
+        Path::new("/run/relightd/control.sock")
+    );
+    assert_eq!(config.daemon.socket_mode, 0o660);
+    assert_eq!(config.daemon.max_request_bytes, 65536);
+    assert!(config.daemon.watchdog);
+    assert_eq!(config.sync.tolerance, Duration::from_millis(20));
+    assert_eq!(config.sync.max_wait, Duration::from_millis(100));
+    assert_eq!(config.sync.streams, StreamKind::ALL.to_vec());
+    assert_eq!(config.sync.reference, StreamKind::Depth);
+    assert_eq!(config.engine.name, "passthrough");
+    assert_eq!(config.engine.params, json!({}));
+    assert_eq!(
+        config.recorder.dir,
+        Path::new("/var/lib/relightd/recordings")
+    );
+    assert_eq!(config.recorder.queue_frames, 64);
+    assert!(!config.recorder.autostart);
+    assert_eq!(
+        config.snapshot.dir,
+        Path::new("/var/lib/relightd/snapshots")
+    );
+    assert_eq!(config.output.dir, None);
+    assert_eq!(config.source, SourceConfig::Devices(BTreeMap::new()));
+}
+
+#[test]
+fn example_file_parses_and_documents_the_defaults() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../systemd/relightd.toml");
+    let config = Config::load(&path).unwrap_or_else(|err| panic!("{err}"));
+    assert_eq!(
+        config,
+        Config {
+            path,
+            ..Config::default()
+        }
+    );
+}
+
+#[test]
+fn example_file_sections_parse_when_uncommented() {
+    // Every commented-out source section of the example must be valid once enabled.
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../systemd/relightd.toml");
+    let text = std::fs::read_to_string(&path).expect("example config readable");
+    let uncomment = |section: &str, also: &[&str]| -> String {
+        let mut out = String::new();
+        let mut active = false;
+        for line in text.lines() {
+            if let Some(rest) = line.strip_prefix("# [") {
+                let name = rest.split(']').next().unwrap_or_default();
+                active = name == section || also.contains(&name);
+                if active {
+                    out.push_str(&line[2..]);
+                    out.push('\n');
+                    continue;
+                }
+            }
+            let is_setting = line.strip_prefix("# ").is_some_and(|s| {
+                s.chars().next().is_some_and(|c| c.is_ascii_lowercase()) && s.contains(" = ")
+            });
+            if active && is_setting {
+                out.push_str(&line[2..]);
+            } else {
+                if !line.starts_with('#') {
+                    active = false;
+                }
+                out.push_str(line);
+            }
+            out.push('\n');
+        }
+        out
+    };
+
+    let replay = parse(&uncomment("replay", &[])).unwrap_or_else(|err| panic!("{err}"));
+    let SourceConfig::Replay(replay) = replay.source else {
+        panic!("expected a replay source, got {:?}", replay.source);
+    };
+    assert_eq!(replay.mode, ReplayMode::Realtime);
+    assert_eq!(replay.speed, 1.0);
+
+    let sim = parse(&uncomment("sim", &[])).unwrap_or_else(|err| panic!("{err}"));
+    assert!(
+        matches!(sim.source, SourceConfig::Sim(_)),
+        "{:?}",
+        sim.source
+    );
+
+    let devices = parse(&uncomment("depth", &["color", "probe", "markers", "lamp"]))
+        .unwrap_or_else(|err| panic!("{err}"));
+    let SourceConfig::Devices(devices) = devices.source else {
+        panic!("expected devices, got {:?}", devices.source);
+    };
+    assert_eq!(devices.len(), 5);
+    assert_eq!(devices[&StreamKind::Probe].backend, DeviceBackend::Ueye);
+    assert_eq!(
+        devices[&StreamKind::Probe].settings,
+        json!({ "serial": "4102712345", "exposures_us": [250, 2000, 16000] })
+    );
+    assert_eq!(
+        devices[&StreamKind::Lamp].backend,
+        DeviceBackend::LampSerial
+    );
+}
+
+#[test]
+fn every_key_can_be_set() {
+    let text = r#"
+[daemon]
+socket = "/tmp/relight.sock"
+socket_mode = "0600"
+socket_group = "video"
+max_request_bytes = 4096
+watchdog = false
+
+[replay]
+path = "/data/run1.mcap"
+mode = "stepped"
+loop = true
+speed = 2.5
+
+[sync]
+tolerance_ms = 8.5
+max_wait_ms = 0
+streams = ["color", "depth"]
+reference = "color"
+
+[engine]
+name = "dlpv"
+params = { cascades = 3, propagation = { steps = 8 } }
+
+[recorder]
+dir = "/rec"
+autostart = true
+queue_frames = 16
+
+[snapshot]
+dir = "/snap"
+
+[output]
+dir = "/out"
+every_n = 5
+"#;
+    let config = parse(text).unwrap_or_else(|err| panic!("{err}"));
+    assert_eq!(config.daemon.socket, Path::new("/tmp/relight.sock"));
+    assert_eq!(config.daemon.socket_mode, 0o600);
+    assert_eq!(
+        config.daemon.socket_group,
+        Some(GroupSpec::Name("video".into()))
+    );
+    assert_eq!(config.daemon.max_request_bytes, 4096);
+    assert!(!config.daemon.watchdog);
+    let SourceConfig::Replay(replay) = &config.source else {
+        panic!("expected replay, got {:?}", config.source);
+    };
+    assert_eq!(replay.path, Path::new("/data/run1.mcap"));
+    assert_eq!(replay.mode, ReplayMode::Stepped);
+    assert!(replay.loop_playback);
+    assert_eq!(replay.speed, 2.5);
+    assert_eq!(config.sync.tolerance, Duration::from_micros(8500));
+    assert_eq!(config.sync.max_wait, Duration::ZERO);
+    assert_eq!(
+        config.sync.streams,
+        vec![StreamKind::Color, StreamKind::Depth]
+    );
+    assert_eq!(config.sync.reference, StreamKind::Color);
+    assert_eq!(config.engine.name, "dlpv");
+    assert_eq!(
+        config.engine.params,
+        json!({ "cascades": 3, "propagation": { "steps": 8 } })
+    );
+    assert_eq!(config.recorder.dir, Path::new("/rec"));
+    assert!(config.recorder.autostart);
+    assert_eq!(config.recorder.queue_frames, 16);
+    assert_eq!(config.snapshot.dir, Path::new("/snap"));
+    assert_eq!(config.output.dir.as_deref(), Some(Path::new("/out")));
+    assert_eq!(config.output.every_n, 5);
+}
+
+#[test]
+fn reference_defaults_to_first_listed_stream_when_depth_is_not_synced() {
+    let config = parse("[sync]\nstreams = [\"color\", \"lamp\"]\n").expect("valid");
+    assert_eq!(config.sync.reference, StreamKind::Color);
+}
+
+#[test]
+fn out_of_range_value_names_line_and_key() {
+    let d = only_error("[daemon]\nwatchdog = true\n\n[sync]\ntolerance_ms = -3\n");
+    assert_eq!(
+        d.to_string(),
+        "relightd.toml:5:1: sync.tolerance_ms: must be > 0, got -3"
+    );
+}
+
+#[test]
+fn wrong_type_names_line_and_key() {
+    let d = only_error("[recorder]\ndir = \"/rec\"\nqueue_frames = \"many\"\n");
+    assert_at(&d, 3, "recorder.queue_frames", "expected an integer");
+    assert_eq!(d.column, 16, "points at the value: {d}");
+
+    let d = only_error("[daemon]\nwatchdog = 1\n");
+    assert_at(&d, 2, "daemon.watchdog", "expected true or false");
+
+    let d = only_error("sync = { tolerance_ms = \"x\" }\n");
+    assert_at(&d, 1, "sync.tolerance_ms", "expected a number");
+}
+
+#[test]
+fn unknown_key_names_line_and_key() {
+    let d = only_error("[recorder]\nautostart = true\nqueue_size = 3\n");
+    assert_at(&d, 3, "recorder.queue_size", "unknown key `queue_size`");
+
+    let d = only_error("[sync]\ntolerance_ms = 5\n\n[synch]\nmax_wait_ms = 3\n");
+    assert_at(&d, 4, "synch", "unknown key `synch`");
+
+    let d = only_error("[replay]\npath = \"x.mcap\"\nlooping = true\n");
+    assert_at(&d, 3, "replay.looping", "unknown key `looping`");
+}
+
+#[test]
+fn syntax_error_names_line_and_column() {
+    let err = parse("[sync]\ntolerance_ms = 20\nmax_wait_ms = \n").expect_err("invalid TOML");
+    let ConfigError::Syntax(d) = &err else {
+        panic!("expected a syntax error, got {err:?}");
+    };
+    assert_eq!(d.line, 3, "{d}");
+    assert_eq!(d.column, 15, "{d}");
+    assert_eq!(d.key.as_deref(), Some("sync.max_wait_ms"), "{d}");
+
+    let err = parse("[daemon\nsocket = \"/x\"\n").expect_err("invalid TOML");
+    let d = err.diagnostics().first().cloned().expect("one diagnostic");
+    assert_eq!(d.line, 1, "{d}");
+    assert!(err.to_string().starts_with("relightd.toml:1:"), "{err}");
+}
+
+#[test]
+fn unknown_stream_name_points_at_the_list_item() {
+    let d = only_error("[sync]\nstreams = [\"depth\", \"colour\"]\n");
+    assert_at(&d, 2, "sync.streams[1]", "unknown stream \"colour\"");
+    assert_eq!(d.column, 21, "{d}");
+
+    let d = only_error("[sync]\nreference = \"fisheye\"\n");
+    assert_at(&d, 2, "sync.reference", "unknown stream \"fisheye\"");
+
+    let d = only_error("[sync]\nstreams = [\"depth\", \"depth\"]\n");
+    assert_at(&d, 2, "sync.streams[1]", "listed twice");
+
+    let d = only_error("[sync]\nstreams = [\"color\"]\nreference = \"depth\"\n");
+    assert_at(&d, 3, "sync.reference", "not in sync.streams");
+}
+
+#[test]
+fn bad_octal_mode_is_rejected() {
+    for mode in ["0999", "1777", "rw-rw----", ""] {
+        let d = only_error(&format!("[daemon]\nsocket_mode = {mode:?}\n"));
+        assert_at(&d, 2, "daemon.socket_mode", "octal mode");
+    }
+    let d = only_error("[daemon]\nsocket_mode = 660\n");
+    assert_at(&d, 2, "daemon.socket_mode", "expected a string");
+}
+
+#[test]
+fn socket_group_by_name_or_gid() {
+    let config = parse("[daemon]\nsocket_group = 44\n").expect("valid");
+    assert_eq!(config.daemon.socket_group, Some(GroupSpec::Gid(44)));
+    let d = only_error("[daemon]\nsocket_group = -1\n");
+    assert_at(&d, 2, "daemon.socket_group", "gid");
+    let d = only_error("[daemon]\nsocket_group = \"bad group\"\n");
+    assert_at(&d, 2, "daemon.socket_group", "not a valid group name");
+    let d = only_error("[daemon]\nsocket_group = true\n");
+    assert_at(&d, 2, "daemon.socket_group", "group name or a numeric gid");
+}
+
+#[test]
+fn numeric_limits_are_checked() {
+    let d = only_error("[daemon]\nmax_request_bytes = 10\n");
+    assert_at(&d, 2, "daemon.max_request_bytes", "between 256 and");
+    let d = only_error("[recorder]\nqueue_frames = 0\n");
+    assert_at(&d, 2, "recorder.queue_frames", "must be > 0, got 0");
+    let d = only_error("[output]\nevery_n = -1\n");
+    assert_at(&d, 2, "output.every_n", "must be > 0");
+    let d = only_error("[sync]\nmax_wait_ms = -1\n");
+    assert_at(&d, 2, "sync.max_wait_ms", "must be >= 0");
+    let d = only_error("[sync]\ntolerance_ms = nan\n");
+    assert_at(&d, 2, "sync.tolerance_ms", "must be > 0");
+    let long = "x".repeat(200);
+    let d = only_error(&format!("[daemon]\nsocket = \"/run/{long}\"\n"));
+    assert_at(&d, 2, "daemon.socket", "at most 107 bytes");
+}
+
+#[test]
+fn replay_section_is_validated() {
+    let d = only_error("[replay]\nmode = \"fast\"\n");
+    assert_at(&d, 1, "replay.path", "missing");
+    let d = only_error("[replay]\npath = \"a.mcap\"\nmode = \"slow\"\n");
+    assert_at(&d, 3, "replay.mode", "\"realtime\", \"fast\", \"stepped\"");
+    let d = only_error("[replay]\npath = \"a.mcap\"\nspeed = 0\n");
+    assert_at(&d, 3, "replay.speed", "must be > 0, got 0");
+}
+
+#[test]
+fn sources_are_exclusive() {
+    let d = only_error("[replay]\npath = \"a.mcap\"\n\n[sim]\nseed = 1\n");
+    assert_at(&d, 4, "sim", "choose one source");
+    let d = only_error("[replay]\npath = \"a.mcap\"\n\n[depth]\nbackend = \"freenect\"\n");
+    assert_at(&d, 4, "depth", "cannot be combined with [replay]");
+}
+
+#[test]
+fn device_backend_must_fit_its_stream() {
+    let config = parse("[markers]\nbackend = \"aruco\"\ndictionary = \"4x4_50\"\n").expect("valid");
+    let SourceConfig::Devices(devices) = config.source else {
+        panic!("expected devices");
+    };
+    assert_eq!(devices[&StreamKind::Markers].backend, DeviceBackend::Aruco);
+    assert_eq!(
+        devices[&StreamKind::Markers].settings,
+        json!({ "dictionary": "4x4_50" })
+    );
+
+    let d = only_error("[probe]\nbackend = \"freenect\"\n");
+    assert_at(&d, 2, "probe.backend", "cannot supply the probe stream");
+    let d = only_error("[depth]\nbackend = \"kinect\"\n");
+    assert_at(&d, 2, "depth.backend", "unknown backend \"kinect\"");
+    let d = only_error("[lamp]\nport = \"/dev/ttyACM0\"\n");
+    assert_at(&d, 1, "lamp.backend", "missing");
+    let d = only_error("[color]\nbackend = 3\n");
+    assert_at(&d, 2, "color.backend", "expected a string");
+}
+
+#[test]
+fn all_validation_errors_are_reported_in_file_order() {
+    let err = parse("[sync]\ntolerance_ms = 0\n\n[recorder]\nqueue_frames = -2\n\n[daemon]\nsocket_mode = \"9\"\n")
+        .expect_err("three problems");
+    let lines: Vec<_> = err.diagnostics().iter().map(|d| d.line).collect();
+    assert_eq!(lines, vec![2, 5, 8], "{err}");
+    assert_eq!(err.to_string().lines().count(), 3, "{err}");
+}
+
+#[test]
+fn missing_file_names_its_path() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = dir.path().join("absent.toml");
+    let err = Config::load(&path).expect_err("no such file");
+    assert!(matches!(err, ConfigError::Read { .. }), "{err:?}");
+    assert!(err.to_string().contains("absent.toml"), "{err}");
+}
+
+#[test]
+fn duplicate_key_names_the_key() {
+    let err = parse("[sync]\ntolerance_ms = 1\ntolerance_ms = 2\n").expect_err("duplicate key");
+    let d = err.diagnostics().first().cloned().expect("one diagnostic");
+    assert_at(&d, 3, "sync.tolerance_ms", "duplicate key");
+}

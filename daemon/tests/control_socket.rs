@@ -1,0 +1,865 @@
+//! The control socket end to end: a real Unix socket in a temp dir, a fake pipeline behind it.
+
+use std::os::unix::fs::{MetadataExt, PermissionsExt};
+use std::os::unix::net::{UnixListener, UnixStream};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::{Arc, Barrier, Mutex};
+use std::time::Duration;
+
+use relight_core::StreamKind;
+use relight_daemon::control::{
+    Client, ClientError, ControlError, ControlServer, ControlServerHandle, ControlTarget,
+    DeviceState, DeviceStatus, EngineInfo, PeerCred, RecordingStatus, ServerError, ServerOptions,
+    StageTiming, StatusReport, codes, peer_allowed,
+};
+use serde_json::{Map, Value, json};
+
+const TIMEOUT: Duration = Duration::from_secs(10);
+
+/// A pipeline stand-in that remembers what it was asked.
+#[derive(Default)]
+struct FakePipeline {
+    calls: Mutex<Vec<String>>,
+    engine: Mutex<String>,
+    params: Mutex<Map<String, Value>>,
+    recording: Mutex<Option<PathBuf>>,
+}
+
+impl FakePipeline {
+    fn log(&self, call: String) {
+        self.calls.lock().expect("calls lock").push(call);
+    }
+
+    fn calls(&self) -> Vec<String> {
+        self.calls.lock().expect("calls lock").clone()
+    }
+}
+
+fn sample_status(engine: &str, recording: Option<PathBuf>) -> StatusReport {
+    StatusReport {
+        uptime_s: 3725.5,
+        engine: engine.to_owned(),
+        devices: vec![DeviceStatus {
+            name: "kinect".into(),
+            stream: StreamKind::Depth,
+            backend: "freenect".into(),
+            state: DeviceState::Lost,
+            fps: 29.97,
+            frames: 1200,
+            drops: 3,
+            last_error: Some("usb transfer failed".into()),
+        }],
+        stages: vec![StageTiming {
+            name: "recon".into(),
+            frames: 1190,
+            last_ms: 4.25,
+            mean_ms: 4.0,
+            p50_ms: 3.9,
+            p99_ms: 7.5,
+        }],
+        frame_sets: 1190,
+        sync_missing: 10,
+        bus_drops: 2,
+        recording: recording.map(|path| RecordingStatus { path, messages: 77 }),
+    }
+}
+
+impl ControlTarget for FakePipeline {
+    fn status(&self) -> StatusReport {
+        self.log("status".into());
+        sample_status(
+            &self.engine.lock().expect("engine lock"),
+            self.recording.lock().expect("recording lock").clone(),
+        )
+    }
+
+    fn engine_list(&self) -> Vec<EngineInfo> {
+        self.log("engine_list".into());
+        vec![
+            EngineInfo {
+                name: "passthrough".into(),
+                description: "shows the color image".into(),
+                params_schema: json!({ "type": "object" }),
+            },
+            EngineInfo {
+                name: "dlpv".into(),
+                description: "differential light propagation volumes".into(),
+                params_schema: json!({ "type": "object", "properties": { "steps": { "type": "integer" } } }),
+            },
+        ]
+    }
+
+    fn engine_set(&self, name: &str) -> Result<(), ControlError> {
+        self.log(format!("engine_set {name}"));
+        if !["passthrough", "dlpv"].contains(&name) {
+            return Err(ControlError::engine_unknown(name));
+        }
+        *self.engine.lock().expect("engine lock") = name.to_owned();
+        Ok(())
+    }
+
+    fn engine_params_get(&self) -> Value {
+        self.log("engine_params_get".into());
+        Value::Object(self.params.lock().expect("params lock").clone())
+    }
+
+    fn engine_params_set(&self, params: Map<String, Value>) -> Result<Value, ControlError> {
+        self.log(format!(
+            "engine_params_set {}",
+            Value::Object(params.clone())
+        ));
+        let mut current = self.params.lock().expect("params lock");
+        current.extend(params);
+        Ok(Value::Object(current.clone()))
+    }
+
+    fn record_start(&self, path: Option<PathBuf>) -> Result<PathBuf, ControlError> {
+        self.log(format!("record_start {path:?}"));
+        let mut recording = self.recording.lock().expect("recording lock");
+        if recording.is_some() {
+            return Err(ControlError::busy("already recording"));
+        }
+        let path = path.unwrap_or_else(|| PathBuf::from("/rec/auto.mcap"));
+        *recording = Some(path.clone());
+        Ok(path)
+    }
+
+    fn record_stop(&self) -> Result<Value, ControlError> {
+        self.log("record_stop".into());
+        match self.recording.lock().expect("recording lock").take() {
+            Some(path) => Ok(json!({ "path": path, "messages": 77 })),
+            None => Err(ControlError::failed("not recording")),
+        }
+    }
+
+    fn snapshot(&self, path: Option<PathBuf>) -> Result<Vec<PathBuf>, ControlError> {
+        self.log(format!("snapshot {path:?}"));
+        let dir = path.unwrap_or_else(|| PathBuf::from("/snap"));
+        if dir == Path::new("/panic") {
+            panic!("fake pipeline bug");
+        }
+        Ok(vec![dir.join("color.png"), dir.join("composite.png")])
+    }
+
+    fn config_reload(&self) -> Result<Value, ControlError> {
+        self.log("config_reload".into());
+        Ok(json!({ "changed": ["sync.tolerance_ms"] }))
+    }
+}
+
+struct Fixture {
+    _dir: tempfile::TempDir,
+    socket: PathBuf,
+    fake: Arc<FakePipeline>,
+    server: Option<ControlServerHandle>,
+}
+
+impl Fixture {
+    fn new(options: ServerOptions) -> Self {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let socket = dir.path().join("control.sock");
+        let fake = Arc::new(FakePipeline::default());
+        *fake.engine.lock().expect("engine lock") = "passthrough".into();
+        let server = ControlServer::bind_with(&socket, options, fake.clone())
+            .expect("bind")
+            .spawn()
+            .expect("spawn");
+        Self {
+            _dir: dir,
+            socket,
+            fake,
+            server: Some(server),
+        }
+    }
+
+    fn client(&self) -> Client {
+        Client::connect(&self.socket, TIMEOUT).expect("connect")
+    }
+}
+
+fn default_fixture() -> Fixture {
+    Fixture::new(ServerOptions::default())
+}
+
+/// Sends one raw line and returns the parsed response line.
+fn exchange(client: &mut Client, line: &[u8]) -> Value {
+    client.send_raw(line).expect("send");
+    client.send_raw(b"\n").expect("send newline");
+    client.read_response().expect("response")
+}
+
+fn error_code(response: &Value) -> i64 {
+    response["error"]["code"]
+        .as_i64()
+        .unwrap_or_else(|| panic!("not an error response: {response}"))
+}
+
+fn error_message(response: &Value) -> &str {
+    response["error"]["message"].as_str().unwrap_or_default()
+}
+
+fn rpc_error(result: Result<Value, ClientError>) -> ControlError {
+    match result {
+        Err(ClientError::Rpc(error)) => error,
+        other => panic!("expected a JSON-RPC error, got {other:?}"),
+    }
+}
+
+/// The connection still answers after whatever came before.
+fn assert_usable(client: &mut Client) {
+    assert_eq!(client.call("rpc.ping", None).expect("ping"), json!("pong"));
+}
+
+#[test]
+fn every_method_happy_path() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+
+    let status: StatusReport =
+        serde_json::from_value(c.call("status", None).expect("status")).expect("status shape");
+    assert_eq!(status, sample_status("passthrough", None));
+
+    let engines: Vec<EngineInfo> =
+        serde_json::from_value(c.call("engine.list", Some(json!({}))).expect("engine.list"))
+            .expect("engine list shape");
+    assert_eq!(engines.len(), 2);
+    assert_eq!(engines[1].name, "dlpv");
+
+    assert_eq!(
+        c.call("engine.set", Some(json!({ "name": "dlpv" })))
+            .expect("set by name"),
+        Value::Null
+    );
+    assert_eq!(
+        c.call("engine.set", Some(json!(["passthrough"])))
+            .expect("set by position"),
+        Value::Null
+    );
+
+    assert_eq!(c.call("engine.params.get", None).expect("get"), json!({}));
+    assert_eq!(
+        c.call(
+            "engine.params.set",
+            Some(json!({ "params": { "steps": 8 } }))
+        )
+        .expect("wrapped"),
+        json!({ "steps": 8 })
+    );
+    assert_eq!(
+        c.call("engine.params.set", Some(json!({ "gain": 1.5 })))
+            .expect("bare"),
+        json!({ "steps": 8, "gain": 1.5 })
+    );
+    assert_eq!(
+        c.call("engine.params.set", Some(json!([{ "steps": 4 }])))
+            .expect("positional"),
+        json!({ "steps": 4, "gain": 1.5 })
+    );
+    assert_eq!(
+        c.call("engine.params.get", Some(json!([]))).expect("get"),
+        json!({ "steps": 4, "gain": 1.5 })
+    );
+
+    assert_eq!(
+        c.call("record.start", Some(json!({ "path": "/tmp/a.mcap" })))
+            .expect("start"),
+        json!({ "path": "/tmp/a.mcap" })
+    );
+    let status: StatusReport =
+        serde_json::from_value(c.call("status", None).expect("status")).expect("status shape");
+    assert_eq!(
+        status.recording.map(|r| r.path),
+        Some(PathBuf::from("/tmp/a.mcap"))
+    );
+    assert_eq!(
+        c.call("record.stop", None).expect("stop"),
+        json!({ "path": "/tmp/a.mcap", "messages": 77 })
+    );
+    assert_eq!(
+        c.call("record.start", Some(json!({ "path": null })))
+            .expect("start default"),
+        json!({ "path": "/rec/auto.mcap" })
+    );
+    c.call("record.stop", None).expect("stop");
+
+    assert_eq!(
+        c.call("snapshot", Some(json!(["/tmp/s"])))
+            .expect("snapshot"),
+        json!({ "paths": ["/tmp/s/color.png", "/tmp/s/composite.png"] })
+    );
+    assert_eq!(
+        c.call("snapshot", None).expect("snapshot default"),
+        json!({ "paths": ["/snap/color.png", "/snap/composite.png"] })
+    );
+    assert_eq!(
+        c.call("config.reload", None).expect("reload"),
+        json!({ "changed": ["sync.tolerance_ms"] })
+    );
+    assert_usable(&mut c);
+    let version = c.call("version", None).expect("version");
+    assert_eq!(version["name"], "relightd");
+    assert_eq!(version["protocol"], "jsonrpc-2.0");
+    assert!(version["version"].is_string(), "{version}");
+
+    assert_eq!(
+        fx.fake.calls(),
+        vec![
+            "status",
+            "engine_list",
+            "engine_set dlpv",
+            "engine_set passthrough",
+            "engine_params_get",
+            r#"engine_params_set {"steps":8}"#,
+            r#"engine_params_set {"gain":1.5}"#,
+            r#"engine_params_set {"steps":4}"#,
+            "engine_params_get",
+            r#"record_start Some("/tmp/a.mcap")"#,
+            "status",
+            "record_stop",
+            "record_start None",
+            "record_stop",
+            r#"snapshot Some("/tmp/s")"#,
+            "snapshot None",
+            "config_reload",
+        ]
+    );
+}
+
+#[test]
+fn pipeline_errors_keep_their_codes() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    let error = rpc_error(c.call("engine.set", Some(json!({ "name": "nope" }))));
+    assert_eq!(error.code, codes::ENGINE_UNKNOWN);
+    assert!(error.message.contains("nope"), "{error:?}");
+
+    c.call("record.start", None).expect("start");
+    let error = rpc_error(c.call("record.start", None));
+    assert_eq!(error.code, codes::BUSY);
+    c.call("record.stop", None).expect("stop");
+    let error = rpc_error(c.call("record.stop", None));
+    assert_eq!(error.code, codes::FAILED);
+    assert_usable(&mut c);
+}
+
+#[test]
+fn malformed_json_is_a_parse_error() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    for line in [
+        &b"{\"jsonrpc\": \"2.0\", \"method\": \"status\""[..],
+        b"{not json}",
+        b"[1, 2",
+    ] {
+        let response = exchange(&mut c, line);
+        assert_eq!(error_code(&response), codes::PARSE_ERROR, "{response}");
+        assert_eq!(response["id"], Value::Null);
+        assert_eq!(response["jsonrpc"], "2.0");
+        assert_usable(&mut c);
+    }
+}
+
+#[test]
+fn non_object_request_is_invalid() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    for line in ["42", "\"status\"", "null", "true"] {
+        let response = exchange(&mut c, line.as_bytes());
+        assert_eq!(error_code(&response), codes::INVALID_REQUEST, "{response}");
+        assert_eq!(response["id"], Value::Null);
+    }
+    assert_usable(&mut c);
+}
+
+#[test]
+fn wrong_envelope_is_invalid_request() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    let response = exchange(&mut c, br#"{"jsonrpc":"1.0","method":"status","id":7}"#);
+    assert_eq!(error_code(&response), codes::INVALID_REQUEST, "{response}");
+    assert_eq!(response["id"], 7);
+    assert!(error_message(&response).contains("jsonrpc"), "{response}");
+
+    let response = exchange(&mut c, br#"{"method":"status","id":"a"}"#);
+    assert_eq!(error_code(&response), codes::INVALID_REQUEST, "{response}");
+    assert_eq!(response["id"], "a");
+
+    let response = exchange(&mut c, br#"{"jsonrpc":"2.0","method":1,"params":"bar"}"#);
+    assert_eq!(error_code(&response), codes::INVALID_REQUEST, "{response}");
+    assert_eq!(response["id"], Value::Null);
+
+    let response = exchange(
+        &mut c,
+        br#"{"jsonrpc":"2.0","method":"status","id":{"x":1}}"#,
+    );
+    assert_eq!(error_code(&response), codes::INVALID_REQUEST, "{response}");
+    assert_eq!(response["id"], Value::Null);
+
+    let response = exchange(
+        &mut c,
+        br#"{"jsonrpc":"2.0","method":"status","params":3,"id":2}"#,
+    );
+    assert_eq!(error_code(&response), codes::INVALID_REQUEST, "{response}");
+    assert_eq!(response["id"], 2);
+    assert!(fx.fake.calls().is_empty(), "{:?}", fx.fake.calls());
+    assert_usable(&mut c);
+}
+
+#[test]
+fn unknown_method_is_named() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    let error = rpc_error(c.call("engine.sett", None));
+    assert_eq!(error.code, codes::METHOD_NOT_FOUND);
+    assert!(error.message.contains("engine.sett"), "{error:?}");
+    assert_usable(&mut c);
+}
+
+#[test]
+fn wrong_params_name_the_field() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    let cases = [
+        ("engine.set", json!({ "name": 3 }), "name"),
+        ("engine.set", json!({}), "name"),
+        ("engine.set", json!({ "nme": "dlpv" }), "nme"),
+        ("engine.set", json!(["dlpv", "extra"]), "at most 1"),
+        ("record.start", json!({ "path": 5 }), "path"),
+        ("snapshot", json!({ "path": [] }), "path"),
+        ("engine.params.set", json!({ "params": "x" }), "params"),
+        ("engine.params.set", json!([1]), "params"),
+        ("status", json!({ "verbose": true }), "verbose"),
+    ];
+    for (method, params, field) in cases {
+        let error = rpc_error(c.call(method, Some(params.clone())));
+        assert_eq!(
+            error.code,
+            codes::INVALID_PARAMS,
+            "{method} {params}: {error:?}"
+        );
+        assert!(
+            error.message.contains(field),
+            "{method} {params}: {error:?}"
+        );
+    }
+    let error = rpc_error(c.call("engine.params.set", None));
+    assert_eq!(error.code, codes::INVALID_PARAMS);
+    assert!(fx.fake.calls().is_empty(), "{:?}", fx.fake.calls());
+    assert_usable(&mut c);
+}
+
+#[test]
+fn oversized_line_is_skipped_and_the_next_request_answered() {
+    let fx = Fixture::new(ServerOptions {
+        max_request_bytes: 1024,
+        ..ServerOptions::default()
+    });
+    let mut c = fx.client();
+    let huge = format!(
+        r#"{{"jsonrpc":"2.0","method":"status","id":1,"pad":"{}"}}"#,
+        "x".repeat(200_000)
+    );
+    let mut bytes = huge.clone().into_bytes();
+    bytes.extend_from_slice(b"\n{\"jsonrpc\":\"2.0\",\"method\":\"rpc.ping\",\"id\":2}\n");
+    // The writer runs on its own thread: the server must drain the long line while we write it.
+    let mut writer = UnixStream::connect(&fx.socket).expect("connect");
+    let mut reader = std::io::BufReader::new(writer.try_clone().expect("clone"));
+    let send = std::thread::spawn(move || std::io::Write::write_all(&mut writer, &bytes));
+    let mut first = String::new();
+    std::io::BufRead::read_line(&mut reader, &mut first).expect("first response");
+    let mut second = String::new();
+    std::io::BufRead::read_line(&mut reader, &mut second).expect("second response");
+    send.join().expect("writer thread").expect("write");
+
+    let first: Value = serde_json::from_str(&first).expect("json");
+    assert_eq!(error_code(&first), codes::INVALID_REQUEST, "{first}");
+    assert_eq!(
+        error_message(&first),
+        format!("request too large ({} bytes > 1024)", huge.len())
+    );
+    assert_eq!(first["id"], Value::Null);
+    let second: Value = serde_json::from_str(&second).expect("json");
+    assert_eq!(second["result"], "pong", "{second}");
+    assert_eq!(second["id"], 2);
+
+    // and through the client, on a connection that already answered
+    assert_usable(&mut c);
+    c.send_raw(&vec![b' '; 5000]).expect("send");
+    let response = exchange(&mut c, b"");
+    assert_eq!(error_code(&response), codes::INVALID_REQUEST, "{response}");
+    assert_usable(&mut c);
+    assert!(fx.fake.calls().is_empty(), "{:?}", fx.fake.calls());
+}
+
+#[test]
+fn invalid_utf8_is_a_parse_error() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    let response = exchange(
+        &mut c,
+        b"{\"jsonrpc\":\"2.0\",\"method\":\"st\xffatus\",\"id\":1}",
+    );
+    assert_eq!(error_code(&response), codes::PARSE_ERROR, "{response}");
+    assert!(error_message(&response).contains("UTF-8"), "{response}");
+    assert_eq!(response["id"], Value::Null);
+    assert_usable(&mut c);
+}
+
+#[test]
+fn batches_answer_each_request_and_skip_notifications() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    let batch = json!([
+        { "jsonrpc": "2.0", "method": "rpc.ping", "id": 1 },
+        { "jsonrpc": "2.0", "method": "engine.set", "params": { "name": "dlpv" } },
+        42,
+        { "jsonrpc": "2.0", "method": "nope", "id": "x" },
+        { "jsonrpc": "2.0", "method": "engine.list", "id": 3 }
+    ]);
+    let response = exchange(&mut c, batch.to_string().as_bytes());
+    let responses = response.as_array().expect("batch response is an array");
+    assert_eq!(responses.len(), 4, "{response}");
+    let by_id = |id: Value| {
+        responses
+            .iter()
+            .find(|r| r["id"] == id)
+            .unwrap_or_else(|| panic!("no response with id {id}: {response}"))
+    };
+    assert_eq!(by_id(json!(1))["result"], "pong");
+    assert_eq!(error_code(by_id(json!("x"))), codes::METHOD_NOT_FOUND);
+    assert_eq!(by_id(json!(3))["result"].as_array().map(Vec::len), Some(2));
+    assert!(
+        responses
+            .iter()
+            .any(|r| r["id"] == Value::Null && error_code(r) == codes::INVALID_REQUEST),
+        "{response}"
+    );
+    assert!(fx.fake.calls().contains(&"engine_set dlpv".to_owned()));
+
+    let response = exchange(&mut c, b"[]");
+    assert!(
+        response.is_object(),
+        "empty batch gets one error object: {response}"
+    );
+    assert_eq!(error_code(&response), codes::INVALID_REQUEST);
+    assert_eq!(response["id"], Value::Null);
+
+    // A batch of notifications only gets no response: the next line answers the ping.
+    c.send_raw(br#"[{"jsonrpc":"2.0","method":"engine.set","params":["passthrough"]}]"#)
+        .expect("send");
+    c.send_raw(b"\n").expect("send");
+    assert_usable(&mut c);
+    assert_eq!(
+        fx.fake.calls().last().map(String::as_str),
+        Some("engine_set passthrough")
+    );
+}
+
+#[test]
+fn notification_gets_no_reply() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    c.notify("engine.set", Some(json!({ "name": "dlpv" })))
+        .expect("notify");
+    // Even failing notifications stay silent.
+    c.notify("no.such.method", None).expect("notify");
+    c.notify("engine.set", Some(json!({ "name": 1 })))
+        .expect("notify");
+    let response = exchange(&mut c, br#"{"jsonrpc":"2.0","method":"rpc.ping","id":99}"#);
+    assert_eq!(response["id"], 99, "{response}");
+    assert_eq!(response["result"], "pong");
+    assert_eq!(fx.fake.calls(), vec!["engine_set dlpv"]);
+    // A blank line is not a request either.
+    let response = exchange(
+        &mut c,
+        b"  \n{\"jsonrpc\":\"2.0\",\"method\":\"rpc.ping\",\"id\":100}",
+    );
+    assert_eq!(response["id"], 100, "{response}");
+}
+
+#[test]
+fn handler_panic_is_an_internal_error() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    let error = rpc_error(c.call("snapshot", Some(json!({ "path": "/panic" }))));
+    assert_eq!(error.code, codes::INTERNAL_ERROR);
+    assert_usable(&mut c);
+}
+
+#[test]
+fn twenty_concurrent_clients() {
+    let fx = Fixture::new(ServerOptions {
+        max_connections: 32,
+        ..ServerOptions::default()
+    });
+    let start = Arc::new(Barrier::new(20));
+    let threads: Vec<_> = (0..20)
+        .map(|i| {
+            let socket = fx.socket.clone();
+            let start = Arc::clone(&start);
+            std::thread::spawn(move || -> Result<(), ClientError> {
+                let mut c = Client::connect(&socket, TIMEOUT)?;
+                start.wait();
+                for _ in 0..5 {
+                    c.call("status", None)?;
+                    let name = if i % 2 == 0 { "dlpv" } else { "passthrough" };
+                    c.call("engine.set", Some(json!({ "name": name })))?;
+                }
+                Ok(())
+            })
+        })
+        .collect();
+    for thread in threads {
+        thread.join().expect("client thread").expect("client calls");
+    }
+    assert_eq!(fx.fake.calls().len(), 200);
+}
+
+#[test]
+fn connections_beyond_the_cap_are_refused() {
+    let fx = default_fixture();
+    let held = Arc::new(Barrier::new(20));
+    let threads: Vec<_> = (0..20)
+        .map(|_| {
+            let socket = fx.socket.clone();
+            let held = Arc::clone(&held);
+            std::thread::spawn(move || {
+                let mut c = Client::connect(&socket, TIMEOUT).expect("connect");
+                held.wait(); // all 20 are connected
+                let result = c.call("rpc.ping", None);
+                held.wait(); // nobody leaves (and frees a slot) before all have an answer
+                result
+            })
+        })
+        .collect();
+    let results: Vec<_> = threads
+        .into_iter()
+        .map(|t| t.join().expect("client thread"))
+        .collect();
+    let served = results.iter().filter(|r| r.is_ok()).count();
+    assert_eq!(served, 16, "{results:?}");
+    for result in results.into_iter().filter(Result::is_err) {
+        let error = rpc_error(result);
+        assert_eq!(error.code, codes::TOO_MANY_CONNECTIONS, "{error:?}");
+    }
+}
+
+#[test]
+fn socket_file_mode_and_group() {
+    let gid = std::fs::metadata("/proc/self")
+        .map(|m| m.gid())
+        .expect("own gid");
+    let fx = Fixture::new(ServerOptions {
+        allowed_gid: Some(gid),
+        ..ServerOptions::default()
+    });
+    let meta = std::fs::metadata(&fx.socket).expect("socket exists");
+    assert_eq!(meta.permissions().mode() & 0o7777, 0o660);
+    assert_eq!(meta.gid(), gid);
+
+    let dir = tempfile::tempdir().expect("temp dir");
+    let socket = dir.path().join("private.sock");
+    let server = ControlServer::bind(
+        &socket,
+        0o600,
+        None,
+        4096,
+        Arc::new(FakePipeline::default()),
+    )
+    .expect("bind");
+    let mode = std::fs::metadata(&socket)
+        .expect("socket")
+        .permissions()
+        .mode();
+    assert_eq!(mode & 0o7777, 0o600);
+    drop(server);
+    assert!(
+        !socket.exists(),
+        "an unspawned server removes its socket when dropped"
+    );
+}
+
+#[test]
+fn stale_socket_is_replaced_but_live_one_and_files_are_not() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let socket = dir.path().join("control.sock");
+    drop(UnixListener::bind(&socket).expect("stale listener"));
+    assert!(socket.exists(), "a dropped listener leaves its file behind");
+    let server = ControlServer::bind(
+        &socket,
+        0o660,
+        None,
+        4096,
+        Arc::new(FakePipeline::default()),
+    )
+    .expect("stale socket replaced")
+    .spawn()
+    .expect("spawn");
+
+    let second = ControlServer::bind(
+        &socket,
+        0o660,
+        None,
+        4096,
+        Arc::new(FakePipeline::default()),
+    );
+    assert!(
+        matches!(second, Err(ServerError::InUse { .. })),
+        "{second:?}"
+    );
+    let mut c = Client::connect(&socket, TIMEOUT).expect("first server still serves");
+    assert_usable(&mut c);
+    drop(c);
+    server.shutdown();
+
+    let file = dir.path().join("not-a-socket");
+    std::fs::write(&file, "precious").expect("write file");
+    let result = ControlServer::bind(&file, 0o660, None, 4096, Arc::new(FakePipeline::default()));
+    assert!(
+        matches!(result, Err(ServerError::NotASocket { .. })),
+        "{result:?}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(&file).expect("file kept"),
+        "precious"
+    );
+}
+
+#[test]
+fn shutdown_closes_connections_and_removes_the_socket() {
+    let mut fx = default_fixture();
+    let mut c = fx.client();
+    assert_usable(&mut c);
+    let server = fx.server.take().expect("server running");
+    assert_eq!(server.active_connections(), 1);
+    server.shutdown();
+    assert!(!fx.socket.exists(), "socket file removed");
+    assert!(matches!(c.read_response(), Err(ClientError::Closed)));
+    assert!(matches!(
+        Client::connect(&fx.socket, TIMEOUT),
+        Err(ClientError::Connect { .. })
+    ));
+}
+
+#[test]
+fn peer_credentials_decide_access() {
+    let peer = |uid, gid| PeerCred {
+        pid: Some(4242),
+        uid,
+        gid,
+    };
+    let daemon_uid = 990;
+    let video = 44;
+    assert!(peer_allowed(&peer(0, 0), daemon_uid, None, &[]), "root");
+    assert!(
+        peer_allowed(&peer(990, 990), daemon_uid, None, &[]),
+        "the daemon's user"
+    );
+    assert!(
+        !peer_allowed(&peer(1000, 1000), daemon_uid, None, &[]),
+        "a stranger"
+    );
+    assert!(
+        !peer_allowed(&peer(1000, 1000), daemon_uid, None, &[video]),
+        "group membership without a configured group"
+    );
+    assert!(
+        peer_allowed(&peer(1000, video), daemon_uid, Some(video), &[]),
+        "primary group"
+    );
+    assert!(
+        peer_allowed(&peer(1000, 1000), daemon_uid, Some(video), &[27, video]),
+        "supplementary group"
+    );
+    assert!(
+        !peer_allowed(&peer(1000, 1000), daemon_uid, Some(video), &[27, 46]),
+        "other groups"
+    );
+}
+
+fn relightctl(socket: &Path, args: &[&str]) -> (i32, String, String) {
+    let output = Command::new(env!("CARGO_BIN_EXE_relightctl"))
+        .arg("--socket")
+        .arg(socket)
+        .args(args)
+        .output()
+        .expect("run relightctl");
+    (
+        output.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&output.stdout).into_owned(),
+        String::from_utf8_lossy(&output.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn relightctl_exit_codes_and_output() {
+    let fx = default_fixture();
+
+    let (code, out, err) = relightctl(&fx.socket, &["status"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("passthrough"), "{out}");
+    assert!(out.contains("1h 02m 05s"), "{out}");
+    let device_row = out
+        .lines()
+        .find(|l| l.starts_with("kinect"))
+        .unwrap_or_default();
+    for cell in [
+        "depth",
+        "freenect",
+        "lost",
+        "30.0",
+        "1200",
+        "3",
+        "usb transfer failed",
+    ] {
+        assert!(device_row.contains(cell), "{cell} missing in {out}");
+    }
+    let stage_row = out
+        .lines()
+        .find(|l| l.starts_with("recon"))
+        .unwrap_or_default();
+    assert!(
+        stage_row.contains("4.25") && stage_row.contains("7.50"),
+        "{out}"
+    );
+
+    let (code, out, err) = relightctl(&fx.socket, &["--json", "engine", "list"]);
+    assert_eq!(code, 0, "{err}");
+    let list: Vec<EngineInfo> = serde_json::from_str(&out).expect("--json prints the result");
+    assert_eq!(list.len(), 2);
+
+    let (code, _, err) = relightctl(&fx.socket, &["engine", "set", "warp"]);
+    assert_eq!(code, 1);
+    assert!(err.contains("unknown engine: warp"), "{err}");
+
+    let (code, out, err) = relightctl(
+        &fx.socket,
+        &[
+            "--json",
+            "engine",
+            "params",
+            "set",
+            "steps=8",
+            "mode=fast",
+            "on=true",
+        ],
+    );
+    assert_eq!(code, 0, "{err}");
+    let params: Value = serde_json::from_str(&out).expect("json");
+    assert_eq!(params, json!({ "steps": 8, "mode": "fast", "on": true }));
+
+    let (code, out, err) = relightctl(&fx.socket, &["record", "start", "/tmp/x.mcap"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(out.trim(), "recording to /tmp/x.mcap");
+
+    let (code, out, err) = relightctl(&fx.socket, &["call", "snapshot", r#"{"path":"/s"}"#]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("/s/composite.png"), "{out}");
+
+    let missing = fx.socket.with_file_name("absent.sock");
+    let (code, _, err) = relightctl(&missing, &["status"]);
+    assert_eq!(code, 2);
+    assert!(err.contains("absent.sock"), "{err}");
+    assert!(err.contains("systemctl status relightd"), "{err}");
+}
