@@ -10,7 +10,8 @@ use relight_core::bus::Bus;
 use relight_core::{StreamKind, StreamMessage};
 
 /// Where a device is in its life.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
 #[repr(u8)]
 pub enum DeviceState {
     /// Opening (first time or after a loss).
@@ -270,6 +271,17 @@ impl Default for Backoff {
     }
 }
 
+/// Advances a stepped device from another thread.
+#[derive(Debug, Clone)]
+pub struct Stepper(Sender<u32>);
+
+impl Stepper {
+    /// Advance by `frames` messages; false when the device thread has ended.
+    pub fn step(&self, frames: u32) -> bool {
+        self.0.send(frames).is_ok()
+    }
+}
+
 /// A device running on its own thread.
 #[derive(Debug)]
 pub struct DeviceRunner {
@@ -316,10 +328,9 @@ impl DeviceRunner {
         &self.status
     }
 
-    /// Advance a stepped replay by `frames` messages.
-    pub fn step(&self, frames: u32) {
-        // The receiver lives as long as the thread; after it ended there is nothing to step.
-        let _ = self.steps.send(frames);
+    /// A handle that advances this device when it is a stepped replay.
+    pub fn stepper(&self) -> Stepper {
+        Stepper(self.steps.clone())
     }
 
     pub fn is_finished(&self) -> bool {

@@ -11,6 +11,6 @@ pub mod sources;
 pub mod synthetic;
 
 pub use device::{
-    Device, DeviceContext, DeviceError, DeviceRunner, DeviceState, DeviceStatus, RunEnd,
+    Device, DeviceContext, DeviceError, DeviceRunner, DeviceState, DeviceStatus, RunEnd, Stepper,
 };
 pub use replay::{Replay, ReplayConfig, ReplayMode};

@@ -331,7 +331,7 @@ mod tests {
             Backoff::default(),
         )
         .unwrap();
-        runner.step(3 * source.len() as u32);
+        runner.stepper().step(3 * source.len() as u32);
         let mut frames = Vec::new();
         while frames.len() < 9 {
             if let Some(f) = sub.recv_timeout(Duration::from_secs(5)) {
@@ -378,7 +378,7 @@ mod tests {
             sub.recv_timeout(Duration::from_millis(200)).is_none(),
             "nothing before a step"
         );
-        runner.step(4);
+        runner.stepper().step(4);
         let got: Vec<_> = (0..4)
             .filter_map(|_| sub.recv_timeout(Duration::from_secs(5)))
             .collect();

@@ -12,6 +12,7 @@ use std::sync::Arc;
 use glam::{DVec2, DVec3, Quat, Vec2, Vec3};
 use relight_core::camera::{CameraModel, KannalaBrandt, Pinhole};
 use relight_core::rig::RigCalibration;
+use relight_core::srgb::linear_to_srgb;
 use relight_core::{
     Frame, Image, LampState, MarkerDetection, MarkerSet, PixelFormat, Pose, ProbeImage,
     StreamMessage, Timestamp,
@@ -235,7 +236,7 @@ impl SyntheticRig {
                 let radiance = albedo * (0.08 + 0.6 * irradiance);
                 if let Some(c) = color.as_u8_mut() {
                     for (k, v) in radiance.to_array().into_iter().enumerate() {
-                        c[3 * i_px + k] = srgb8(v);
+                        c[3 * i_px + k] = linear_to_srgb(v);
                     }
                 }
             }
@@ -267,7 +268,7 @@ impl SyntheticRig {
                     };
                     let i = 3 * (y * s + x) as usize;
                     for (k, value) in (radiance * gain).to_array().into_iter().enumerate() {
-                        px[i + k] = srgb8(value);
+                        px[i + k] = linear_to_srgb(value);
                     }
                 }
             }
@@ -366,20 +367,6 @@ fn cast(origin: Vec3, dir: Vec3) -> Option<(f32, Vec3, Vec3)> {
         }
     }
     best
-}
-
-fn srgb8(linear: f32) -> u8 {
-    let l = if linear.is_finite() {
-        linear.clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    let c = if l <= 0.003_130_8 {
-        l * 12.92
-    } else {
-        1.055 * l.powf(1.0 / 2.4) - 0.055
-    };
-    (c * 255.0).round() as u8
 }
 
 #[cfg(test)]

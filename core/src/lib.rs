@@ -11,6 +11,7 @@ pub mod pose;
 pub mod recording;
 pub mod rig;
 pub mod sh;
+pub mod srgb;
 pub mod stream;
 pub mod sync;
 

@@ -16,10 +16,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
 use crossbeam_channel::{Receiver, Sender, bounded};
-use relight_backends::device::{Backoff, DeviceStatus as BackendStatus};
-use relight_backends::{
-    Device as _, DeviceRunner, DeviceState as BackendState, Replay, ReplayConfig, ReplayMode,
-};
+use relight_backends::device::{Backoff, DeviceStatus as BackendStatus, Stepper};
+use relight_backends::{Device as _, DeviceRunner, DeviceState, Replay, ReplayConfig, ReplayMode};
 use relight_core::bus::Bus;
 use relight_core::frame::host_now_ns;
 use relight_core::recording::RecordingMeta;
@@ -30,8 +28,8 @@ use serde_json::{Map, Value, json};
 
 use crate::config::{self, Config, SourceConfig};
 use crate::control::types::{
-    ControlError, ControlTarget, DeviceState, DeviceStatus, EngineInfo, RecordingStatus,
-    StageTiming, StatusReport,
+    ControlError, ControlTarget, DeviceStatus, EngineInfo, RecordingStatus, StageTiming,
+    StatusReport,
 };
 use crate::sinks::png_out::write_png;
 use crate::sinks::recorder::Recorder;
@@ -81,6 +79,8 @@ struct Shared {
     render_errors: AtomicU64,
     snapshots: (Sender<SnapshotRequest>, Receiver<SnapshotRequest>),
     devices: Vec<Arc<BackendStatus>>,
+    /// Present when the source is a stepped replay.
+    steppers: Vec<Stepper>,
     recorder: Recorder,
     /// Milliseconds since `started` at the render loop's last iteration (the watchdog's view).
     heartbeat_ms: AtomicU64,
@@ -195,6 +195,12 @@ impl Pipeline {
             .recorder
             .autostart
             .then(|| config.recorder.dir.clone());
+        let steppers = match &config.source {
+            SourceConfig::Replay(r) if r.mode == config::ReplayMode::Stepped => {
+                runners.iter().map(DeviceRunner::stepper).collect()
+            }
+            _ => Vec::new(),
+        };
         let shared = Arc::new(Shared {
             started: Instant::now(),
             registry,
@@ -210,6 +216,7 @@ impl Pipeline {
             render_errors: AtomicU64::new(0),
             snapshots: bounded(8),
             devices: runners.iter().map(|r| r.status().clone()).collect(),
+            steppers,
             recorder,
             heartbeat_ms: AtomicU64::new(0),
             stop: AtomicBool::new(false),
@@ -267,13 +274,6 @@ impl Pipeline {
             && now_ms.saturating_sub(beat) <= within.as_millis() as u64
     }
 
-    /// Advance a stepped replay by `frames` messages.
-    pub fn step(&self, frames: u32) {
-        for runner in &self.runners {
-            runner.step(frames);
-        }
-    }
-
     pub fn status(&self) -> StatusReport {
         status_report(&self.shared)
     }
@@ -321,7 +321,9 @@ impl RenderLoop<'_> {
     fn run(mut self, subscription: &relight_core::bus::Subscription<StreamMessage>) {
         let shared = self.shared;
         // The synchroniser's clock: the wall clock, or the data when a replay runs ahead of it.
+        // A stepped replay runs on the data alone, or every pause would emit incomplete sets.
         let mut data_clock_ns = 0u64;
+        let stepped = !shared.steppers.is_empty();
         while !shared.stop.load(Ordering::Acquire) {
             shared.heartbeat_ms.store(
                 shared.started.elapsed().as_millis() as u64,
@@ -346,14 +348,18 @@ impl RenderLoop<'_> {
                 self.synchronizer.push(msg);
                 received = subscription.try_recv();
             }
-            let now_ns = host_now_ns().max(data_clock_ns);
+            let now_ns = if stepped {
+                data_clock_ns
+            } else {
+                host_now_ns().max(data_clock_ns)
+            };
             while let Some(set) = self.synchronizer.pop_ready(now_ns) {
                 self.process(set);
             }
             let sources_ended = shared
                 .devices
                 .iter()
-                .all(|d| d.state() == BackendState::Stopped);
+                .all(|d| d.state() == DeviceState::Stopped);
             if sources_ended && subscription.is_empty() && !shared.finished.load(Ordering::Acquire)
             {
                 for set in self.synchronizer.flush() {
@@ -514,12 +520,7 @@ fn status_report(shared: &Shared) -> StatusReport {
                 name: d.name.clone(),
                 stream,
                 backend: d.backend.to_owned(),
-                state: match d.state() {
-                    BackendState::Connecting => DeviceState::Connecting,
-                    BackendState::Running => DeviceState::Running,
-                    BackendState::Lost => DeviceState::Lost,
-                    BackendState::Stopped => DeviceState::Stopped,
-                },
+                state: d.state(),
                 fps: d.fps(stream),
                 frames: d.stream_frames(stream),
                 drops: d.drops(),
@@ -670,6 +671,18 @@ impl ControlTarget for PipelineControl {
                 ))
             })?
             .map_err(ControlError::failed)
+    }
+
+    fn replay_step(&self, frames: u32) -> Result<Value, ControlError> {
+        if self.shared.steppers.is_empty() {
+            return Err(ControlError::failed(
+                "the source is not a stepped replay (set [replay] mode = \"stepped\")",
+            ));
+        }
+        if !self.shared.steppers.iter().all(|s| s.step(frames)) {
+            return Err(ControlError::failed("the replay has ended"));
+        }
+        Ok(json!({ "frames": frames }))
     }
 
     fn config_reload(&self) -> Result<Value, ControlError> {

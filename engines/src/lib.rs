@@ -9,7 +9,6 @@ pub mod engine;
 pub mod params;
 pub mod registry;
 
-mod color;
 mod depth_preview;
 mod passthrough;
 

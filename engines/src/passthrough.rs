@@ -3,9 +3,9 @@
 
 use serde_json::{Map, Value};
 
-use crate::color;
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64};
+use relight_core::srgb;
 
 #[derive(Debug)]
 pub struct Passthrough {
@@ -16,7 +16,7 @@ pub struct Passthrough {
 impl Default for Passthrough {
     fn default() -> Self {
         Self {
-            lut: color::exposure_lut(0.0),
+            lut: srgb::exposure_lut(0.0),
         }
     }
 }
@@ -56,7 +56,7 @@ impl Engine for Passthrough {
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {
-        self.lut = color::exposure_lut(get_f64(params, "exposure_ev", 0.0));
+        self.lut = srgb::exposure_lut(get_f64(params, "exposure_ev", 0.0));
     }
 }
 
@@ -102,8 +102,8 @@ mod tests {
         engine.set_params(&params);
         let mut out = RelitFrame::default();
         engine.render(&scene(), &mut out).unwrap();
-        let before = color::srgb_to_linear(30);
-        let after = color::srgb_to_linear(out.composite.as_u8().unwrap()[3]);
+        let before = srgb::srgb_to_linear(30);
+        let after = srgb::srgb_to_linear(out.composite.as_u8().unwrap()[3]);
         assert!((after / before - 2.0).abs() < 0.1, "{before} → {after}");
     }
 

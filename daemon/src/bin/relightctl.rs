@@ -46,6 +46,8 @@ enum Command {
     Snapshot { path: Option<PathBuf> },
     /// Re-read the configuration file.
     Reload,
+    /// Advance a stepped replay by FRAMES messages (default 1).
+    Step { frames: Option<u32> },
     /// Call any JSON-RPC method; JSON is its params (an object or an array).
     Call {
         method: String,
@@ -161,6 +163,7 @@ fn request(command: &Command) -> (&str, Option<Value>) {
         },
         Command::Snapshot { path } => ("snapshot", path_params(path.as_deref())),
         Command::Reload => ("config.reload", None),
+        Command::Step { frames } => ("replay.step", frames.map(|n| json!({ "frames": n }))),
         Command::Call { method, params } => (method.as_str(), params.clone()),
     }
 }

@@ -14,6 +14,7 @@
 //! | `record.stop`       | —                              | the recording summary          |
 //! | `snapshot`          | `path`?                        | `{"paths": [...]}`             |
 //! | `config.reload`     | —                              | what changed                   |
+//! | `replay.step`       | `frames`? (integer ≥ 1, def. 1)| `{"frames": n}`                |
 //! | `rpc.ping`          | —                              | `"pong"`                       |
 //! | `version`           | —                              | `{"name", "version", "protocol"}` |
 //!
@@ -32,7 +33,7 @@ use super::types::{ControlError, ControlTarget};
 use super::types::{EngineInfo, StatusReport};
 
 /// Every method the server answers, for `method not found` hints.
-pub const METHODS: [&str; 11] = [
+pub const METHODS: [&str; 12] = [
     "status",
     "engine.list",
     "engine.set",
@@ -42,6 +43,7 @@ pub const METHODS: [&str; 11] = [
     "record.stop",
     "snapshot",
     "config.reload",
+    "replay.step",
     "rpc.ping",
     "version",
 ];
@@ -246,6 +248,23 @@ fn dispatch(
         "config.reload" => {
             no_params(method, params)?;
             target.config_reload()
+        }
+        "replay.step" => {
+            let [frames] = named_params(method, params, ["frames"])?;
+            let frames = match frames {
+                None => 1,
+                Some(value) => value
+                    .as_u64()
+                    .and_then(|n| u32::try_from(n).ok())
+                    .filter(|&n| n >= 1)
+                    .ok_or_else(|| {
+                        ControlError::invalid_params(format!(
+                            "{method}: `frames` must be an integer from 1 to {}, got {value}",
+                            u32::MAX
+                        ))
+                    })?,
+            };
+            target.replay_step(frames)
         }
         "rpc.ping" => {
             no_params(method, params)?;

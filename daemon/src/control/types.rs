@@ -53,6 +53,11 @@ pub trait ControlTarget: Send + Sync + 'static {
     /// Re-reads the configuration file and applies what can change at run time; returns what
     /// changed.
     fn config_reload(&self) -> Result<Value, ControlError>;
+    /// Advances a stepped replay by `frames` messages; an error when no source is stepped.
+    fn replay_step(&self, frames: u32) -> Result<Value, ControlError> {
+        let _ = frames;
+        Err(ControlError::failed("no stepped replay is running"))
+    }
 }
 
 /// A JSON-RPC error object, as returned by a [`ControlTarget`] or raised by the server.
@@ -162,26 +167,8 @@ pub struct DeviceStatus {
 }
 
 /// A device's life cycle as reported on the control socket.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum DeviceState {
-    Connecting,
-    Running,
-    /// Disconnected; the backend retries with backoff.
-    Lost,
-    Stopped,
-}
-
-impl DeviceState {
-    pub fn name(self) -> &'static str {
-        match self {
-            DeviceState::Connecting => "connecting",
-            DeviceState::Running => "running",
-            DeviceState::Lost => "lost",
-            DeviceState::Stopped => "stopped",
-        }
-    }
-}
+/// A device's state as the backends report it (`"connecting"`, `"running"`, `"lost"`, `"stopped"`).
+pub use relight_backends::DeviceState;
 
 /// Wall-clock time of one pipeline stage per frame set, milliseconds.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]

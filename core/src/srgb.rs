@@ -1,4 +1,5 @@
-//! sRGB transfer functions (IEC 61966-2-1) for 8-bit camera images.
+//! sRGB transfer functions (IEC 61966-2-1) for 8-bit camera images: decoding camera pixels to
+//! linear radiance and encoding at sinks.
 
 /// 8-bit sRGB code value → linear [0, 1].
 pub fn srgb_to_linear(code: u8) -> f32 {
