@@ -29,7 +29,7 @@ use serde_json::{Map, Value, json};
 use crate::config::{self, Config, SourceConfig};
 use crate::control::types::{
     ControlError, ControlTarget, DeviceStatus, EngineInfo, RecordingStatus, StageTiming,
-    StatusReport,
+    StatusReport, SyncStreamStatus,
 };
 use crate::sinks::png_out::write_png;
 use crate::sinks::recorder::Recorder;
@@ -76,6 +76,7 @@ struct Shared {
     stages: Mutex<Vec<StageStats>>,
     frame_sets: AtomicU64,
     sync_missing: AtomicU64,
+    sync_streams: Mutex<Vec<SyncStreamStatus>>,
     render_errors: AtomicU64,
     snapshots: (Sender<SnapshotRequest>, Receiver<SnapshotRequest>),
     devices: Vec<Arc<BackendStatus>>,
@@ -213,6 +214,7 @@ impl Pipeline {
             stages: Mutex::new(Vec::new()),
             frame_sets: AtomicU64::new(0),
             sync_missing: AtomicU64::new(0),
+            sync_streams: Mutex::new(Vec::new()),
             render_errors: AtomicU64::new(0),
             snapshots: bounded(8),
             devices: runners.iter().map(|r| r.status().clone()).collect(),
@@ -243,6 +245,8 @@ impl Pipeline {
                         relit: RelitFrame::default(),
                         arrivals: VecDeque::new(),
                         exit_at_end: options.exit_at_end,
+                        sync_stats_at: 0,
+                        sync_stats_time: Instant::now(),
                     }
                     .run(&subscription)
                 })?
@@ -315,6 +319,9 @@ struct RenderLoop<'a> {
     /// Wall-clock arrival of recent reference frames, to time how long sets wait in the sync.
     arrivals: VecDeque<(u64, Instant)>,
     exit_at_end: bool,
+    /// Frame sets and time at the last copy of the sync counters into `Shared`.
+    sync_stats_at: u64,
+    sync_stats_time: Instant,
 }
 
 impl RenderLoop<'_> {
@@ -356,6 +363,7 @@ impl RenderLoop<'_> {
             while let Some(set) = self.synchronizer.pop_ready(now_ns) {
                 self.process(set);
             }
+            self.publish_sync_stats();
             let sources_ended = shared
                 .devices
                 .iter()
@@ -365,6 +373,8 @@ impl RenderLoop<'_> {
                 for set in self.synchronizer.flush() {
                     self.process(set);
                 }
+                self.sync_stats_time = Instant::now() - Duration::from_secs(1);
+                self.publish_sync_stats();
                 shared.finished.store(true, Ordering::Release);
                 tracing::info!(
                     frame_sets = shared.frame_sets.load(Ordering::Relaxed),
@@ -378,6 +388,36 @@ impl RenderLoop<'_> {
                 self.serve_snapshots(false);
             }
         }
+    }
+
+    /// Copy the synchroniser's counters for status reports, a few times a second.
+    fn publish_sync_stats(&mut self) {
+        let sets = self.shared.frame_sets.load(Ordering::Relaxed);
+        if sets == self.sync_stats_at {
+            return;
+        }
+        if sets < self.sync_stats_at + 10
+            && self.sync_stats_time.elapsed() < Duration::from_millis(250)
+        {
+            return;
+        }
+        self.sync_stats_at = sets;
+        self.sync_stats_time = Instant::now();
+        let expected = &self.synchronizer.config().expected;
+        *lock(&self.shared.sync_streams) = self
+            .synchronizer
+            .stats()
+            .streams
+            .iter()
+            .filter(|s| expected.contains(&s.kind))
+            .map(|s| SyncStreamStatus {
+                stream: s.kind,
+                matched: s.matched,
+                missing: s.missing,
+                late: s.late,
+                dropped: s.dropped + s.unused,
+            })
+            .collect();
     }
 
     fn record_stage(&self, name: &str, ms: f64) {
@@ -552,6 +592,7 @@ fn status_report(shared: &Shared) -> StatusReport {
             .status()
             .current()
             .map(|(path, messages)| RecordingStatus { path, messages }),
+        sync_streams: lock(&shared.sync_streams).clone(),
     }
 }
 

@@ -11,7 +11,7 @@ use relight_core::StreamKind;
 use relight_daemon::control::{
     Client, ClientError, ControlError, ControlServer, ControlServerHandle, ControlTarget,
     DeviceState, DeviceStatus, EngineInfo, PeerCred, RecordingStatus, ServerError, ServerOptions,
-    StageTiming, StatusReport, codes, peer_allowed,
+    StageTiming, StatusReport, SyncStreamStatus, codes, peer_allowed,
 };
 use serde_json::{Map, Value, json};
 
@@ -60,6 +60,13 @@ fn sample_status(engine: &str, recording: Option<PathBuf>) -> StatusReport {
         }],
         frame_sets: 1190,
         sync_missing: 10,
+        sync_streams: vec![SyncStreamStatus {
+            stream: StreamKind::Depth,
+            matched: 1190,
+            missing: 0,
+            late: 2,
+            dropped: 0,
+        }],
         bus_drops: 2,
         recording: recording.map(|path| RecordingStatus { path, messages: 77 }),
     }

@@ -130,8 +130,9 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
     let socket = daemon.socket.clone();
 
     // Status: the replay device runs and frame sets flow through the pipeline.
-    let status = wait_for(&socket, "frame sets", |s| {
+    let status = wait_for(&socket, "frame sets and sync counters", |s| {
         s["frame_sets"].as_u64() > Some(5)
+            && s["sync_streams"].as_array().is_some_and(|a| !a.is_empty())
     });
     assert_eq!(status["engine"], "passthrough");
     let devices = status["devices"].as_array().unwrap();
@@ -150,6 +151,12 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
     assert!(
         stages.contains(&"sync") && stages.contains(&"render"),
         "{stages:?}"
+    );
+    let sync = status["sync_streams"].as_array().unwrap();
+    assert_eq!(sync.len(), 5, "{status}");
+    assert!(
+        sync.iter().all(|s| s["matched"].as_u64() > Some(0)),
+        "{status}"
     );
     let readable = ctl(&socket, &["status"]);
     assert!(readable.status.success());

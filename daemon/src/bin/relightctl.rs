@@ -286,6 +286,26 @@ fn render_status(status: &StatusReport) -> String {
                 .collect(),
         ));
     }
+    if !status.sync_streams.is_empty() {
+        out.push('\n');
+        out.push_str(&table(
+            &["SYNC STREAM", "MATCHED", "MISSING", "LATE", "DROPPED"],
+            &[false, true, true, true, true],
+            status
+                .sync_streams
+                .iter()
+                .map(|s| {
+                    vec![
+                        s.stream.name().to_owned(),
+                        s.matched.to_string(),
+                        s.missing.to_string(),
+                        s.late.to_string(),
+                        s.dropped.to_string(),
+                    ]
+                })
+                .collect(),
+        ));
+    }
     out
 }
 

@@ -309,6 +309,16 @@ fn print_summary(status: &StatusReport, elapsed: Duration) {
             stage.name, stage.frames, stage.mean_ms, stage.p50_ms, stage.p99_ms
         );
     }
+    for s in &status.sync_streams {
+        println!(
+            "sync   {:<8} matched {:>5} missing {:>5} late {:>4} dropped {:>4}",
+            s.stream.name(),
+            s.matched,
+            s.missing,
+            s.late,
+            s.dropped
+        );
+    }
     for device in &status.devices {
         println!(
             "device {:<8} {:<8} {:<9} frames {:>6} drops {:>4}{}",

@@ -16,5 +16,5 @@ pub use server::{
 };
 pub use types::{
     ControlError, ControlTarget, DeviceState, DeviceStatus, EngineInfo, RecordingStatus,
-    StageTiming, StatusReport, codes,
+    StageTiming, StatusReport, SyncStreamStatus, codes,
 };

@@ -150,6 +150,23 @@ pub struct StatusReport {
     /// Frames dropped by bus queues (drop-oldest).
     pub bus_drops: u64,
     pub recording: Option<RecordingStatus>,
+    /// Per expected stream: how the synchroniser used its messages.
+    #[serde(default)]
+    pub sync_streams: Vec<SyncStreamStatus>,
+}
+
+/// The synchroniser's counters for one stream.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SyncStreamStatus {
+    pub stream: StreamKind,
+    /// Frame sets this stream was part of.
+    pub matched: u64,
+    /// Frame sets emitted without it (nothing within the tolerance by `max_wait`).
+    pub missing: u64,
+    /// Messages that arrived after the set they belonged to was emitted.
+    pub late: u64,
+    /// Messages discarded (out of order, over the buffer bound, or unused).
+    pub dropped: u64,
 }
 
 /// One source device (or the replay/sim source of one stream).
