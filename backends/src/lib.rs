@@ -7,6 +7,7 @@
 
 pub mod device;
 pub mod replay;
+pub mod sim;
 pub mod sources;
 pub mod synthetic;
 

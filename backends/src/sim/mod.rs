@@ -1,0 +1,12 @@
+//! The simulated rig: sensor streams with their real defects, rendered from a scene whose truth
+//! is known, so every estimator downstream can be scored.
+//!
+//! - [`kinect`]: Kinect v1 depth from true depth (disparity noise and quantisation, projector
+//!   shadows, dropouts on dark, specular and grazing surfaces, range limits).
+//! - [`response`]: the colour camera's and the probe's known response curve (linear radiance →
+//!   8-bit code), so photometric calibration can be checked against it.
+//! - [`trajectory`]: camera paths (static, slow orbit, hand shake).
+
+pub mod kinect;
+pub mod response;
+pub mod trajectory;

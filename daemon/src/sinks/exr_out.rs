@@ -1,0 +1,71 @@
+//! OpenEXR output of linear HDR images (Δ may be negative; EXR keeps it).
+
+use std::path::Path;
+
+use glam::Vec3;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ExrError {
+    #[error("{path}: {width}×{height} image needs {expected} pixels, got {actual}")]
+    Size {
+        path: String,
+        width: u32,
+        height: u32,
+        expected: usize,
+        actual: usize,
+    },
+    #[error("cannot write {path}: {source}")]
+    Write {
+        path: String,
+        source: exr::error::Error,
+    },
+}
+
+/// Write row-major linear RGB pixels as a 32-bit float EXR.
+pub fn write_exr(path: &Path, width: u32, height: u32, pixels: &[Vec3]) -> Result<(), ExrError> {
+    let name = path.display().to_string();
+    let expected = width as usize * height as usize;
+    if pixels.len() != expected {
+        return Err(ExrError::Size {
+            path: name,
+            width,
+            height,
+            expected,
+            actual: pixels.len(),
+        });
+    }
+    let w = width as usize;
+    exr::prelude::write_rgb_file(path, w, height as usize, |x, y| {
+        let p = pixels[y * w + x];
+        (p.x, p.y, p.z)
+    })
+    .map_err(|source| ExrError::Write { path: name, source })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn negative_and_huge_values_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("delta.exr");
+        let pixels = vec![Vec3::new(-0.25, 1e4, 0.0), Vec3::new(0.5, -1e-3, 3.0)];
+        write_exr(&path, 2, 1, &pixels).unwrap();
+        let image = exr::prelude::read_first_rgba_layer_from_file(
+            &path,
+            |resolution, _| vec![Vec3::ZERO; resolution.width() * resolution.height()],
+            |buffer: &mut Vec<Vec3>, position, (r, g, b, _a): (f32, f32, f32, f32)| {
+                buffer[position.y() * 2 + position.x()] = Vec3::new(r, g, b);
+            },
+        )
+        .unwrap();
+        assert_eq!(image.layer_data.channel_data.pixels, pixels);
+    }
+
+    #[test]
+    fn wrong_pixel_count_is_an_error() {
+        let err = write_exr(Path::new("x.exr"), 2, 2, &[Vec3::ZERO]).unwrap_err();
+        assert!(err.to_string().contains("needs 4 pixels, got 1"));
+    }
+}
