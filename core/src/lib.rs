@@ -10,6 +10,7 @@ pub mod light;
 pub mod pose;
 pub mod recording;
 pub mod rig;
+pub mod scene;
 pub mod sh;
 pub mod srgb;
 pub mod stream;

@@ -120,7 +120,8 @@ impl KinectModel {
             .normalize();
             let normal = truth.normal.get(i).copied().unwrap_or(Vec3::ZERO);
             let cos_incidence = normal.dot(-ray);
-            if !(cos_incidence >= self.min_cos_incidence) {
+            // NaN (a degenerate normal) counts as grazing.
+            if cos_incidence.is_nan() || cos_incidence < self.min_cos_incidence {
                 continue;
             }
             if truth.ir_albedo.get(i).copied().unwrap_or(0.0) < self.dark_albedo {

@@ -23,7 +23,7 @@ impl Default for CameraResponse {
 impl CameraResponse {
     /// Normalised response in [0, 1] of exposure `x` (≥ 1 saturates).
     pub fn apply(&self, x: f32) -> f32 {
-        if !(x > 0.0) {
+        if x.is_nan() || x <= 0.0 {
             return 0.0;
         }
         let x = x.min(1.0);
