@@ -1,0 +1,107 @@
+//! Offline scene description: a glTF 2.0 file (geometry, materials, camera) plus a `scene.toml`
+//! that says which nodes are the virtual object(s) and lists the lights.
+//!
+//! Everything is flattened into world space on load, so renderers (the reference path tracer,
+//! the simulator, the engines' offline path) never walk a node hierarchy.
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+use crate::light::Light;
+use crate::pose::Pose;
+
+/// A surface's reflectance: Lambertian albedo plus an energy-conserving Phong lobe
+/// (f_r = k_d/π + k_s (n+1)/(2π) cosⁿα, α measured from the mirror direction).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Material {
+    pub name: String,
+    /// Diffuse albedo k_d, linear RGB in [0, 1].
+    pub albedo: Vec3,
+    /// Specular reflectance k_s, linear RGB; k_d + k_s ≤ 1 per channel.
+    pub specular: Vec3,
+    /// Phong exponent n (0 = no glossy lobe).
+    pub shininess: f32,
+    /// Emitted radiance, linear RGB, W/(sr·m²).
+    pub emission: Vec3,
+}
+
+impl Default for Material {
+    fn default() -> Self {
+        Self {
+            name: "default".into(),
+            albedo: Vec3::splat(0.8),
+            specular: Vec3::ZERO,
+            shininess: 0.0,
+            emission: Vec3::ZERO,
+        }
+    }
+}
+
+/// A triangle mesh in world space, from one glTF node (one primitive).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mesh {
+    /// The glTF node name (unique within a scene; `scene.toml` refers to it).
+    pub name: String,
+    pub positions_in_world: Vec<Vec3>,
+    /// Unit vertex normals in world space (same length as positions).
+    pub normals_in_world: Vec<Vec3>,
+    pub triangles: Vec<[u32; 3]>,
+    /// Index into [`Scene::materials`].
+    pub material: usize,
+    /// True for the inserted virtual object(s) O; false for the reconstructed real scene.
+    pub is_virtual: bool,
+}
+
+/// The camera whose image is relit, glTF convention (looks down −Z, +Y up).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SceneCamera {
+    pub world_from_camera: Pose,
+    /// Vertical field of view, radians.
+    pub yfov_rad: f32,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// An HDR environment: equirectangular linear radiance around the scene, +Y up; the u axis
+/// starts at −Z and turns towards +X (longitude φ = atan2(x, −z)), v = 0 is straight up.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EnvironmentMap {
+    pub width: u32,
+    pub height: u32,
+    /// Row-major, `width × height` texels of linear RGB radiance.
+    pub radiance: Vec<Vec3>,
+}
+
+/// A loaded scene: every mesh flattened into world space, with its materials, camera and lights.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scene {
+    pub name: String,
+    pub meshes: Vec<Mesh>,
+    pub materials: Vec<Material>,
+    pub camera: SceneCamera,
+    /// Point, spot and directional lights (an environment light is in `environment`).
+    pub lights: Vec<Light>,
+    pub environment: Option<EnvironmentMap>,
+}
+
+impl Scene {
+    /// The real scene alone (what L^μ is rendered from).
+    pub fn without_virtual(&self) -> Scene {
+        Scene {
+            meshes: self.meshes.iter().filter(|m| !m.is_virtual).cloned().collect(),
+            ..self.clone()
+        }
+    }
+
+    /// World-space bounding box (min, max) of the virtual object(s), `None` without any.
+    pub fn virtual_bounds(&self) -> Option<(Vec3, Vec3)> {
+        self.meshes
+            .iter()
+            .filter(|m| m.is_virtual)
+            .flat_map(|m| m.positions_in_world.iter().copied())
+            .fold(None, |acc, p| match acc {
+                None => Some((p, p)),
+                Some((lo, hi)) => Some((lo.min(p), hi.max(p))),
+            })
+    }
+}
