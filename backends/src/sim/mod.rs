@@ -3,10 +3,12 @@
 //!
 //! - [`kinect`]: Kinect v1 depth from true depth (disparity noise and quantisation, projector
 //!   shadows, dropouts on dark, specular and grazing surfaces, range limits).
+//! - [`probe`]: the fish-eye light probe's view of the environment at one exposure.
 //! - [`response`]: the colour camera's and the probe's known response curve (linear radiance →
 //!   8-bit code), so photometric calibration can be checked against it.
 //! - [`trajectory`]: camera paths (static, slow orbit, hand shake).
 
 pub mod kinect;
+pub mod probe;
 pub mod response;
 pub mod trajectory;
