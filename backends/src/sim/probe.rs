@@ -79,7 +79,7 @@ pub fn render_probe(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::{DVec3, Quat};
+    use glam::Quat;
     use relight_core::camera::optical_from_gl;
 
     fn lens() -> ProbeLens {
@@ -156,7 +156,7 @@ mod tests {
         let bright = render_probe(&env, &lens(), &world_from_probe, 100_000, 1.0, &response);
         let dir_in_probe = world_from_probe.inverse().transform_vector(window_dir);
         let pixel = model()
-            .project(optical_from_gl(DVec3::from(dir_in_probe.as_dvec3())))
+            .project(optical_from_gl(dir_in_probe.as_dvec3()))
             .unwrap();
         let at = |p: &ProbeImage, px: DVec2| {
             let i = 3 * (px.y.round() as usize * 64 + px.x.round() as usize);
