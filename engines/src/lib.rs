@@ -7,6 +7,7 @@
 
 pub mod engine;
 pub mod params;
+pub mod reference;
 pub mod registry;
 
 mod depth_preview;

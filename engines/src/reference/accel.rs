@@ -1,0 +1,172 @@
+//! Scene geometry for ray queries: every triangle in world space with its material and
+//! real/virtual flag, behind a BVH from the `bvh` crate (candidate traversal; the triangle test
+//! and closest-hit selection are ours, so ties resolve the same way in every BVH).
+
+use bvh::aabb::{Aabb, Bounded};
+use bvh::bounding_hierarchy::BHShape;
+use bvh::bvh::Bvh;
+use glam::Vec3;
+use nalgebra::{Point3, Vector3};
+use relight_core::scene::Scene;
+
+/// One world-space triangle.
+#[derive(Debug, Clone)]
+pub struct Triangle {
+    pub v0: Vec3,
+    pub e1: Vec3,
+    pub e2: Vec3,
+    pub normals: [Vec3; 3],
+    /// Unit geometric normal (zero for a degenerate triangle).
+    pub geometric_normal: Vec3,
+    pub material: usize,
+    pub is_virtual: bool,
+    /// Position in [`Geometry::triangles`].
+    pub index: usize,
+    node_index: usize,
+}
+
+impl Bounded<f32, 3> for Triangle {
+    fn aabb(&self) -> Aabb<f32, 3> {
+        let corners = [self.v0, self.v0 + self.e1, self.v0 + self.e2];
+        let lo = corners.iter().fold(Vec3::INFINITY, |a, c| a.min(*c));
+        let hi = corners.iter().fold(Vec3::NEG_INFINITY, |a, c| a.max(*c));
+        // Pad flat boxes so axis-aligned triangles are never missed by the slab test.
+        let pad = Vec3::splat(1e-5);
+        Aabb::with_bounds(point(lo - pad), point(hi + pad))
+    }
+}
+
+impl BHShape<f32, 3> for Triangle {
+    fn set_bh_node_index(&mut self, index: usize) {
+        self.node_index = index;
+    }
+    fn bh_node_index(&self) -> usize {
+        self.node_index
+    }
+}
+
+fn point(v: Vec3) -> Point3<f32> {
+    Point3::new(v.x, v.y, v.z)
+}
+
+/// A ray hit: distance, which triangle, and its barycentric coordinates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hit {
+    pub t: f32,
+    pub triangle: usize,
+    pub u: f32,
+    pub v: f32,
+}
+
+/// The triangles of a scene (optionally without its virtual objects) and their BVH.
+#[derive(Debug)]
+pub struct Geometry {
+    triangles: Vec<Triangle>,
+    bvh: Option<Bvh<f32, 3>>,
+}
+
+impl Geometry {
+    /// All meshes, or the real ones only. Real triangles come first, in mesh order, so a
+    /// triangle index means the same triangle in both geometries.
+    pub fn new(scene: &Scene, include_virtual: bool) -> Self {
+        let mut triangles = Vec::new();
+        for want_virtual in [false, true] {
+            if want_virtual && !include_virtual {
+                break;
+            }
+            for mesh in scene.meshes.iter().filter(|m| m.is_virtual == want_virtual) {
+                let vertex = |i: u32| mesh.positions_in_world.get(i as usize).copied();
+                let normal = |i: u32| {
+                    mesh.normals_in_world
+                        .get(i as usize)
+                        .copied()
+                        .unwrap_or(Vec3::ZERO)
+                };
+                for tri in &mesh.triangles {
+                    let (Some(a), Some(b), Some(c)) =
+                        (vertex(tri[0]), vertex(tri[1]), vertex(tri[2]))
+                    else {
+                        continue;
+                    };
+                    if !(a.is_finite() && b.is_finite() && c.is_finite()) {
+                        continue;
+                    }
+                    let (e1, e2) = (b - a, c - a);
+                    triangles.push(Triangle {
+                        v0: a,
+                        e1,
+                        e2,
+                        normals: [normal(tri[0]), normal(tri[1]), normal(tri[2])],
+                        geometric_normal: e1.cross(e2).normalize_or_zero(),
+                        material: mesh.material,
+                        is_virtual: mesh.is_virtual,
+                        index: triangles.len(),
+                        node_index: 0,
+                    });
+                }
+            }
+        }
+        let bvh = (!triangles.is_empty()).then(|| Bvh::build(&mut triangles));
+        Self { triangles, bvh }
+    }
+
+    pub fn triangles(&self) -> &[Triangle] {
+        &self.triangles
+    }
+
+    /// Closest hit with t in (t_min, t_max); ties go to the lower triangle index.
+    pub fn intersect(&self, origin: Vec3, dir: Vec3, t_min: f32, t_max: f32) -> Option<Hit> {
+        let bvh = self.bvh.as_ref()?;
+        let ray = bvh::ray::Ray::new(point(origin), Vector3::new(dir.x, dir.y, dir.z));
+        let mut best: Option<Hit> = None;
+        for tri in bvh.traverse_iterator(&ray, &self.triangles) {
+            let index = tri.index;
+            if let Some((t, u, v)) = moller_trumbore(tri, origin, dir)
+                && t > t_min
+                && t < t_max
+                && best.is_none_or(|b| t < b.t || (t == b.t && index < b.triangle))
+            {
+                best = Some(Hit {
+                    t,
+                    triangle: index,
+                    u,
+                    v,
+                });
+            }
+        }
+        best
+    }
+
+    /// Whether anything lies on the segment (t_min, t_max).
+    pub fn occluded(&self, origin: Vec3, dir: Vec3, t_min: f32, t_max: f32) -> bool {
+        let Some(bvh) = self.bvh.as_ref() else {
+            return false;
+        };
+        let ray = bvh::ray::Ray::new(point(origin), Vector3::new(dir.x, dir.y, dir.z));
+        bvh.traverse_iterator(&ray, &self.triangles).any(|tri| {
+            moller_trumbore(tri, origin, dir).is_some_and(|(t, _, _)| t > t_min && t < t_max)
+        })
+    }
+}
+
+/// Möller–Trumbore ray/triangle intersection: (t, u, v), two-sided.
+fn moller_trumbore(tri: &Triangle, origin: Vec3, dir: Vec3) -> Option<(f32, f32, f32)> {
+    let p = dir.cross(tri.e2);
+    let det = tri.e1.dot(p);
+    if det.abs() < 1e-12 {
+        return None;
+    }
+    let inv = 1.0 / det;
+    let s = origin - tri.v0;
+    let u = s.dot(p) * inv;
+    if !(0.0..=1.0).contains(&u) {
+        return None;
+    }
+    let q = s.cross(tri.e1);
+    let v = dir.dot(q) * inv;
+    if v < 0.0 || u + v > 1.0 {
+        return None;
+    }
+    let t = tri.e2.dot(q) * inv;
+    t.is_finite().then_some((t, u, v))
+}
