@@ -15,10 +15,14 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use relight_backends::synthetic::{SyntheticRig, SyntheticSettings};
 use relight_core::recording::{RecordingMeta, RecordingWriter};
+use relight_core::scene::Scene;
 use relight_daemon::config::{self, Config, OutputConfig, ReplayConfig, SourceConfig};
 use relight_daemon::control::ControlServer;
 use relight_daemon::control::types::StatusReport;
 use relight_daemon::pipeline::{Pipeline, PipelineOptions};
+use relight_daemon::sinks::exr_out::write_exr;
+use relight_daemon::sinks::png_out::{tonemap_reinhard, write_png};
+use relight_engines::reference::{ReferenceSettings, render_reference};
 
 #[derive(Debug, Parser)]
 #[command(name = "relightd", version, about = "relight: AR relighting daemon")]
@@ -85,6 +89,28 @@ enum Command {
     },
     /// Validate a configuration file and print it as understood.
     CheckConfig,
+    /// Render an offline scene (scene.toml + glTF): writes L^ρ, L^μ, Δ and Δ's standard error as
+    /// EXR, the composite as PNG, and a summary.json with the render time.
+    Render {
+        #[arg(long)]
+        scene: PathBuf,
+        #[arg(long, default_value = "reference")]
+        engine: String,
+        #[arg(long, default_value_t = 64)]
+        spp: u32,
+        #[arg(long)]
+        out: PathBuf,
+        /// Override the scene camera's image size.
+        #[arg(long, requires = "height")]
+        width: Option<u32>,
+        #[arg(long, requires = "width")]
+        height: Option<u32>,
+        /// Bounces after the first hit.
+        #[arg(long, default_value_t = 8)]
+        bounces: u32,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
 }
 
 fn main() -> std::process::ExitCode {
@@ -164,6 +190,30 @@ fn run(cli: Cli) -> Result<()> {
             width,
             height,
         } => synth(&out, frames, width, height),
+        Command::Render {
+            scene,
+            engine,
+            spp,
+            out,
+            width,
+            height,
+            bounces,
+            seed,
+        } => {
+            if engine != "reference" {
+                bail!(
+                    "engine `{engine}` cannot render an offline scene yet; only `reference` can (the GPU engines add the scene path)"
+                );
+            }
+            let settings = ReferenceSettings {
+                spp,
+                max_bounces: bounces,
+                seed,
+                size: width.zip(height),
+                ..ReferenceSettings::default()
+            };
+            render(&scene, settings, &out)
+        }
     }
 }
 
@@ -285,6 +335,59 @@ fn synth(out: &Path, frames: u32, width: u32, height: u32) -> Result<()> {
     let bytes = std::fs::metadata(out).map(|m| m.len()).unwrap_or(0);
     println!(
         "{}: {messages} messages, {frames} frames of {width}×{height}, {bytes} bytes",
+        out.display()
+    );
+    Ok(())
+}
+
+fn render(scene_dir: &Path, settings: ReferenceSettings, out: &Path) -> Result<()> {
+    let scene = Scene::load(scene_dir)?;
+    let started = Instant::now();
+    let images = render_reference(&scene, settings)?;
+    let seconds = started.elapsed().as_secs_f64();
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let (w, h) = (images.width, images.height);
+    for (name, pixels) in [
+        ("l_rho", &images.l_rho),
+        ("l_mu", &images.l_mu),
+        ("delta", &images.delta),
+        ("delta_std_error", &images.delta_std_error),
+    ] {
+        write_exr(&out.join(format!("{name}.exr")), w, h, pixels)?;
+    }
+    // Offline, the background is L^μ itself, so background + Δ on real pixels and L^ρ on
+    // virtual pixels are both L^ρ.
+    write_png(
+        &out.join("composite.png"),
+        &tonemap_reinhard(w, h, &images.l_rho),
+    )?;
+    let real = images.virtual_mask.iter().filter(|v| !**v).count().max(1);
+    let mean_std_error = images
+        .delta_std_error
+        .iter()
+        .zip(&images.virtual_mask)
+        .filter(|(_, v)| !**v)
+        .map(|(e, _)| f64::from(e.max_element()))
+        .sum::<f64>()
+        / real as f64;
+    let summary = serde_json::json!({
+        "scene": scene.name,
+        "engine": "reference",
+        "width": w,
+        "height": h,
+        "spp": images.spp,
+        "max_bounces": settings.max_bounces,
+        "seconds": seconds,
+        "mean_delta_std_error_real_pixels": mean_std_error,
+    });
+    std::fs::write(
+        out.join("summary.json"),
+        serde_json::to_string_pretty(&summary)?,
+    )?;
+    println!(
+        "{}: {w}×{h}, {} spp in {seconds:.2} s; mean std error of Δ on real pixels {mean_std_error:.2e}; wrote {}",
+        scene.name,
+        images.spp,
         out.display()
     );
     Ok(())

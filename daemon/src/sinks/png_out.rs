@@ -83,6 +83,21 @@ pub fn write_png(path: &Path, image: &Image) -> Result<(), PngError> {
     writer.finish().map_err(encode)
 }
 
+/// Reinhard tone mapping (L / (1 + L) per channel) of linear radiance into 8-bit sRGB — the
+/// only place HDR becomes display values (DESIGN.md: tonemapping at sinks only).
+pub fn tonemap_reinhard(width: u32, height: u32, radiance: &[glam::Vec3]) -> Image {
+    let mut image = Image::new(width, height, PixelFormat::Rgb8);
+    if let Some(px) = image.as_u8_mut() {
+        for (rgb, l) in px.chunks_exact_mut(3).zip(radiance) {
+            for (c, v) in rgb.iter_mut().zip(l.to_array()) {
+                let v = if v.is_finite() { v.max(0.0) } else { 0.0 };
+                *c = relight_core::srgb::linear_to_srgb(v / (1.0 + v));
+            }
+        }
+    }
+    image
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

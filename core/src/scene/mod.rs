@@ -88,7 +88,12 @@ impl Scene {
     /// The real scene alone (what L^μ is rendered from).
     pub fn without_virtual(&self) -> Scene {
         Scene {
-            meshes: self.meshes.iter().filter(|m| !m.is_virtual).cloned().collect(),
+            meshes: self
+                .meshes
+                .iter()
+                .filter(|m| !m.is_virtual)
+                .cloned()
+                .collect(),
             ..self.clone()
         }
     }
@@ -105,3 +110,7 @@ impl Scene {
             })
     }
 }
+
+mod load;
+
+pub use load::SceneError;

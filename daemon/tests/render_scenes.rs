@@ -1,0 +1,94 @@
+//! `relightd render` works on every shipped scene and writes Δ, L^ρ, L^μ (EXR) and the
+//! composite (PNG).
+
+use std::path::Path;
+use std::process::Command;
+
+const SCENES: [&str; 5] = [
+    "desk_box",
+    "spot_bleed",
+    "touching_wall",
+    "glossy_floor",
+    "window_env",
+];
+
+#[test]
+fn render_writes_every_output_for_every_shipped_scene() {
+    let out_root = tempfile::tempdir().unwrap();
+    for name in SCENES {
+        let scene = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../tests/scenes")
+            .join(name);
+        let out = out_root.path().join(name);
+        let status = Command::new(env!("CARGO_BIN_EXE_relightd"))
+            .args([
+                "render",
+                "--engine",
+                "reference",
+                "--spp",
+                "4",
+                "--bounces",
+                "2",
+                "--width",
+                "40",
+                "--height",
+                "30",
+            ])
+            .arg("--scene")
+            .arg(&scene)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(
+            status.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&status.stderr)
+        );
+        for file in ["l_rho.exr", "l_mu.exr", "delta.exr", "delta_std_error.exr"] {
+            let image = exr::prelude::read_first_rgba_layer_from_file(
+                out.join(file),
+                |r, _| vec![(0f32, 0f32, 0f32); r.width() * r.height()],
+                |b: &mut Vec<(f32, f32, f32)>, p, (r, g, bl, _a): (f32, f32, f32, f32)| {
+                    b[p.y() * 40 + p.x()] = (r, g, bl)
+                },
+            )
+            .unwrap_or_else(|e| panic!("{name}/{file}: {e}"));
+            let pixels = &image.layer_data.channel_data.pixels;
+            assert_eq!(pixels.len(), 40 * 30);
+            assert!(
+                pixels
+                    .iter()
+                    .all(|(r, g, b)| r.is_finite() && g.is_finite() && b.is_finite()),
+                "{name}/{file}"
+            );
+        }
+        let png = std::fs::read(out.join("composite.png")).unwrap();
+        assert_eq!(&png[1..4], b"PNG");
+        let summary: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+        assert_eq!(summary["spp"], 4);
+    }
+}
+
+#[test]
+fn engines_without_an_offline_path_are_refused_clearly() {
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/desk_box");
+    let out = tempfile::tempdir().unwrap();
+    let result = Command::new(env!("CARGO_BIN_EXE_relightd"))
+        .args(["render", "--engine", "passthrough", "--spp", "1", "--scene"])
+        .arg(&scene)
+        .arg("--out")
+        .arg(out.path())
+        .output()
+        .unwrap();
+    assert!(!result.status.success());
+    assert!(String::from_utf8_lossy(&result.stderr).contains("only `reference`"));
+    let missing = Command::new(env!("CARGO_BIN_EXE_relightd"))
+        .args(["render", "--scene", "/nonexistent-scene", "--out"])
+        .arg(out.path())
+        .output()
+        .unwrap();
+    assert!(!missing.status.success());
+    assert!(String::from_utf8_lossy(&missing.stderr).contains("/nonexistent-scene/scene.toml"));
+}
