@@ -1,6 +1,13 @@
 //! Scene geometry for ray queries: every triangle in world space with its material and
-//! real/virtual flag, behind a BVH from the `bvh` crate (candidate traversal; the triangle test
-//! and closest-hit selection are ours, so ties resolve the same way in every BVH).
+//! real/virtual flag, behind a BVH from the `bvh` crate.
+//!
+//! The crate gives candidate traversal (every triangle whose box the ray crosses); the triangle
+//! test and the closest-hit choice are ours. The crate's own closest-hit helpers return the shape
+//! but not the barycentrics we need for normal interpolation, and — more important for
+//! correlated sampling — our choice (smallest t, ties to the lower triangle index, with the same
+//! Möller–Trumbore arithmetic per triangle) depends only on the set of triangles the ray meets,
+//! not on the tree's shape. The full and the real-only BVH therefore agree bitwise on every ray
+//! that does not meet a virtual triangle, which is what makes Δ exactly zero there.
 
 use bvh::aabb::{Aabb, Bounded};
 use bvh::bounding_hierarchy::BHShape;
@@ -16,7 +23,7 @@ pub struct Triangle {
     pub e1: Vec3,
     pub e2: Vec3,
     pub normals: [Vec3; 3],
-    /// Unit geometric normal (zero for a degenerate triangle).
+    /// Unit geometric normal (zero-area triangles are left out of the geometry).
     pub geometric_normal: Vec3,
     pub material: usize,
     pub is_virtual: bool,
@@ -92,12 +99,17 @@ impl Geometry {
                         continue;
                     }
                     let (e1, e2) = (b - a, c - a);
+                    let geometric_normal = e1.cross(e2).normalize_or_zero();
+                    if geometric_normal == Vec3::ZERO {
+                        // Zero area: no ray can hit it, and it has no normal to shade with.
+                        continue;
+                    }
                     triangles.push(Triangle {
                         v0: a,
                         e1,
                         e2,
                         normals: [normal(tri[0]), normal(tri[1]), normal(tri[2])],
-                        geometric_normal: e1.cross(e2).normalize_or_zero(),
+                        geometric_normal,
                         material: mesh.material,
                         is_virtual: mesh.is_virtual,
                         index: triangles.len(),
@@ -117,7 +129,7 @@ impl Geometry {
     /// Closest hit with t in (t_min, t_max); ties go to the lower triangle index.
     pub fn intersect(&self, origin: Vec3, dir: Vec3, t_min: f32, t_max: f32) -> Option<Hit> {
         let bvh = self.bvh.as_ref()?;
-        let ray = bvh::ray::Ray::new(point(origin), Vector3::new(dir.x, dir.y, dir.z));
+        let ray = culling_ray(origin, dir)?;
         let mut best: Option<Hit> = None;
         for tri in bvh.traverse_iterator(&ray, &self.triangles) {
             let index = tri.index;
@@ -137,16 +149,39 @@ impl Geometry {
         best
     }
 
-    /// Whether anything lies on the segment (t_min, t_max).
-    pub fn occluded(&self, origin: Vec3, dir: Vec3, t_min: f32, t_max: f32) -> bool {
-        let Some(bvh) = self.bvh.as_ref() else {
-            return false;
-        };
-        let ray = bvh::ray::Ray::new(point(origin), Vector3::new(dir.x, dir.y, dir.z));
-        bvh.traverse_iterator(&ray, &self.triangles).any(|tri| {
+    /// The first triangle found on the segment (t_min, t_max), `None` when it is clear.
+    ///
+    /// Which blocker is reported depends on the traversal order, but whether there is one does
+    /// not. The integrator uses the answer to know whether a virtual triangle decided a shadow
+    /// test: when a real triangle is reported, the real-only geometry is blocked too.
+    pub fn occluder(&self, origin: Vec3, dir: Vec3, t_min: f32, t_max: f32) -> Option<&Triangle> {
+        let bvh = self.bvh.as_ref()?;
+        let ray = culling_ray(origin, dir)?;
+        bvh.traverse_iterator(&ray, &self.triangles).find(|tri| {
             moller_trumbore(tri, origin, dir).is_some_and(|(t, _, _)| t > t_min && t < t_max)
         })
     }
+}
+
+/// The ray the `bvh` crate culls boxes with. Its slab test treats 0 · ∞ (a direction component
+/// of exactly zero with the origin on a box plane) as a miss, so zero components are replaced by
+/// a tiny one of the same sign: the culling ray then differs from the true one by less than
+/// 1e-17 m over a kilometre, and only the culling uses it. `None` for a non-finite ray.
+fn culling_ray(origin: Vec3, dir: Vec3) -> Option<bvh::ray::Ray<f32, 3>> {
+    if !(origin.is_finite() && dir.is_finite()) || dir == Vec3::ZERO {
+        return None;
+    }
+    let nudge = |d: f32| {
+        if d.abs() < 1e-20 {
+            1e-20f32.copysign(d)
+        } else {
+            d
+        }
+    };
+    Some(bvh::ray::Ray::new(
+        point(origin),
+        Vector3::new(nudge(dir.x), nudge(dir.y), nudge(dir.z)),
+    ))
 }
 
 /// Möller–Trumbore ray/triangle intersection: (t, u, v), two-sided.
