@@ -232,3 +232,71 @@ fn channels_use_documented_topics_and_schemas() {
         .collect();
     assert_eq!(names, ["relight.recording", "relight.calibration"]);
 }
+
+#[test]
+fn ground_truth_channels_round_trip_beside_the_streams() {
+    use relight_core::light::Light;
+    use relight_core::recording::truth::{MarkerTruth, TruthKind, TruthMessage, TruthState};
+
+    let messages = traffic(4, 12, 10, 3);
+    let mut rng = recording_support::Rng::new(11);
+    let mut truth = Vec::new();
+    for (i, msg) in messages
+        .iter()
+        .enumerate()
+        .filter(|(_, m)| m.kind() == StreamKind::Depth)
+    {
+        let stamp = msg.stamp();
+        for kind in [TruthKind::Depth, TruthKind::Normals, TruthKind::Albedo] {
+            let format = kind.pixel_format().unwrap();
+            let image = recording_support::noisy_image(&mut rng, 12, 10, format);
+            truth.push(TruthMessage::Image(
+                kind,
+                Frame::new(i as u64, stamp, image),
+            ));
+        }
+        let state = TruthState {
+            world_from_camera: Pose::new(glam::Quat::from_rotation_y(i as f32), Vec3::X),
+            world_from_probe: Some(Pose::IDENTITY),
+            lights: vec![Light::Point {
+                position_in_world: Vec3::splat(i as f32),
+                intensity: Vec3::ONE,
+            }],
+            markers: vec![MarkerTruth {
+                family: "tag36h11".into(),
+                marker_id: 2,
+                world_from_marker: Pose::IDENTITY,
+                size_m: 0.1,
+            }],
+        };
+        truth.push(TruthMessage::State(Frame::new(i as u64, stamp, state)));
+    }
+
+    let mut writer =
+        RecordingWriter::with_options(Cursor::new(Vec::new()), &meta(), &small_chunks()).unwrap();
+    let mut t = truth.iter();
+    for msg in &messages {
+        writer.write(msg).unwrap();
+        if msg.kind() == StreamKind::Depth {
+            for _ in 0..4 {
+                writer.write_truth(t.next().unwrap()).unwrap();
+            }
+        }
+    }
+    // An image of the wrong format is refused and the writer goes on.
+    let wrong = TruthMessage::Image(
+        TruthKind::Depth,
+        Frame::new(0, Timestamp::new(0, 0), Image::new(2, 2, PixelFormat::Rgb8)),
+    );
+    assert!(matches!(
+        writer.write_truth(&wrong),
+        Err(RecordingError::Encode { .. })
+    ));
+    let (_, cursor) = writer.finish_into_inner().unwrap();
+
+    let reader = RecordingReader::from_bytes(cursor.into_inner()).unwrap();
+    assert!(reader.warnings().is_empty(), "{:?}", reader.warnings());
+    assert_eq!(read_all(&reader), messages, "the streams are unchanged");
+    let back: Vec<TruthMessage> = reader.truth().collect::<Result<_, _>>().unwrap();
+    assert_eq!(back, truth);
+}

@@ -7,7 +7,6 @@
 
 pub mod engine;
 pub mod params;
-pub mod reference;
 pub mod registry;
 
 mod depth_preview;
@@ -16,3 +15,6 @@ mod passthrough;
 pub use engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 pub use params::{ParamError, ParamKind, ParamSpec, ParamsSchema};
 pub use registry::{BuiltEngine, EngineRegistry, EngineSpec};
+/// The CPU path tracer every engine is scored against (its own crate so that the simulator can
+/// share it without the GPU engines).
+pub use relight_reference as reference;

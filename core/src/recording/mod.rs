@@ -32,6 +32,9 @@
 //! | `/markers` | `relight.MarkerSet` (`jsonschema`)       | `json`           |
 //! | `/lamp`    | `relight.LampState` (`jsonschema`)       | `json`           |
 //!
+//! Simulated recordings add ground-truth channels (`/truth/...`, IDs 16–19), described in
+//! [`truth`]; [`RecordingReader::messages`] skips them and [`RecordingReader::truth`] reads them.
+//!
 //! Images use ROS 2 `sensor_msgs/msg/Image` (CDR, little endian) because every ROS-aware tool and
 //! Foxglove's image panel decode it; the CDR is written by hand in [`schema`]. Image `encoding`
 //! is [`PixelFormat::ros_encoding`](crate::PixelFormat::ros_encoding) (`16UC1`, `32FC1`, `rgb8`,
@@ -71,12 +74,13 @@
 
 mod reader;
 pub mod schema;
+pub mod truth;
 mod writer;
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-pub use reader::{ChunkInfo, Messages, RecordingReader};
+pub use reader::{ChunkInfo, Messages, Recorded, RecordingReader};
 pub use writer::{RecordingCompression, RecordingOptions, RecordingWriter};
 
 use crate::rig::{RigCalibration, RigCalibrationError};

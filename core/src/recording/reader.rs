@@ -16,6 +16,7 @@ use mcap::records::{ChunkHeader, MessageHeader, Record, op};
 use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
 use super::schema::{self, CDR_MESSAGE_ENCODING, JSON_MESSAGE_ENCODING};
+use super::truth::{self, TruthKind, TruthMessage};
 use super::{
     CALIBRATION_ATTACHMENT, CALIBRATION_KEY, CALIBRATION_METADATA, RECORDING_METADATA,
     RecordingError, RecordingMeta, channel_id, stream_of_topic, topic,
@@ -48,8 +49,9 @@ pub struct ChunkInfo {
     pub message_end_ns: u64,
 }
 
+#[doc(hidden)]
 #[derive(Debug, Clone)]
-struct ChannelInfo {
+pub struct ChannelInfo {
     topic: String,
     message_encoding: String,
     stream: Option<StreamKind>,
@@ -187,6 +189,16 @@ impl RecordingReader {
     /// not decode yields [`RecordingError::Decode`]. Messages on topics that are not relight
     /// streams are skipped.
     pub fn messages(&self) -> Messages<'_> {
+        self.iterate()
+    }
+
+    /// The ground-truth messages (see [`super::truth`]) in log-time order, with the same
+    /// handling of damage as [`messages`](Self::messages); empty for recordings of real rigs.
+    pub fn truth(&self) -> Messages<'_, TruthMessage> {
+        self.iterate()
+    }
+
+    fn iterate<T>(&self) -> Messages<'_, T> {
         let mut order: Vec<usize> = (0..self.blocks.len()).collect();
         order.sort_by_key(|&i| self.blocks.get(i).map(Block::start_ns));
         Messages {
@@ -196,6 +208,7 @@ impl RecordingReader {
             pending: BinaryHeap::new(),
             channels: self.channels.clone(),
             serial: 0,
+            decoded: std::marker::PhantomData,
         }
     }
 
@@ -395,6 +408,16 @@ impl RecordingReader {
                 self.channels
                     .entry(channel_id(kind))
                     .or_insert_with(|| channel_info(topic(kind), schema.message_encoding));
+            }
+            for kind in TruthKind::ALL {
+                let encoding = if kind == TruthKind::State {
+                    JSON_MESSAGE_ENCODING
+                } else {
+                    CDR_MESSAGE_ENCODING
+                };
+                self.channels
+                    .entry(kind.channel_id())
+                    .or_insert_with(|| channel_info(kind.topic(), encoding));
             }
         }
 
@@ -685,16 +708,17 @@ impl Ord for Pending {
 /// Blocks (chunks, loose messages) are loaded in order of their first log time; a message is
 /// handed out once no unloaded block can hold an earlier one, so overlapping chunks merge
 /// correctly while at most the overlapping chunks are held decompressed.
-pub struct Messages<'a> {
+pub struct Messages<'a, T = StreamMessage> {
     reader: &'a RecordingReader,
     order: Vec<usize>,
     next_block: usize,
     pending: BinaryHeap<Pending>,
     channels: HashMap<u16, ChannelInfo>,
     serial: u64,
+    decoded: std::marker::PhantomData<T>,
 }
 
-impl fmt::Debug for Messages<'_> {
+impl<T> fmt::Debug for Messages<'_, T> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("Messages")
             .field("blocks_loaded", &self.next_block)
@@ -704,8 +728,8 @@ impl fmt::Debug for Messages<'_> {
     }
 }
 
-impl Iterator for Messages<'_> {
-    type Item = Result<StreamMessage, RecordingError>;
+impl<T: Recorded> Iterator for Messages<'_, T> {
+    type Item = Result<T, RecordingError>;
 
     fn next(&mut self) -> Option<Self::Item> {
         loop {
@@ -739,7 +763,7 @@ impl Iterator for Messages<'_> {
     }
 }
 
-impl<'a> Messages<'a> {
+impl<'a, T: Recorded> Messages<'a, T> {
     fn push(&mut self, header: MessageHeader, data: PendingData) {
         self.serial += 1;
         self.pending.push(Pending {
@@ -791,8 +815,8 @@ impl<'a> Messages<'a> {
         }
     }
 
-    /// Decode one message; `None` for messages on topics that are not relight streams.
-    fn decode(&self, pending: Pending) -> Option<Result<StreamMessage, RecordingError>> {
+    /// Decode one message; `None` for messages on topics this iterator does not read.
+    fn decode(&self, pending: Pending) -> Option<Result<T, RecordingError>> {
         let header = pending.header;
         let data: &[u8] = match &pending.data {
             PendingData::Owned(data) => data,
@@ -805,19 +829,73 @@ impl<'a> Messages<'a> {
                 reason: "no Channel record describes this channel".into(),
             }));
         };
+        let decoded = T::decode(channel, &header, data)?;
+        Some(decoded.map_err(|reason| RecordingError::Decode {
+            channel: channel.topic.clone(),
+            seq: u64::from(header.sequence),
+            reason,
+        }))
+    }
+}
+
+/// A kind of message the reader hands out: the sensor streams, or the ground truth.
+pub trait Recorded: Sized {
+    /// `None` when the channel is not one of this kind's.
+    #[doc(hidden)]
+    fn decode(
+        channel: &ChannelInfo,
+        header: &MessageHeader,
+        data: &[u8],
+    ) -> Option<Result<Self, String>>;
+}
+
+impl Recorded for StreamMessage {
+    fn decode(
+        channel: &ChannelInfo,
+        header: &MessageHeader,
+        data: &[u8],
+    ) -> Option<Result<Self, String>> {
         let Some(stream) = channel.stream else {
-            tracing::trace!(topic = %channel.topic, "skipping message of a foreign topic");
+            tracing::trace!(topic = %channel.topic, "skipping message of another topic");
             return None;
         };
-        Some(
-            decode_message(stream, &channel.message_encoding, &header, data).map_err(|reason| {
-                RecordingError::Decode {
-                    channel: channel.topic.clone(),
-                    seq: u64::from(header.sequence),
-                    reason,
+        Some(decode_message(
+            stream,
+            &channel.message_encoding,
+            header,
+            data,
+        ))
+    }
+}
+
+impl Recorded for TruthMessage {
+    fn decode(
+        channel: &ChannelInfo,
+        header: &MessageHeader,
+        data: &[u8],
+    ) -> Option<Result<Self, String>> {
+        let kind = TruthKind::of_topic(&channel.topic)?;
+        let stamp = Timestamp::new(header.publish_time, header.log_time);
+        let short_seq = u64::from(header.sequence);
+        Some(match kind {
+            TruthKind::State => truth::decode_state(data)
+                .map(|state| TruthMessage::State(Frame::new(short_seq, stamp, state))),
+            _ => schema::decode_image(data).and_then(|decoded| {
+                let (_, extras) = schema::parse_frame_id(&decoded.frame_id)?;
+                if Some(decoded.image.format()) != kind.pixel_format() {
+                    return Err(format!(
+                        "{:?} image on {}",
+                        decoded.image.format(),
+                        kind.topic()
+                    ));
                 }
+                let seq = extras.seq.unwrap_or(short_seq);
+                Ok(TruthMessage::Image(
+                    kind,
+                    Frame::new(seq, stamp, decoded.image),
+                ))
             }),
-        )
+        })
     }
 }
 

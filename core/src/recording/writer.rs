@@ -10,6 +10,7 @@ use mcap::records::{MessageHeader, Metadata};
 use mcap::{Attachment, Compression, WriteOptions};
 
 use super::schema::{self, FrameIdExtras};
+use super::truth::{self, TruthKind, TruthMessage};
 use super::{
     CALIBRATION_ATTACHMENT, CALIBRATION_KEY, CALIBRATION_METADATA, FORMAT_VERSION,
     RECORDING_METADATA, RecordingError, RecordingMeta, RecordingSummary, channel_id, topic,
@@ -62,6 +63,10 @@ pub struct RecordingWriter<W: Write + Seek> {
     frame_id: String,
     counts: BTreeMap<StreamKind, u64>,
     messages_written: u64,
+    /// Schema IDs by name, for channels declared after the start (ground truth).
+    schema_ids: HashMap<&'static str, u16>,
+    /// Ground-truth channels declared so far, and how many messages each got.
+    truth_counts: BTreeMap<TruthKind, u64>,
 }
 
 impl<W: Write + Seek> fmt::Debug for RecordingWriter<W> {
@@ -146,7 +151,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
             })?;
         }
 
-        let mut schema_ids: HashMap<&str, u16> = HashMap::new();
+        let mut schema_ids: HashMap<&'static str, u16> = HashMap::new();
         for kind in StreamKind::ALL {
             let schema = schema::channel_schema(kind);
             let schema_id = match schema_ids.get(schema.schema_name) {
@@ -181,6 +186,8 @@ impl<W: Write + Seek> RecordingWriter<W> {
             frame_id: String::new(),
             counts: BTreeMap::new(),
             messages_written: 0,
+            schema_ids,
+            truth_counts: BTreeMap::new(),
         })
     }
 
@@ -242,6 +249,94 @@ impl<W: Write + Seek> RecordingWriter<W> {
         *self.counts.entry(kind).or_insert(0) += 1;
         self.messages_written += 1;
         tracing::trace!(stream = %kind, seq, bytes = self.scratch.len(), "recorded");
+        Ok(())
+    }
+
+    /// Append one ground-truth message (see [`super::truth`]); its channel is declared on first
+    /// use.
+    pub fn write_truth(&mut self, msg: &TruthMessage) -> Result<(), RecordingError> {
+        let kind = msg.kind();
+        let seq = msg.seq();
+        let stamp = msg.stamp();
+        let (sequence, long_seq) = schema::split_seq(seq);
+        let encoded = match msg {
+            TruthMessage::Image(_, frame) => {
+                let extras = FrameIdExtras {
+                    seq: long_seq,
+                    ..Default::default()
+                };
+                schema::write_frame_id(&mut self.frame_id, "depth", &extras);
+                match kind.pixel_format() {
+                    Some(format) if format == frame.payload.format() => schema::encode_image(
+                        &mut self.scratch,
+                        stamp.device_ns,
+                        &self.frame_id,
+                        &frame.payload,
+                    ),
+                    _ => Err(format!(
+                        "{:?} image on a channel of {:?}",
+                        frame.payload.format(),
+                        kind.pixel_format()
+                    )),
+                }
+            }
+            TruthMessage::State(frame) => truth::encode_state(&mut self.scratch, &frame.payload),
+        };
+        encoded.map_err(|reason| RecordingError::Encode {
+            channel: kind.topic().into(),
+            seq,
+            reason,
+        })?;
+        if !self.truth_counts.contains_key(&kind) {
+            self.declare_truth_channel(kind)?;
+        }
+        let header = MessageHeader {
+            channel_id: kind.channel_id(),
+            sequence,
+            log_time: stamp.host_ns,
+            publish_time: stamp.device_ns,
+        };
+        self.mcap.write_to_known_channel(&header, &self.scratch)?;
+        *self.truth_counts.entry(kind).or_insert(0) += 1;
+        self.messages_written += 1;
+        Ok(())
+    }
+
+    fn declare_truth_channel(&mut self, kind: TruthKind) -> Result<(), RecordingError> {
+        let (name, encoding, data, message_encoding) = match kind {
+            TruthKind::State => (
+                truth::TRUTH_STATE_SCHEMA_NAME,
+                schema::JSON_SCHEMA_ENCODING,
+                truth::TRUTH_STATE_JSON_SCHEMA,
+                schema::JSON_MESSAGE_ENCODING,
+            ),
+            _ => {
+                let image = schema::channel_schema(StreamKind::Depth);
+                (
+                    image.schema_name,
+                    image.schema_encoding,
+                    image.schema_data,
+                    image.message_encoding,
+                )
+            }
+        };
+        let schema_id = match self.schema_ids.get(name) {
+            Some(&id) => id,
+            None => {
+                let id = u16::try_from(self.schema_ids.len() + 1).unwrap_or(u16::MAX);
+                self.mcap
+                    .add_schema_with_id(id, name, encoding, data.as_bytes())?;
+                self.schema_ids.insert(name, id);
+                id
+            }
+        };
+        self.mcap.add_channel_with_id(
+            kind.channel_id(),
+            schema_id,
+            kind.topic(),
+            message_encoding,
+            &BTreeMap::new(),
+        )?;
         Ok(())
     }
 

@@ -22,7 +22,7 @@ use relight_daemon::control::types::StatusReport;
 use relight_daemon::pipeline::{Pipeline, PipelineOptions};
 use relight_daemon::sinks::exr_out::write_exr;
 use relight_daemon::sinks::png_out::{tonemap_reinhard, write_png};
-use relight_engines::reference::{ReferenceSettings, render_reference};
+use relight_reference::{ReferenceSettings, render_reference};
 
 #[derive(Debug, Parser)]
 #[command(name = "relightd", version, about = "relight: AR relighting daemon")]

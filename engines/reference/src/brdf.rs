@@ -6,7 +6,7 @@ use std::f32::consts::{FRAC_1_PI, PI};
 use glam::Vec3;
 use relight_core::scene::Material;
 
-use super::sampling::{SampleRng, cosine_hemisphere, phong_lobe};
+use crate::sampling::{SampleRng, cosine_hemisphere, phong_lobe};
 
 fn luminance(c: Vec3) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z

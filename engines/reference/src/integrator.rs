@@ -10,9 +10,9 @@
 use glam::Vec3;
 use relight_core::scene::{Material, Scene};
 
-use super::accel::Geometry;
-use super::brdf::Bsdf;
-use super::sampling::{EnvSampler, SampleRng, env_radiance};
+use crate::accel::Geometry;
+use crate::brdf::Bsdf;
+use crate::sampling::{EnvSampler, SampleRng, env_radiance};
 
 /// What the path tracer needs besides the geometry.
 #[derive(Debug)]

@@ -8,10 +8,8 @@ use glam::Vec3;
 use relight_core::Pose;
 use relight_core::light::Light;
 use relight_core::scene::{EnvironmentMap, Material, Scene, SceneCamera};
-use relight_engines::reference::shapes::{cuboid, flipped, quad, uv_sphere};
-use relight_engines::reference::{
-    ReferenceImages, ReferenceRenderer, ReferenceSettings, render_reference,
-};
+use relight_reference::shapes::{cuboid, flipped, quad, uv_sphere};
+use relight_reference::{ReferenceImages, ReferenceRenderer, ReferenceSettings, render_reference};
 
 fn diffuse(albedo: Vec3) -> Material {
     Material {

@@ -14,8 +14,8 @@ use glam::Vec3;
 use relight_core::Pose;
 use relight_core::light::Light;
 use relight_core::scene::{EnvironmentMap, Material, Scene, SceneCamera};
-use relight_engines::reference::shapes::{cuboid, quad, uv_sphere};
-use relight_engines::reference::{ReferenceRenderer, ReferenceSettings, render_reference};
+use relight_reference::shapes::{cuboid, quad, uv_sphere};
+use relight_reference::{ReferenceRenderer, ReferenceSettings, render_reference};
 
 fn bench_scene(width: u32, height: u32) -> Scene {
     let diffuse = |albedo: Vec3| Material {

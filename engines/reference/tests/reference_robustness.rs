@@ -7,8 +7,8 @@ use glam::Vec3;
 use relight_core::Pose;
 use relight_core::light::Light;
 use relight_core::scene::{EnvironmentMap, Material, Mesh, Scene, SceneCamera};
-use relight_engines::reference::shapes::{cuboid, quad, uv_sphere};
-use relight_engines::reference::{ReferenceImages, ReferenceSettings, render_reference};
+use relight_reference::shapes::{cuboid, quad, uv_sphere};
+use relight_reference::{ReferenceImages, ReferenceSettings, render_reference};
 
 fn material(albedo: f32, specular: f32, shininess: f32) -> Material {
     Material {
