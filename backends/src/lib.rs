@@ -6,6 +6,7 @@
 //! recordings through the same contract, so the daemon cannot tell it from hardware.
 
 pub mod device;
+pub mod lamp_protocol;
 pub mod replay;
 pub mod sim;
 pub mod sources;

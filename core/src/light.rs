@@ -266,8 +266,59 @@ fn check_unit(field: &'static str, value: Vec3) -> Result<(), LightError> {
     }
 }
 
+/// Linear sRGB colour of a black body at `kelvin`, scaled to luminance Y = 1: Planck's law
+/// integrated against the CIE 1931 2° colour-matching functions (the multi-lobe Gaussian fit of
+/// Wyman, Sloan & Shirley 2013, accurate to the tables' own precision) from 380 to 780 nm, then
+/// XYZ → linear sRGB (D65). Used for lamps that report a colour temperature. Channels can go
+/// slightly negative far from D65 (outside the sRGB gamut); they are clamped at 0.
+pub fn blackbody_rgb(kelvin: f32) -> Vec3 {
+    let t = f64::from(kelvin.clamp(500.0, 40_000.0));
+    let g = |x: f64, mu: f64, s1: f64, s2: f64| {
+        let s = if x < mu { s1 } else { s2 };
+        (-0.5 * ((x - mu) / s).powi(2)).exp()
+    };
+    let (mut x, mut y, mut z) = (0.0, 0.0, 0.0);
+    for step in 0..=80 {
+        let nm = 380.0 + 5.0 * f64::from(step);
+        // Planck's law up to a constant factor (it cancels in the normalisation).
+        let lambda = nm * 1e-9;
+        let c2 = 1.438_776_877e-2;
+        let radiance = 1.0 / (lambda.powi(5) * ((c2 / (lambda * t)).exp() - 1.0));
+        let xb = 1.056 * g(nm, 599.8, 37.9, 31.0) + 0.362 * g(nm, 442.0, 16.0, 26.7)
+            - 0.065 * g(nm, 501.1, 20.4, 26.2);
+        let yb = 0.821 * g(nm, 568.8, 46.9, 40.5) + 0.286 * g(nm, 530.9, 16.3, 31.1);
+        let zb = 1.217 * g(nm, 437.0, 11.8, 36.0) + 0.681 * g(nm, 459.0, 26.0, 13.8);
+        x += radiance * xb;
+        y += radiance * yb;
+        z += radiance * zb;
+    }
+    let (x, z) = (x / y, z / y);
+    let rgb = Vec3::new(
+        (3.240_454_2 * x - 1.537_138_5 - 0.498_531_4 * z) as f32,
+        (-0.969_266_0 * x + 1.876_010_8 + 0.041_556_0 * z) as f32,
+        (0.055_643_4 * x - 0.204_025_9 + 1.057_225_2 * z) as f32,
+    );
+    rgb.max(Vec3::ZERO)
+}
+
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn blackbody_colours_follow_the_planckian_locus() {
+        // D65 is close to a 6504 K black body: nearly white in sRGB.
+        let d65 = super::blackbody_rgb(6504.0);
+        assert!((d65 - glam::Vec3::splat(d65.y)).abs().max_element() < 0.06, "{d65}");
+        let warm = super::blackbody_rgb(2700.0);
+        assert!(warm.x > warm.y && warm.y > warm.z, "{warm}");
+        let cold = super::blackbody_rgb(12_000.0);
+        assert!(cold.z > cold.x, "{cold}");
+        // Luminance (Rec. 709 weights) is 1.
+        for rgb in [d65, warm, cold] {
+            let y = 0.2126 * rgb.x + 0.7152 * rgb.y + 0.0722 * rgb.z;
+            assert!((y - 1.0).abs() < 0.02, "{rgb}: Y = {y}");
+        }
+    }
+
     use super::*;
 
     fn spot() -> Light {

@@ -7,8 +7,13 @@
 //! - [`response`]: the colour camera's and the probe's known response curve (linear radiance →
 //!   8-bit code), so photometric calibration can be checked against it.
 //! - [`trajectory`]: camera paths (static, slow orbit, hand shake).
+//! - [`markers`]: AprilTag `tag36h11` codes and a printed marker board.
+//! - [`rig`]: all of the above around a [`Scene`](relight_core::scene::Scene): sensor
+//!   messages and ground truth per frame, written to MCAP by [`rig::write_recording`].
 
 pub mod kinect;
+pub mod markers;
 pub mod probe;
 pub mod response;
+pub mod rig;
 pub mod trajectory;

@@ -40,10 +40,16 @@ pub struct ProbeLens {
     pub field_of_view_deg: f64,
 }
 
-/// Render one probe exposure: 8-bit RGB through `response`, black outside the image circle.
-/// `exposure_scale` converts radiance × exposure time (s) into the response's [0, 1] input.
+/// Sub-pixel samples per axis: a pocket lamp is a few pixels wide in the probe, so pixel centres
+/// alone would miss part of its energy.
+const PROBE_SUPERSAMPLING: u32 = 4;
+
+/// Render one probe exposure of the world radiance `radiance(direction)`: 8-bit RGB through
+/// `response`, black outside the image circle, each pixel the mean of 4 × 4 sub-pixel rays in
+/// linear radiance (as the sensor integrates). `exposure_scale` converts radiance × exposure
+/// time (s) into the response's [0, 1] input.
 pub fn render_probe(
-    env: &EnvironmentMap,
+    radiance: &(dyn Fn(Vec3) -> Vec3 + Sync),
     lens: &ProbeLens,
     world_from_probe: &Pose,
     exposure_us: u32,
@@ -55,16 +61,24 @@ pub fn render_probe(
     let gain = exposure_us as f32 * 1e-6 * exposure_scale;
     let width = model.width as usize;
     let cos_half_fov = (lens.field_of_view_deg.to_radians() / 2.0).cos();
+    let n = PROBE_SUPERSAMPLING;
     if let Some(px) = image.as_u8_mut() {
         for (i, rgb) in px.chunks_exact_mut(3).enumerate() {
-            let pixel = DVec2::new((i % width) as f64, (i / width) as f64);
-            let Some(ray_in_optical) = model.unproject(pixel).filter(|ray| ray.z >= cos_half_fov)
-            else {
-                continue;
-            };
-            let dir = world_from_probe.transform_vector(gl_from_optical(ray_in_optical).as_vec3());
-            let radiance = environment_radiance(env, dir.normalize());
-            for (c, value) in rgb.iter_mut().zip(radiance.to_array()) {
+            let mut sum = Vec3::ZERO;
+            for s in 0..n * n {
+                let offset = DVec2::new(
+                    (f64::from(s % n) + 0.5) / f64::from(n) - 0.5,
+                    (f64::from(s / n) + 0.5) / f64::from(n) - 0.5,
+                );
+                let pixel = DVec2::new((i % width) as f64, (i / width) as f64) + offset;
+                let Some(ray) = model.unproject(pixel).filter(|ray| ray.z >= cos_half_fov) else {
+                    continue;
+                };
+                let dir = world_from_probe.transform_vector(gl_from_optical(ray).as_vec3());
+                sum += radiance(dir.normalize());
+            }
+            let mean = sum / (n * n) as f32;
+            for (c, value) in rgb.iter_mut().zip(mean.to_array()) {
                 *c = response.to_code(value * gain);
             }
         }
@@ -152,8 +166,8 @@ mod tests {
             Vec3::ZERO,
         );
         let response = CameraResponse::default();
-        let dark = render_probe(&env, &lens(), &world_from_probe, 1_000, 1.0, &response);
-        let bright = render_probe(&env, &lens(), &world_from_probe, 100_000, 1.0, &response);
+        let dark = render_probe(&|d| environment_radiance(&env, d), &lens(), &world_from_probe, 1_000, 1.0, &response);
+        let bright = render_probe(&|d| environment_radiance(&env, d), &lens(), &world_from_probe, 100_000, 1.0, &response);
         let dir_in_probe = world_from_probe.inverse().transform_vector(window_dir);
         let pixel = model()
             .project(optical_from_gl(dir_in_probe.as_dvec3()))

@@ -98,17 +98,24 @@ impl Scene {
         }
     }
 
+    /// World-space bounding box (min, max) of the real meshes, `None` without any.
+    pub fn real_bounds(&self) -> Option<(Vec3, Vec3)> {
+        bounds(self.meshes.iter().filter(|m| !m.is_virtual))
+    }
+
     /// World-space bounding box (min, max) of the virtual object(s), `None` without any.
     pub fn virtual_bounds(&self) -> Option<(Vec3, Vec3)> {
-        self.meshes
-            .iter()
-            .filter(|m| m.is_virtual)
-            .flat_map(|m| m.positions_in_world.iter().copied())
-            .fold(None, |acc, p| match acc {
-                None => Some((p, p)),
-                Some((lo, hi)) => Some((lo.min(p), hi.max(p))),
-            })
+        bounds(self.meshes.iter().filter(|m| m.is_virtual))
     }
+}
+
+fn bounds<'a>(meshes: impl Iterator<Item = &'a Mesh>) -> Option<(Vec3, Vec3)> {
+    meshes
+        .flat_map(|m| m.positions_in_world.iter().copied())
+        .fold(None, |acc, p| match acc {
+            None => Some((p, p)),
+            Some((lo, hi)) => Some((lo.min(p), hi.max(p))),
+        })
 }
 
 mod load;

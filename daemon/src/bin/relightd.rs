@@ -3,8 +3,9 @@
 //! `relightd [--config FILE]` runs the configured pipeline as a service (systemd Type=notify);
 //! `relightd replay FILE` plays a recording through the pipeline without a configuration file
 //! (the demo); `relightd record` captures the configured sources to an MCAP file;
-//! `relightd synth` writes the synthetic demo recording; `relightd check-config` validates a
-//! configuration file.
+//! `relightd simulate` renders a scene through the simulated rig into a recording with ground
+//! truth (how the demo recording is made); `relightd render` renders an offline scene with an
+//! engine; `relightd check-config` validates a configuration file.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -13,8 +14,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
-use relight_backends::synthetic::{SyntheticRig, SyntheticSettings};
-use relight_core::recording::{RecordingMeta, RecordingWriter};
+use relight_backends::sim::rig::{SimRig, SimSettings, write_recording};
+use relight_backends::sim::trajectory::Trajectory;
 use relight_core::scene::Scene;
 use relight_daemon::config::{self, Config, OutputConfig, ReplayConfig, SourceConfig};
 use relight_daemon::control::ControlServer;
@@ -39,6 +40,16 @@ enum Mode {
     Realtime,
     Fast,
     Stepped,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum TrajectoryKind {
+    /// The scene camera on a tripod.
+    Static,
+    /// The scene camera held by hand (1 cm, 0.5° tremor).
+    Shake,
+    /// A slow circle (one turn per 20 s) around the scene camera's target, at its distance.
+    Orbit,
 }
 
 #[derive(Debug, Subcommand)]
@@ -76,16 +87,41 @@ enum Command {
         #[arg(long)]
         seconds: Option<f64>,
     },
-    /// Write the synthetic demo recording (deterministic).
-    Synth {
+    /// Render a scene through the simulated rig (Kinect-like depth, path-traced colour, fish-eye
+    /// probe brackets, marker board, pocket lamp) into an MCAP recording with ground truth.
+    /// Deterministic for a given seed.
+    Simulate {
+        #[arg(long)]
+        scene: PathBuf,
         #[arg(long)]
         out: PathBuf,
-        #[arg(long, default_value_t = 60)]
-        frames: u32,
-        #[arg(long, default_value_t = 160)]
+        #[arg(long, default_value_t = 320)]
         width: u32,
-        #[arg(long, default_value_t = 120)]
+        #[arg(long, default_value_t = 240)]
         height: u32,
+        #[arg(long, default_value_t = 30)]
+        fps: u32,
+        #[arg(long, default_value_t = 3.0)]
+        seconds: f64,
+        /// Path-traced samples per pixel of each colour frame.
+        #[arg(long, default_value_t = 16)]
+        spp: u32,
+        #[arg(long, value_enum, default_value = "shake")]
+        trajectory: TrajectoryKind,
+        /// Ground truth every Nth frame (0: none).
+        #[arg(long, default_value_t = 1)]
+        truth_every: u32,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Leave out the marker board.
+        #[arg(long)]
+        no_board: bool,
+        /// Leave out the pocket lamp.
+        #[arg(long)]
+        no_lamp: bool,
+        /// Leave out the fish-eye probe.
+        #[arg(long)]
+        no_probe: bool,
     },
     /// Validate a configuration file and print it as understood.
     CheckConfig,
@@ -184,12 +220,65 @@ fn run(cli: Cli) -> Result<()> {
             config.recorder.autostart = false;
             record(config, &out, seconds.map(Duration::from_secs_f64))
         }
-        Command::Synth {
+        Command::Simulate {
+            scene,
             out,
-            frames,
             width,
             height,
-        } => synth(&out, frames, width, height),
+            fps,
+            seconds,
+            spp,
+            trajectory,
+            truth_every,
+            seed,
+            no_board,
+            no_lamp,
+            no_probe,
+        } => {
+            let scene = Scene::load(&scene)?;
+            if !(seconds.is_finite() && seconds > 0.0) {
+                bail!("--seconds must be positive");
+            }
+            let mut settings = SimSettings::placed_in(&scene);
+            let camera = scene.camera.world_from_camera;
+            settings.trajectory = Some(match trajectory {
+                TrajectoryKind::Static => Trajectory::Static(camera),
+                TrajectoryKind::Shake => Trajectory::Shake {
+                    base: camera,
+                    amplitude_m: 0.01,
+                    amplitude_deg: 0.5,
+                },
+                TrajectoryKind::Orbit => {
+                    let target = scene
+                        .virtual_bounds()
+                        .map_or(camera.translation, |(lo, hi)| (lo + hi) / 2.0);
+                    let offset = camera.translation - target;
+                    Trajectory::Orbit {
+                        center: target,
+                        radius_m: offset.with_y(0.0).length(),
+                        height_m: offset.y,
+                        period_s: 20.0,
+                    }
+                }
+            });
+            settings.width = width;
+            settings.height = height;
+            settings.fps = fps;
+            settings.frames = (seconds * f64::from(fps)).round().max(1.0) as u32;
+            settings.color_spp = spp;
+            settings.truth_every = truth_every;
+            settings.seed = seed;
+            if no_board {
+                settings.board = None;
+            }
+            if no_lamp {
+                settings.lamp = None;
+            }
+            if no_probe {
+                settings.probe = None;
+            }
+            simulate(&scene, settings, &out)
+        }
         Command::Render {
             scene,
             engine,
@@ -312,30 +401,29 @@ fn record(config: Config, out: &Path, seconds: Option<Duration>) -> Result<()> {
     Ok(())
 }
 
-fn synth(out: &Path, frames: u32, width: u32, height: u32) -> Result<()> {
-    if frames == 0 || width < 8 || height < 8 {
-        bail!("--frames must be ≥ 1 and the image at least 8×8");
-    }
-    let rig = SyntheticRig::new(SyntheticSettings {
-        frames,
-        width,
-        height,
-        ..SyntheticSettings::default()
-    });
-    let meta = RecordingMeta {
-        calibration: Some(rig.calibration()),
-        source: format!("relightd {} synth", env!("CARGO_PKG_VERSION")),
-    };
-    let mut writer = RecordingWriter::create(out, &meta)?;
-    for msg in rig.messages() {
-        writer.write(&msg)?;
-    }
-    let messages = writer.messages_written();
-    writer.finish()?;
+fn simulate(scene: &Scene, settings: SimSettings, out: &Path) -> Result<()> {
+    let frames = settings.frames;
+    let rig = SimRig::new(scene, settings)?;
+    let started = Instant::now();
+    let summary = write_recording(&rig, out, |i| {
+        if (i + 1) % 10 == 0 || i + 1 == frames {
+            eprintln!(
+                "simulated {}/{frames} frames ({:.1} s)",
+                i + 1,
+                started.elapsed().as_secs_f64()
+            );
+        }
+    })
+    .with_context(|| format!("simulating into {}", out.display()))?;
     let bytes = std::fs::metadata(out).map(|m| m.len()).unwrap_or(0);
     println!(
-        "{}: {messages} messages, {frames} frames of {width}×{height}, {bytes} bytes",
-        out.display()
+        "{}: {} messages ({:?}), {frames} frames of {}×{}, {bytes} bytes, {:.1} s",
+        out.display(),
+        summary.total_messages(),
+        summary.messages,
+        rig.settings().width,
+        rig.settings().height,
+        started.elapsed().as_secs_f64()
     );
     Ok(())
 }

@@ -30,7 +30,7 @@
 //! - Geometry: two BVHs from the `bvh` crate (all meshes; real meshes only), built once per
 //!   renderer; see `accel.rs` for why the triangle test and closest-hit choice are ours.
 
-mod accel;
+pub mod accel;
 mod brdf;
 mod integrator;
 mod sampling;
