@@ -81,7 +81,11 @@ pub enum LineError {
     #[error("lamp line holds non-ASCII bytes (baud-rate mismatch or noise); skipped")]
     NotAscii,
     #[error("lamp line `{line}`: checksum {found:02X}, computed {computed:02X}")]
-    Checksum { line: String, found: u8, computed: u8 },
+    Checksum {
+        line: String,
+        found: u8,
+        computed: u8,
+    },
     #[error("lamp line `{line}`: {reason}")]
     Malformed { line: String, reason: String },
     #[error("lamp line cut off by `$` before its end: `{line}`")]
@@ -98,7 +102,9 @@ pub fn parse_line(line: &str) -> Result<LampReport, LineError> {
         line: line.to_owned(),
         reason: reason.to_owned(),
     };
-    let rest = line.strip_prefix('$').ok_or_else(|| malformed("no leading `$`"))?;
+    let rest = line
+        .strip_prefix('$')
+        .ok_or_else(|| malformed("no leading `$`"))?;
     let (body, sum) = rest
         .rsplit_once('*')
         .ok_or_else(|| malformed("no `*` before the checksum"))?;
@@ -121,17 +127,23 @@ pub fn parse_line(line: &str) -> Result<LampReport, LineError> {
     if fields.len() != 5 && fields.len() != 9 {
         return Err(malformed("expected 4 or 8 fields after RLAMP"));
     }
-    let seq = fields[1].parse().map_err(|_| malformed("seq is not a u32"))?;
+    let seq = fields[1]
+        .parse()
+        .map_err(|_| malformed("seq is not a u32"))?;
     let on = match fields[2] {
         "0" => false,
         "1" => true,
         _ => return Err(malformed("on is not 0 or 1")),
     };
-    let level: f32 = fields[3].parse().map_err(|_| malformed("level is not a number"))?;
+    let level: f32 = fields[3]
+        .parse()
+        .map_err(|_| malformed("level is not a number"))?;
     if !(0.0..=1.0).contains(&level) {
         return Err(malformed("level outside [0, 1]"));
     }
-    let cct_k: u32 = fields[4].parse().map_err(|_| malformed("cct is not an integer"))?;
+    let cct_k: u32 = fields[4]
+        .parse()
+        .map_err(|_| malformed("cct is not an integer"))?;
     if !(1000..=20_000).contains(&cct_k) {
         return Err(malformed("cct outside [1000, 20000] K"));
     }
@@ -228,10 +240,12 @@ mod tests {
     fn report(seq: u32) -> LampReport {
         LampReport {
             seq,
-            on: seq % 3 != 0,
+            on: !seq.is_multiple_of(3),
             level: 0.25 * (seq % 5) as f32,
             cct_k: 2700 + 100 * seq,
-            orientation: (seq % 2 == 0).then(|| Quat::from_rotation_z(0.1 * seq as f32)),
+            orientation: seq
+                .is_multiple_of(2)
+                .then(|| Quat::from_rotation_z(0.1 * seq as f32)),
         }
     }
 
@@ -242,7 +256,10 @@ mod tests {
             let line = r.to_line();
             assert!(line.ends_with("\r\n") && line.len() < MAX_LINE, "{line}");
             let back = parse_line(line.trim_end()).unwrap();
-            assert_eq!((back.seq, back.on, back.level, back.cct_k), (r.seq, r.on, r.level, r.cct_k));
+            assert_eq!(
+                (back.seq, back.on, back.level, back.cct_k),
+                (r.seq, r.on, r.level, r.cct_k)
+            );
             match (back.orientation, r.orientation) {
                 (Some(a), Some(b)) => assert!(a.angle_between(b) < 1e-4),
                 (None, None) => {}
@@ -287,10 +304,17 @@ mod tests {
         stream.extend(format!("{:02X}\r\n", checksum(b"RLAMP,6,1,2.0,3000")).as_bytes());
 
         let results = LineParser::new().push(&stream);
-        let seqs: Vec<u32> = results.iter().filter_map(|r| r.as_ref().ok()).map(|r| r.seq).collect();
+        let seqs: Vec<u32> = results
+            .iter()
+            .filter_map(|r| r.as_ref().ok())
+            .map(|r| r.seq)
+            .collect();
         assert_eq!(seqs, [1, 4, 5]);
         let errors: Vec<&LineError> = results.iter().filter_map(|r| r.as_ref().err()).collect();
-        assert!(matches!(errors[0], LineError::Checksum { .. }), "{errors:?}");
+        assert!(
+            matches!(errors[0], LineError::Checksum { .. }),
+            "{errors:?}"
+        );
         assert!(matches!(errors[1], LineError::Cut { .. }), "{errors:?}");
         assert!(matches!(errors[2], LineError::NotAscii), "{errors:?}");
         assert!(matches!(errors[3], LineError::TooLong), "{errors:?}");
@@ -308,7 +332,8 @@ mod tests {
         r.level = 0.5;
         r.cct_k = 6504;
         let state = r.state(Vec3::Y, 4.0);
-        let y = 0.2126 * state.intensity.x + 0.7152 * state.intensity.y + 0.0722 * state.intensity.z;
+        let y =
+            0.2126 * state.intensity.x + 0.7152 * state.intensity.y + 0.0722 * state.intensity.z;
         assert!((y - 2.0).abs() < 0.05, "{}", state.intensity);
         r.on = false;
         assert_eq!(r.state(Vec3::Y, 4.0).intensity, Vec3::ZERO);

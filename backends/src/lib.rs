@@ -10,7 +10,6 @@ pub mod lamp_protocol;
 pub mod replay;
 pub mod sim;
 pub mod sources;
-pub mod synthetic;
 
 pub use device::{
     Device, DeviceContext, DeviceError, DeviceRunner, DeviceState, DeviceStatus, RunEnd, Stepper,

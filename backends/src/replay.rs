@@ -129,7 +129,7 @@ impl Restamp {
 
 /// Edit a message's sequence number and stamp in place (the reader hands out unique Arcs, so
 /// this does not copy; a shared one is copied once).
-fn with_frame_header(msg: &mut StreamMessage, f: impl FnOnce(&mut u64, &mut Timestamp)) {
+pub(crate) fn with_frame_header(msg: &mut StreamMessage, f: impl FnOnce(&mut u64, &mut Timestamp)) {
     match msg {
         StreamMessage::Depth(a) | StreamMessage::Color(a) => {
             let frame = Arc::make_mut(a);
@@ -243,30 +243,26 @@ impl Device for Replay {
 mod tests {
     use super::*;
     use crate::device::{Backoff, DeviceRunner, DeviceState};
-    use crate::synthetic::{SyntheticRig, SyntheticSettings};
+    use crate::sim::rig::tests::tiny_scene;
+    use crate::sim::rig::{SimRig, SimSettings, equidistant_probe};
     use relight_core::bus::Bus;
-    use relight_core::recording::{RecordingMeta, RecordingWriter};
 
     fn write_recording(dir: &std::path::Path, frames: u32) -> (PathBuf, Vec<StreamMessage>) {
-        let rig = SyntheticRig::new(SyntheticSettings {
+        let scene = tiny_scene();
+        let mut settings = SimSettings {
             width: 16,
             height: 12,
-            probe_size: 8,
+            color_spp: 1,
             frames,
-            ..SyntheticSettings::default()
-        });
-        let path = dir.join("rec.mcap");
-        let meta = RecordingMeta {
-            calibration: Some(rig.calibration()),
-            source: "test".into(),
+            ..SimSettings::placed_in(&scene)
         };
-        let mut writer = RecordingWriter::create(&path, &meta).unwrap();
-        let messages: Vec<_> = rig.messages().collect();
-        for msg in &messages {
-            writer.write(msg).unwrap();
+        if let Some(probe) = &mut settings.probe {
+            probe.lens = equidistant_probe(8, 185.0);
         }
-        writer.finish().unwrap();
-        (path, messages)
+        let rig = SimRig::new(&scene, settings).unwrap();
+        let path = dir.join("rec.mcap");
+        crate::sim::rig::write_recording(&rig, &path, |_| {}).unwrap();
+        (path, rig.frames().flat_map(|f| f.messages).collect())
     }
 
     fn run_to_end(

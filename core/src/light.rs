@@ -306,11 +306,14 @@ mod tests {
     #[test]
     fn blackbody_colours_follow_the_planckian_locus() {
         // D65 is close to a 6504 K black body: nearly white in sRGB.
-        let d65 = super::blackbody_rgb(6504.0);
-        assert!((d65 - glam::Vec3::splat(d65.y)).abs().max_element() < 0.06, "{d65}");
-        let warm = super::blackbody_rgb(2700.0);
+        let d65 = blackbody_rgb(6504.0);
+        assert!(
+            (d65 - Vec3::splat(d65.y)).abs().max_element() < 0.06,
+            "{d65}"
+        );
+        let warm = blackbody_rgb(2700.0);
         assert!(warm.x > warm.y && warm.y > warm.z, "{warm}");
-        let cold = super::blackbody_rgb(12_000.0);
+        let cold = blackbody_rgb(12_000.0);
         assert!(cold.z > cold.x, "{cold}");
         // Luminance (Rec. 709 weights) is 1.
         for rgb in [d65, warm, cold] {

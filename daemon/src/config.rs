@@ -9,7 +9,7 @@
 //! 3. the raw sections are validated and converted into [`Config`]; each check names its key path,
 //!    and the locator finds that key's position in the text.
 //!
-//! Sources: `[replay]` (an MCAP recording), `[sim]` (the synthetic rig) and the hardware device
+//! Sources: `[replay]` (an MCAP recording), `[sim]` (the simulated rig, live) and the hardware device
 //! sections `[depth]`, `[color]`, `[probe]`, `[markers]`, `[lamp]` are mutually exclusive, because a
 //! recording or the simulator supplies every stream on its own clock. A device section holds
 //! `backend = "..."` (checked against the stream) and free backend settings, which are passed on
@@ -127,7 +127,8 @@ impl ReplayMode {
     }
 }
 
-/// `[sim]`: the synthetic rig. Its settings are validated by the simulator's own config type.
+/// `[sim]`: the simulated rig as a live source. Its settings are validated by
+/// `relight_backends::sim::device::SimSourceConfig`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SimConfig {
     /// The `[sim]` table as a JSON object.

@@ -17,6 +17,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context as _;
 use crossbeam_channel::{Receiver, Sender, bounded};
 use relight_backends::device::{Backoff, DeviceStatus as BackendStatus, Stepper};
+use relight_backends::sim::device::{SimDevice, SimSourceConfig};
 use relight_backends::{Device as _, DeviceRunner, DeviceState, Replay, ReplayConfig, ReplayMode};
 use relight_core::bus::Bus;
 use relight_core::frame::host_now_ns;
@@ -174,10 +175,20 @@ impl Pipeline {
                     Backoff::default(),
                 )?);
             }
-            SourceConfig::Sim(_) => anyhow::bail!(
-                "{}: [sim] sources are not built yet; record one with `relightd synth` and use [replay]",
-                config.path.display()
-            ),
+            SourceConfig::Sim(sim) => {
+                let context = || format!("{}: [sim]", config.path.display());
+                let settings: SimSourceConfig =
+                    serde_json::from_value(sim.settings.clone()).with_context(context)?;
+                let device = SimDevice::new(&settings).with_context(context)?;
+                meta.calibration = Some(device.calibration());
+                expect_only_recorded_streams(&mut sync, &device.streams(), &settings.scene);
+                runners.push(DeviceRunner::spawn(
+                    "sim",
+                    Box::new(device),
+                    bus.clone(),
+                    Backoff::default(),
+                )?);
+            }
             SourceConfig::Devices(devices) => {
                 if let Some((stream, device)) = devices.iter().next() {
                     anyhow::bail!(

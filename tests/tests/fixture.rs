@@ -1,33 +1,77 @@
-//! The bundled demo recording is what `relightd synth` generates (so it can be rebuilt), and it
-//! replays through the bus frame-exact.
+//! The bundled demo recording is what the simulator makes of the desk scene (so it can be
+//! rebuilt, see `scripts/make-demo`), it carries ground truth, and it replays through the bus
+//! frame-exact.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use relight_backends::device::Backoff;
-use relight_backends::synthetic::{SyntheticRig, SyntheticSettings};
+use relight_backends::sim::rig::{CameraPath, SimRig, SimSettings};
 use relight_backends::{DeviceRunner, Replay, ReplayConfig, ReplayMode};
+use relight_core::StreamKind;
 use relight_core::bus::Bus;
 use relight_core::recording::RecordingReader;
+use relight_core::recording::truth::TruthKind;
+use relight_core::scene::Scene;
 
 fn fixture() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/demo.mcap")
 }
 
+/// The settings `scripts/make-demo` passes to `relightd simulate`.
+fn demo_rig() -> SimRig {
+    let scene =
+        Scene::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/desk_box")).unwrap();
+    let settings = SimSettings {
+        frames: 60,
+        truth_every: 3,
+        trajectory: Some(CameraPath::Shake.trajectory(&scene)),
+        ..SimSettings::placed_in(&scene)
+    };
+    SimRig::new(&scene, settings).unwrap()
+}
+
 #[test]
-fn bundled_recording_is_the_synthetic_rig_and_carries_its_calibration() {
+fn bundled_recording_is_the_simulated_desk_with_its_truth() {
     let reader = RecordingReader::open(&fixture()).expect("tests/fixtures/demo.mcap reads");
     assert!(reader.warnings().is_empty(), "{:?}", reader.warnings());
-    let rig = SyntheticRig::new(SyntheticSettings::default());
+    let rig = demo_rig();
     assert_eq!(reader.meta().calibration.as_ref(), Some(&rig.calibration()));
     let recorded: Vec<_> = reader.messages().collect::<Result<_, _>>().unwrap();
-    let generated: Vec<_> = rig.messages().collect();
-    assert_eq!(recorded.len(), generated.len());
-    assert!(
-        recorded == generated,
-        "regenerate with: relightd synth --out tests/fixtures/demo.mcap"
+    let count = |kind| recorded.iter().filter(|m| m.kind() == kind).count();
+    assert_eq!(
+        [
+            StreamKind::Depth,
+            StreamKind::Color,
+            StreamKind::Markers,
+            StreamKind::Probe,
+            StreamKind::Lamp
+        ]
+        .map(count),
+        [60, 60, 60, 20, 20]
     );
+    // Regenerating is minutes of path tracing; the first frame's messages must match exactly.
+    let first = rig.frame(0);
+    for generated in &first.messages {
+        let recorded = recorded
+            .iter()
+            .find(|m| m.kind() == generated.kind() && m.seq() == generated.seq())
+            .unwrap();
+        assert!(
+            recorded == generated,
+            "{} of frame 0 differs; regenerate with scripts/make-demo",
+            generated.kind()
+        );
+    }
+    let truth: Vec<_> = reader.truth().collect::<Result<_, _>>().unwrap();
+    assert_eq!(
+        truth.len(),
+        4 * 20,
+        "depth, normals, albedo and state every third frame"
+    );
+    assert_eq!(truth[..4], first.truth[..], "frame 0's truth");
+    assert!(truth.iter().any(|t| t.kind() == TruthKind::State));
 }
 
 #[test]

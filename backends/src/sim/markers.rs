@@ -167,7 +167,10 @@ impl MarkerBoard {
         if !(col >= 0.0 && row >= 0.0 && col < self.cols as f32 && row < self.rows as f32) {
             return None;
         }
-        let centre = Vec2::new(-w / 2.0 + (col + 0.5) * pitch, h / 2.0 - (row + 0.5) * pitch);
+        let centre = Vec2::new(
+            -w / 2.0 + (col + 0.5) * pitch,
+            h / 2.0 - (row + 0.5) * pitch,
+        );
         let cell = self.tag_size_m / 8.0;
         let local = point_in_board - centre;
         let cx = ((local.x + 5.0 * cell) / cell).floor();
@@ -238,12 +241,9 @@ mod tests {
     #[test]
     fn tag_has_quiet_zone_and_black_border() {
         let cells = tag36h11_cells(0).unwrap();
-        for k in 0..10 {
-            assert!(cells[0][k] && cells[9][k] && cells[k][0] && cells[k][9]);
-        }
-        for k in 1..9 {
-            assert!(!cells[1][k] && !cells[8][k] && !cells[k][1] && !cells[k][8]);
-        }
+        let at = |r: usize, c: usize| cells[r][c];
+        assert!((0..10).all(|k| at(0, k) && at(9, k) && at(k, 0) && at(k, 9)));
+        assert!((1..9).all(|k| !at(1, k) && !at(8, k) && !at(k, 1) && !at(k, 8)));
         let white_data = (2..8)
             .flat_map(|r| (2..8).map(move |c| (r, c)))
             .filter(|&(r, c)| cells[r][c])
@@ -273,10 +273,14 @@ mod tests {
             let centre = tag.world_from_marker.translation.truncate();
             for (r, row) in cells.iter().enumerate() {
                 for (c, &white) in row.iter().enumerate() {
-                    let p = centre
-                        + Vec2::new((c as f32 - 4.5) * cell, (4.5 - r as f32) * cell);
+                    let p = centre + Vec2::new((c as f32 - 4.5) * cell, (4.5 - r as f32) * cell);
                     let expected = if white { 0.8 } else { 0.05 };
-                    assert_eq!(board.albedo_at(p), Some(expected), "tag {} cell {r},{c}", tag.marker_id);
+                    assert_eq!(
+                        board.albedo_at(p),
+                        Some(expected),
+                        "tag {} cell {r},{c}",
+                        tag.marker_id
+                    );
                 }
             }
         }

@@ -8,9 +8,11 @@
 //!   8-bit code), so photometric calibration can be checked against it.
 //! - [`trajectory`]: camera paths (static, slow orbit, hand shake).
 //! - [`markers`]: AprilTag `tag36h11` codes and a printed marker board.
+//! - [`device`]: the rig as a live `[sim]` source of the daemon.
 //! - [`rig`]: all of the above around a [`Scene`](relight_core::scene::Scene): sensor
 //!   messages and ground truth per frame, written to MCAP by [`rig::write_recording`].
 
+pub mod device;
 pub mod kinect;
 pub mod markers;
 pub mod probe;

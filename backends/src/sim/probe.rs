@@ -166,8 +166,22 @@ mod tests {
             Vec3::ZERO,
         );
         let response = CameraResponse::default();
-        let dark = render_probe(&|d| environment_radiance(&env, d), &lens(), &world_from_probe, 1_000, 1.0, &response);
-        let bright = render_probe(&|d| environment_radiance(&env, d), &lens(), &world_from_probe, 100_000, 1.0, &response);
+        let dark = render_probe(
+            &|d| environment_radiance(&env, d),
+            &lens(),
+            &world_from_probe,
+            1_000,
+            1.0,
+            &response,
+        );
+        let bright = render_probe(
+            &|d| environment_radiance(&env, d),
+            &lens(),
+            &world_from_probe,
+            100_000,
+            1.0,
+            &response,
+        );
         let dir_in_probe = world_from_probe.inverse().transform_vector(window_dir);
         let pixel = model()
             .project(optical_from_gl(dir_in_probe.as_dvec3()))

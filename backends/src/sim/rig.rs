@@ -140,6 +140,44 @@ impl Default for SimSettings {
     }
 }
 
+/// Camera paths relative to a scene's camera (what `relightd simulate --trajectory` offers).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CameraPath {
+    /// The scene camera on a tripod.
+    Static,
+    /// The scene camera held by hand: 1 cm and 0.5° of tremor.
+    Shake,
+    /// A slow circle (one turn per 20 s) around the virtual object at the camera's distance
+    /// and height.
+    Orbit,
+}
+
+impl CameraPath {
+    pub fn trajectory(self, scene: &Scene) -> Trajectory {
+        let camera = scene.camera.world_from_camera;
+        match self {
+            CameraPath::Static => Trajectory::Static(camera),
+            CameraPath::Shake => Trajectory::Shake {
+                base: camera,
+                amplitude_m: 0.01,
+                amplitude_deg: 0.5,
+            },
+            CameraPath::Orbit => {
+                let target = scene
+                    .virtual_bounds()
+                    .map_or(camera.translation, |(lo, hi)| (lo + hi) / 2.0);
+                let offset = camera.translation - target;
+                Trajectory::Orbit {
+                    center: target,
+                    radius_m: offset.with_y(0.0).length(),
+                    height_m: offset.y,
+                    period_s: 20.0,
+                }
+            }
+        }
+    }
+}
+
 impl SimSettings {
     /// Settings with the props placed where a lab would put them in `scene`: the probe looking
     /// up from the top of the virtual object's place (where the papers put it), the lamp
@@ -185,13 +223,19 @@ impl SimSettings {
 /// A 2 × 2 tag board lying on the first upward-facing real surface seen at 70 % / 75 % of the
 /// image (right of and below the centre).
 fn board_in_view(scene: &Scene, settings: &SimSettings) -> Option<MarkerBoard> {
-    let probe_rig = SimRig::new(scene, SimSettings {
-        board: None,
-        ..settings.clone()
-    })
+    let probe_rig = SimRig::new(
+        scene,
+        SimSettings {
+            board: None,
+            ..settings.clone()
+        },
+    )
     .ok()?;
     let pose = scene.camera.world_from_camera;
-    let pixel = DVec2::new(0.7 * f64::from(settings.width), 0.75 * f64::from(settings.height));
+    let pixel = DVec2::new(
+        0.7 * f64::from(settings.width),
+        0.75 * f64::from(settings.height),
+    );
     let dir = probe_rig.ray(&pose, pixel);
     let (t, normal, ..) = probe_rig.cast(pose.translation, dir)?;
     (normal.y > 0.95).then(|| {
@@ -362,7 +406,8 @@ impl SimRig {
         let report = LampReport {
             seq: i / lamp.every,
             on: !lamp.off_frames.contains(&i),
-            level: lamp.level * (0.75 + 0.25 * phase.cos()),
+            // The firmware reports (and drives) its level in the protocol's 4 decimals.
+            level: (lamp.level * (0.75 + 0.25 * phase.cos()) * 1e4).round() / 1e4,
             cct_k: lamp.cct_k,
             orientation: None,
         };
@@ -404,9 +449,16 @@ impl SimRig {
             ..self.settings.kinect
         };
         kinect.measure(
-            &surface.kinect_truth(self.settings.width, self.settings.height, &world_from_camera),
+            &surface.kinect_truth(
+                self.settings.width,
+                self.settings.height,
+                &world_from_camera,
+            ),
             &self.camera,
-            self.settings.seed.wrapping_mul(0x9e37_79b9).wrapping_add(seq),
+            self.settings
+                .seed
+                .wrapping_mul(0x9e37_79b9)
+                .wrapping_add(seq),
             &mut depth,
         );
 
@@ -458,10 +510,20 @@ impl SimRig {
         let mut truth = Vec::new();
         if self.settings.truth_every > 0 && i.is_multiple_of(self.settings.truth_every) {
             let stamp = self.stamp(i, 0);
-            let (depth, normals, albedo) = surface.truth_images(self.settings.width, self.settings.height);
-            truth.push(TruthMessage::Image(TruthKind::Depth, Frame::new(seq, stamp, depth)));
-            truth.push(TruthMessage::Image(TruthKind::Normals, Frame::new(seq, stamp, normals)));
-            truth.push(TruthMessage::Image(TruthKind::Albedo, Frame::new(seq, stamp, albedo)));
+            let (depth, normals, albedo) =
+                surface.truth_images(self.settings.width, self.settings.height);
+            truth.push(TruthMessage::Image(
+                TruthKind::Depth,
+                Frame::new(seq, stamp, depth),
+            ));
+            truth.push(TruthMessage::Image(
+                TruthKind::Normals,
+                Frame::new(seq, stamp, normals),
+            ));
+            truth.push(TruthMessage::Image(
+                TruthKind::Albedo,
+                Frame::new(seq, stamp, albedo),
+            ));
             let state = TruthState {
                 world_from_camera,
                 world_from_probe: self.settings.probe.as_ref().map(|p| p.world_from_probe),
@@ -501,7 +563,11 @@ impl SimRig {
         let w = 1.0 - hit.u - hit.v;
         let shading = (tri.normals[0] * w + tri.normals[1] * hit.u + tri.normals[2] * hit.v)
             .normalize_or(tri.geometric_normal);
-        let normal = if shading.dot(dir) > 0.0 { -shading } else { shading };
+        let normal = if shading.dot(dir) > 0.0 {
+            -shading
+        } else {
+            shading
+        };
         let material = self.scene.materials.get(tri.material);
         let albedo = material.map_or(Vec3::ZERO, |m| m.albedo);
         let specular = material.map_or(0.0, |m| luminance(m.specular));
@@ -543,7 +609,13 @@ impl SimRig {
     }
 
     /// Mean albedo over a pixel where the board's print shows in it, `None` where it does not.
-    fn printed_albedo(&self, board: &MarkerBoard, world_from_camera: &Pose, x: u32, y: u32) -> Option<Vec3> {
+    fn printed_albedo(
+        &self,
+        board: &MarkerBoard,
+        world_from_camera: &Pose,
+        x: u32,
+        y: u32,
+    ) -> Option<Vec3> {
         let origin = world_from_camera.translation;
         let n = BOARD_SUPERSAMPLING;
         let mut sum = Vec3::ZERO;
@@ -553,7 +625,10 @@ impl SimRig {
                 (f64::from(s % n) + 0.5) / f64::from(n) - 0.5,
                 (f64::from(s / n) + 0.5) / f64::from(n) - 0.5,
             );
-            let dir = self.ray(world_from_camera, DVec2::new(f64::from(x), f64::from(y)) + offset);
+            let dir = self.ray(
+                world_from_camera,
+                DVec2::new(f64::from(x), f64::from(y)) + offset,
+            );
             let Some((t, _, albedo, _)) = self.cast(origin, dir) else {
                 continue;
             };
@@ -573,7 +648,13 @@ impl SimRig {
     }
 
     /// Path-traced L^μ with the print, exposure, noise and response.
-    fn render_color(&self, i: u32, world_from_camera: &Pose, lights: &[Light], surface: &SurfaceImage) -> Image {
+    fn render_color(
+        &self,
+        i: u32,
+        world_from_camera: &Pose,
+        lights: &[Light],
+        surface: &SurfaceImage,
+    ) -> Image {
         let (w, h) = (self.settings.width, self.settings.height);
         let mut scene = self.scene.clone();
         scene.camera.world_from_camera = *world_from_camera;
@@ -595,7 +676,8 @@ impl SimRig {
                 vec![Vec3::ZERO; w as usize * h as usize]
             }
         };
-        let mut rng = Pcg64Mcg::seed_from_u64(self.settings.seed.wrapping_add(0x51_7cc1) ^ u64::from(i));
+        let mut rng =
+            Pcg64Mcg::seed_from_u64(self.settings.seed.wrapping_add(0x51_7cc1) ^ u64::from(i));
         let unit = Normal::new(0.0f32, 1.0).unwrap_or_else(|_| unreachable!("σ = 1 is valid"));
         let mut image = Image::new(w, h, PixelFormat::Rgb8);
         if let Some(px) = image.as_u8_mut() {
@@ -620,7 +702,11 @@ impl SimRig {
             .environment
             .as_ref()
             .map_or(Vec3::ZERO, |env| environment_radiance(env, dir));
-        let bulb = self.settings.lamp.as_ref().map_or(0.02, |l| l.bulb_radius_m);
+        let bulb = self
+            .settings
+            .lamp
+            .as_ref()
+            .map_or(0.02, |l| l.bulb_radius_m);
         let origin = probe.world_from_probe.translation;
         for light in lights {
             let Some(incident) = light.incident(origin) else {
@@ -752,7 +838,9 @@ impl SurfaceImage {
             normal: self
                 .normal
                 .iter()
-                .map(|nw| optical_from_gl(camera_from_world.transform_vector(*nw).as_dvec3()).as_vec3())
+                .map(|nw| {
+                    optical_from_gl(camera_from_world.transform_vector(*nw).as_dvec3()).as_vec3()
+                })
                 .collect(),
             ir_albedo: self.albedo.iter().map(|a| luminance(*a)).collect(),
             specular: self.specular.clone(),
@@ -817,5 +905,148 @@ pub fn equidistant_probe(size: u32, field_of_view_deg: f64) -> ProbeLens {
             k4: 0.0,
         },
         field_of_view_deg,
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use relight_core::scene::SceneCamera;
+
+    use super::*;
+
+    fn empty_scene() -> Scene {
+        Scene {
+            name: "empty".into(),
+            meshes: Vec::new(),
+            materials: Vec::new(),
+            camera: SceneCamera {
+                world_from_camera: Pose::IDENTITY,
+                yfov_rad: 1.0,
+                width: 8,
+                height: 6,
+            },
+            lights: Vec::new(),
+            environment: None,
+        }
+    }
+
+    /// Integrating the probe's view over the sphere gives each light's irradiance back.
+    #[test]
+    fn light_discs_carry_the_irradiance_of_their_light() {
+        let probe = SimProbe {
+            lens: equidistant_probe(16, 185.0),
+            world_from_probe: Pose::IDENTITY,
+            exposures_us: vec![1],
+            every: 1,
+            exposure_scale: 1.0,
+        };
+        let rig = SimRig::new(&empty_scene(), SimSettings::default()).unwrap();
+        let axis = Vec3::new(0.3, 2.0, -0.4);
+        let lights = [
+            Light::Point {
+                position_in_world: axis,
+                intensity: Vec3::splat(3.0),
+            },
+            Light::Directional {
+                direction_in_world: -axis.normalize(),
+                irradiance: Vec3::splat(5.0),
+            },
+        ];
+        for light in lights {
+            let expected = light.incident(Vec3::ZERO).unwrap().irradiance.x;
+            let (u, v) = axis.normalize().any_orthonormal_pair();
+            let (n_theta, n_phi, max_theta) = (800, 64, 1.5f32.to_radians());
+            let mut sum = 0.0;
+            for i in 0..n_theta {
+                let theta = (i as f32 + 0.5) / n_theta as f32 * max_theta;
+                for j in 0..n_phi {
+                    let phi = (j as f32 + 0.5) / n_phi as f32 * TAU;
+                    let dir = axis.normalize() * theta.cos()
+                        + (u * phi.cos() + v * phi.sin()) * theta.sin();
+                    let d_omega = theta.sin() * (max_theta / n_theta as f32) * (TAU / n_phi as f32);
+                    sum += rig.probe_radiance(&probe, &[light], dir).x * d_omega;
+                }
+            }
+            assert!(
+                (sum - expected).abs() < 0.02 * expected,
+                "{light:?}: {sum} vs {expected}"
+            );
+        }
+    }
+
+    #[test]
+    fn bad_settings_name_the_setting() {
+        let scene = empty_scene();
+        let err = |settings| SimRig::new(&scene, settings).unwrap_err().to_string();
+        assert!(
+            err(SimSettings {
+                fps: 0,
+                ..SimSettings::default()
+            })
+            .contains("fps")
+        );
+        assert!(
+            err(SimSettings {
+                color_spp: 0,
+                ..SimSettings::default()
+            })
+            .contains("color_spp")
+        );
+        assert!(
+            err(SimSettings {
+                exposure: f32::NAN,
+                ..SimSettings::default()
+            })
+            .contains("exposure")
+        );
+        let mut bad_fov = scene.clone();
+        bad_fov.camera.yfov_rad = 0.0;
+        assert!(
+            SimRig::new(&bad_fov, SimSettings::default())
+                .unwrap_err()
+                .to_string()
+                .contains("field of view")
+        );
+    }
+
+    /// A lit floor seen from above at an angle: the smallest scene with every stream.
+    pub(crate) fn tiny_scene() -> Scene {
+        let mut scene = empty_scene();
+        scene.meshes.push(relight_reference::shapes::quad(
+            "floor",
+            Vec3::new(0.0, -1.0, 0.0),
+            Vec3::X * 3.0,
+            -Vec3::Z * 3.0,
+            0,
+            false,
+        ));
+        scene
+            .materials
+            .push(relight_core::scene::Material::default());
+        scene.lights.push(Light::Point {
+            position_in_world: Vec3::new(0.0, 1.0, -1.0),
+            intensity: Vec3::ONE,
+        });
+        scene.camera.world_from_camera =
+            Pose::look_at(Vec3::ZERO, Vec3::new(0.0, -1.0, -2.0), Vec3::Y);
+        scene
+    }
+
+    #[test]
+    fn frames_are_deterministic() {
+        let scene = tiny_scene();
+        let settings = SimSettings {
+            width: 16,
+            height: 12,
+            color_spp: 2,
+            ..SimSettings::placed_in(&scene)
+        };
+        let rig = SimRig::new(&scene, settings).unwrap();
+        assert_eq!(rig.frame(3), rig.frame(3));
+        assert_ne!(
+            rig.frame(1).messages[1],
+            rig.frame(2).messages[1],
+            "noise differs per frame"
+        );
     }
 }

@@ -14,8 +14,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
-use relight_backends::sim::rig::{SimRig, SimSettings, write_recording};
-use relight_backends::sim::trajectory::Trajectory;
+use relight_backends::sim::rig::{CameraPath, SimRig, SimSettings, write_recording};
 use relight_core::scene::Scene;
 use relight_daemon::config::{self, Config, OutputConfig, ReplayConfig, SourceConfig};
 use relight_daemon::control::ControlServer;
@@ -240,27 +239,14 @@ fn run(cli: Cli) -> Result<()> {
                 bail!("--seconds must be positive");
             }
             let mut settings = SimSettings::placed_in(&scene);
-            let camera = scene.camera.world_from_camera;
-            settings.trajectory = Some(match trajectory {
-                TrajectoryKind::Static => Trajectory::Static(camera),
-                TrajectoryKind::Shake => Trajectory::Shake {
-                    base: camera,
-                    amplitude_m: 0.01,
-                    amplitude_deg: 0.5,
-                },
-                TrajectoryKind::Orbit => {
-                    let target = scene
-                        .virtual_bounds()
-                        .map_or(camera.translation, |(lo, hi)| (lo + hi) / 2.0);
-                    let offset = camera.translation - target;
-                    Trajectory::Orbit {
-                        center: target,
-                        radius_m: offset.with_y(0.0).length(),
-                        height_m: offset.y,
-                        period_s: 20.0,
-                    }
+            settings.trajectory = Some(
+                match trajectory {
+                    TrajectoryKind::Static => CameraPath::Static,
+                    TrajectoryKind::Shake => CameraPath::Shake,
+                    TrajectoryKind::Orbit => CameraPath::Orbit,
                 }
-            });
+                .trajectory(&scene),
+            );
             settings.width = width;
             settings.height = height;
             settings.fps = fps;
