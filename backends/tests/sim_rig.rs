@@ -490,3 +490,31 @@ fn props_are_placed_in_view_in_the_shipped_desk_scene() {
         "depth, colour, markers, probe and lamp at frame 0: {kinds:?}"
     );
 }
+
+#[test]
+fn metering_puts_the_bright_end_of_the_image_near_the_top_of_the_response() {
+    let scene = floor_scene();
+    let mut settings = settings(1);
+    settings.exposure = 1e-3; // far too dark before metering
+    settings.color_spp = 8;
+    let rig = SimRig::new(&scene, settings).unwrap().metered();
+    let frame = rig.frame(0);
+    let StreamMessage::Color(color) = &frame.messages[1] else {
+        panic!()
+    };
+    let mut maxima: Vec<u8> = color
+        .payload
+        .as_u8()
+        .unwrap()
+        .chunks_exact(3)
+        .map(|rgb| rgb.iter().copied().max().unwrap())
+        .filter(|&c| c > 0)
+        .collect();
+    maxima.sort_unstable();
+    let p95 = maxima[maxima.len() * 95 / 100];
+    let target = rig.settings().response.to_code(0.8);
+    assert!(
+        p95.abs_diff(target) <= 12,
+        "95th percentile code {p95}, target {target}"
+    );
+}

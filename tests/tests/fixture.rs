@@ -29,7 +29,7 @@ fn demo_rig() -> SimRig {
         trajectory: Some(CameraPath::Shake.trajectory(&scene)),
         ..SimSettings::placed_in(&scene)
     };
-    SimRig::new(&scene, settings).unwrap()
+    SimRig::new(&scene, settings).unwrap().metered()
 }
 
 #[test]

@@ -361,6 +361,64 @@ impl SimRig {
         })
     }
 
+    /// Lock the exposures the way a rig's auto-exposure would before a session: the colour
+    /// camera's so that the 95th percentile of frame 0's radiance (1 spp) lands at 0.8 of the
+    /// response's input, and the probe's so that the brightest direction it sees at frame 0 (a
+    /// window, a lamp's bulb) just stays below saturation in the shortest exposure of the
+    /// bracket. Returns the rig with those exposures.
+    pub fn metered(mut self) -> Self {
+        let world_from_camera = self.world_from_camera(0);
+        let lights = self.lights(0);
+        let mut scene = self.scene.clone();
+        scene.camera.world_from_camera = world_from_camera;
+        scene.lights = lights.clone();
+        let settings = ReferenceSettings {
+            spp: 1,
+            seed: self.settings.seed,
+            size: Some((self.settings.width, self.settings.height)),
+            ..ReferenceSettings::default()
+        };
+        if let Ok(mut renderer) = ReferenceRenderer::new(&scene, settings) {
+            renderer.add_samples(1);
+            let mut values: Vec<f32> = renderer
+                .images()
+                .l_mu
+                .iter()
+                .map(|l| l.max_element())
+                .filter(|v| v.is_finite() && *v > 0.0)
+                .collect();
+            if !values.is_empty() {
+                let k = (values.len() * 95 / 100).min(values.len() - 1);
+                let (_, p95, _) = values.select_nth_unstable_by(k, f32::total_cmp);
+                self.settings.exposure = 0.8 / *p95;
+            }
+        }
+        if let Some(mut probe) = self.settings.probe.clone() {
+            let model = probe.lens.model;
+            let mut brightest = 0.0f32;
+            for y in 0..model.height {
+                for x in 0..model.width {
+                    let Some(ray) = model.unproject(DVec2::new(f64::from(x), f64::from(y))) else {
+                        continue;
+                    };
+                    let dir = probe
+                        .world_from_probe
+                        .transform_vector(relight_core::camera::gl_from_optical(ray).as_vec3());
+                    let radiance = self.probe_radiance(&probe, &lights, dir.normalize());
+                    brightest = brightest.max(radiance.max_element());
+                }
+            }
+            // Discs a pixel cannot resolve are averaged down by the sensor; the unresolved peak
+            // may saturate, which is what a real bracket does with a bulb too.
+            let shortest_s = probe.exposures_us.iter().copied().min().unwrap_or(1) as f32 * 1e-6;
+            if brightest.is_finite() && brightest > 0.0 {
+                probe.exposure_scale = 0.9 / (brightest * shortest_s);
+                self.settings.probe = Some(probe);
+            }
+        }
+        self
+    }
+
     pub fn settings(&self) -> &SimSettings {
         &self.settings
     }

@@ -121,6 +121,10 @@ enum Command {
         /// Leave out the fish-eye probe.
         #[arg(long)]
         no_probe: bool,
+        /// Keep the fixed exposures (colour 1.0, probe scale 1.0) instead of metering them on
+        /// the first frame.
+        #[arg(long)]
+        no_auto_exposure: bool,
     },
     /// Validate a configuration file and print it as understood.
     CheckConfig,
@@ -233,6 +237,7 @@ fn run(cli: Cli) -> Result<()> {
             no_board,
             no_lamp,
             no_probe,
+            no_auto_exposure,
         } => {
             let scene = Scene::load(&scene)?;
             if !(seconds.is_finite() && seconds > 0.0) {
@@ -263,7 +268,7 @@ fn run(cli: Cli) -> Result<()> {
             if no_probe {
                 settings.probe = None;
             }
-            simulate(&scene, settings, &out)
+            simulate(&scene, settings, !no_auto_exposure, &out)
         }
         Command::Render {
             scene,
@@ -387,9 +392,17 @@ fn record(config: Config, out: &Path, seconds: Option<Duration>) -> Result<()> {
     Ok(())
 }
 
-fn simulate(scene: &Scene, settings: SimSettings, out: &Path) -> Result<()> {
+fn simulate(scene: &Scene, settings: SimSettings, auto_exposure: bool, out: &Path) -> Result<()> {
     let frames = settings.frames;
-    let rig = SimRig::new(scene, settings)?;
+    let mut rig = SimRig::new(scene, settings)?;
+    if auto_exposure {
+        rig = rig.metered();
+        let probe_scale = rig.settings().probe.as_ref().map(|p| p.exposure_scale);
+        eprintln!(
+            "metered exposure: colour {:.4}, probe scale {probe_scale:?}",
+            rig.settings().exposure
+        );
+    }
     let started = Instant::now();
     let summary = write_recording(&rig, out, |i| {
         if (i + 1) % 10 == 0 || i + 1 == frames {
