@@ -483,6 +483,7 @@ impl RenderLoop<'_> {
             seq,
             color: set.color.clone(),
             depth: set.depth.clone(),
+            scene: None,
         };
         let start = Instant::now();
         let rendered = self.engine.render(&scene, &mut self.relit);

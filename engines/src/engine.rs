@@ -3,7 +3,10 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use relight_core::scene::Scene;
 use relight_core::{Frame, Image, PixelFormat, Timestamp};
+
+use crate::gpu::GpuError;
 
 /// What every engine renders from: the synchronised sensor data of one instant.
 ///
@@ -19,6 +22,11 @@ pub struct SceneFrame {
     pub color: Option<Arc<Frame<Image>>>,
     /// Depth registered to the colour camera, metres or millimetres.
     pub depth: Option<Arc<Frame<Image>>>,
+    /// The scene the GPU engines relight: the real geometry (a scene's meshes offline, the
+    /// depth-derived surface live), the virtual object(s), the lights and the camera (its pose
+    /// and vertical field of view; the image size is the colour image's). Engines cache their
+    /// upload by `Arc` identity, so share one `Arc` while the scene does not change.
+    pub scene: Option<Arc<Scene>>,
 }
 
 /// How long one pass of an engine took, wall clock (GPU timestamp queries where available).
@@ -72,6 +80,16 @@ pub enum EngineError {
     },
     #[error(transparent)]
     Params(#[from] crate::params::ParamError),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+    #[error("engine `{engine}`: the lights need {faces} shadow-map faces, at most {max} fit")]
+    TooManyLights {
+        engine: &'static str,
+        faces: u32,
+        max: u32,
+    },
+    #[error("internal: shading before the frame was prepared")]
+    NotPrepared,
 }
 
 /// A relighting engine. Built off the render thread by the registry and swapped in between

@@ -5,9 +5,15 @@
 //! `depth_preview`); the GPU context, reconstruction and the paper engines (differential, DLPV,
 //! DVCT, DIR, IBL) plug into the same trait and registry.
 
+pub mod deferred;
+pub mod differential;
 pub mod engine;
+pub mod gbuffer;
+pub mod gpu;
+pub mod gpu_scene;
 pub mod params;
 pub mod registry;
+pub mod shaders;
 
 mod depth_preview;
 mod passthrough;

@@ -173,6 +173,16 @@ pub fn get_f64(params: &Map<String, Value>, name: &str, default: f64) -> f64 {
     params.get(name).and_then(Value::as_f64).unwrap_or(default)
 }
 
+/// Read an integer parameter that [`ParamsSchema::validate`] has already checked.
+pub fn get_i64(params: &Map<String, Value>, name: &str, default: i64) -> i64 {
+    params.get(name).and_then(Value::as_i64).unwrap_or(default)
+}
+
+/// Read a choice parameter that [`ParamsSchema::validate`] has already checked.
+pub fn get_str<'a>(params: &'a Map<String, Value>, name: &str, default: &'a str) -> &'a str {
+    params.get(name).and_then(Value::as_str).unwrap_or(default)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

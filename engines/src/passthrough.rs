@@ -79,6 +79,7 @@ mod tests {
             seq: 7,
             color: Some(Arc::new(Frame::new(7, Timestamp::new(1, 2), image))),
             depth: None,
+            scene: None,
         }
     }
 

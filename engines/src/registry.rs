@@ -1,10 +1,14 @@
 //! Engines by name: what the control socket lists, and how a new engine is built off the render
 //! thread with validated parameters before it is swapped in.
 
+use std::sync::Arc;
+
 use serde_json::{Map, Value};
 
 use crate::depth_preview::DepthPreview;
+use crate::differential::Differential;
 use crate::engine::Engine;
+use crate::gpu::{GpuError, SharedGpu};
 use crate::params::{ParamError, ParamsSchema};
 use crate::passthrough::Passthrough;
 
@@ -14,7 +18,9 @@ pub struct EngineSpec {
     pub name: &'static str,
     pub description: &'static str,
     pub schema: ParamsSchema,
-    build: fn() -> Box<dyn Engine>,
+    /// Whether it runs on the GPU (and so needs an adapter).
+    pub gpu: bool,
+    build: fn(&SharedGpu) -> Result<Box<dyn Engine>, GpuError>,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -23,6 +29,12 @@ pub enum RegistryError {
     UnknownEngine { name: String, known: String },
     #[error(transparent)]
     Params(#[from] ParamError),
+    #[error("engine `{name}`: {source}")]
+    Gpu {
+        name: String,
+        #[source]
+        source: GpuError,
+    },
 }
 
 /// An engine built by the registry, with the full parameter set it runs with.
@@ -40,10 +52,12 @@ impl std::fmt::Debug for BuiltEngine {
     }
 }
 
-/// All engines this build knows.
+/// All engines this build knows, and the GPU context they share (created when the first GPU
+/// engine is built, recreated after a device loss).
 #[derive(Debug, Clone)]
 pub struct EngineRegistry {
     specs: Vec<EngineSpec>,
+    gpu: Arc<SharedGpu>,
 }
 
 impl Default for EngineRegistry {
@@ -60,15 +74,25 @@ impl EngineRegistry {
                     name: Passthrough::NAME,
                     description: "camera image unchanged (Δ = 0); the pipeline's reference path",
                     schema: Passthrough::schema(),
-                    build: || Box::new(Passthrough::default()),
+                    gpu: false,
+                    build: |_| Ok(Box::new(Passthrough::default())),
                 },
                 EngineSpec {
                     name: DepthPreview::NAME,
                     description: "depth colour-mapped over the camera image (Δ = 0); checks registration",
                     schema: DepthPreview::schema(),
-                    build: || Box::new(DepthPreview::default()),
+                    gpu: false,
+                    build: |_| Ok(Box::new(DepthPreview::default())),
+                },
+                EngineSpec {
+                    name: Differential::NAME,
+                    description: "direct light only, shadow maps with and without the object (the no-indirect baseline)",
+                    schema: Differential::schema(),
+                    gpu: true,
+                    build: |gpu| Ok(Box::new(Differential::new(gpu.get()?)?)),
                 },
             ],
+            gpu: Arc::new(SharedGpu::default()),
         }
     }
 
@@ -98,7 +122,10 @@ impl EngineRegistry {
     ) -> Result<BuiltEngine, RegistryError> {
         let spec = self.spec(name)?;
         let params = spec.schema.validate(&spec.schema.defaults(), params)?;
-        let mut engine = (spec.build)();
+        let mut engine = (spec.build)(&self.gpu).map_err(|source| RegistryError::Gpu {
+            name: name.to_owned(),
+            source,
+        })?;
         engine.set_params(&params);
         Ok(BuiltEngine { engine, params })
     }
@@ -116,7 +143,7 @@ mod tests {
             .unwrap();
         assert_eq!(
             err.to_string(),
-            "unknown engine `dlvp`; known engines: passthrough, depth_preview"
+            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential"
         );
     }
 

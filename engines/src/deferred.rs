@@ -1,0 +1,508 @@
+//! The passes every GPU engine shares, per frame: upload the scene (when it changed), the camera,
+//! the lights and the background; rasterise the ρ and μ G-buffers and the R^ρ and R^μ reflective
+//! shadow maps; and, after the engine's own passes have written its indirect term, shade and
+//! composite (`shaders/shade.wgsl`) and read Δ and the composite back into the [`RelitFrame`].
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bytemuck::{Pod, Zeroable};
+use relight_core::scene::Scene;
+use relight_core::{Image, PixelFormat};
+use wgpu::util::DeviceExt;
+
+use crate::engine::{EngineError, PassTiming, RelitFrame, SceneFrame};
+use crate::gbuffer::{GBufferPass, RsmPass, Targets};
+use crate::gpu::GpuContext;
+use crate::gpu_scene::{GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, light_faces};
+use crate::shaders;
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct ShadeParams {
+    size: [u32; 4],
+    options: [f32; 4],
+}
+
+/// How the final pass treats the direct light on real pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ShadeOptions {
+    /// Shadow-map bias in texels.
+    pub shadow_bias_texels: f32,
+    /// Add the shadow-mapped direct Δ on real pixels (the differential baseline); engines that
+    /// carry shadows as antiradiance in their indirect term turn it off.
+    pub direct_delta: bool,
+}
+
+/// Per-size resources: G-buffers, background, outputs and their staging copies.
+#[derive(Debug)]
+struct FrameResources {
+    width: u32,
+    height: u32,
+    gb_rho: Targets,
+    gb_mu: Targets,
+    background: wgpu::Texture,
+    indirect: wgpu::Buffer,
+    delta: wgpu::Buffer,
+    composite: wgpu::Buffer,
+    delta_staging: wgpu::Buffer,
+    composite_staging: wgpu::Buffer,
+}
+
+/// Per-light-set resources: the shadow maps and the light/face buffers.
+#[derive(Debug)]
+struct LightResources {
+    rsm_size: u32,
+    layers: u32,
+    rsm_rho: Targets,
+    rsm_mu: Targets,
+    lights: wgpu::Buffer,
+    faces: wgpu::Buffer,
+}
+
+/// The shared passes and their resources; engines own one.
+#[derive(Debug)]
+pub struct Deferred {
+    ctx: Arc<GpuContext>,
+    gbuffer: GBufferPass,
+    rsm: RsmPass,
+    shade: wgpu::ComputePipeline,
+    camera: wgpu::Buffer,
+    params: wgpu::Buffer,
+    scene: Option<(Arc<Scene>, GpuScene)>,
+    frame: Option<FrameResources>,
+    light: Option<LightResources>,
+    light_count: u32,
+    rgba: Vec<u8>,
+    lights_cpu: Vec<GpuLight>,
+    faces_cpu: Vec<GpuFace>,
+}
+
+const MAX_LAYERS: u32 = 64;
+
+impl Deferred {
+    pub fn new(ctx: Arc<GpuContext>) -> Self {
+        let shade_module = shaders::module(&ctx.device, "shade", shaders::SHADE);
+        let shade = ctx
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("shade"),
+                layout: None,
+                module: &shade_module,
+                entry_point: Some("main"),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+        let uniform = |label, size| {
+            ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        Self {
+            gbuffer: GBufferPass::new(&ctx),
+            rsm: RsmPass::new(&ctx),
+            shade,
+            camera: uniform("camera", size_of::<GpuCamera>() as u64),
+            params: uniform("shade params", size_of::<ShadeParams>() as u64),
+            scene: None,
+            frame: None,
+            light: None,
+            light_count: 0,
+            rgba: Vec::new(),
+            lights_cpu: Vec::new(),
+            faces_cpu: Vec::new(),
+            ctx,
+        }
+    }
+
+    pub fn ctx(&self) -> &Arc<GpuContext> {
+        &self.ctx
+    }
+
+    /// Check a shadow-map size against the adapter before it is used.
+    pub fn check_rsm_size(ctx: &GpuContext, rsm_size: u32) -> Result<(), EngineError> {
+        ctx.require("max_texture_dimension_2d", u64::from(rsm_size), "rsm_size")?;
+        Ok(())
+    }
+
+    /// Upload what changed for this frame and rasterise the G-buffers and shadow maps.
+    /// Returns the colour image's size.
+    pub fn prepare(
+        &mut self,
+        engine: &'static str,
+        frame: &SceneFrame,
+        out: &mut RelitFrame,
+        rsm_size: u32,
+    ) -> Result<(u32, u32), EngineError> {
+        let color = out.begin(engine, frame)?;
+        let scene = frame.scene.as_ref().ok_or(EngineError::MissingInput {
+            engine,
+            stream: "scene",
+        })?;
+        let (width, height) = (color.width(), color.height());
+        let ctx = self.ctx.clone();
+        ctx.require(
+            "max_texture_dimension_2d",
+            u64::from(width.max(height)),
+            "the camera resolution",
+        )?;
+        Self::check_rsm_size(&ctx, rsm_size)?;
+
+        let started = Instant::now();
+        if !self
+            .scene
+            .as_ref()
+            .is_some_and(|(s, _)| Arc::ptr_eq(s, scene))
+        {
+            self.scene = Some((scene.clone(), GpuScene::new(&ctx, scene)));
+            self.light = None;
+        }
+        let Some((_, gpu_scene)) = &self.scene else {
+            unreachable!("uploaded above")
+        };
+        let bounds = gpu_scene.bounds;
+        if !self
+            .frame
+            .as_ref()
+            .is_some_and(|f| f.width == width && f.height == height)
+        {
+            self.frame = Some(FrameResources::new(&ctx, width, height));
+        }
+        (self.lights_cpu, self.faces_cpu) = light_faces(&scene.lights, bounds, rsm_size);
+        let layers = (self.faces_cpu.len() as u32).max(1);
+        ctx.require(
+            "max_texture_array_layers",
+            u64::from(layers),
+            "the number of lights",
+        )?;
+        if layers > MAX_LAYERS {
+            return Err(EngineError::TooManyLights {
+                engine,
+                faces: layers,
+                max: MAX_LAYERS,
+            });
+        }
+        if !self
+            .light
+            .as_ref()
+            .is_some_and(|l| l.rsm_size == rsm_size && l.layers == layers)
+        {
+            self.light = Some(LightResources::new(&ctx, rsm_size, layers));
+        }
+        self.light_count = self.lights_cpu.len() as u32;
+        let (Some(frame_res), Some(light_res)) = (&self.frame, &self.light) else {
+            unreachable!("created above")
+        };
+        if !self.lights_cpu.is_empty() {
+            ctx.queue
+                .write_buffer(&light_res.lights, 0, bytemuck::cast_slice(&self.lights_cpu));
+            ctx.queue
+                .write_buffer(&light_res.faces, 0, bytemuck::cast_slice(&self.faces_cpu));
+        }
+        let camera = camera_uniform(&scene.camera, width, height, bounds);
+        ctx.queue
+            .write_buffer(&self.camera, 0, bytemuck::bytes_of(&camera));
+        self.rgba.clear();
+        if let Some(rgb) = color.as_u8() {
+            for px in rgb.chunks_exact(3) {
+                self.rgba.extend_from_slice(&[px[0], px[1], px[2], 255]);
+            }
+        }
+        ctx.queue.write_texture(
+            frame_res.background.as_image_copy(),
+            &self.rgba,
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(4 * width),
+                rows_per_image: Some(height),
+            },
+            frame_res.background.size(),
+        );
+
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("geometry"),
+            });
+        let camera_group = self.gbuffer.bind_group(&ctx, &self.camera, gpu_scene);
+        for (include_virtual, targets) in [(true, &frame_res.gb_rho), (false, &frame_res.gb_mu)] {
+            self.gbuffer.render(
+                &mut encoder,
+                &camera_group,
+                gpu_scene,
+                include_virtual,
+                targets,
+            );
+        }
+        if !self.faces_cpu.is_empty() {
+            let rsm_group =
+                self.rsm
+                    .bind_group(&ctx, &light_res.lights, &light_res.faces, gpu_scene);
+            for (include_virtual, targets) in
+                [(true, &light_res.rsm_rho), (false, &light_res.rsm_mu)]
+            {
+                self.rsm.render(
+                    &mut encoder,
+                    &rsm_group,
+                    gpu_scene,
+                    include_virtual,
+                    targets,
+                    self.faces_cpu.len() as u32,
+                );
+            }
+        }
+        encoder.clear_buffer(&frame_res.indirect, 0, None);
+        ctx.queue.submit([encoder.finish()]);
+        ctx.check()?;
+        out.timings.push(PassTiming {
+            pass: "geometry",
+            ms: started.elapsed().as_secs_f64() * 1e3,
+        });
+        Ok((width, height))
+    }
+
+    /// The uploaded scene (after [`prepare`](Self::prepare)).
+    pub fn scene(&self) -> Option<&GpuScene> {
+        self.scene.as_ref().map(|(_, s)| s)
+    }
+
+    pub fn lights(&self) -> &[GpuLight] {
+        &self.lights_cpu
+    }
+
+    pub fn faces(&self) -> &[GpuFace] {
+        &self.faces_cpu
+    }
+
+    /// The light and face buffers and the R^ρ / R^μ targets (after `prepare`).
+    pub fn light_buffers(&self) -> Option<(&wgpu::Buffer, &wgpu::Buffer, &Targets, &Targets)> {
+        self.light
+            .as_ref()
+            .map(|l| (&l.lights, &l.faces, &l.rsm_rho, &l.rsm_mu))
+    }
+
+    /// The ρ and μ G-buffers and the per-pixel indirect buffer engines write (after `prepare`).
+    pub fn frame_buffers(&self) -> Option<(&Targets, &Targets, &wgpu::Buffer)> {
+        self.frame
+            .as_ref()
+            .map(|f| (&f.gb_rho, &f.gb_mu, &f.indirect))
+    }
+
+    pub fn camera(&self) -> &wgpu::Buffer {
+        &self.camera
+    }
+
+    /// Shade, composite and read back into `out`.
+    pub fn finish(
+        &mut self,
+        options: ShadeOptions,
+        out: &mut RelitFrame,
+    ) -> Result<(), EngineError> {
+        let started = Instant::now();
+        let ctx = self.ctx.clone();
+        let (Some(frame_res), Some(light_res), Some((_, gpu_scene))) =
+            (&self.frame, &self.light, &self.scene)
+        else {
+            return Err(EngineError::NotPrepared);
+        };
+        let (width, height) = (frame_res.width, frame_res.height);
+        let params = ShadeParams {
+            size: [width, height, self.light_count, light_res.rsm_size],
+            options: [
+                options.shadow_bias_texels,
+                if options.direct_delta { 1.0 } else { 0.0 },
+                0.0,
+                0.0,
+            ],
+        };
+        ctx.queue
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        let view = Targets::view;
+        let array = Targets::array_view;
+        let views = [
+            view(&frame_res.gb_rho.position),
+            view(&frame_res.gb_rho.normal),
+            view(&frame_res.gb_rho.albedo),
+            view(&frame_res.gb_mu.position),
+            view(&frame_res.gb_mu.normal),
+            view(&frame_res.gb_mu.albedo),
+            array(&light_res.rsm_rho.position),
+            array(&light_res.rsm_mu.position),
+            view(&frame_res.background),
+        ];
+        let mut entries = vec![
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: self.params.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: self.camera.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 2,
+                resource: light_res.lights.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 3,
+                resource: light_res.faces.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 4,
+                resource: gpu_scene.materials.as_entire_binding(),
+            },
+        ];
+        for (i, v) in views.iter().enumerate() {
+            entries.push(wgpu::BindGroupEntry {
+                binding: 5 + i as u32,
+                resource: wgpu::BindingResource::TextureView(v),
+            });
+        }
+        for (binding, buffer) in [
+            (14, &frame_res.indirect),
+            (15, &frame_res.delta),
+            (16, &frame_res.composite),
+        ] {
+            entries.push(wgpu::BindGroupEntry {
+                binding,
+                resource: buffer.as_entire_binding(),
+            });
+        }
+        let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("shade"),
+            layout: &self.shade.get_bind_group_layout(0),
+            entries: &entries,
+        });
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("shade"),
+            });
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("shade"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.shade);
+            pass.set_bind_group(0, &group, &[]);
+            pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+        }
+        ctx.queue.submit([encoder.finish()]);
+        let pixels = u64::from(width) * u64::from(height);
+        ctx.read_back(
+            &frame_res.delta,
+            &frame_res.delta_staging,
+            pixels * 16,
+            |bytes| {
+                write_delta(bytes, &mut out.delta);
+            },
+        )?;
+        ctx.read_back(
+            &frame_res.composite,
+            &frame_res.composite_staging,
+            pixels * 4,
+            |bytes| write_composite(bytes, &mut out.composite),
+        )?;
+        out.timings.push(PassTiming {
+            pass: "shade+readback",
+            ms: started.elapsed().as_secs_f64() * 1e3,
+        });
+        Ok(())
+    }
+}
+
+/// Linear f32 RGBA → the frame's Rgba16F Δ; non-finite values become 0 (they never should).
+fn write_delta(bytes: &[u8], delta: &mut Image) {
+    let Some(out) = delta.as_u16_mut() else {
+        return;
+    };
+    for (o, chunk) in out.iter_mut().zip(bytes.chunks_exact(4)) {
+        let v = f32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
+        let v = if v.is_finite() { v } else { 0.0 };
+        *o = half::f16::from_f32(v).to_bits();
+    }
+    // Alpha is 1 where Δ is defined (everywhere).
+    for px in out.chunks_exact_mut(4) {
+        px[3] = half::f16::ONE.to_bits();
+    }
+}
+
+fn write_composite(bytes: &[u8], composite: &mut Image) {
+    debug_assert_eq!(composite.format(), PixelFormat::Rgb8);
+    let Some(out) = composite.as_u8_mut() else {
+        return;
+    };
+    for (o, px) in out.chunks_exact_mut(3).zip(bytes.chunks_exact(4)) {
+        o.copy_from_slice(&px[..3]);
+    }
+}
+
+impl FrameResources {
+    fn new(ctx: &GpuContext, width: u32, height: u32) -> Self {
+        let pixels = u64::from(width) * u64::from(height);
+        let buffer = |label, size, usage| {
+            ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        use wgpu::BufferUsages as U;
+        Self {
+            width,
+            height,
+            gb_rho: Targets::new(ctx, "g-buffer ρ", width, height, 1),
+            gb_mu: Targets::new(ctx, "g-buffer μ", width, height, 1),
+            background: ctx.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some("background"),
+                size: wgpu::Extent3d {
+                    width,
+                    height,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: wgpu::TextureFormat::Rgba8Unorm,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                view_formats: &[],
+            }),
+            indirect: buffer("indirect", pixels * 16, U::STORAGE | U::COPY_DST),
+            delta: buffer("delta", pixels * 16, U::STORAGE | U::COPY_SRC),
+            composite: buffer("composite", pixels * 4, U::STORAGE | U::COPY_SRC),
+            delta_staging: buffer("delta staging", pixels * 16, U::MAP_READ | U::COPY_DST),
+            composite_staging: buffer("composite staging", pixels * 4, U::MAP_READ | U::COPY_DST),
+        }
+    }
+}
+
+impl LightResources {
+    fn new(ctx: &GpuContext, rsm_size: u32, layers: u32) -> Self {
+        let storage = |label, contents: &[u8]| {
+            ctx.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents,
+                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                })
+        };
+        Self {
+            rsm_size,
+            layers,
+            rsm_rho: Targets::new(ctx, "R^ρ", rsm_size, rsm_size, layers),
+            rsm_mu: Targets::new(ctx, "R^μ", rsm_size, rsm_size, layers),
+            lights: storage(
+                "lights",
+                bytemuck::cast_slice(&vec![GpuLight::zeroed(); layers as usize]),
+            ),
+            faces: storage(
+                "faces",
+                bytemuck::cast_slice(&vec![GpuFace::zeroed(); layers as usize]),
+            ),
+        }
+    }
+}

@@ -1,0 +1,305 @@
+//! The camera G-buffer (world position + material, normal + virtual flag, albedo) and the
+//! reflective shadow maps, both rasterised from the [`GpuScene`] in a ρ variant (every mesh) and
+//! a μ variant (real meshes only).
+
+use crate::gpu::GpuContext;
+use crate::gpu_scene::{GpuScene, GpuVertex};
+use crate::shaders;
+
+const POSITION: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
+const NORMAL: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+const ALBEDO: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+
+/// Three colour targets (position, normal, albedo) and a depth buffer, `layers` deep.
+#[derive(Debug)]
+pub struct Targets {
+    pub width: u32,
+    pub height: u32,
+    pub layers: u32,
+    pub position: wgpu::Texture,
+    pub normal: wgpu::Texture,
+    pub albedo: wgpu::Texture,
+    depth: wgpu::Texture,
+}
+
+impl Targets {
+    pub fn new(ctx: &GpuContext, label: &str, width: u32, height: u32, layers: u32) -> Self {
+        let texture = |format, suffix: &str, layers: u32| {
+            ctx.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(&format!("{label} {suffix}")),
+                size: wgpu::Extent3d {
+                    width,
+                    height,
+                    depth_or_array_layers: layers,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+                    | wgpu::TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            })
+        };
+        Self {
+            width,
+            height,
+            layers,
+            position: texture(POSITION, "position", layers),
+            normal: texture(NORMAL, "normal", layers),
+            albedo: texture(ALBEDO, "albedo", layers),
+            depth: texture(DEPTH, "depth", 1),
+        }
+    }
+
+    /// View of all layers as an array (for sampling in compute passes).
+    pub fn array_view(texture: &wgpu::Texture) -> wgpu::TextureView {
+        texture.create_view(&wgpu::TextureViewDescriptor {
+            dimension: Some(wgpu::TextureViewDimension::D2Array),
+            ..Default::default()
+        })
+    }
+
+    pub fn view(texture: &wgpu::Texture) -> wgpu::TextureView {
+        texture.create_view(&wgpu::TextureViewDescriptor::default())
+    }
+
+    fn layer_view(texture: &wgpu::Texture, layer: u32) -> wgpu::TextureView {
+        texture.create_view(&wgpu::TextureViewDescriptor {
+            dimension: Some(wgpu::TextureViewDimension::D2),
+            base_array_layer: layer,
+            array_layer_count: Some(1),
+            ..Default::default()
+        })
+    }
+
+    /// Clear layer `layer` (position w to `empty_w`) and draw `vertices` of `scene` into it,
+    /// with `instance` as the draw's instance index.
+    #[allow(clippy::too_many_arguments)]
+    fn draw(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        pipeline: &wgpu::RenderPipeline,
+        bind_group: &wgpu::BindGroup,
+        scene: &GpuScene,
+        vertices: u32,
+        layer: u32,
+        empty_w: f64,
+    ) {
+        let views =
+            [&self.position, &self.normal, &self.albedo].map(|t| Self::layer_view(t, layer));
+        let clears = [
+            wgpu::Color {
+                r: 0.0,
+                g: 0.0,
+                b: 0.0,
+                a: empty_w,
+            },
+            wgpu::Color::TRANSPARENT,
+            wgpu::Color::TRANSPARENT,
+        ];
+        let attachments: Vec<Option<wgpu::RenderPassColorAttachment>> = views
+            .iter()
+            .zip(clears)
+            .map(|(view, clear)| {
+                Some(wgpu::RenderPassColorAttachment {
+                    view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(clear),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })
+            })
+            .collect();
+        let depth_view = Self::view(&self.depth);
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("g-buffer"),
+            color_attachments: &attachments,
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: &depth_view,
+                depth_ops: Some(wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(1.0),
+                    store: wgpu::StoreOp::Discard,
+                }),
+                stencil_ops: None,
+            }),
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        if vertices > 0 {
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, bind_group, &[]);
+            pass.set_vertex_buffer(0, scene.vertices.slice(..));
+            pass.draw(0..vertices, layer..layer + 1);
+        }
+    }
+}
+
+fn raster_pipeline(ctx: &GpuContext, label: &str, source: &str) -> wgpu::RenderPipeline {
+    let module = shaders::module(&ctx.device, label, source);
+    let target = |format| {
+        Some(wgpu::ColorTargetState {
+            format,
+            blend: None,
+            write_mask: wgpu::ColorWrites::ALL,
+        })
+    };
+    ctx.device
+        .create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some(label),
+            layout: None,
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs_main"),
+                compilation_options: Default::default(),
+                buffers: &[Some(GpuVertex::LAYOUT)],
+            },
+            primitive: wgpu::PrimitiveState {
+                topology: wgpu::PrimitiveTopology::TriangleList,
+                cull_mode: None,
+                ..Default::default()
+            },
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH,
+                depth_write_enabled: Some(true),
+                depth_compare: Some(wgpu::CompareFunction::Less),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some("fs_main"),
+                compilation_options: Default::default(),
+                targets: &[target(POSITION), target(NORMAL), target(ALBEDO)],
+            }),
+            multiview_mask: None,
+            cache: None,
+        })
+}
+
+/// The camera G-buffer pass.
+#[derive(Debug)]
+pub struct GBufferPass {
+    pipeline: wgpu::RenderPipeline,
+}
+
+impl GBufferPass {
+    pub fn new(ctx: &GpuContext) -> Self {
+        Self {
+            pipeline: raster_pipeline(ctx, "gbuffer", shaders::GBUFFER),
+        }
+    }
+
+    pub fn bind_group(
+        &self,
+        ctx: &GpuContext,
+        camera: &wgpu::Buffer,
+        scene: &GpuScene,
+    ) -> wgpu::BindGroup {
+        ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("gbuffer"),
+            layout: &self.pipeline.get_bind_group_layout(0),
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: camera.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: scene.materials.as_entire_binding(),
+                },
+            ],
+        })
+    }
+
+    pub fn render(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        bind_group: &wgpu::BindGroup,
+        scene: &GpuScene,
+        include_virtual: bool,
+        targets: &Targets,
+    ) {
+        targets.draw(
+            encoder,
+            &self.pipeline,
+            bind_group,
+            scene,
+            scene.vertex_count(include_virtual),
+            0,
+            0.0,
+        );
+    }
+}
+
+/// The reflective-shadow-map pass: one layer per light face.
+#[derive(Debug)]
+pub struct RsmPass {
+    pipeline: wgpu::RenderPipeline,
+}
+
+/// Position w of a shadow-map texel that saw nothing (`FAR` in the shaders).
+const RSM_EMPTY_DISTANCE: f64 = 3.0e38;
+
+impl RsmPass {
+    pub fn new(ctx: &GpuContext) -> Self {
+        Self {
+            pipeline: raster_pipeline(ctx, "rsm", shaders::RSM),
+        }
+    }
+
+    pub fn bind_group(
+        &self,
+        ctx: &GpuContext,
+        lights: &wgpu::Buffer,
+        faces: &wgpu::Buffer,
+        scene: &GpuScene,
+    ) -> wgpu::BindGroup {
+        ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("rsm"),
+            layout: &self.pipeline.get_bind_group_layout(0),
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: lights.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: faces.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: scene.materials.as_entire_binding(),
+                },
+            ],
+        })
+    }
+
+    /// Render every face (layer) of `targets`.
+    pub fn render(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        bind_group: &wgpu::BindGroup,
+        scene: &GpuScene,
+        include_virtual: bool,
+        targets: &Targets,
+        faces: u32,
+    ) {
+        for face in 0..faces.min(targets.layers) {
+            targets.draw(
+                encoder,
+                &self.pipeline,
+                bind_group,
+                scene,
+                scene.vertex_count(include_virtual),
+                face,
+                RSM_EMPTY_DISTANCE,
+            );
+        }
+    }
+}

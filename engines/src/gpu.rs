@@ -1,0 +1,386 @@
+//! The GPU context every engine shares: adapter choice, device creation, limit checks with
+//! errors that name the setting to lower, device-loss detection, and buffer readback.
+//!
+//! Adapter choice: `RELIGHT_ADAPTER` (a case-insensitive substring of the adapter's name, or
+//! `#N` for the N-th adapter as listed in the error message) forces one; otherwise a discrete GPU
+//! is preferred, then an integrated one, then a virtual one, then a CPU implementation
+//! (lavapipe, llvmpipe). OpenGL adapters are only considered when no Vulkan driver is installed. Machines without a GPU run on
+//! lavapipe (Debian `mesa-vulkan-drivers`), which is real Vulkan on the CPU.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+
+/// Environment variable that forces an adapter.
+pub const ADAPTER_ENV: &str = "RELIGHT_ADAPTER";
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GpuError {
+    #[error(
+        "no GPU adapter found (neither Vulkan nor OpenGL): install your GPU's driver, or the \
+         Debian package `mesa-vulkan-drivers` for lavapipe, a Vulkan driver that runs on the CPU"
+    )]
+    NoAdapter,
+    #[error("{ADAPTER_ENV}=`{wanted}` matches none of the adapters: {available}")]
+    AdapterNotFound { wanted: String, available: String },
+    #[error(
+        "adapter `{adapter}` allows {limit} = {allowed}, this setting needs {needed}: lower {setting}"
+    )]
+    Limit {
+        adapter: String,
+        limit: &'static str,
+        needed: u64,
+        allowed: u64,
+        setting: String,
+    },
+    #[error("requesting a device from `{adapter}`: {reason}")]
+    Device { adapter: String, reason: String },
+    #[error("GPU device lost ({reason}); rebuild the engine to recover")]
+    Lost { reason: String },
+    #[error("GPU error: {0}")]
+    Validation(String),
+    #[error("reading back from the GPU: {0}")]
+    Readback(String),
+}
+
+/// An adapter as listed for the user.
+#[derive(Debug, Clone)]
+pub struct AdapterSummary {
+    pub index: usize,
+    pub name: String,
+    pub backend: wgpu::Backend,
+    pub device_type: wgpu::DeviceType,
+}
+
+impl std::fmt::Display for AdapterSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "#{} {} ({:?}, {:?})",
+            self.index, self.name, self.backend, self.device_type
+        )
+    }
+}
+
+/// The device, its queue and what is known about them.
+#[derive(Debug)]
+pub struct GpuContext {
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    pub info: wgpu::AdapterInfo,
+    pub limits: wgpu::Limits,
+    /// Whether passes can be timed with timestamp queries.
+    pub timestamps: bool,
+    lost: Arc<Mutex<Option<String>>>,
+    errored: Arc<Mutex<Option<String>>>,
+}
+
+/// Vulkan adapters, or OpenGL ones when there is no Vulkan driver (probing GL needs a display
+/// or EGL device and complains loudly on headless machines, so it is only tried as a fallback).
+fn enumerate() -> Vec<wgpu::Adapter> {
+    for backends in [wgpu::Backends::VULKAN, wgpu::Backends::GL] {
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
+            backends,
+            ..wgpu::InstanceDescriptor::new_without_display_handle_from_env()
+        });
+        let adapters = pollster::block_on(instance.enumerate_adapters(backends));
+        if !adapters.is_empty() {
+            return adapters;
+        }
+    }
+    Vec::new()
+}
+
+fn rank(info: &wgpu::AdapterInfo) -> (u8, u8) {
+    let kind = match info.device_type {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Cpu => 3,
+        wgpu::DeviceType::Other => 4,
+    };
+    let backend = match info.backend {
+        wgpu::Backend::Vulkan => 0,
+        _ => 1,
+    };
+    (kind, backend)
+}
+
+impl GpuContext {
+    /// Choose an adapter (see the module docs) and open a device with the adapter's own limits,
+    /// so that engines can check what they need against them and say which setting to lower.
+    pub fn new() -> Result<Self, GpuError> {
+        let wanted = std::env::var(ADAPTER_ENV)
+            .ok()
+            .filter(|s| !s.trim().is_empty());
+        Self::with_adapter(wanted.as_deref())
+    }
+
+    pub fn with_adapter(wanted: Option<&str>) -> Result<Self, GpuError> {
+        let adapters = enumerate();
+        if adapters.is_empty() {
+            return Err(GpuError::NoAdapter);
+        }
+        let summaries: Vec<AdapterSummary> = adapters
+            .iter()
+            .enumerate()
+            .map(|(index, a)| {
+                let info = a.get_info();
+                AdapterSummary {
+                    index,
+                    name: info.name,
+                    backend: info.backend,
+                    device_type: info.device_type,
+                }
+            })
+            .collect();
+        let chosen = match wanted {
+            Some(wanted) => {
+                let by_index = wanted
+                    .strip_prefix('#')
+                    .and_then(|n| n.parse::<usize>().ok());
+                let needle = wanted.to_lowercase();
+                summaries
+                    .iter()
+                    .position(|s| {
+                        by_index.map_or_else(
+                            || s.name.to_lowercase().contains(&needle),
+                            |i| s.index == i,
+                        )
+                    })
+                    .ok_or_else(|| GpuError::AdapterNotFound {
+                        wanted: wanted.to_owned(),
+                        available: summaries
+                            .iter()
+                            .map(ToString::to_string)
+                            .collect::<Vec<_>>()
+                            .join(", "),
+                    })?
+            }
+            None => (0..adapters.len())
+                .min_by_key(|&i| rank(&adapters[i].get_info()))
+                .unwrap_or(0),
+        };
+        let adapter = &adapters[chosen];
+        let info = adapter.get_info();
+        let limits = adapter.limits();
+        let timestamps = adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY);
+        let required_features = if timestamps {
+            wgpu::Features::TIMESTAMP_QUERY
+        } else {
+            wgpu::Features::empty()
+        };
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("relight"),
+            required_features,
+            required_limits: limits.clone(),
+            experimental_features: wgpu::ExperimentalFeatures::disabled(),
+            memory_hints: wgpu::MemoryHints::Performance,
+            trace: wgpu::Trace::Off,
+        }))
+        .map_err(|e| GpuError::Device {
+            adapter: info.name.clone(),
+            reason: e.to_string(),
+        })?;
+        let lost = Arc::new(Mutex::new(None));
+        let lost_flag = lost.clone();
+        device.set_device_lost_callback(move |reason, message| {
+            tracing::error!(?reason, %message, "GPU device lost");
+            if let Ok(mut lost) = lost_flag.lock() {
+                *lost = Some(format!("{reason:?}: {message}"));
+            }
+        });
+        let errored = Arc::new(Mutex::new(None));
+        let error_slot = errored.clone();
+        device.on_uncaptured_error(Arc::new(move |error: wgpu::Error| {
+            tracing::error!(%error, "GPU error");
+            if let Ok(mut slot) = error_slot.lock() {
+                slot.get_or_insert_with(|| error.to_string());
+            }
+        }));
+        tracing::info!(
+            adapter = %info.name,
+            backend = ?info.backend,
+            device_type = ?info.device_type,
+            timestamps,
+            "GPU context ready"
+        );
+        Ok(Self {
+            device,
+            queue,
+            info,
+            limits,
+            timestamps,
+            lost,
+            errored,
+        })
+    }
+
+    /// Every adapter this machine offers, as `RELIGHT_ADAPTER` can name them.
+    pub fn adapters() -> Vec<AdapterSummary> {
+        enumerate()
+            .iter()
+            .enumerate()
+            .map(|(index, a)| {
+                let info = a.get_info();
+                AdapterSummary {
+                    index,
+                    name: info.name,
+                    backend: info.backend,
+                    device_type: info.device_type,
+                }
+            })
+            .collect()
+    }
+
+    /// Check that `needed` fits the adapter's `limit` (one of the names below); the error
+    /// names `setting` as the thing to lower.
+    pub fn require(&self, limit: &'static str, needed: u64, setting: &str) -> Result<(), GpuError> {
+        let l = &self.limits;
+        let allowed = match limit {
+            "max_texture_dimension_2d" => u64::from(l.max_texture_dimension_2d),
+            "max_texture_dimension_3d" => u64::from(l.max_texture_dimension_3d),
+            "max_texture_array_layers" => u64::from(l.max_texture_array_layers),
+            "max_storage_buffer_binding_size" => l.max_storage_buffer_binding_size,
+            "max_buffer_size" => l.max_buffer_size,
+            "max_compute_workgroups_per_dimension" => {
+                u64::from(l.max_compute_workgroups_per_dimension)
+            }
+            "max_color_attachment_bytes_per_sample" => {
+                u64::from(l.max_color_attachment_bytes_per_sample)
+            }
+            _ => u64::MAX,
+        };
+        if needed <= allowed {
+            Ok(())
+        } else {
+            Err(GpuError::Limit {
+                adapter: self.info.name.clone(),
+                limit,
+                needed,
+                allowed,
+                setting: setting.to_owned(),
+            })
+        }
+    }
+
+    /// `Err` once the device is lost or an uncaptured error happened; engines call this after
+    /// submitting, so the pipeline can rebuild them.
+    pub fn check(&self) -> Result<(), GpuError> {
+        if let Some(reason) = self.lost.lock().ok().and_then(|l| l.clone()) {
+            return Err(GpuError::Lost { reason });
+        }
+        if let Some(error) = self.errored.lock().ok().and_then(|mut e| e.take()) {
+            return Err(GpuError::Validation(error));
+        }
+        Ok(())
+    }
+
+    /// Whether the device is gone for good (a validation error is not).
+    pub fn is_lost(&self) -> bool {
+        self.lost.lock().map(|l| l.is_some()).unwrap_or(true)
+    }
+
+    /// Copy `size` bytes of `source` into `staging` (MAP_READ | COPY_DST, at least `size`),
+    /// wait, and hand the bytes to `read`.
+    pub fn read_back<T>(
+        &self,
+        source: &wgpu::Buffer,
+        staging: &wgpu::Buffer,
+        size: u64,
+        read: impl FnOnce(&[u8]) -> T,
+    ) -> Result<T, GpuError> {
+        let mut encoder = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("readback"),
+            });
+        encoder.copy_buffer_to_buffer(source, 0, staging, 0, size);
+        self.queue.submit([encoder.finish()]);
+        let slice = staging.slice(..size);
+        let done = Arc::new(AtomicBool::new(false));
+        let result = Arc::new(Mutex::new(None));
+        {
+            let (done, result) = (done.clone(), result.clone());
+            slice.map_async(wgpu::MapMode::Read, move |r| {
+                if let Ok(mut slot) = result.lock() {
+                    *slot = Some(r);
+                }
+                done.store(true, Ordering::Release);
+            });
+        }
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        self.check()?;
+        match result.lock().ok().and_then(|mut r| r.take()) {
+            Some(Ok(())) => {}
+            Some(Err(e)) => return Err(GpuError::Readback(e.to_string())),
+            None => return Err(GpuError::Readback("the buffer was never mapped".into())),
+        }
+        let out = {
+            let view = slice
+                .get_mapped_range()
+                .map_err(|e| GpuError::Readback(e.to_string()))?;
+            read(&view)
+        };
+        staging.unmap();
+        Ok(out)
+    }
+}
+
+/// One context per process, created on first use and replaced after a device loss.
+#[derive(Debug, Default)]
+pub struct SharedGpu {
+    slot: Mutex<Option<Arc<GpuContext>>>,
+}
+
+impl SharedGpu {
+    pub fn get(&self) -> Result<Arc<GpuContext>, GpuError> {
+        let mut slot = self
+            .slot
+            .lock()
+            .map_err(|_| GpuError::Validation("GPU context lock poisoned".into()))?;
+        if let Some(ctx) = slot.as_ref()
+            && !ctx.is_lost()
+        {
+            return Ok(ctx.clone());
+        }
+        let ctx = Arc::new(GpuContext::new()?);
+        *slot = Some(ctx.clone());
+        Ok(ctx)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_adapter_lists_the_available_ones() {
+        match GpuContext::with_adapter(Some("no-such-gpu-anywhere")) {
+            Err(GpuError::AdapterNotFound { available, .. }) => {
+                assert!(available.contains("#0"), "{available}");
+            }
+            Err(GpuError::NoAdapter) => {} // a machine with no driver at all
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn limits_name_the_setting_to_lower() {
+        let ctx = GpuContext::new().expect("a GPU adapter (lavapipe: mesa-vulkan-drivers)");
+        let err = ctx
+            .require("max_texture_dimension_2d", u64::MAX, "rsm_size")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("max_texture_dimension_2d") && err.contains("lower rsm_size"),
+            "{err}"
+        );
+        assert!(
+            ctx.require("max_texture_dimension_2d", 256, "rsm_size")
+                .is_ok()
+        );
+        assert!(ctx.check().is_ok());
+    }
+}

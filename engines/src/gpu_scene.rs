@@ -1,0 +1,344 @@
+//! The scene as the GPU passes see it: one vertex buffer (real meshes first, then virtual, so the
+//! real-only draws are a prefix), the materials, the camera, and every light with its shadow-map
+//! faces. Layouts match `shaders/common.wgsl`.
+
+use bytemuck::{Pod, Zeroable};
+use glam::{Mat4, Vec3};
+use relight_core::light::Light;
+use relight_core::scene::{Scene, SceneCamera};
+use wgpu::util::DeviceExt;
+
+use crate::gpu::GpuContext;
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct GpuVertex {
+    pub position: [f32; 3],
+    pub normal: [f32; 3],
+    pub material: u32,
+    pub flags: u32,
+}
+
+impl GpuVertex {
+    pub const LAYOUT: wgpu::VertexBufferLayout<'static> = wgpu::VertexBufferLayout {
+        array_stride: size_of::<GpuVertex>() as u64,
+        step_mode: wgpu::VertexStepMode::Vertex,
+        attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Uint32, 3 => Uint32],
+    };
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct GpuMaterial {
+    pub albedo: [f32; 4],
+    pub specular: [f32; 4],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct GpuCamera {
+    pub view_proj: [[f32; 4]; 4],
+    pub position: [f32; 4],
+    pub size: [f32; 4],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct GpuLight {
+    pub position: [f32; 4],
+    pub direction: [f32; 4],
+    pub intensity: [f32; 4],
+    pub faces: [u32; 4],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct GpuFace {
+    pub view_proj: [[f32; 4]; 4],
+    pub axis: [f32; 4],
+    pub light: [u32; 4],
+}
+
+const FLAG_VIRTUAL: u32 = 1;
+
+/// A spot light wider than this (half angle) gets a cube of shadow maps like a point light.
+const MAX_SPOT_HALF_ANGLE_RAD: f32 = 80.0 * std::f32::consts::PI / 180.0;
+
+/// The scene's geometry and materials on the GPU.
+#[derive(Debug)]
+pub struct GpuScene {
+    pub vertices: wgpu::Buffer,
+    /// Vertices of the real meshes (drawn first).
+    pub real_vertices: u32,
+    pub all_vertices: u32,
+    pub materials: wgpu::Buffer,
+    /// World-space bounds of every mesh.
+    pub bounds: (Vec3, Vec3),
+    /// Bounds of the virtual object(s), if any.
+    pub virtual_bounds: Option<(Vec3, Vec3)>,
+}
+
+impl GpuScene {
+    /// Upload `scene`. Triangles with missing or non-finite vertices are skipped; missing or
+    /// zero normals become zero (the passes then use the facet normal); material indices out of
+    /// range fall back to a default grey.
+    pub fn new(ctx: &GpuContext, scene: &Scene) -> Self {
+        let mut materials: Vec<GpuMaterial> = scene
+            .materials
+            .iter()
+            .map(|m| {
+                let clean = |v: Vec3| {
+                    let v = if v.is_finite() { v } else { Vec3::ZERO };
+                    v.max(Vec3::ZERO)
+                };
+                let shininess = if m.shininess.is_finite() {
+                    m.shininess.max(0.0)
+                } else {
+                    0.0
+                };
+                GpuMaterial {
+                    albedo: clean(m.albedo).extend(shininess).to_array(),
+                    specular: clean(m.specular).extend(0.0).to_array(),
+                }
+            })
+            .collect();
+        let fallback = materials.len() as u32;
+        materials.push(GpuMaterial {
+            albedo: [0.5, 0.5, 0.5, 0.0],
+            specular: [0.0; 4],
+        });
+        let mut vertices = Vec::new();
+        let mut real_vertices = 0;
+        for want_virtual in [false, true] {
+            for mesh in scene.meshes.iter().filter(|m| m.is_virtual == want_virtual) {
+                let material = if mesh.material < scene.materials.len() {
+                    mesh.material as u32
+                } else {
+                    fallback
+                };
+                for tri in &mesh.triangles {
+                    let corners = tri.map(|i| {
+                        let p = mesh.positions_in_world.get(i as usize).copied();
+                        let n = mesh.normals_in_world.get(i as usize).copied();
+                        (p, n)
+                    });
+                    if corners
+                        .iter()
+                        .any(|(p, _)| !p.is_some_and(|p| p.is_finite()))
+                    {
+                        continue;
+                    }
+                    for (p, n) in corners {
+                        let n = n.filter(|n| n.is_finite()).unwrap_or(Vec3::ZERO);
+                        vertices.push(GpuVertex {
+                            position: p.unwrap_or(Vec3::ZERO).to_array(),
+                            normal: n.normalize_or_zero().to_array(),
+                            material,
+                            flags: if mesh.is_virtual { FLAG_VIRTUAL } else { 0 },
+                        });
+                    }
+                }
+            }
+            if !want_virtual {
+                real_vertices = vertices.len() as u32;
+            }
+        }
+        let bounds = vertices
+            .iter()
+            .map(|v| Vec3::from(v.position))
+            .fold(None, |acc: Option<(Vec3, Vec3)>, p| {
+                Some(acc.map_or((p, p), |(lo, hi)| (lo.min(p), hi.max(p))))
+            })
+            .unwrap_or((Vec3::ZERO, Vec3::ZERO));
+        // wgpu refuses zero-sized vertex buffers; one degenerate vertex is never drawn.
+        if vertices.is_empty() {
+            vertices.push(GpuVertex::zeroed());
+        }
+        let all_vertices = if scene.meshes.is_empty() {
+            0
+        } else {
+            vertices.len() as u32
+        };
+        Self {
+            vertices: ctx
+                .device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("scene vertices"),
+                    contents: bytemuck::cast_slice(&vertices),
+                    usage: wgpu::BufferUsages::VERTEX,
+                }),
+            real_vertices,
+            all_vertices: all_vertices.min(vertices.len() as u32),
+            materials: ctx
+                .device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("materials"),
+                    contents: bytemuck::cast_slice(&materials),
+                    usage: wgpu::BufferUsages::STORAGE,
+                }),
+            bounds,
+            virtual_bounds: scene.virtual_bounds(),
+        }
+    }
+
+    /// Vertices to draw for the ρ (every mesh) or μ (real meshes) variant.
+    pub fn vertex_count(&self, include_virtual: bool) -> u32 {
+        if include_virtual {
+            self.all_vertices
+        } else {
+            self.real_vertices
+        }
+    }
+}
+
+/// The camera uniform for an image of `width` × `height` with the scene camera's vertical field
+/// of view; near and far planes enclose `bounds`.
+pub fn camera_uniform(
+    camera: &SceneCamera,
+    width: u32,
+    height: u32,
+    bounds: (Vec3, Vec3),
+) -> GpuCamera {
+    let pose = camera.world_from_camera;
+    let eye = pose.translation;
+    let far = corners(bounds)
+        .iter()
+        .map(|c| c.distance(eye))
+        .fold(1.0f32, f32::max)
+        * 1.5;
+    let view = Mat4::from_rotation_translation(pose.rotation, pose.translation).inverse();
+    let aspect = width as f32 / height.max(1) as f32;
+    let proj = Mat4::perspective_rh(camera.yfov_rad, aspect, far * 1e-4, far);
+    GpuCamera {
+        view_proj: (proj * view).to_cols_array_2d(),
+        position: eye.extend(1.0).to_array(),
+        size: [
+            width as f32,
+            height as f32,
+            1.0 / width.max(1) as f32,
+            1.0 / height.max(1) as f32,
+        ],
+    }
+}
+
+fn corners((lo, hi): (Vec3, Vec3)) -> [Vec3; 8] {
+    std::array::from_fn(|i| {
+        Vec3::new(
+            if i & 1 == 0 { lo.x } else { hi.x },
+            if i & 2 == 0 { lo.y } else { hi.y },
+            if i & 4 == 0 { lo.z } else { hi.z },
+        )
+    })
+}
+
+/// Lights the passes can shadow (point, spot, directional; environment lights and invalid
+/// ones are left out) and their shadow-map faces, `rsm_size` texels square.
+pub fn light_faces(
+    lights: &[Light],
+    bounds: (Vec3, Vec3),
+    rsm_size: u32,
+) -> (Vec<GpuLight>, Vec<GpuFace>) {
+    let mut gpu_lights = Vec::new();
+    let mut faces = Vec::new();
+    let reach = |from: Vec3| {
+        corners(bounds)
+            .iter()
+            .map(|c| c.distance(from))
+            .fold(0.0f32, f32::max)
+            * 1.05
+            + 0.01
+    };
+    for light in lights.iter().filter(|l| l.validate().is_ok()) {
+        let index = gpu_lights.len() as u32;
+        let first = faces.len() as u32;
+        let cube = |position: Vec3, faces: &mut Vec<GpuFace>| {
+            let far = reach(position);
+            let proj = Mat4::perspective_rh(std::f32::consts::FRAC_PI_2, 1.0, far * 1e-4, far);
+            for (dir, up) in [
+                (Vec3::X, Vec3::NEG_Y),
+                (Vec3::NEG_X, Vec3::NEG_Y),
+                (Vec3::Y, Vec3::Z),
+                (Vec3::NEG_Y, Vec3::NEG_Z),
+                (Vec3::Z, Vec3::NEG_Y),
+                (Vec3::NEG_Z, Vec3::NEG_Y),
+            ] {
+                let view = Mat4::look_at_rh(position, position + dir, up);
+                faces.push(GpuFace {
+                    view_proj: (proj * view).to_cols_array_2d(),
+                    axis: dir.extend(1.0).to_array(),
+                    light: [index, 0, 0, 0],
+                });
+            }
+        };
+        let gpu = match *light {
+            Light::Point {
+                position_in_world,
+                intensity,
+            } => {
+                cube(position_in_world, &mut faces);
+                GpuLight {
+                    position: position_in_world.extend(0.0).to_array(),
+                    direction: [0.0, -1.0, 0.0, -1.0],
+                    intensity: intensity.extend(1.0).to_array(),
+                    faces: [first, 6, 0, 0],
+                }
+            }
+            Light::Spot {
+                position_in_world,
+                direction_in_world,
+                intensity,
+                inner_angle_rad,
+                outer_angle_rad,
+            } => {
+                let axis = direction_in_world.normalize();
+                if outer_angle_rad <= MAX_SPOT_HALF_ANGLE_RAD {
+                    let half = (outer_angle_rad * 1.05 + 0.01).min(MAX_SPOT_HALF_ANGLE_RAD + 0.05);
+                    let far = reach(position_in_world);
+                    let proj = Mat4::perspective_rh(2.0 * half, 1.0, far * 1e-4, far);
+                    let up = axis.any_orthonormal_vector();
+                    let view = Mat4::look_at_rh(position_in_world, position_in_world + axis, up);
+                    faces.push(GpuFace {
+                        view_proj: (proj * view).to_cols_array_2d(),
+                        axis: axis.extend(half.tan()).to_array(),
+                        light: [index, 0, 0, 0],
+                    });
+                } else {
+                    cube(position_in_world, &mut faces);
+                }
+                GpuLight {
+                    position: position_in_world.extend(1.0).to_array(),
+                    direction: axis.extend(outer_angle_rad.cos()).to_array(),
+                    intensity: intensity.extend(inner_angle_rad.cos()).to_array(),
+                    faces: [first, faces.len() as u32 - first, 0, 0],
+                }
+            }
+            Light::Directional {
+                direction_in_world,
+                irradiance,
+            } => {
+                let dir = direction_in_world.normalize();
+                let center = (bounds.0 + bounds.1) / 2.0;
+                let radius = (bounds.1 - bounds.0).length() / 2.0 + 0.01;
+                let eye = center - dir * radius * 2.0;
+                let view = Mat4::look_at_rh(eye, center, dir.any_orthonormal_vector());
+                let proj =
+                    Mat4::orthographic_rh(-radius, radius, -radius, radius, 0.0, radius * 4.0);
+                let texel = 2.0 * radius / rsm_size.max(1) as f32;
+                faces.push(GpuFace {
+                    view_proj: (proj * view).to_cols_array_2d(),
+                    axis: dir.extend(texel * texel).to_array(),
+                    light: [index, 1, 0, 0],
+                });
+                GpuLight {
+                    position: Vec3::ZERO.extend(2.0).to_array(),
+                    direction: dir.extend(-1.0).to_array(),
+                    intensity: irradiance.extend(1.0).to_array(),
+                    faces: [first, 1, 0, 0],
+                }
+            }
+            Light::Environment { .. } => continue,
+        };
+        gpu_lights.push(gpu);
+    }
+    (gpu_lights, faces)
+}

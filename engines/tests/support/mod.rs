@@ -1,0 +1,140 @@
+//! Shared by the engine tests: scenes, frames, running an engine, the reference, error metrics.
+#![allow(dead_code)]
+
+use std::path::Path;
+use std::sync::Arc;
+
+use glam::Vec3;
+use relight_core::scene::Scene;
+use relight_core::{Frame, Image, PixelFormat, Timestamp};
+use relight_engines::reference::{ReferenceImages, ReferenceSettings, render_reference};
+use relight_engines::{Engine, EngineRegistry, RelitFrame, SceneFrame};
+
+pub fn load_scene(name: &str) -> Scene {
+    Scene::load(
+        &Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../tests/scenes")
+            .join(name),
+    )
+    .unwrap()
+}
+
+/// A frame of `scene` at `width` × `height` over a mid-grey background.
+pub fn frame(scene: Arc<Scene>, width: u32, height: u32) -> SceneFrame {
+    let mut color = Image::new(width, height, PixelFormat::Rgb8);
+    if let Some(px) = color.as_u8_mut() {
+        px.fill(128);
+    }
+    SceneFrame {
+        stamp: Timestamp::new(0, 0),
+        seq: 0,
+        color: Some(Arc::new(Frame::new(0, Timestamp::new(0, 0), color))),
+        depth: None,
+        scene: Some(scene),
+    }
+}
+
+pub fn engine(name: &str) -> Box<dyn Engine> {
+    EngineRegistry::new()
+        .build(name, &serde_json::Map::new())
+        .unwrap_or_else(|e| panic!("{e}"))
+        .engine
+}
+
+/// Run `engine` on `frame`: Δ per pixel and the output.
+pub fn delta_of(engine: &mut Box<dyn Engine>, frame: &SceneFrame) -> (Vec<Vec3>, RelitFrame) {
+    let mut out = RelitFrame::default();
+    engine
+        .render(frame, &mut out)
+        .unwrap_or_else(|e| panic!("{e}"));
+    let delta = out
+        .delta
+        .as_u16()
+        .unwrap()
+        .chunks_exact(4)
+        .map(|px| {
+            Vec3::new(
+                half::f16::from_bits(px[0]).to_f32(),
+                half::f16::from_bits(px[1]).to_f32(),
+                half::f16::from_bits(px[2]).to_f32(),
+            )
+        })
+        .collect();
+    (delta, out)
+}
+
+/// The reference with direct light only (no bounce after the first hit), sampling pixel
+/// centres as the engines' rasteriser does (so silhouettes agree pixel for pixel).
+pub fn reference_direct(scene: &Scene, width: u32, height: u32, spp: u32) -> ReferenceImages {
+    reference(scene, width, height, spp, 0)
+}
+
+/// The full reference (all bounces), pixel centres.
+pub fn reference_full(scene: &Scene, width: u32, height: u32, spp: u32) -> ReferenceImages {
+    reference(
+        scene,
+        width,
+        height,
+        spp,
+        ReferenceSettings::default().max_bounces,
+    )
+}
+
+fn reference(
+    scene: &Scene,
+    width: u32,
+    height: u32,
+    spp: u32,
+    max_bounces: u32,
+) -> ReferenceImages {
+    render_reference(
+        scene,
+        ReferenceSettings {
+            spp,
+            max_bounces,
+            pixel_jitter: false,
+            size: Some((width, height)),
+            ..ReferenceSettings::default()
+        },
+    )
+    .unwrap()
+}
+
+/// ‖Δ − Δ_ref‖ / ‖Δ_ref‖ over real pixels (where the reference's camera ray hits no virtual
+/// object), and ‖Δ_ref‖ itself.
+pub fn relative_l2(delta: &[Vec3], reference: &[Vec3], virtual_mask: &[bool]) -> (f32, f32) {
+    let (mut err, mut norm) = (0.0f64, 0.0f64);
+    for ((d, r), v) in delta.iter().zip(reference).zip(virtual_mask) {
+        if *v {
+            continue;
+        }
+        err += f64::from((*d - *r).length_squared());
+        norm += f64::from(r.length_squared());
+    }
+    ((err / norm.max(1e-30)).sqrt() as f32, norm.sqrt() as f32)
+}
+
+/// Pixels whose 8-neighbourhood in `delta` spans more than `fraction` of the image's largest
+/// |Δ|: where a shadow or silhouette boundary passes.
+pub fn edge_pixels(delta: &[Vec3], width: usize, height: usize, fraction: f32) -> Vec<bool> {
+    let scale = delta
+        .iter()
+        .map(|d| d.abs().max_element())
+        .fold(0.0, f32::max);
+    let threshold = fraction * scale;
+    (0..delta.len())
+        .map(|i| {
+            let (x, y) = (i % width, i / width);
+            let mut lo = Vec3::splat(f32::INFINITY);
+            let mut hi = Vec3::splat(f32::NEG_INFINITY);
+            for ny in y.saturating_sub(1)..=(y + 1).min(height - 1) {
+                for nx in x.saturating_sub(1)..=(x + 1).min(width - 1) {
+                    let d = delta[ny * width + nx];
+                    lo = lo.min(d);
+                    hi = hi.max(d);
+                }
+            }
+            (hi - lo).max_element() > threshold
+        })
+        .collect()
+}

@@ -1,0 +1,187 @@
+// Shared by every pass: the scene's GPU layout and the light, shadow and colour helpers.
+// Concatenated in front of each pass file (WGSL has no includes); see engines/src/shaders.rs.
+
+const PI: f32 = 3.14159265358979;
+const KIND_POINT: u32 = 0u;
+const KIND_SPOT: u32 = 1u;
+const KIND_DIRECTIONAL: u32 = 2u;
+const FLAG_VIRTUAL: u32 = 1u;
+// Distance written where a shadow map saw nothing.
+const FAR: f32 = 3.0e38;
+
+struct Camera {
+    view_proj: mat4x4<f32>,
+    // xyz: eye position in the world.
+    position: vec4<f32>,
+    // width, height, 1/width, 1/height.
+    size: vec4<f32>,
+}
+
+struct Material {
+    // rgb: diffuse albedo k_d; w: Phong exponent n.
+    albedo: vec4<f32>,
+    // rgb: specular reflectance k_s.
+    specular: vec4<f32>,
+}
+
+struct Light {
+    // xyz: position (point, spot); w: kind.
+    position: vec4<f32>,
+    // xyz: unit direction the light travels (spot axis, directional); w: cos of the outer angle.
+    direction: vec4<f32>,
+    // rgb: W/sr (point, spot) or W/m² (directional); w: cos of the inner angle.
+    intensity: vec4<f32>,
+    // x: first shadow-map layer, y: layer count (6 for a point light's cube, else 1).
+    faces: vec4<u32>,
+}
+
+struct Face {
+    view_proj: mat4x4<f32>,
+    // xyz: the face's forward axis; w: tan of the half field of view (perspective) or the
+    // texel's area in m² (orthographic).
+    axis: vec4<f32>,
+    // x: light index; y: 1 when orthographic.
+    light: vec4<u32>,
+}
+
+// Hermite smoothstep in cos θ between the outer and inner cone (core::light::spot_falloff).
+fn spot_falloff(cos_angle: f32, cos_inner: f32, cos_outer: f32) -> f32 {
+    if cos_angle >= cos_inner {
+        return 1.0;
+    }
+    if cos_angle <= cos_outer || cos_inner <= cos_outer {
+        return 0.0;
+    }
+    let t = (cos_angle - cos_outer) / (cos_inner - cos_outer);
+    return t * t * (3.0 - 2.0 * t);
+}
+
+struct Incident {
+    // Unit vector from the point towards the light.
+    to_light: vec3<f32>,
+    // Irradiance on a surface facing the light, W/m².
+    irradiance: vec3<f32>,
+}
+
+// Light arriving at `p` from light `l` (core::light::Light::incident).
+fn incident(l: Light, p: vec3<f32>) -> Incident {
+    var out: Incident;
+    let kind = u32(l.position.w);
+    if kind == KIND_DIRECTIONAL {
+        out.to_light = -l.direction.xyz;
+        out.irradiance = l.intensity.rgb;
+        return out;
+    }
+    let d = l.position.xyz - p;
+    let d2 = max(dot(d, d), 1e-12);
+    out.to_light = d * inverseSqrt(d2);
+    var falloff = 1.0;
+    if kind == KIND_SPOT {
+        falloff = spot_falloff(dot(l.direction.xyz, -out.to_light), l.intensity.w, l.direction.w);
+    }
+    out.irradiance = l.intensity.rgb * falloff / d2;
+    return out;
+}
+
+// Which layer of light `l`'s shadow maps sees `p`: the cube face of the major axis for a point
+// light (+X, −X, +Y, −Y, +Z, −Z), the only face otherwise.
+fn face_of(l: Light, p: vec3<f32>) -> u32 {
+    if l.faces.y < 6u {
+        return l.faces.x;
+    }
+    let d = p - l.position.xyz;
+    let a = abs(d);
+    if a.x >= a.y && a.x >= a.z {
+        return l.faces.x + select(1u, 0u, d.x >= 0.0);
+    }
+    if a.y >= a.z {
+        return l.faces.x + select(3u, 2u, d.y >= 0.0);
+    }
+    return l.faces.x + select(5u, 4u, d.z >= 0.0);
+}
+
+// What a shadow map stores as a texel's distance: from the light for point and spot lights,
+// along the light's direction for directional ones.
+fn light_distance(l: Light, p: vec3<f32>) -> f32 {
+    if u32(l.position.w) == KIND_DIRECTIONAL {
+        return dot(p, l.direction.xyz);
+    }
+    return distance(p, l.position.xyz);
+}
+
+// Texel coordinates of `p` in `face` (may fall outside the map).
+fn face_texel(face: Face, p: vec3<f32>, size: f32) -> vec2<f32> {
+    let clip = face.view_proj * vec4<f32>(p, 1.0);
+    let ndc = clip.xy / clip.w;
+    return vec2<f32>(ndc.x * 0.5 + 0.5, 0.5 - ndc.y * 0.5) * size;
+}
+
+// World-space width of one shadow-map texel of `face` at distance `dist` from its light.
+fn texel_footprint(face: Face, dist: f32, size: f32) -> f32 {
+    if face.light.y == 1u {
+        return sqrt(face.axis.w);
+    }
+    return 2.0 * face.axis.w * dist / size;
+}
+
+fn srgb_to_linear(c: vec3<f32>) -> vec3<f32> {
+    let low = c / 12.92;
+    let high = pow((c + 0.055) / 1.055, vec3<f32>(2.4));
+    return select(high, low, c <= vec3<f32>(0.04045));
+}
+
+fn linear_to_srgb(c: vec3<f32>) -> vec3<f32> {
+    let x = clamp(c, vec3<f32>(0.0), vec3<f32>(1.0));
+    let low = x * 12.92;
+    let high = 1.055 * pow(x, vec3<f32>(1.0 / 2.4)) - 0.055;
+    return select(high, low, x <= vec3<f32>(0.0031308));
+}
+
+// Lambert plus normalised Phong (core::scene::Material), for light arriving along `wi` at a
+// surface with normal `n` seen from direction `wo` (both unit, pointing away from the surface).
+fn brdf(m: Material, albedo: vec3<f32>, n: vec3<f32>, wi: vec3<f32>, wo: vec3<f32>) -> vec3<f32> {
+    var f = albedo / PI;
+    let shininess = m.albedo.w;
+    if shininess > 0.0 && any(m.specular.rgb > vec3<f32>(0.0)) {
+        let mirror = reflect(-wo, n);
+        let cos_alpha = max(dot(mirror, wi), 0.0);
+        f += m.specular.rgb * (shininess + 1.0) / (2.0 * PI) * pow(cos_alpha, shininess);
+    }
+    return f;
+}
+
+// 1 where `p` (normal `n`) is lit by light `l` according to the shadow map `map` (layer `layer`,
+// texels holding their `light_distance` in w), 0 where something nearer the light covers it.
+// The bias grows with the texel's footprint and the slope of the surface towards the light.
+fn lit(l: Light, face: Face, layer: u32, p: vec3<f32>, n: vec3<f32>, to_light: vec3<f32>,
+       map: texture_2d_array<f32>, size: u32, bias_texels: f32) -> f32 {
+    let s = f32(size);
+    let t = face_texel(face, p, s);
+    if any(t < vec2<f32>(0.0)) || any(t >= vec2<f32>(s)) {
+        return 1.0;
+    }
+    let stored = textureLoad(map, vec2<i32>(floor(t)), i32(layer), 0).w;
+    let dist = light_distance(l, p);
+    let cos_theta = clamp(dot(n, to_light), 0.05, 1.0);
+    let tan_theta = sqrt(1.0 - cos_theta * cos_theta) / cos_theta;
+    let bias = texel_footprint(face, dist, s) * bias_texels * (1.0 + min(tan_theta, 10.0));
+    return select(0.0, 1.0, dist <= stored + bias);
+}
+
+// Flux Φ_p (W) a shadow-map texel reflects as a VPL: its albedo times the light's flux through
+// the texel, I · Ω_texel for point and spot lights (Ω = (2 tan(fov/2) / size)² cos³ of the angle
+// off the face axis), E · A_texel for directional ones.
+fn vpl_flux(l: Light, face: Face, p: vec3<f32>, albedo: vec3<f32>, size: u32) -> vec3<f32> {
+    if face.light.y == 1u {
+        return albedo * l.intensity.rgb * face.axis.w;
+    }
+    let d = p - l.position.xyz;
+    let dir = d * inverseSqrt(max(dot(d, d), 1e-12));
+    let c = max(dot(dir, face.axis.xyz), 0.0);
+    let a = 2.0 * face.axis.w / f32(size);
+    var intensity = l.intensity.rgb;
+    if u32(l.position.w) == KIND_SPOT {
+        intensity *= spot_falloff(dot(l.direction.xyz, dir), l.intensity.w, l.direction.w);
+    }
+    return albedo * intensity * a * a * c * c * c;
+}

@@ -1,0 +1,63 @@
+// Reflective shadow maps: one layer per light face (six for a point light's cube). Each texel is
+// a VPL: world position (w: distance as `light_distance` measures it), normal facing the light
+// (w: 1 on the virtual object), diffuse albedo (w: 1 where something was drawn). Its flux is
+// computed where it is used (`vpl_flux`), so the maps stay within 32 bytes per texel. Drawn for
+// every mesh (R^ρ) and for the real meshes only (R^μ).
+
+@group(0) @binding(0) var<storage, read> lights: array<Light>;
+@group(0) @binding(1) var<storage, read> faces: array<Face>;
+@group(0) @binding(2) var<storage, read> materials: array<Material>;
+
+struct VertexIn {
+    @location(0) position: vec3<f32>,
+    @location(1) normal: vec3<f32>,
+    @location(2) material: u32,
+    @location(3) flags: u32,
+}
+
+struct VertexOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) world: vec3<f32>,
+    @location(1) normal: vec3<f32>,
+    @location(2) @interpolate(flat) material: u32,
+    @location(3) @interpolate(flat) flags: u32,
+    @location(4) @interpolate(flat) face: u32,
+}
+
+struct RsmOut {
+    @location(0) position: vec4<f32>,
+    @location(1) normal: vec4<f32>,
+    @location(2) albedo: vec4<f32>,
+}
+
+// The face is the draw's instance index (`first_instance` = face).
+@vertex
+fn vs_main(v: VertexIn, @builtin(instance_index) face: u32) -> VertexOut {
+    var out: VertexOut;
+    out.clip = faces[face].view_proj * vec4<f32>(v.position, 1.0);
+    out.world = v.position;
+    out.normal = v.normal;
+    out.material = v.material;
+    out.flags = v.flags;
+    out.face = face;
+    return out;
+}
+
+@fragment
+fn fs_main(in: VertexOut) -> RsmOut {
+    let l = lights[faces[in.face].light.x];
+    var n = in.normal;
+    if dot(n, n) < 1e-12 {
+        n = normalize(cross(dpdx(in.world), dpdy(in.world)));
+    }
+    n = normalize(n);
+    let to_light = incident(l, in.world).to_light;
+    if dot(n, to_light) < 0.0 {
+        n = -n;
+    }
+    var out: RsmOut;
+    out.position = vec4<f32>(in.world, light_distance(l, in.world));
+    out.normal = vec4<f32>(n, f32(in.flags & FLAG_VIRTUAL));
+    out.albedo = vec4<f32>(materials[in.material].albedo.rgb, 1.0);
+    return out;
+}
