@@ -185,3 +185,25 @@ fn vpl_flux(l: Light, face: Face, p: vec3<f32>, albedo: vec3<f32>, size: u32) ->
     }
     return albedo * intensity * a * a * c * c * c;
 }
+
+// The DLPV volume: n³ cells of L1 SH per colour channel, twice (V^Δ, then V^ρ).
+struct Volume {
+    // xyz: minimum corner; w: cell edge (m).
+    origin: vec4<f32>,
+    // x: cells per axis; y: shadow-map size; z: light faces; w: light count.
+    dims: vec4<u32>,
+    // x: fixed-point counts per unit; y: 1 = direct injection; z: dampening of negative light;
+    // w: lookup offset along the normal, in cells.
+    scale: vec4<f32>,
+}
+
+// L1 SH basis (Y00, Y1−1, Y10, Y11 = 0.2821, 0.4886 · (y, z, x)) evaluated at unit `d`.
+fn sh_eval(sh: vec4<f32>, d: vec3<f32>) -> f32 {
+    return dot(sh, vec4<f32>(0.282094792, 0.488602512 * d.y, 0.488602512 * d.z, 0.488602512 * d.x));
+}
+
+// SH projection of the clamped cosine lobe around unit `d`: (√π/2, √(π/3) (d_y, d_z, d_x)).
+// Also the kernel of the cosine convolution: ∫ f(ω) ⟨d, ω⟩₊ dω = ⟨f_SH, cosine_lobe(d)⟩.
+fn cosine_lobe(d: vec3<f32>) -> vec4<f32> {
+    return vec4<f32>(0.886226925, 1.023326708 * d.y, 1.023326708 * d.z, 1.023326708 * d.x);
+}

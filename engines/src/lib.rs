@@ -7,6 +7,7 @@
 
 pub mod deferred;
 pub mod differential;
+pub mod dlpv;
 pub mod engine;
 pub mod gbuffer;
 pub mod gpu;

@@ -7,6 +7,7 @@ use serde_json::{Map, Value};
 
 use crate::depth_preview::DepthPreview;
 use crate::differential::Differential;
+use crate::dlpv::Dlpv;
 use crate::engine::Engine;
 use crate::gpu::{GpuError, SharedGpu};
 use crate::params::{ParamError, ParamsSchema};
@@ -91,6 +92,13 @@ impl EngineRegistry {
                     gpu: true,
                     build: |gpu| Ok(Box::new(Differential::new(gpu.get()?)?)),
                 },
+                EngineSpec {
+                    name: Dlpv::NAME,
+                    description: "Delta Light Propagation Volumes: V^Δ from R^ρ − R^μ injection and propagation (Franke 2013)",
+                    schema: Dlpv::schema(),
+                    gpu: true,
+                    build: |gpu| Ok(Box::new(Dlpv::new(gpu.get()?)?)),
+                },
             ],
             gpu: Arc::new(SharedGpu::default()),
         }
@@ -143,7 +151,7 @@ mod tests {
             .unwrap();
         assert_eq!(
             err.to_string(),
-            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential"
+            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential, dlpv"
         );
     }
 

@@ -15,12 +15,20 @@ macro_rules! pass {
 pub const GBUFFER: &str = pass!("gbuffer.wgsl");
 pub const RSM: &str = pass!("rsm.wgsl");
 pub const SHADE: &str = pass!("shade.wgsl");
+pub const DLPV_INJECT: &str = pass!("dlpv_inject.wgsl");
+pub const DLPV_RESOLVE: &str = pass!("dlpv_resolve.wgsl");
+pub const DLPV_PROPAGATE: &str = pass!("dlpv_propagate.wgsl");
+pub const DLPV_LOOKUP: &str = pass!("dlpv_lookup.wgsl");
 
 /// (file name, full source) of every pass.
 pub const ALL: &[(&str, &str)] = &[
     ("gbuffer.wgsl", GBUFFER),
     ("rsm.wgsl", RSM),
     ("shade.wgsl", SHADE),
+    ("dlpv_inject.wgsl", DLPV_INJECT),
+    ("dlpv_resolve.wgsl", DLPV_RESOLVE),
+    ("dlpv_propagate.wgsl", DLPV_PROPAGATE),
+    ("dlpv_lookup.wgsl", DLPV_LOOKUP),
 ];
 
 /// Compile a pass into a shader module.

@@ -35,8 +35,14 @@ pub fn frame(scene: Arc<Scene>, width: u32, height: u32) -> SceneFrame {
 }
 
 pub fn engine(name: &str) -> Box<dyn Engine> {
+    engine_with(name, serde_json::json!({}))
+}
+
+/// An engine with parameters, e.g. `json!({"steps": 8})`.
+pub fn engine_with(name: &str, params: serde_json::Value) -> Box<dyn Engine> {
+    let params = params.as_object().cloned().unwrap_or_default();
     EngineRegistry::new()
-        .build(name, &serde_json::Map::new())
+        .build(name, &params)
         .unwrap_or_else(|e| panic!("{e}"))
         .engine
 }
@@ -137,4 +143,15 @@ pub fn edge_pixels(delta: &[Vec3], width: usize, height: usize, fraction: f32) -
             (hi - lo).max_element() > threshold
         })
         .collect()
+}
+
+/// Write engine and reference Δ for `scripts`-free inspection: f32 × 6 per pixel.
+pub fn dump(path: &str, delta: &[Vec3], reference: &[Vec3]) {
+    let mut bytes = Vec::new();
+    for (d, r) in delta.iter().zip(reference) {
+        for v in [d.x, d.y, d.z, r.x, r.y, r.z] {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    std::fs::write(path, bytes).unwrap();
 }

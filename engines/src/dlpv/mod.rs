@@ -1,0 +1,450 @@
+//! `dlpv`: Delta Light Propagation Volumes (Franke, ISMAR 2013).
+//!
+//! Per frame, after the shared G-buffers and reflective shadow maps (R^ρ, R^μ):
+//! 1. **inject** (`dlpv_inject.wgsl`): every R^ρ texel adds its VPL to V^Δ and V^ρ, every R^μ
+//!    texel subtracts its VPL from V^Δ (half a cell along the normal); with direct injection, the
+//!    incident light of every texel along the light's direction of travel (half a cell back
+//!    towards the light), ρ minus μ, into V^Δ: antiradiance where the object casts its shadow.
+//!    Fixed-point atomics: WGSL has no float atomics; integer sums commute, so the result is
+//!    deterministic and VPLs seen in both maps cancel to exactly zero (Δ = 0 without an object
+//!    holds bit for bit). Additive blending into volume slices would need one render pass per
+//!    slice and leave order-dependent float residues; a gather over all VPLs per cell costs
+//!    cells × VPLs.
+//! 2. **resolve** the counts to float SH; **propagate** N steps (gather from the six
+//!    neighbours over their faces' solid angles, `dlpv_propagate.wgsl`), accumulating every step;
+//!    negative light is dampened per step.
+//! 3. **look up** (`dlpv_lookup.wgsl`): trilinear V^Δ on real pixels, V^ρ on virtual ones.
+//! 4. the shared shading pass composites (Algorithm 1): real pixels B + albedo · V^Δ (+ the
+//!    shadow-mapped direct Δ when `shadows = "shadow_map"`), virtual pixels direct + albedo · V^ρ.
+//!
+//! The volume is centred on the virtual object's bounding box, `volume_scale` × its largest edge
+//! on a side (the paper: about 2×).
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+use serde_json::{Map, Value};
+
+use crate::deferred::{Deferred, ShadeOptions};
+use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
+use crate::gbuffer::Targets;
+use crate::gpu::{GpuContext, GpuError};
+use crate::gpu_scene::GpuLight;
+use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64, get_i64, get_str};
+use crate::shaders;
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct VolumeUniform {
+    origin: [f32; 4],
+    dims: [u32; 4],
+    scale: [f32; 4],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct LookupUniform {
+    size: [u32; 4],
+}
+
+/// The engine's settings (see [`Dlpv::schema`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DlpvSettings {
+    pub rsm_size: u32,
+    pub volume_size: u32,
+    pub steps: u32,
+    pub dampening: f32,
+    pub antiradiance: bool,
+    pub volume_scale: f32,
+    pub shadow_bias: f32,
+    pub lookup_offset: f32,
+}
+
+impl Default for DlpvSettings {
+    fn default() -> Self {
+        Self {
+            rsm_size: 512,
+            volume_size: 32,
+            steps: 32,
+            dampening: 0.5,
+            antiradiance: true,
+            volume_scale: 2.0,
+            shadow_bias: 1.5,
+            lookup_offset: 0.0,
+        }
+    }
+}
+
+#[derive(Debug)]
+struct VolumeBuffers {
+    n: u32,
+    cells: wgpu::Buffer,
+    injected: wgpu::Buffer,
+    ping: wgpu::Buffer,
+    accumulated: wgpu::Buffer,
+}
+
+#[derive(Debug)]
+pub struct Dlpv {
+    deferred: Deferred,
+    settings: DlpvSettings,
+    inject: wgpu::ComputePipeline,
+    resolve: wgpu::ComputePipeline,
+    propagate: wgpu::ComputePipeline,
+    lookup: wgpu::ComputePipeline,
+    volume_uniform: wgpu::Buffer,
+    lookup_uniform: wgpu::Buffer,
+    volume: Option<VolumeBuffers>,
+}
+
+fn compute(ctx: &GpuContext, label: &str, source: &str) -> wgpu::ComputePipeline {
+    let module = shaders::module(&ctx.device, label, source);
+    ctx.device
+        .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(label),
+            layout: None,
+            module: &module,
+            entry_point: Some("main"),
+            compilation_options: Default::default(),
+            cache: None,
+        })
+}
+
+fn entries<'a>(resources: &[wgpu::BindingResource<'a>]) -> Vec<wgpu::BindGroupEntry<'a>> {
+    resources
+        .iter()
+        .enumerate()
+        .map(|(i, r)| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: r.clone(),
+        })
+        .collect()
+}
+
+impl Dlpv {
+    pub const NAME: &'static str = "dlpv";
+
+    pub fn schema() -> ParamsSchema {
+        let int = |name, doc, min, max, default| ParamSpec {
+            name,
+            doc,
+            kind: ParamKind::Int { min, max, default },
+        };
+        let float = |name, doc, min, max, default| ParamSpec {
+            name,
+            doc,
+            kind: ParamKind::Float { min, max, default },
+        };
+        ParamsSchema::new(vec![
+            int(
+                "rsm_size",
+                "reflective-shadow-map edge per light face; every texel is a VPL",
+                32,
+                2048,
+                512,
+            ),
+            int("volume_size", "cells per axis of V^Δ and V^ρ", 4, 128, 32),
+            int("steps", "propagation steps", 0, 256, 32),
+            float(
+                "dampening",
+                "fraction of negative light (antiradiance, and L1 ringing) removed per propagation step",
+                0.0,
+                1.0,
+                0.5,
+            ),
+            ParamSpec {
+                name: "shadows",
+                doc: "`antiradiance`: direct injection as in the paper; `shadow_map`: the differential engine's shadows, volume for indirect only",
+                kind: ParamKind::Choice {
+                    options: vec!["antiradiance", "shadow_map"],
+                    default: "antiradiance",
+                },
+            },
+            float(
+                "volume_scale",
+                "volume edge as a multiple of the virtual object's largest bounding-box edge",
+                1.0,
+                8.0,
+                2.0,
+            ),
+            float(
+                "shadow_bias",
+                "shadow-map depth bias in texel footprints",
+                0.0,
+                8.0,
+                1.5,
+            ),
+            float(
+                "lookup_offset",
+                "lookup point moved along the surface normal, in cells",
+                0.0,
+                1.0,
+                0.0,
+            ),
+        ])
+    }
+
+    pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
+        let uniform = |label, size| {
+            ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        Ok(Self {
+            inject: compute(&ctx, "dlpv inject", shaders::DLPV_INJECT),
+            resolve: compute(&ctx, "dlpv resolve", shaders::DLPV_RESOLVE),
+            propagate: compute(&ctx, "dlpv propagate", shaders::DLPV_PROPAGATE),
+            lookup: compute(&ctx, "dlpv lookup", shaders::DLPV_LOOKUP),
+            volume_uniform: uniform("dlpv volume", size_of::<VolumeUniform>() as u64),
+            lookup_uniform: uniform("dlpv lookup", size_of::<LookupUniform>() as u64),
+            deferred: Deferred::new(ctx),
+            settings: DlpvSettings::default(),
+            volume: None,
+        })
+    }
+
+    pub fn settings(&self) -> DlpvSettings {
+        self.settings
+    }
+
+    fn volume_buffers(&mut self) -> Result<&VolumeBuffers, EngineError> {
+        let n = self.settings.volume_size;
+        let ctx = self.deferred.ctx().clone();
+        let cells = 2 * u64::from(n).pow(3);
+        ctx.require("max_storage_buffer_binding_size", cells * 48, "volume_size")?;
+        ctx.require(
+            "max_compute_workgroups_per_dimension",
+            u64::from(2 * n).div_ceil(4),
+            "volume_size",
+        )?;
+        if self.volume.as_ref().is_none_or(|v| v.n != n) {
+            let buffer = |label, usage| {
+                ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(label),
+                    size: cells * 48,
+                    usage,
+                    mapped_at_creation: false,
+                })
+            };
+            use wgpu::BufferUsages as U;
+            self.volume = Some(VolumeBuffers {
+                n,
+                cells: buffer("dlpv cells", U::STORAGE | U::COPY_DST),
+                injected: buffer("dlpv injected", U::STORAGE),
+                ping: buffer("dlpv ping", U::STORAGE),
+                accumulated: buffer("dlpv accumulated", U::STORAGE | U::COPY_SRC),
+            });
+        }
+        self.volume.as_ref().ok_or(EngineError::NotPrepared)
+    }
+}
+
+/// A bound on any single injected SH coefficient's magnitude summed over a frame: every light's
+/// total flux (4π I for point and spot lights, E · (2R)² for directional ones over the scene's
+/// bounding sphere), twice (direct and indirect), twice (ρ and μ), times the cosine lobe's
+/// largest coefficient over π.
+fn injection_bound(lights: &[GpuLight], scene_radius: f32) -> f32 {
+    let total: f32 = lights
+        .iter()
+        .map(|l| {
+            let peak = l.intensity[0]
+                .max(l.intensity[1])
+                .max(l.intensity[2])
+                .max(0.0);
+            if l.position[3] as u32 == 2 {
+                peak * (2.0 * scene_radius).powi(2)
+            } else {
+                peak * 4.0 * std::f32::consts::PI
+            }
+        })
+        .sum();
+    total * 4.0 * 1.0234 / std::f32::consts::PI
+}
+
+impl Engine for Dlpv {
+    fn name(&self) -> &'static str {
+        Self::NAME
+    }
+
+    fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
+        let settings = self.settings;
+        let (width, height) = self
+            .deferred
+            .prepare(Self::NAME, frame, out, settings.rsm_size)?;
+        let started = Instant::now();
+        let ctx = self.deferred.ctx().clone();
+        let (bounds, virtual_bounds) = match self.deferred.scene() {
+            Some(scene) => (scene.bounds, scene.virtual_bounds),
+            None => return Err(EngineError::NotPrepared),
+        };
+        let faces = self.deferred.faces().len() as u32;
+        if let (Some((lo, hi)), true) = (virtual_bounds, faces > 0) {
+            let n = settings.volume_size;
+            let edge = (hi - lo).max_element().max(1e-3) * settings.volume_scale;
+            let cell = edge / n as f32;
+            let origin = (lo + hi) / 2.0 - Vec3::splat(edge / 2.0);
+            let bound =
+                injection_bound(self.deferred.lights(), (bounds.1 - bounds.0).length() / 2.0);
+            let scale = if bound > 0.0 && bound.is_finite() {
+                (1u64 << 30) as f32 / bound
+            } else {
+                1.0
+            };
+            let volume = VolumeUniform {
+                origin: origin.extend(cell).to_array(),
+                dims: [
+                    n,
+                    settings.rsm_size,
+                    faces,
+                    self.deferred.lights().len() as u32,
+                ],
+                scale: [
+                    scale,
+                    if settings.antiradiance { 1.0 } else { 0.0 },
+                    settings.dampening,
+                    settings.lookup_offset,
+                ],
+            };
+            ctx.queue
+                .write_buffer(&self.volume_uniform, 0, bytemuck::bytes_of(&volume));
+            ctx.queue.write_buffer(
+                &self.lookup_uniform,
+                0,
+                bytemuck::bytes_of(&LookupUniform {
+                    size: [width, height, 0, 0],
+                }),
+            );
+            self.volume_buffers()?;
+            let (Some(v), Some((lights, faces_buf, rsm_rho, rsm_mu)), Some((gb_rho, _, indirect))) = (
+                self.volume.as_ref(),
+                self.deferred.light_buffers(),
+                self.deferred.frame_buffers(),
+            ) else {
+                return Err(EngineError::NotPrepared);
+            };
+            let array = Targets::array_view;
+            let rsm_views = [
+                array(&rsm_rho.position),
+                array(&rsm_rho.normal),
+                array(&rsm_rho.albedo),
+                array(&rsm_mu.position),
+                array(&rsm_mu.normal),
+                array(&rsm_mu.albedo),
+            ];
+            let mut inject_resources = vec![
+                self.volume_uniform.as_entire_binding(),
+                lights.as_entire_binding(),
+                faces_buf.as_entire_binding(),
+            ];
+            inject_resources.extend(rsm_views.iter().map(wgpu::BindingResource::TextureView));
+            inject_resources.push(v.cells.as_entire_binding());
+            let group =
+                |pipeline: &wgpu::ComputePipeline, label, resources: &[wgpu::BindingResource]| {
+                    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some(label),
+                        layout: &pipeline.get_bind_group_layout(0),
+                        entries: &entries(resources),
+                    })
+                };
+            let inject_group = group(&self.inject, "dlpv inject", &inject_resources);
+            let resolve_group = group(
+                &self.resolve,
+                "dlpv resolve",
+                &[
+                    self.volume_uniform.as_entire_binding(),
+                    v.cells.as_entire_binding(),
+                    v.injected.as_entire_binding(),
+                    v.accumulated.as_entire_binding(),
+                ],
+            );
+            let step_group = |from: &wgpu::Buffer, to: &wgpu::Buffer| {
+                group(
+                    &self.propagate,
+                    "dlpv propagate",
+                    &[
+                        self.volume_uniform.as_entire_binding(),
+                        from.as_entire_binding(),
+                        to.as_entire_binding(),
+                        v.accumulated.as_entire_binding(),
+                    ],
+                )
+            };
+            let forward = step_group(&v.injected, &v.ping);
+            let backward = step_group(&v.ping, &v.injected);
+            let gb_views = [
+                Targets::view(&gb_rho.position),
+                Targets::view(&gb_rho.normal),
+                Targets::view(&gb_rho.albedo),
+            ];
+            let mut lookup_resources = vec![
+                self.volume_uniform.as_entire_binding(),
+                self.lookup_uniform.as_entire_binding(),
+                v.accumulated.as_entire_binding(),
+            ];
+            lookup_resources.extend(gb_views.iter().map(wgpu::BindingResource::TextureView));
+            lookup_resources.push(indirect.as_entire_binding());
+            let lookup_group = group(&self.lookup, "dlpv lookup", &lookup_resources);
+
+            let mut encoder = ctx
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("dlpv"),
+                });
+            encoder.clear_buffer(&v.cells, 0, None);
+            {
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("dlpv"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(&self.inject);
+                pass.set_bind_group(0, &inject_group, &[]);
+                let s = settings.rsm_size.div_ceil(8);
+                pass.dispatch_workgroups(s, s, faces * 2);
+                pass.set_pipeline(&self.resolve);
+                pass.set_bind_group(0, &resolve_group, &[]);
+                pass.dispatch_workgroups((2 * n.pow(3) * 3).div_ceil(64), 1, 1);
+                pass.set_pipeline(&self.propagate);
+                for step in 0..settings.steps {
+                    pass.set_bind_group(0, if step % 2 == 0 { &forward } else { &backward }, &[]);
+                    pass.dispatch_workgroups(n.div_ceil(4), n.div_ceil(4), (2 * n).div_ceil(4));
+                }
+                pass.set_pipeline(&self.lookup);
+                pass.set_bind_group(0, &lookup_group, &[]);
+                pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+            }
+            ctx.queue.submit([encoder.finish()]);
+            ctx.check()?;
+        }
+        out.timings.push(PassTiming {
+            pass: "volume",
+            ms: started.elapsed().as_secs_f64() * 1e3,
+        });
+        self.deferred.finish(
+            ShadeOptions {
+                shadow_bias_texels: settings.shadow_bias,
+                direct_delta: !settings.antiradiance,
+            },
+            out,
+        )
+    }
+
+    fn set_params(&mut self, params: &Map<String, Value>) {
+        let d = DlpvSettings::default();
+        self.settings = DlpvSettings {
+            rsm_size: get_i64(params, "rsm_size", i64::from(d.rsm_size)).clamp(32, 2048) as u32,
+            volume_size: get_i64(params, "volume_size", i64::from(d.volume_size)).clamp(4, 128)
+                as u32,
+            steps: get_i64(params, "steps", i64::from(d.steps)).clamp(0, 256) as u32,
+            dampening: get_f64(params, "dampening", f64::from(d.dampening)) as f32,
+            antiradiance: get_str(params, "shadows", "antiradiance") == "antiradiance",
+            volume_scale: get_f64(params, "volume_scale", f64::from(d.volume_scale)) as f32,
+            shadow_bias: get_f64(params, "shadow_bias", f64::from(d.shadow_bias)) as f32,
+            lookup_offset: get_f64(params, "lookup_offset", f64::from(d.lookup_offset)) as f32,
+        };
+    }
+}

@@ -1,0 +1,65 @@
+// DLPV lookup (Algorithm 1): per camera pixel, trilinear L1 SH from V^Δ (real pixels) or V^ρ
+// (virtual pixels) `lookup_offset` cells off the surface along its normal, irradiance by the cosine
+// convolution of the light arriving against the normal, E = ⟨SH, cosine lobe(−n)⟩ / cell²
+// (each cell's intensity spread over its face, Kaplanyan & Dachsbacher), and diffuse radiance
+// albedo/π · E into the engine's indirect buffer, which the shading pass adds to Δ or L^ρ.
+
+struct LookupParams {
+    // width, height
+    size: vec4<u32>,
+}
+
+@group(0) @binding(0) var<uniform> volume: Volume;
+@group(0) @binding(1) var<uniform> lookup: LookupParams;
+@group(0) @binding(2) var<storage, read> accumulated: array<vec4<f32>>;
+@group(0) @binding(3) var gb_position: texture_2d<f32>;
+@group(0) @binding(4) var gb_normal: texture_2d<f32>;
+@group(0) @binding(5) var gb_albedo: texture_2d<f32>;
+@group(0) @binding(6) var<storage, read_write> indirect: array<vec4<f32>>;
+
+fn cell_sh(which: u32, c: vec3<i32>, ch: u32) -> vec4<f32> {
+    let n = i32(volume.dims.x);
+    if any(c < vec3<i32>(0)) || any(c >= vec3<i32>(n)) {
+        return vec4<f32>(0.0);
+    }
+    let n3 = u32(n * n * n);
+    let index = which * n3 + u32((c.z * n + c.y) * n + c.x);
+    return accumulated[index * 3u + ch];
+}
+
+@compute @workgroup_size(8, 8)
+fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    if id.x >= lookup.size.x || id.y >= lookup.size.y {
+        return;
+    }
+    let i = id.y * lookup.size.x + id.x;
+    let xy = vec2<i32>(id.xy);
+    let p = textureLoad(gb_position, xy, 0);
+    if p.w < 0.5 {
+        indirect[i] = vec4<f32>(0.0);
+        return;
+    }
+    let normal = textureLoad(gb_normal, xy, 0);
+    let n = normalize(normal.xyz);
+    let which = select(0u, 1u, normal.w > 0.5);
+    let cell = volume.origin.w;
+    // Cell centres sit at origin + (c + ½) · cell.
+    let g = (p.xyz + n * volume.scale.w * cell - volume.origin.xyz) / cell - vec3<f32>(0.5);
+    let c0 = vec3<i32>(floor(g));
+    let f = g - floor(g);
+    let lobe = cosine_lobe(-n);
+    var e = vec3<f32>(0.0);
+    for (var k = 0u; k < 8u; k++) {
+        let o = vec3<i32>(i32(k & 1u), i32((k >> 1u) & 1u), i32((k >> 2u) & 1u));
+        let w = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1)
+            * select(1.0 - f.z, f.z, o.z == 1);
+        if w <= 0.0 {
+            continue;
+        }
+        for (var ch = 0u; ch < 3u; ch++) {
+            e[ch] += w * dot(cell_sh(which, c0 + o, ch), lobe);
+        }
+    }
+    let albedo = textureLoad(gb_albedo, xy, 0).rgb;
+    indirect[i] = vec4<f32>(albedo / PI * e / (cell * cell), 0.0);
+}
