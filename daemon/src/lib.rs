@@ -1,4 +1,5 @@
 //! relightd internals: configuration, pipeline, control socket, sinks.
+pub mod bench;
 pub mod config;
 pub mod control;
 pub mod pipeline;

@@ -72,18 +72,41 @@ fn render_writes_every_output_for_every_shipped_scene() {
 }
 
 #[test]
-fn engines_without_an_offline_path_are_refused_clearly() {
+fn relighting_engines_render_offline_scenes_and_bad_requests_are_refused() {
     let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/desk_box");
     let out = tempfile::tempdir().unwrap();
-    let result = Command::new(env!("CARGO_BIN_EXE_relightd"))
-        .args(["render", "--engine", "passthrough", "--spp", "1", "--scene"])
-        .arg(&scene)
-        .arg("--out")
-        .arg(out.path())
-        .output()
-        .unwrap();
-    assert!(!result.status.success());
-    assert!(String::from_utf8_lossy(&result.stderr).contains("only `reference`"));
+    let render = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_relightd"))
+            .args([
+                "render", "--width", "48", "--height", "36", "--spp", "4", "--scene",
+            ])
+            .arg(&scene)
+            .arg("--out")
+            .arg(out.path())
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let ok = render(&["--engine", "differential", "--param", "rsm_size=128"]);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.path().join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["engine"], "differential");
+    assert_eq!(summary["params"]["rsm_size"], 128);
+    assert!(summary["delta_relative_l2"].as_f64().unwrap().is_finite());
+    for file in ["delta.exr", "delta_reference.exr", "composite.png"] {
+        assert!(out.path().join(file).exists(), "{file}");
+    }
+    let unknown = render(&["--engine", "dlvp"]);
+    assert!(!unknown.status.success());
+    assert!(String::from_utf8_lossy(&unknown.stderr).contains("known engines"));
+    let bad = render(&["--engine", "dlpv", "--param", "steps=-3"]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("steps"));
     let missing = Command::new(env!("CARGO_BIN_EXE_relightd"))
         .args(["render", "--scene", "/nonexistent-scene", "--out"])
         .arg(out.path())

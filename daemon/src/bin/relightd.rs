@@ -16,6 +16,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use relight_backends::sim::rig::{CameraPath, SimRig, SimSettings, write_recording};
 use relight_core::scene::Scene;
+use relight_daemon::bench;
 use relight_daemon::config::{self, Config, OutputConfig, ReplayConfig, SourceConfig};
 use relight_daemon::control::ControlServer;
 use relight_daemon::control::types::StatusReport;
@@ -128,6 +129,31 @@ enum Command {
     },
     /// Validate a configuration file and print it as understood.
     CheckConfig,
+    /// Time every engine × setting × scene and measure its Δ error against the reference path
+    /// tracer; prints a table, writes bench.csv, bench.json and bench.svg (speed vs error).
+    Bench {
+        /// Scene directories (default: every scene under tests/scenes).
+        #[arg(long = "scene")]
+        scenes: Vec<PathBuf>,
+        #[arg(long, default_value_t = 160)]
+        width: u32,
+        #[arg(long, default_value_t = 120)]
+        height: u32,
+        /// Reference samples per pixel.
+        #[arg(long, default_value_t = 256)]
+        reference_spp: u32,
+        /// Timed frames per case (after two warm-up frames); the median is reported.
+        #[arg(long, default_value_t = 5)]
+        frames: u32,
+        /// Add the paper's parameter sweeps (DLPV volume × steps, RSM sizes).
+        #[arg(long)]
+        sweep: bool,
+        /// Only these engines.
+        #[arg(long = "engine")]
+        engines: Vec<String>,
+        #[arg(long, default_value = "target/bench")]
+        out: PathBuf,
+    },
     /// Render an offline scene (scene.toml + glTF): writes L^ρ, L^μ, Δ and Δ's standard error as
     /// EXR, the composite as PNG, and a summary.json with the render time.
     Render {
@@ -149,6 +175,9 @@ enum Command {
         bounces: u32,
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// Engine parameters (`name=value`, repeatable), as `relightctl engine params set`.
+        #[arg(long = "param")]
+        params: Vec<String>,
     },
 }
 
@@ -174,6 +203,54 @@ fn run(cli: Cli) -> Result<()> {
         Command::Run => {
             let config = Config::load(&cli.config)?;
             serve(config, PipelineOptions::default(), true)
+        }
+        Command::Bench {
+            scenes,
+            width,
+            height,
+            reference_spp,
+            frames,
+            sweep,
+            engines,
+            out,
+        } => {
+            let scenes = if scenes.is_empty() {
+                let mut found: Vec<PathBuf> = std::fs::read_dir("tests/scenes")
+                    .context("no --scene given and no tests/scenes here")?
+                    .filter_map(|e| e.ok().map(|e| e.path()))
+                    .filter(|p| p.join("scene.toml").exists())
+                    .collect();
+                found.sort();
+                found
+            } else {
+                scenes
+            };
+            let cases = bench::default_cases(sweep)
+                .into_iter()
+                .filter(|c| engines.is_empty() || engines.contains(&c.engine))
+                .collect();
+            let settings = bench::BenchSettings {
+                scenes,
+                width,
+                height,
+                reference_spp,
+                frames,
+                cases,
+            };
+            let adapter = relight_engines::gpu::GpuContext::new()
+                .map(|c| format!("{} ({:?})", c.info.name, c.info.backend))
+                .unwrap_or_else(|e| format!("no GPU: {e}"));
+            eprintln!("bench on {adapter}");
+            let rows = bench::run(&settings, |row| {
+                eprintln!(
+                    "{:<14} {:<52} {:>9.2} ms  rel L2 {:.4}",
+                    row.scene, row.setting, row.median_ms, row.relative_l2
+                );
+            })?;
+            print!("{}", bench::table(&rows));
+            bench::write_outputs(&rows, &out, &adapter)?;
+            println!("wrote {}/bench.{{csv,json,svg}}", out.display());
+            Ok(())
         }
         Command::CheckConfig => {
             let config = Config::load(&cli.config)?;
@@ -279,11 +356,10 @@ fn run(cli: Cli) -> Result<()> {
             height,
             bounces,
             seed,
+            params,
         } => {
             if engine != "reference" {
-                bail!(
-                    "engine `{engine}` cannot render an offline scene yet; only `reference` can (the GPU engines add the scene path)"
-                );
+                return render_engine(&scene, &engine, &params, width.zip(height), spp, &out);
             }
             let settings = ReferenceSettings {
                 spp,
@@ -475,6 +551,88 @@ fn render(scene_dir: &Path, settings: ReferenceSettings, out: &Path) -> Result<(
         "{}: {w}×{h}, {} spp in {seconds:.2} s; mean std error of Δ on real pixels {mean_std_error:.2e}; wrote {}",
         scene.name,
         images.spp,
+        out.display()
+    );
+    Ok(())
+}
+
+/// Render an offline scene with a relighting engine: Δ as EXR, the composite as PNG, and a
+/// summary with the frame time and the error of Δ against the reference at `spp`.
+fn render_engine(
+    scene_dir: &Path,
+    engine: &str,
+    params: &[String],
+    size: Option<(u32, u32)>,
+    spp: u32,
+    out: &Path,
+) -> Result<()> {
+    let scene = Arc::new(Scene::load(scene_dir)?);
+    let (w, h) = size.unwrap_or((scene.camera.width, scene.camera.height));
+    let mut map = serde_json::Map::new();
+    for param in params {
+        let (key, value) = param
+            .split_once('=')
+            .with_context(|| format!("--param `{param}`: expected name=value"))?;
+        let value = serde_json::from_str(value).unwrap_or_else(|_| serde_json::Value::from(value));
+        map.insert(key.to_owned(), value);
+    }
+    let mut built = relight_engines::EngineRegistry::new().build(engine, &map)?;
+    let frame = relight_engines::offline::scene_frame(
+        scene.clone(),
+        relight_engines::offline::background(&scene, w, h, 16)?,
+    );
+    let mut relit = relight_engines::RelitFrame::default();
+    built.engine.render(&frame, &mut relit)?;
+    let started = Instant::now();
+    built.engine.render(&frame, &mut relit)?;
+    let ms = started.elapsed().as_secs_f64() * 1e3;
+    let reference = render_reference(
+        &scene,
+        ReferenceSettings {
+            spp,
+            pixel_jitter: false,
+            size: Some((w, h)),
+            ..ReferenceSettings::default()
+        },
+    )?;
+    let (relative_l2, max_abs) =
+        bench::delta_error(&relit, &reference.delta, &reference.virtual_mask);
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let delta: Vec<glam::Vec3> = relit
+        .delta
+        .as_u16()
+        .unwrap_or_default()
+        .chunks_exact(4)
+        .map(|px| {
+            glam::Vec3::new(
+                half::f16::from_bits(px[0]).to_f32(),
+                half::f16::from_bits(px[1]).to_f32(),
+                half::f16::from_bits(px[2]).to_f32(),
+            )
+        })
+        .collect();
+    write_exr(&out.join("delta.exr"), w, h, &delta)?;
+    write_exr(&out.join("delta_reference.exr"), w, h, &reference.delta)?;
+    write_png(&out.join("composite.png"), &relit.composite)?;
+    let summary = serde_json::json!({
+        "scene": scene.name,
+        "engine": engine,
+        "params": built.params,
+        "width": w,
+        "height": h,
+        "frame_ms": ms,
+        "passes": relit.timings.iter().map(|t| serde_json::json!({"pass": t.pass, "ms": t.ms})).collect::<Vec<_>>(),
+        "reference_spp": spp,
+        "delta_relative_l2": relative_l2,
+        "delta_max_abs": max_abs,
+    });
+    std::fs::write(
+        out.join("summary.json"),
+        serde_json::to_string_pretty(&summary)?,
+    )?;
+    println!(
+        "{}: {engine} {w}×{h} in {ms:.1} ms; Δ vs reference ({spp} spp): relative L2 {relative_l2:.4}, max abs {max_abs:.4}; wrote {}",
+        scene.name,
         out.display()
     );
     Ok(())

@@ -1,0 +1,265 @@
+//! `relightd bench`: every engine × setting × scene → median frame time and the error of its Δ
+//! against the reference path tracer (relative L2 over real pixels, and max |Δ − Δ_ref|),
+//! printed as a table and written as CSV, JSON and a speed-vs-error plot (SVG).
+//!
+//! Each scene is rendered once by the reference (full light transport, pixel centres, so the
+//! engines' rasterised silhouettes line up); each engine is built once per setting, run on the
+//! same offline [`SceneFrame`](relight_engines::SceneFrame) the daemon would give it, warmed up,
+//! then timed over `frames` renders (wall clock of `Engine::render`, including the readback of Δ
+//! and the composite: what the pipeline waits for).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use glam::Vec3;
+use plotters::prelude::*;
+use relight_core::scene::Scene;
+use relight_engines::offline::{background, scene_frame};
+use relight_engines::reference::{ReferenceSettings, render_reference};
+use relight_engines::{EngineRegistry, RelitFrame};
+use serde::Serialize;
+use serde_json::{Map, Value, json};
+
+/// One engine setting to measure.
+#[derive(Debug, Clone)]
+pub struct BenchCase {
+    pub engine: String,
+    pub params: Map<String, Value>,
+}
+
+impl BenchCase {
+    fn new(engine: &str, params: Value) -> Self {
+        Self {
+            engine: engine.into(),
+            params: params.as_object().cloned().unwrap_or_default(),
+        }
+    }
+
+    pub fn label(&self) -> String {
+        let params: Vec<String> = self
+            .params
+            .iter()
+            .map(|(k, v)| format!("{k}={}", v.to_string().trim_matches('"')))
+            .collect();
+        if params.is_empty() {
+            self.engine.clone()
+        } else {
+            format!("{} {}", self.engine, params.join(" "))
+        }
+    }
+}
+
+/// The default cases: each engine at its defaults, and with `sweep` the paper's parameter
+/// sweeps (DLPV: volume 16³/32³/64³ × steps 8/16/32/64, RSM 256²/512²/1024²; the differential
+/// baseline's shadow-map sizes).
+pub fn default_cases(sweep: bool) -> Vec<BenchCase> {
+    let mut cases = vec![
+        BenchCase::new("differential", json!({})),
+        BenchCase::new("dlpv", json!({})),
+        BenchCase::new("dlpv", json!({ "shadows": "shadow_map" })),
+    ];
+    if sweep {
+        for rsm in [256, 1024] {
+            cases.push(BenchCase::new("differential", json!({ "rsm_size": rsm })));
+        }
+        for volume in [16, 32, 64] {
+            for steps in [8, 16, 32, 64] {
+                cases.push(BenchCase::new(
+                    "dlpv",
+                    json!({ "volume_size": volume, "steps": steps }),
+                ));
+            }
+        }
+        for rsm in [256, 1024] {
+            cases.push(BenchCase::new("dlpv", json!({ "rsm_size": rsm })));
+        }
+    }
+    cases
+}
+
+#[derive(Debug, Clone)]
+pub struct BenchSettings {
+    pub scenes: Vec<PathBuf>,
+    pub width: u32,
+    pub height: u32,
+    pub reference_spp: u32,
+    pub frames: u32,
+    pub cases: Vec<BenchCase>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct BenchRow {
+    pub scene: String,
+    pub engine: String,
+    pub setting: String,
+    pub median_ms: f64,
+    pub min_ms: f64,
+    /// ‖Δ − Δ_ref‖₂ / ‖Δ_ref‖₂ over real pixels.
+    pub relative_l2: f64,
+    /// max |Δ − Δ_ref| over real pixels and channels.
+    pub max_abs: f64,
+}
+
+/// Measure every case on every scene.
+pub fn run(settings: &BenchSettings, mut progress: impl FnMut(&BenchRow)) -> Result<Vec<BenchRow>> {
+    let registry = EngineRegistry::new();
+    let (w, h) = (settings.width, settings.height);
+    let mut rows = Vec::new();
+    for dir in &settings.scenes {
+        let scene = Arc::new(Scene::load(dir)?);
+        let reference = render_reference(
+            &scene,
+            ReferenceSettings {
+                spp: settings.reference_spp,
+                pixel_jitter: false,
+                size: Some((w, h)),
+                ..ReferenceSettings::default()
+            },
+        )?;
+        let frame = scene_frame(scene.clone(), background(&scene, w, h, 16)?);
+        for case in &settings.cases {
+            let mut engine = registry
+                .build(&case.engine, &case.params)
+                .with_context(|| case.label())?
+                .engine;
+            let mut out = RelitFrame::default();
+            for _ in 0..2 {
+                engine
+                    .render(&frame, &mut out)
+                    .with_context(|| case.label())?;
+            }
+            let mut times = Vec::new();
+            for _ in 0..settings.frames.max(1) {
+                let started = Instant::now();
+                engine
+                    .render(&frame, &mut out)
+                    .with_context(|| case.label())?;
+                times.push(started.elapsed().as_secs_f64() * 1e3);
+            }
+            times.sort_by(f64::total_cmp);
+            let (relative_l2, max_abs) =
+                delta_error(&out, &reference.delta, &reference.virtual_mask);
+            let row = BenchRow {
+                scene: scene.name.clone(),
+                engine: case.engine.clone(),
+                setting: case.label(),
+                median_ms: times[times.len() / 2],
+                min_ms: times[0],
+                relative_l2,
+                max_abs,
+            };
+            progress(&row);
+            rows.push(row);
+        }
+    }
+    Ok(rows)
+}
+
+/// Relative L2 and max abs of the engine's Δ against the reference's over real pixels.
+pub fn delta_error(out: &RelitFrame, reference: &[Vec3], virtual_mask: &[bool]) -> (f64, f64) {
+    let Some(bits) = out.delta.as_u16() else {
+        return (f64::NAN, f64::NAN);
+    };
+    let (mut err, mut norm, mut max_abs) = (0.0f64, 0.0f64, 0.0f64);
+    for ((px, r), v) in bits.chunks_exact(4).zip(reference).zip(virtual_mask) {
+        if *v {
+            continue;
+        }
+        let d = Vec3::new(
+            half::f16::from_bits(px[0]).to_f32(),
+            half::f16::from_bits(px[1]).to_f32(),
+            half::f16::from_bits(px[2]).to_f32(),
+        );
+        let e = d - *r;
+        err += f64::from(e.length_squared());
+        norm += f64::from(r.length_squared());
+        max_abs = max_abs.max(f64::from(e.abs().max_element()));
+    }
+    ((err / norm.max(1e-30)).sqrt(), max_abs)
+}
+
+pub fn table(rows: &[BenchRow]) -> String {
+    let mut s = format!(
+        "{:<14} {:<52} {:>10} {:>10} {:>9} {:>9}\n",
+        "scene", "engine / setting", "median ms", "min ms", "rel L2", "max abs"
+    );
+    for r in rows {
+        s.push_str(&format!(
+            "{:<14} {:<52} {:>10.2} {:>10.2} {:>9.4} {:>9.4}\n",
+            r.scene, r.setting, r.median_ms, r.min_ms, r.relative_l2, r.max_abs
+        ));
+    }
+    s
+}
+
+/// `bench.csv`, `bench.json` and `bench.svg` (frame time vs error, one colour per engine) in
+/// `dir`.
+pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let mut csv = String::from("scene,engine,setting,median_ms,min_ms,relative_l2,max_abs\n");
+    for r in rows {
+        csv.push_str(&format!(
+            "{},{},\"{}\",{},{},{},{}\n",
+            r.scene, r.engine, r.setting, r.median_ms, r.min_ms, r.relative_l2, r.max_abs
+        ));
+    }
+    std::fs::write(dir.join("bench.csv"), csv)?;
+    std::fs::write(
+        dir.join("bench.json"),
+        serde_json::to_string_pretty(&json!({ "adapter": adapter, "rows": rows }))?,
+    )?;
+    plot(rows, &dir.join("bench.svg"), adapter)
+}
+
+fn plot(rows: &[BenchRow], path: &Path, adapter: &str) -> Result<()> {
+    let finite: Vec<&BenchRow> = rows
+        .iter()
+        .filter(|r| r.median_ms.is_finite() && r.relative_l2.is_finite() && r.median_ms > 0.0)
+        .collect();
+    let max_ms = finite.iter().map(|r| r.median_ms).fold(1.0, f64::max) * 1.2;
+    let max_err = finite.iter().map(|r| r.relative_l2).fold(0.1, f64::max) * 1.1;
+    let root = SVGBackend::new(path, (900, 600)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(
+            format!("relight engines: frame time vs Δ error ({adapter})"),
+            ("sans-serif", 20),
+        )
+        .margin(20)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d((0.1f64..max_ms).log_scale(), 0.0f64..max_err)
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    chart
+        .configure_mesh()
+        .x_desc("median frame time (ms, log)")
+        .y_desc("relative L2 error of Δ (real pixels)")
+        .draw()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut engines: Vec<&str> = finite.iter().map(|r| r.engine.as_str()).collect();
+    engines.dedup();
+    engines.sort_unstable();
+    engines.dedup();
+    for (i, engine) in engines.iter().enumerate() {
+        let colour = Palette99::pick(i).to_rgba();
+        let points: Vec<(f64, f64)> = finite
+            .iter()
+            .filter(|r| r.engine == *engine)
+            .map(|r| (r.median_ms, r.relative_l2))
+            .collect();
+        chart
+            .draw_series(points.iter().map(|&p| Circle::new(p, 5, colour.filled())))
+            .map_err(|e| anyhow::anyhow!("{e}"))?
+            .label(*engine)
+            .legend(move |(x, y)| Circle::new((x, y), 5, colour.filled()));
+    }
+    chart
+        .configure_series_labels()
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    root.present().map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok(())
+}

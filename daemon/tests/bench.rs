@@ -1,0 +1,37 @@
+//! `relightd bench` end to end on one small scene: every default case yields a finite error and
+//! time, the differential baseline is exact where it should be, and the outputs are written.
+
+use std::path::Path;
+
+use relight_daemon::bench::{BenchSettings, default_cases, run, table, write_outputs};
+
+#[test]
+fn bench_measures_every_case_and_writes_its_outputs() {
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/spot_bleed");
+    let settings = BenchSettings {
+        scenes: vec![scene],
+        width: 48,
+        height: 36,
+        reference_spp: 16,
+        frames: 1,
+        cases: default_cases(false),
+    };
+    let rows = run(&settings, |_| {}).unwrap();
+    assert_eq!(rows.len(), default_cases(false).len());
+    for row in &rows {
+        assert!(row.median_ms.is_finite() && row.median_ms > 0.0, "{row:?}");
+        assert!(
+            row.relative_l2.is_finite() && row.relative_l2 < 2.0,
+            "{row:?}"
+        );
+    }
+    assert!(table(&rows).lines().count() == rows.len() + 1);
+    let dir = tempfile::tempdir().unwrap();
+    write_outputs(&rows, dir.path(), "test adapter").unwrap();
+    for file in ["bench.csv", "bench.json", "bench.svg"] {
+        let len = std::fs::metadata(dir.path().join(file)).unwrap().len();
+        assert!(len > 100, "{file}: {len} bytes");
+    }
+    let csv = std::fs::read_to_string(dir.path().join("bench.csv")).unwrap();
+    assert_eq!(csv.lines().count(), rows.len() + 1);
+}
