@@ -23,6 +23,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use relight_core::StreamKind;
+use relight_engines::live_scene::RealGeometry;
 use serde::Deserialize;
 use toml::de::{DeTable, DeValue};
 
@@ -55,9 +56,35 @@ pub struct Config {
     pub source: SourceConfig,
     pub sync: SyncConfig,
     pub engine: EngineConfig,
+    pub scene: SceneConfig,
     pub recorder: RecorderConfig,
     pub snapshot: SnapshotConfig,
     pub output: OutputConfig,
+}
+
+/// `[scene]`: what the relighting engines relight live.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SceneConfig {
+    /// A scene directory (scene.toml + glTF): the virtual object(s), the lights, the camera's
+    /// pose. Without it the GPU engines have no scene and only the diagnostic engines run.
+    pub dir: Option<PathBuf>,
+    /// Real geometry: triangulated from depth, or the scene file's real meshes.
+    pub real: RealGeometry,
+    /// Diffuse albedo of the depth-derived surface.
+    pub real_albedo: f32,
+    /// Use every Nth depth pixel per axis for the surface.
+    pub depth_stride: u32,
+}
+
+impl Default for SceneConfig {
+    fn default() -> Self {
+        Self {
+            dir: None,
+            real: RealGeometry::Depth,
+            real_albedo: 0.6,
+            depth_stride: 2,
+        }
+    }
 }
 
 /// `[daemon]`: the service itself and its control socket.
@@ -253,6 +280,7 @@ impl Default for Config {
             source: SourceConfig::Devices(BTreeMap::new()),
             sync: SyncConfig::default(),
             engine: EngineConfig::default(),
+            scene: SceneConfig::default(),
             recorder: RecorderConfig::default(),
             snapshot: SnapshotConfig::default(),
             output: OutputConfig::default(),
@@ -517,6 +545,7 @@ struct RawConfig {
     lamp: Option<toml::Table>,
     sync: RawSync,
     engine: RawEngine,
+    scene: RawScene,
     recorder: RawRecorder,
     snapshot: RawSnapshot,
     output: RawOutput,
@@ -556,6 +585,15 @@ struct RawSync {
 struct RawEngine {
     name: Option<String>,
     params: Option<toml::Table>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawScene {
+    dir: Option<String>,
+    real: Option<String>,
+    real_albedo: Option<f64>,
+    depth_stride: Option<i64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -608,6 +646,7 @@ impl Validator<'_> {
             source,
             sync: self.sync(raw.sync),
             engine: self.engine(raw.engine),
+            scene: self.scene(raw.scene),
             recorder: self.recorder(raw.recorder),
             snapshot: SnapshotConfig {
                 dir: self
@@ -924,6 +963,41 @@ impl Validator<'_> {
             engine.params = self.table_to_json("engine.params", &params);
         }
         engine
+    }
+
+    fn scene(&mut self, raw: RawScene) -> SceneConfig {
+        let mut scene = SceneConfig {
+            dir: self.dir("scene.dir", raw.dir),
+            ..SceneConfig::default()
+        };
+        match raw.real.as_deref() {
+            None | Some("depth") => {}
+            Some("scene") => scene.real = RealGeometry::Scene,
+            Some(other) => self.error(
+                "scene.real",
+                format!("must be \"depth\" or \"scene\", got \"{other}\""),
+            ),
+        }
+        if let Some(albedo) = raw.real_albedo {
+            if (0.0..=1.0).contains(&albedo) {
+                scene.real_albedo = albedo as f32;
+            } else {
+                self.error(
+                    "scene.real_albedo",
+                    format!("must be in [0, 1], got {albedo}"),
+                );
+            }
+        }
+        if let Some(stride) = raw.depth_stride {
+            match u32::try_from(stride) {
+                Ok(n) if (1..=16).contains(&n) => scene.depth_stride = n,
+                _ => self.error(
+                    "scene.depth_stride",
+                    format!("must be in 1..=16, got {stride}"),
+                ),
+            }
+        }
+        scene
     }
 
     fn recorder(&mut self, raw: RawRecorder) -> RecorderConfig {

@@ -20,11 +20,15 @@ use relight_backends::device::{Backoff, DeviceStatus as BackendStatus, Stepper};
 use relight_backends::sim::device::{SimDevice, SimSourceConfig};
 use relight_backends::{Device as _, DeviceRunner, DeviceState, Replay, ReplayConfig, ReplayMode};
 use relight_core::bus::Bus;
+use relight_core::camera::CameraModel;
 use relight_core::frame::host_now_ns;
 use relight_core::recording::RecordingMeta;
+use relight_core::scene::Scene;
 use relight_core::sync::{FrameSet, SyncConfig as CoreSyncConfig, Synchronizer};
 use relight_core::{StreamKind, StreamMessage};
-use relight_engines::{Engine, EngineRegistry, RelitFrame, SceneFrame};
+use relight_engines::gpu::GpuError;
+use relight_engines::live_scene::{LiveScene, RealGeometry};
+use relight_engines::{Engine, EngineError, EngineRegistry, RelitFrame, SceneFrame};
 use serde_json::{Map, Value, json};
 
 use crate::config::{self, Config, SourceConfig};
@@ -202,6 +206,31 @@ impl Pipeline {
         }
         let synchronizer = Synchronizer::new(sync)
             .with_context(|| format!("{}: [sync]", config.path.display()))?;
+        let live_scene = match &config.scene.dir {
+            Some(dir) => {
+                let scene = Scene::load(dir)
+                    .with_context(|| format!("{}: [scene] dir", config.path.display()))?;
+                let depth_camera = meta.calibration.as_ref().and_then(|c| {
+                    match c.depth.as_ref().or(c.color.as_ref()) {
+                        Some(CameraModel::Pinhole(p)) => Some(*p),
+                        _ => None,
+                    }
+                });
+                if depth_camera.is_none() && config.scene.real == RealGeometry::Depth {
+                    tracing::warn!(
+                        "[scene] real = \"depth\" but the source has no pinhole depth calibration: the GPU engines get no scene"
+                    );
+                }
+                Some(LiveScene::new(
+                    scene,
+                    config.scene.real,
+                    config.scene.real_albedo,
+                    depth_camera,
+                    config.scene.depth_stride,
+                ))
+            }
+            None => None,
+        };
         let recorder = Recorder::spawn(&bus, config.recorder.queue_frames, meta)?;
         let autostart = config
             .recorder
@@ -253,6 +282,7 @@ impl Pipeline {
                         shared: &shared,
                         synchronizer,
                         engine: built.engine,
+                        live_scene,
                         relit: RelitFrame::default(),
                         arrivals: VecDeque::new(),
                         exit_at_end: options.exit_at_end,
@@ -326,6 +356,8 @@ struct RenderLoop<'a> {
     shared: &'a Shared,
     synchronizer: Synchronizer,
     engine: Box<dyn Engine>,
+    /// Builds each frame's scene for the GPU engines (`[scene]`).
+    live_scene: Option<LiveScene>,
     relit: RelitFrame,
     /// Wall-clock arrival of recent reference frames, to time how long sets wait in the sync.
     arrivals: VecDeque<(u64, Instant)>,
@@ -465,6 +497,21 @@ impl RenderLoop<'_> {
         }
     }
 
+    /// After a GPU device loss: build the same engine with the same parameters on a new
+    /// device (the registry's shared context is recreated once lost). Until that works, frames
+    /// keep failing and counting as render errors; the daemon stays up.
+    fn rebuild_engine(&mut self) {
+        let name = lock(&self.shared.engine_name).clone();
+        let params = lock(&self.shared.engine_params).clone();
+        match self.shared.registry.build(&name, &params) {
+            Ok(built) => {
+                tracing::warn!(engine = %name, "GPU device lost; engine rebuilt on a new device");
+                self.engine = built.engine;
+            }
+            Err(error) => tracing::error!(engine = %name, %error, "rebuilding the engine failed"),
+        }
+    }
+
     fn process(&mut self, set: FrameSet) {
         let shared = self.shared;
         self.apply_pending();
@@ -485,6 +532,15 @@ impl RenderLoop<'_> {
             depth: set.depth.clone(),
             scene: None,
         };
+        let mut scene = scene;
+        if let Some(live) = self.live_scene.as_mut() {
+            let start = Instant::now();
+            scene.scene = live.frame(
+                set.depth.as_ref().map(|d| &d.payload),
+                set.lamp.as_ref().map(|l| &l.payload),
+            );
+            self.record_stage("scene", start.elapsed().as_secs_f64() * 1e3);
+        }
         let start = Instant::now();
         let rendered = self.engine.render(&scene, &mut self.relit);
         self.record_stage("render", start.elapsed().as_secs_f64() * 1e3);
@@ -504,6 +560,9 @@ impl RenderLoop<'_> {
                 let n = shared.render_errors.fetch_add(1, Ordering::Relaxed);
                 if n.is_power_of_two() || n == 0 {
                     tracing::warn!(%error, errors = n + 1, "frame not rendered");
+                }
+                if matches!(error, EngineError::Gpu(GpuError::Lost { .. })) {
+                    self.rebuild_engine();
                 }
                 return;
             }
@@ -599,6 +658,7 @@ fn status_report(shared: &Shared) -> StatusReport {
         frame_sets: shared.frame_sets.load(Ordering::Relaxed),
         sync_missing: shared.sync_missing.load(Ordering::Relaxed),
         bus_drops: shared.bus.total_dropped(),
+        render_errors: shared.render_errors.load(Ordering::Relaxed),
         recording: shared
             .recorder
             .status()
@@ -669,20 +729,37 @@ impl ControlTarget for PipelineControl {
         })
     }
 
+    /// Validate against the engine that renders the next frame: the one waiting to be swapped
+    /// in after an `engine.set`, if any (so `engine set X` then `params set` applies to X),
+    /// else the running one.
     fn engine_params_set(&self, params: Map<String, Value>) -> Result<Value, ControlError> {
-        let name = lock(&self.shared.engine_name).clone();
+        let mut pending = lock(&self.shared.pending);
+        let (name, current) = match pending.as_ref() {
+            Some(Pending::Engine { name, params, .. }) => (name.clone(), params.clone()),
+            _ => (
+                lock(&self.shared.engine_name).clone(),
+                lock(&self.shared.engine_params).clone(),
+            ),
+        };
         let spec = self
             .shared
             .registry
             .spec(&name)
             .map_err(|e| ControlError::failed(e.to_string()))?;
-        let current = lock(&self.shared.engine_params).clone();
         let merged = spec
             .schema
             .validate(&current, &params)
             .map_err(|e| ControlError::invalid_params(e.to_string()))?;
-        *lock(&self.shared.engine_params) = merged.clone();
-        *lock(&self.shared.pending) = Some(Pending::Params(merged.clone()));
+        match pending.as_mut() {
+            Some(Pending::Engine { engine, params, .. }) => {
+                engine.set_params(&merged);
+                *params = merged.clone();
+            }
+            _ => {
+                *lock(&self.shared.engine_params) = merged.clone();
+                *pending = Some(Pending::Params(merged.clone()));
+            }
+        }
         Ok(Value::Object(merged))
     }
 

@@ -68,6 +68,7 @@ fn sample_status(engine: &str, recording: Option<PathBuf>) -> StatusReport {
             dropped: 0,
         }],
         bus_drops: 2,
+        render_errors: 0,
         recording: recording.map(|path| RecordingStatus { path, messages: 77 }),
     }
 }

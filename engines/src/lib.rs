@@ -12,6 +12,7 @@ pub mod engine;
 pub mod gbuffer;
 pub mod gpu;
 pub mod gpu_scene;
+pub mod live_scene;
 pub mod offline;
 pub mod params;
 pub mod registry;

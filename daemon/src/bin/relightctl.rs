@@ -225,8 +225,9 @@ fn render_status(status: &StatusReport) -> String {
         None => "off".to_owned(),
     };
     let mut out = format!(
-        "engine      {}\nuptime      {}\nframe sets  {} ({} incomplete)\nbus drops   {}\nrecording   {}\n",
+        "engine      {} ({} frame sets not rendered)\nuptime      {}\nframe sets  {} ({} incomplete)\nbus drops   {}\nrecording   {}\n",
         status.engine,
+        status.render_errors,
         format_uptime(status.uptime_s),
         status.frame_sets,
         status.sync_missing,

@@ -78,6 +78,10 @@ enum Command {
         /// Serve the control socket here while replaying.
         #[arg(long)]
         socket: Option<PathBuf>,
+        /// Scene directory for the GPU engines: virtual object(s), lights, camera pose (the
+        /// real surface comes from the recording's depth).
+        #[arg(long)]
+        scene: Option<PathBuf>,
     },
     /// Record the configured sources to an MCAP file.
     Record {
@@ -266,6 +270,7 @@ fn run(cli: Cli) -> Result<()> {
             output,
             every_n,
             socket,
+            scene,
         } => {
             let mut config = Config {
                 path: PathBuf::from("(command line)"),
@@ -286,6 +291,7 @@ fn run(cli: Cli) -> Result<()> {
                 ..Config::default()
             };
             config.engine.name = engine;
+            config.scene.dir = scene;
             if let Some(socket) = socket {
                 config.daemon.socket = socket;
             }
@@ -640,11 +646,12 @@ fn render_engine(
 
 fn print_summary(status: &StatusReport, elapsed: Duration) {
     println!(
-        "{} frame sets in {:.2} s ({} with a missing stream), engine {}, bus drops {}",
+        "{} frame sets in {:.2} s ({} with a missing stream), engine {} ({} not rendered), bus drops {}",
         status.frame_sets,
         elapsed.as_secs_f64(),
         status.sync_missing,
         status.engine,
+        status.render_errors,
         status.bus_drops
     );
     println!(

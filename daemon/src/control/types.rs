@@ -149,6 +149,9 @@ pub struct StatusReport {
     pub sync_missing: u64,
     /// Frames dropped by bus queues (drop-oldest).
     pub bus_drops: u64,
+    /// Frame sets the engine failed to render (missing input, GPU error); the daemon goes on.
+    #[serde(default)]
+    pub render_errors: u64,
     pub recording: Option<RecordingStatus>,
     /// Per expected stream: how the synchroniser used its messages.
     #[serde(default)]

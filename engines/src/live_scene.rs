@@ -1,0 +1,256 @@
+//! The scene engines relight live: the real surface measured by the depth camera (or the scene
+//! file's own real meshes, for a known room), the virtual object(s), lights and camera pose from
+//! a scene file, and the pocket lamp where it is now.
+//!
+//! The camera pose is the scene file's (a rig on a tripod, registered once); marker tracking of
+//! the camera replaces it when the marker backends land. The depth-derived surface has one
+//! diffuse albedo until albedo estimation (DLPV eq. 1) provides per-pixel values.
+
+use std::sync::Arc;
+
+use glam::Vec3;
+use relight_core::camera::Pinhole;
+use relight_core::light::Light;
+use relight_core::scene::{Material, Mesh, Scene};
+use relight_core::{Image, LampState, Pose};
+
+/// Where the real geometry comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RealGeometry {
+    /// Triangulated from each depth frame.
+    Depth,
+    /// The scene file's real meshes (a proxy of a known room).
+    Scene,
+}
+
+/// Neighbouring depth samples further apart than this (relative) are not joined: a depth edge.
+const MAX_RELATIVE_JUMP: f32 = 0.05;
+
+#[derive(Debug)]
+pub struct LiveScene {
+    base: Scene,
+    real: RealGeometry,
+    real_material: usize,
+    depth_camera: Option<Pinhole>,
+    stride: u32,
+    /// The scene without per-frame parts, shared while nothing changes (engines cache uploads
+    /// by `Arc` identity).
+    fixed: Option<Arc<Scene>>,
+}
+
+impl LiveScene {
+    /// `base`: the scene file; `depth_camera`: the depth camera's intrinsics (registered to the
+    /// colour camera); `stride`: use every `stride`-th depth pixel per axis.
+    pub fn new(
+        mut base: Scene,
+        real: RealGeometry,
+        real_albedo: f32,
+        depth_camera: Option<Pinhole>,
+        stride: u32,
+    ) -> Self {
+        if let Some(camera) = depth_camera {
+            // The colour camera's field of view (registered depth shares it).
+            base.camera.yfov_rad =
+                (2.0 * (f64::from(camera.height) / 2.0 / camera.fy).atan()) as f32;
+        }
+        let real_material = base.materials.len();
+        base.materials.push(Material {
+            name: "measured surface".into(),
+            albedo: Vec3::splat(real_albedo.clamp(0.0, 1.0)),
+            ..Material::default()
+        });
+        if real == RealGeometry::Depth {
+            base.meshes.retain(|m| m.is_virtual);
+        }
+        Self {
+            base,
+            real,
+            real_material,
+            depth_camera,
+            stride: stride.max(1),
+            fixed: None,
+        }
+    }
+
+    /// The scene for one frame set; `None` when the real surface is to come from depth and
+    /// there is no usable depth frame (or no depth calibration).
+    pub fn frame(&mut self, depth: Option<&Image>, lamp: Option<&LampState>) -> Option<Arc<Scene>> {
+        let lamp_light = lamp
+            .filter(|l| l.on && l.position_in_world.is_finite())
+            .map(|l| Light::Point {
+                position_in_world: l.position_in_world,
+                intensity: l.intensity,
+            });
+        if self.real == RealGeometry::Scene && lamp_light.is_none() {
+            return Some(
+                self.fixed
+                    .get_or_insert_with(|| Arc::new(self.base.clone()))
+                    .clone(),
+            );
+        }
+        let mut scene = self.base.clone();
+        scene.lights.extend(lamp_light);
+        if self.real == RealGeometry::Depth {
+            let camera = self.depth_camera.as_ref()?;
+            let mesh = depth_mesh(
+                depth?,
+                camera,
+                &scene.camera.world_from_camera,
+                self.real_material,
+                self.stride,
+            );
+            if mesh.triangles.is_empty() {
+                return None;
+            }
+            scene.meshes.insert(0, mesh);
+        }
+        Some(Arc::new(scene))
+    }
+}
+
+/// Triangulate a depth image (any depth format; invalid = 0, NaN or missing) seen by `camera`
+/// (OpenCV optical frame) at `world_from_camera` (glTF convention) into a real mesh: two
+/// triangles per 2 × 2 block of valid samples whose depths agree within 5 %, vertex normals from
+/// the neighbouring positions, facing the camera.
+pub fn depth_mesh(
+    depth: &Image,
+    camera: &Pinhole,
+    world_from_camera: &Pose,
+    material: usize,
+    stride: u32,
+) -> Mesh {
+    let stride = stride.max(1);
+    let (w, h) = (
+        depth.width().div_ceil(stride),
+        depth.height().div_ceil(stride),
+    );
+    let at = |x: u32, y: u32| -> Option<Vec3> {
+        let (px, py) = (x * stride, y * stride);
+        let z = depth
+            .depth_m(px, py)
+            .filter(|z| z.is_finite() && *z > 0.0)?;
+        let optical = Vec3::new(
+            ((f64::from(px) - camera.cx) / camera.fx) as f32 * z,
+            ((f64::from(py) - camera.cy) / camera.fy) as f32 * z,
+            z,
+        );
+        Some(Vec3::new(optical.x, -optical.y, -optical.z))
+    };
+    let mut index = vec![u32::MAX; (w * h) as usize];
+    let mut positions = Vec::new();
+    let mut in_camera = Vec::new();
+    for y in 0..h {
+        for x in 0..w {
+            if let Some(p) = at(x, y) {
+                index[(y * w + x) as usize] = positions.len() as u32;
+                in_camera.push(p);
+                positions.push(world_from_camera.transform_point(p));
+            }
+        }
+    }
+    let joined = |a: Vec3, b: Vec3| {
+        let (za, zb) = (-a.z, -b.z);
+        (za - zb).abs() <= MAX_RELATIVE_JUMP * za.min(zb)
+    };
+    let mut triangles = Vec::new();
+    for y in 0..h.saturating_sub(1) {
+        for x in 0..w.saturating_sub(1) {
+            let i = |dx: u32, dy: u32| index[((y + dy) * w + x + dx) as usize];
+            let quad = [i(0, 0), i(1, 0), i(0, 1), i(1, 1)];
+            for tri in [[quad[0], quad[2], quad[1]], [quad[1], quad[2], quad[3]]] {
+                if tri.contains(&u32::MAX) {
+                    continue;
+                }
+                let [a, b, c] = tri.map(|k| in_camera[k as usize]);
+                if joined(a, b) && joined(b, c) && joined(a, c) {
+                    triangles.push(tri);
+                }
+            }
+        }
+    }
+    let mut normals = vec![Vec3::ZERO; positions.len()];
+    for tri in &triangles {
+        let [a, b, c] = tri.map(|k| positions[k as usize]);
+        let n = (b - a).cross(c - a);
+        for k in tri {
+            normals[*k as usize] += n;
+        }
+    }
+    let eye = world_from_camera.translation;
+    for (n, p) in normals.iter_mut().zip(&positions) {
+        let unit = n.normalize_or_zero();
+        *n = if unit.dot(eye - *p) < 0.0 {
+            -unit
+        } else {
+            unit
+        };
+    }
+    Mesh {
+        name: "depth surface".into(),
+        positions_in_world: positions,
+        normals_in_world: normals,
+        triangles,
+        material,
+        is_virtual: false,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use relight_core::PixelFormat;
+
+    use super::*;
+
+    fn camera() -> Pinhole {
+        Pinhole {
+            width: 8,
+            height: 6,
+            fx: 8.0,
+            fy: 8.0,
+            cx: 3.5,
+            cy: 2.5,
+            k1: 0.0,
+            k2: 0.0,
+            p1: 0.0,
+            p2: 0.0,
+            k3: 0.0,
+        }
+    }
+
+    #[test]
+    fn a_flat_wall_becomes_a_flat_mesh_facing_the_camera() {
+        let mut depth = Image::new(8, 6, PixelFormat::DepthF32M);
+        depth.as_f32_mut().unwrap().fill(2.0);
+        let mesh = depth_mesh(&depth, &camera(), &Pose::IDENTITY, 0, 1);
+        assert_eq!(mesh.positions_in_world.len(), 48);
+        assert_eq!(mesh.triangles.len(), 2 * 7 * 5);
+        for (p, n) in mesh.positions_in_world.iter().zip(&mesh.normals_in_world) {
+            assert!((p.z + 2.0).abs() < 1e-6, "{p}");
+            assert!((*n - Vec3::Z).length() < 1e-5, "{n}");
+        }
+    }
+
+    #[test]
+    fn holes_nan_and_depth_edges_make_no_triangles() {
+        let mut depth = Image::new(8, 6, PixelFormat::DepthF32M);
+        let d = depth.as_f32_mut().unwrap();
+        d.fill(2.0);
+        d[9] = 0.0;
+        d[10] = f32::NAN;
+        for row in 0..6 {
+            d[row * 8 + 6] = 3.0;
+            d[row * 8 + 7] = 3.0;
+        }
+        let mesh = depth_mesh(&depth, &camera(), &Pose::IDENTITY, 0, 1);
+        assert!(mesh.positions_in_world.iter().all(|p| p.is_finite()));
+        for tri in &mesh.triangles {
+            let zs = tri.map(|k| mesh.positions_in_world[k as usize].z);
+            assert!(
+                zs.iter().all(|z| *z == zs[0]),
+                "a triangle spans the depth edge: {zs:?}"
+            );
+        }
+        assert!(mesh.triangles.len() < 2 * 7 * 5);
+        assert!(!mesh.triangles.is_empty());
+    }
+}
