@@ -5,8 +5,9 @@
 //! Each scene is rendered once by the reference (full light transport, pixel centres, so the
 //! engines' rasterised silhouettes line up); each engine is built once per setting, run on the
 //! same offline [`SceneFrame`](relight_engines::SceneFrame) the daemon would give it, warmed up,
-//! then timed over `frames` renders (wall clock of `Engine::render`, including the readback of Δ
-//! and the composite: what the pipeline waits for).
+//! then timed over `frames` renders: wall clock of `Engine::render`, including the readback of Δ
+//! and the composite (what the pipeline waits for), and the GPU time of its passes from
+//! timestamp queries where the adapter has them.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -96,6 +97,11 @@ pub struct BenchRow {
     pub setting: String,
     pub median_ms: f64,
     pub min_ms: f64,
+    /// Median GPU time of the frame's passes by timestamp queries (`None` where the adapter
+    /// has none).
+    pub gpu_ms: Option<f64>,
+    /// GPU time per pass of the last timed frame.
+    pub gpu_passes: Vec<(String, f64)>,
     /// ‖Δ − Δ_ref‖₂ / ‖Δ_ref‖₂ over real pixels.
     pub relative_l2: f64,
     /// max |Δ − Δ_ref| over real pixels and channels.
@@ -131,14 +137,30 @@ pub fn run(settings: &BenchSettings, mut progress: impl FnMut(&BenchRow)) -> Res
                     .with_context(|| case.label())?;
             }
             let mut times = Vec::new();
+            let mut gpu_times = Vec::new();
             for _ in 0..settings.frames.max(1) {
                 let started = Instant::now();
                 engine
                     .render(&frame, &mut out)
                     .with_context(|| case.label())?;
                 times.push(started.elapsed().as_secs_f64() * 1e3);
+                let gpu: Vec<f64> = out
+                    .timings
+                    .iter()
+                    .filter(|t| t.pass.starts_with("gpu."))
+                    .map(|t| t.ms)
+                    .collect();
+                if !gpu.is_empty() {
+                    gpu_times.push(gpu.iter().sum::<f64>());
+                }
             }
             times.sort_by(f64::total_cmp);
+            gpu_times.sort_by(f64::total_cmp);
+            let gpu_passes = out
+                .timings
+                .iter()
+                .filter_map(|t| Some((t.pass.strip_prefix("gpu.")?.to_owned(), t.ms)))
+                .collect();
             let (relative_l2, max_abs) =
                 delta_error(&out, &reference.delta, &reference.virtual_mask);
             let row = BenchRow {
@@ -147,6 +169,8 @@ pub fn run(settings: &BenchSettings, mut progress: impl FnMut(&BenchRow)) -> Res
                 setting: case.label(),
                 median_ms: times[times.len() / 2],
                 min_ms: times[0],
+                gpu_ms: gpu_times.get(gpu_times.len() / 2).copied(),
+                gpu_passes,
                 relative_l2,
                 max_abs,
             };
@@ -182,13 +206,14 @@ pub fn delta_error(out: &RelitFrame, reference: &[Vec3], virtual_mask: &[bool]) 
 
 pub fn table(rows: &[BenchRow]) -> String {
     let mut s = format!(
-        "{:<14} {:<52} {:>10} {:>10} {:>9} {:>9}\n",
-        "scene", "engine / setting", "median ms", "min ms", "rel L2", "max abs"
+        "{:<14} {:<48} {:>10} {:>10} {:>9} {:>9}\n",
+        "scene", "engine / setting", "median ms", "GPU ms", "rel L2", "max abs"
     );
     for r in rows {
+        let gpu = r.gpu_ms.map_or("-".to_owned(), |ms| format!("{ms:.2}"));
         s.push_str(&format!(
-            "{:<14} {:<52} {:>10.2} {:>10.2} {:>9.4} {:>9.4}\n",
-            r.scene, r.setting, r.median_ms, r.min_ms, r.relative_l2, r.max_abs
+            "{:<14} {:<48} {:>10.2} {:>10} {:>9.4} {:>9.4}\n",
+            r.scene, r.setting, r.median_ms, gpu, r.relative_l2, r.max_abs
         ));
     }
     s
@@ -198,11 +223,13 @@ pub fn table(rows: &[BenchRow]) -> String {
 /// `dir`.
 pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let mut csv = String::from("scene,engine,setting,median_ms,min_ms,relative_l2,max_abs\n");
+    let mut csv =
+        String::from("scene,engine,setting,median_ms,min_ms,gpu_ms,relative_l2,max_abs\n");
     for r in rows {
+        let gpu = r.gpu_ms.map_or(String::new(), |ms| ms.to_string());
         csv.push_str(&format!(
-            "{},{},\"{}\",{},{},{},{}\n",
-            r.scene, r.engine, r.setting, r.median_ms, r.min_ms, r.relative_l2, r.max_abs
+            "{},{},\"{}\",{},{},{},{},{}\n",
+            r.scene, r.engine, r.setting, r.median_ms, r.min_ms, gpu, r.relative_l2, r.max_abs
         ));
     }
     std::fs::write(dir.join("bench.csv"), csv)?;

@@ -16,6 +16,7 @@ use crate::gbuffer::{GBufferPass, RsmPass, Targets};
 use crate::gpu::GpuContext;
 use crate::gpu_scene::{GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, light_faces};
 use crate::shaders;
+use crate::timer::GpuTimer;
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -76,6 +77,7 @@ pub struct Deferred {
     rgba: Vec<u8>,
     lights_cpu: Vec<GpuLight>,
     faces_cpu: Vec<GpuFace>,
+    timer: Option<GpuTimer>,
 }
 
 const MAX_LAYERS: u32 = 64;
@@ -114,6 +116,7 @@ impl Deferred {
             rgba: Vec::new(),
             lights_cpu: Vec::new(),
             faces_cpu: Vec::new(),
+            timer: GpuTimer::new(&ctx),
             ctx,
         }
     }
@@ -222,6 +225,9 @@ impl Deferred {
             frame_res.background.size(),
         );
 
+        if let Some(timer) = self.timer.as_mut() {
+            timer.reset();
+        }
         let mut encoder = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -235,6 +241,7 @@ impl Deferred {
                 gpu_scene,
                 include_virtual,
                 targets,
+                self.timer.as_mut(),
             );
         }
         if !self.faces_cpu.is_empty() {
@@ -250,7 +257,7 @@ impl Deferred {
                     gpu_scene,
                     include_virtual,
                     targets,
-                    self.faces_cpu.len() as u32,
+                    self.timer.as_mut(),
                 );
             }
         }
@@ -293,6 +300,18 @@ impl Deferred {
 
     pub fn camera(&self) -> &wgpu::Buffer {
         &self.camera
+    }
+
+    /// Lend the frame's GPU pass timer to an engine's own passes (`None` without timestamp
+    /// queries); give it back with [`return_timer`](Self::return_timer) before `finish`.
+    pub fn lend_timer(&mut self) -> Option<GpuTimer> {
+        self.timer.take()
+    }
+
+    pub fn return_timer(&mut self, timer: Option<GpuTimer>) {
+        if timer.is_some() {
+            self.timer = timer;
+        }
     }
 
     /// Shade, composite and read back into `out`.
@@ -384,11 +403,14 @@ impl Deferred {
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("shade"),
-                timestamp_writes: None,
+                timestamp_writes: self.timer.as_mut().and_then(|t| t.compute("gpu.shade")),
             });
             pass.set_pipeline(&self.shade);
             pass.set_bind_group(0, &group, &[]);
             pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+        }
+        if let Some(timer) = &self.timer {
+            timer.resolve(&mut encoder);
         }
         ctx.queue.submit([encoder.finish()]);
         let pixels = u64::from(width) * u64::from(height);
@@ -410,6 +432,9 @@ impl Deferred {
             pass: "shade+readback",
             ms: started.elapsed().as_secs_f64() * 1e3,
         });
+        if let Some(timer) = &self.timer {
+            timer.read(&ctx, &mut out.timings)?;
+        }
         Ok(())
     }
 }

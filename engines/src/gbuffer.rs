@@ -5,6 +5,7 @@
 use crate::gpu::GpuContext;
 use crate::gpu_scene::{GpuScene, GpuVertex};
 use crate::shaders;
+use crate::timer::GpuTimer;
 
 const POSITION: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 const NORMAL: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -86,6 +87,7 @@ impl Targets {
         vertices: u32,
         layer: u32,
         empty_w: f64,
+        timestamps: Option<wgpu::RenderPassTimestampWrites>,
     ) {
         let views =
             [&self.position, &self.normal, &self.albedo].map(|t| Self::layer_view(t, layer));
@@ -126,7 +128,7 @@ impl Targets {
                 }),
                 stencil_ops: None,
             }),
-            timestamp_writes: None,
+            timestamp_writes: timestamps,
             occlusion_query_set: None,
             multiview_mask: None,
         });
@@ -224,6 +226,7 @@ impl GBufferPass {
         scene: &GpuScene,
         include_virtual: bool,
         targets: &Targets,
+        timer: Option<&mut GpuTimer>,
     ) {
         targets.draw(
             encoder,
@@ -233,6 +236,7 @@ impl GBufferPass {
             scene.vertex_count(include_virtual),
             0,
             0.0,
+            timer.and_then(|t| t.render("gpu.gbuffer")),
         );
     }
 }
@@ -280,7 +284,7 @@ impl RsmPass {
         })
     }
 
-    /// Render every face (layer) of `targets`.
+    /// Render every face (layer) of `targets` (one layer per light face).
     pub fn render(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -288,9 +292,9 @@ impl RsmPass {
         scene: &GpuScene,
         include_virtual: bool,
         targets: &Targets,
-        faces: u32,
+        mut timer: Option<&mut GpuTimer>,
     ) {
-        for face in 0..faces.min(targets.layers) {
+        for face in 0..targets.layers {
             targets.draw(
                 encoder,
                 &self.pipeline,
@@ -299,6 +303,7 @@ impl RsmPass {
                 scene.vertex_count(include_virtual),
                 face,
                 RSM_EMPTY_DISTANCE,
+                timer.as_deref_mut().and_then(|t| t.render("gpu.rsm")),
             );
         }
     }

@@ -17,6 +17,7 @@ pub mod offline;
 pub mod params;
 pub mod registry;
 pub mod shaders;
+pub mod timer;
 
 mod depth_preview;
 mod passthrough;

@@ -34,6 +34,7 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::gpu_scene::GpuLight;
 use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64, get_i64, get_str};
 use crate::shaders;
+use crate::timer::GpuTimer;
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -110,6 +111,18 @@ fn compute(ctx: &GpuContext, label: &str, source: &str) -> wgpu::ComputePipeline
             compilation_options: Default::default(),
             cache: None,
         })
+}
+
+/// A compute pass with start/end timestamps under `label` when the adapter has them.
+fn timed_pass<'e>(
+    encoder: &'e mut wgpu::CommandEncoder,
+    timer: &mut Option<GpuTimer>,
+    label: &'static str,
+) -> wgpu::ComputePass<'e> {
+    encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+        label: Some(label),
+        timestamp_writes: timer.as_mut().and_then(|t| t.compute(label)),
+    })
 }
 
 fn entries<'a>(resources: &[wgpu::BindingResource<'a>]) -> Vec<wgpu::BindGroupEntry<'a>> {
@@ -320,6 +333,7 @@ impl Engine for Dlpv {
                 }),
             );
             self.volume_buffers()?;
+            let mut timer = self.deferred.lend_timer();
             let (Some(v), Some((lights, faces_buf, rsm_rho, rsm_mu)), Some((gb_rho, _, indirect))) = (
                 self.volume.as_ref(),
                 self.deferred.light_buffers(),
@@ -397,10 +411,7 @@ impl Engine for Dlpv {
                 });
             encoder.clear_buffer(&v.cells, 0, None);
             {
-                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("dlpv"),
-                    timestamp_writes: None,
-                });
+                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
                 pass.set_pipeline(&self.inject);
                 pass.set_bind_group(0, &inject_group, &[]);
                 let s = settings.rsm_size.div_ceil(8);
@@ -408,17 +419,24 @@ impl Engine for Dlpv {
                 pass.set_pipeline(&self.resolve);
                 pass.set_bind_group(0, &resolve_group, &[]);
                 pass.dispatch_workgroups((2 * n.pow(3) * 3).div_ceil(64), 1, 1);
+            }
+            {
+                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.propagate");
                 pass.set_pipeline(&self.propagate);
                 for step in 0..settings.steps {
                     pass.set_bind_group(0, if step % 2 == 0 { &forward } else { &backward }, &[]);
                     pass.dispatch_workgroups(n.div_ceil(4), n.div_ceil(4), (2 * n).div_ceil(4));
                 }
+            }
+            {
+                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.lookup");
                 pass.set_pipeline(&self.lookup);
                 pass.set_bind_group(0, &lookup_group, &[]);
                 pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
             }
             ctx.queue.submit([encoder.finish()]);
             ctx.check()?;
+            self.deferred.return_timer(timer);
         }
         out.timings.push(PassTiming {
             pass: "volume",

@@ -1,0 +1,120 @@
+//! GPU pass timing with timestamp queries, where the adapter supports them (lavapipe does):
+//! each timed pass writes a timestamp at its start and end; after the frame's last submission
+//! the pairs are resolved, read back and summed per label into `gpu.<label>` pass timings.
+//! Adapters without timestamp queries get no `gpu.*` entries; the wall-clock timings remain.
+
+use crate::engine::PassTiming;
+use crate::gpu::{GpuContext, GpuError};
+
+/// Timestamp pairs one frame can hold (a pass per shadow-map face adds one).
+const MAX_PASSES: u32 = 512;
+
+#[derive(Debug)]
+pub struct GpuTimer {
+    set: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    staging: wgpu::Buffer,
+    labels: Vec<&'static str>,
+    period_ns: f64,
+}
+
+impl GpuTimer {
+    /// `None` when the adapter has no timestamp queries.
+    pub fn new(ctx: &GpuContext) -> Option<Self> {
+        if !ctx.timestamps {
+            return None;
+        }
+        let size = u64::from(2 * MAX_PASSES) * 8;
+        let buffer = |label, usage| {
+            ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        Some(Self {
+            set: ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("pass timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2 * MAX_PASSES,
+            }),
+            resolve: buffer(
+                "timestamps resolve",
+                wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            ),
+            staging: buffer(
+                "timestamps staging",
+                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            ),
+            labels: Vec::new(),
+            period_ns: f64::from(ctx.queue.get_timestamp_period()),
+        })
+    }
+
+    /// Start a frame.
+    pub fn reset(&mut self) {
+        self.labels.clear();
+    }
+
+    /// Query indices (start, end) for a pass labelled `label`, or `None` when full.
+    fn slot(&mut self, label: &'static str) -> Option<(u32, u32)> {
+        let n = self.labels.len() as u32;
+        (n < MAX_PASSES).then(|| {
+            self.labels.push(label);
+            (2 * n, 2 * n + 1)
+        })
+    }
+
+    pub fn compute(&mut self, label: &'static str) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
+        let (start, end) = self.slot(label)?;
+        Some(wgpu::ComputePassTimestampWrites {
+            query_set: &self.set,
+            beginning_of_pass_write_index: Some(start),
+            end_of_pass_write_index: Some(end),
+        })
+    }
+
+    pub fn render(&mut self, label: &'static str) -> Option<wgpu::RenderPassTimestampWrites<'_>> {
+        let (start, end) = self.slot(label)?;
+        Some(wgpu::RenderPassTimestampWrites {
+            query_set: &self.set,
+            beginning_of_pass_write_index: Some(start),
+            end_of_pass_write_index: Some(end),
+        })
+    }
+
+    /// Resolve this frame's queries (encode after the last timed pass).
+    pub fn resolve(&self, encoder: &mut wgpu::CommandEncoder) {
+        let n = 2 * self.labels.len() as u32;
+        if n > 0 {
+            encoder.resolve_query_set(&self.set, 0..n, &self.resolve, 0);
+        }
+    }
+
+    /// Read the resolved times (after the submission holding [`resolve`](Self::resolve)) and
+    /// append `gpu.<label>` timings, summed per label, in first-use order.
+    pub fn read(&self, ctx: &GpuContext, timings: &mut Vec<PassTiming>) -> Result<(), GpuError> {
+        let n = self.labels.len();
+        if n == 0 {
+            return Ok(());
+        }
+        let ticks: Vec<u64> =
+            ctx.read_back(&self.resolve, &self.staging, 16 * n as u64, |bytes| {
+                bytes
+                    .chunks_exact(8)
+                    .map(|b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])))
+                    .collect()
+            })?;
+        let mut sums: Vec<(&'static str, f64)> = Vec::new();
+        for (label, pair) in self.labels.iter().zip(ticks.chunks_exact(2)) {
+            let ms = pair[1].saturating_sub(pair[0]) as f64 * self.period_ns / 1e6;
+            match sums.iter_mut().find(|(l, _)| l == label) {
+                Some((_, total)) => *total += ms,
+                None => sums.push((label, ms)),
+            }
+        }
+        timings.extend(sums.into_iter().map(|(pass, ms)| PassTiming { pass, ms }));
+        Ok(())
+    }
+}
