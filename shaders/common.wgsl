@@ -197,9 +197,10 @@ struct Volume {
     scale: vec4<f32>,
 }
 
-// L1 SH basis (Y00, Y1−1, Y10, Y11 = 0.2821, 0.4886 · (y, z, x)) evaluated at unit `d`.
-fn sh_eval(sh: vec4<f32>, d: vec3<f32>) -> f32 {
-    return dot(sh, vec4<f32>(0.282094792, 0.488602512 * d.y, 0.488602512 * d.z, 0.488602512 * d.x));
+// L1 SH basis (Y00, Y1−1, Y10, Y11 = 0.2821, 0.4886 · (y, z, x)) at unit `d`: a function's
+// value in direction d is ⟨sh, sh_basis(d)⟩.
+fn sh_basis(d: vec3<f32>) -> vec4<f32> {
+    return vec4<f32>(0.282094792, 0.488602512 * d.y, 0.488602512 * d.z, 0.488602512 * d.x);
 }
 
 // SH projection of the clamped cosine lobe around unit `d`: (√π/2, √(π/3) (d_y, d_z, d_x)).

@@ -17,11 +17,22 @@
 const DIRECT_FACE: f32 = 0.4006696846 / PI;
 const SIDE_FACE: f32 = 0.4234413544 / PI;
 
-fn flux(sh: vec4<f32>, dir: vec3<f32>, solid_angle: f32) -> f32 {
-    let f = solid_angle * sh_eval(sh, dir);
+// Flux through a face of `solid_angle` for intensity `intensity` towards it.
+fn flux(intensity: f32, solid_angle: f32) -> f32 {
+    let f = solid_angle * intensity;
     // Light (positive) passes unchanged; antiradiance (negative) is dampened.
     return select(f * (1.0 - volume.scale.z), f, f >= 0.0);
 }
+
+// For each of the six propagation axes, the four axes perpendicular to it (side faces).
+const AXES = array<vec3<i32>, 6>(
+    vec3<i32>(1, 0, 0), vec3<i32>(-1, 0, 0), vec3<i32>(0, 1, 0),
+    vec3<i32>(0, -1, 0), vec3<i32>(0, 0, 1), vec3<i32>(0, 0, -1),
+);
+const SIDES = array<vec4<u32>, 6>(
+    vec4<u32>(2u, 3u, 4u, 5u), vec4<u32>(2u, 3u, 4u, 5u), vec4<u32>(0u, 1u, 4u, 5u),
+    vec4<u32>(0u, 1u, 4u, 5u), vec4<u32>(0u, 1u, 2u, 3u), vec4<u32>(0u, 1u, 2u, 3u),
+);
 
 @compute @workgroup_size(4, 4, 4)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
@@ -35,32 +46,30 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let ni = i32(n);
     let n3 = n * n * n;
     let index = which * n3 + u32((c.z * ni + c.y) * ni + c.x);
-    var sum: array<vec4<f32>, 3>;
-    let axes = array<vec3<i32>, 6>(
-        vec3<i32>(1, 0, 0), vec3<i32>(-1, 0, 0), vec3<i32>(0, 1, 0),
-        vec3<i32>(0, -1, 0), vec3<i32>(0, 0, 1), vec3<i32>(0, 0, -1),
-    );
+    var sum = array<vec4<f32>, 3>(vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0));
     for (var a = 0u; a < 6u; a++) {
         // Light travelling along `d` arrives from the neighbour at c − d.
-        let d = axes[a];
+        let d = AXES[a];
         let s = c - d;
         if any(s < vec3<i32>(0)) || any(s >= vec3<i32>(ni)) {
             continue;
         }
-        let src = which * n3 + u32((s.z * ni + s.y) * ni + s.x);
+        let src = (which * n3 + u32((s.z * ni + s.y) * ni + s.x)) * 3u;
+        let sh = array<vec4<f32>, 3>(source[src], source[src + 1u], source[src + 2u]);
         let df = vec3<f32>(d);
+        let main_basis = sh_basis(df);
+        let main_lobe = cosine_lobe(df);
         for (var ch = 0u; ch < 3u; ch++) {
-            let sh = source[src * 3u + ch];
-            var gathered = flux(sh, df, DIRECT_FACE) * cosine_lobe(df);
-            for (var k = 0u; k < 6u; k++) {
-                let side = vec3<f32>(axes[k]);
-                if abs(dot(side, df)) > 0.5 {
-                    continue;
-                }
-                let towards = normalize(df + 0.5 * side);
-                gathered += flux(sh, towards, SIDE_FACE) * cosine_lobe(side);
+            sum[ch] += flux(dot(sh[ch], main_basis), DIRECT_FACE) * main_lobe;
+        }
+        for (var k = 0u; k < 4u; k++) {
+            let side = vec3<f32>(AXES[SIDES[a][k]]);
+            // Centre of the side face seen from the neighbour's centre: (d + s/2) / |d + s/2|.
+            let basis = sh_basis(0.894427191 * df + 0.447213595 * side);
+            let lobe = cosine_lobe(side);
+            for (var ch = 0u; ch < 3u; ch++) {
+                sum[ch] += flux(dot(sh[ch], basis), SIDE_FACE) * lobe;
             }
-            sum[ch] += gathered;
         }
     }
     for (var ch = 0u; ch < 3u; ch++) {

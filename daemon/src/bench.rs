@@ -14,10 +14,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use glam::Vec3;
 use plotters::prelude::*;
 use relight_core::scene::Scene;
-use relight_engines::offline::{background, scene_frame};
+use relight_engines::offline::{background, delta_error, delta_pixels, scene_frame};
 use relight_engines::reference::{ReferenceSettings, render_reference};
 use relight_engines::{EngineRegistry, RelitFrame};
 use serde::Serialize;
@@ -161,8 +160,11 @@ pub fn run(settings: &BenchSettings, mut progress: impl FnMut(&BenchRow)) -> Res
                 .iter()
                 .filter_map(|t| Some((t.pass.strip_prefix("gpu.")?.to_owned(), t.ms)))
                 .collect();
-            let (relative_l2, max_abs) =
-                delta_error(&out, &reference.delta, &reference.virtual_mask);
+            let (relative_l2, max_abs) = delta_error(
+                &delta_pixels(&out.delta),
+                &reference.delta,
+                &reference.virtual_mask,
+            );
             let row = BenchRow {
                 scene: scene.name.clone(),
                 engine: case.engine.clone(),
@@ -179,29 +181,6 @@ pub fn run(settings: &BenchSettings, mut progress: impl FnMut(&BenchRow)) -> Res
         }
     }
     Ok(rows)
-}
-
-/// Relative L2 and max abs of the engine's Δ against the reference's over real pixels.
-pub fn delta_error(out: &RelitFrame, reference: &[Vec3], virtual_mask: &[bool]) -> (f64, f64) {
-    let Some(bits) = out.delta.as_u16() else {
-        return (f64::NAN, f64::NAN);
-    };
-    let (mut err, mut norm, mut max_abs) = (0.0f64, 0.0f64, 0.0f64);
-    for ((px, r), v) in bits.chunks_exact(4).zip(reference).zip(virtual_mask) {
-        if *v {
-            continue;
-        }
-        let d = Vec3::new(
-            half::f16::from_bits(px[0]).to_f32(),
-            half::f16::from_bits(px[1]).to_f32(),
-            half::f16::from_bits(px[2]).to_f32(),
-        );
-        let e = d - *r;
-        err += f64::from(e.length_squared());
-        norm += f64::from(r.length_squared());
-        max_abs = max_abs.max(f64::from(e.abs().max_element()));
-    }
-    ((err / norm.max(1e-30)).sqrt(), max_abs)
 }
 
 pub fn table(rows: &[BenchRow]) -> String {

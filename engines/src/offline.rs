@@ -3,6 +3,7 @@
 
 use std::sync::Arc;
 
+use glam::Vec3;
 use relight_core::scene::Scene;
 use relight_core::srgb::linear_to_srgb;
 use relight_core::{Frame, Image, PixelFormat, Timestamp};
@@ -48,4 +49,44 @@ pub fn scene_frame(scene: Arc<Scene>, background: Image) -> SceneFrame {
         depth: None,
         scene: Some(scene),
     }
+}
+
+/// Δ of a [`RelitFrame`](crate::RelitFrame) (Rgba16F) as linear RGB per pixel; empty for other
+/// formats.
+pub fn delta_pixels(delta: &Image) -> Vec<Vec3> {
+    let Some(bits) = delta
+        .as_u16()
+        .filter(|_| delta.format() == PixelFormat::Rgba16F)
+    else {
+        return Vec::new();
+    };
+    bits.chunks_exact(4)
+        .map(|px| {
+            Vec3::new(
+                half::f16::from_bits(px[0]).to_f32(),
+                half::f16::from_bits(px[1]).to_f32(),
+                half::f16::from_bits(px[2]).to_f32(),
+            )
+        })
+        .collect()
+}
+
+/// The error every engine is judged by: ‖Δ − Δ_ref‖₂ / ‖Δ_ref‖₂ over real pixels (where the
+/// reference's camera ray hits no virtual object), and max |Δ − Δ_ref| there. A missing or
+/// mis-sized Δ is an error of NaN.
+pub fn delta_error(delta: &[Vec3], reference: &[Vec3], virtual_mask: &[bool]) -> (f64, f64) {
+    if delta.len() != reference.len() {
+        return (f64::NAN, f64::NAN);
+    }
+    let (mut err, mut norm, mut max_abs) = (0.0f64, 0.0f64, 0.0f64);
+    for ((d, r), v) in delta.iter().zip(reference).zip(virtual_mask) {
+        if *v {
+            continue;
+        }
+        let e = *d - *r;
+        err += f64::from(e.length_squared());
+        norm += f64::from(r.length_squared());
+        max_abs = max_abs.max(f64::from(e.abs().max_element()));
+    }
+    ((err / norm.max(1e-30)).sqrt(), max_abs)
 }

@@ -66,19 +66,3 @@ fn matches_the_reference_direct_delta() {
         assert_eq!(bad, 0, "{name}");
     }
 }
-
-#[test]
-#[ignore = "debug dump"]
-fn dump() {
-    let scene: Scene = load_scene(&std::env::var("SCENE").unwrap_or("desk_box".into()));
-    let (w, h) = (160, 120);
-    let reference = reference_direct(&scene, w, h, 64);
-    let (delta, _) = delta_of(&mut engine("differential"), &frame(Arc::new(scene), w, h));
-    let mut bytes = Vec::new();
-    for (d, r) in delta.iter().zip(&reference.delta) {
-        for v in [d.x, d.y, d.z, r.x, r.y, r.z] {
-            bytes.extend_from_slice(&v.to_le_bytes());
-        }
-    }
-    std::fs::write("/tmp/delta_dump.bin", bytes).unwrap();
-}

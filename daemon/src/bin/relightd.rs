@@ -601,22 +601,10 @@ fn render_engine(
             ..ReferenceSettings::default()
         },
     )?;
+    let delta = relight_engines::offline::delta_pixels(&relit.delta);
     let (relative_l2, max_abs) =
-        bench::delta_error(&relit, &reference.delta, &reference.virtual_mask);
+        relight_engines::offline::delta_error(&delta, &reference.delta, &reference.virtual_mask);
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let delta: Vec<glam::Vec3> = relit
-        .delta
-        .as_u16()
-        .unwrap_or_default()
-        .chunks_exact(4)
-        .map(|px| {
-            glam::Vec3::new(
-                half::f16::from_bits(px[0]).to_f32(),
-                half::f16::from_bits(px[1]).to_f32(),
-                half::f16::from_bits(px[2]).to_f32(),
-            )
-        })
-        .collect();
     write_exr(&out.join("delta.exr"), w, h, &delta)?;
     write_exr(&out.join("delta_reference.exr"), w, h, &reference.delta)?;
     write_png(&out.join("composite.png"), &relit.composite)?;

@@ -53,20 +53,7 @@ pub fn delta_of(engine: &mut Box<dyn Engine>, frame: &SceneFrame) -> (Vec<Vec3>,
     engine
         .render(frame, &mut out)
         .unwrap_or_else(|e| panic!("{e}"));
-    let delta = out
-        .delta
-        .as_u16()
-        .unwrap()
-        .chunks_exact(4)
-        .map(|px| {
-            Vec3::new(
-                half::f16::from_bits(px[0]).to_f32(),
-                half::f16::from_bits(px[1]).to_f32(),
-                half::f16::from_bits(px[2]).to_f32(),
-            )
-        })
-        .collect();
-    (delta, out)
+    (relight_engines::offline::delta_pixels(&out.delta), out)
 }
 
 /// The reference with direct light only (no bounce after the first hit), sampling pixel
@@ -106,18 +93,17 @@ fn reference(
     .unwrap()
 }
 
-/// ‖Δ − Δ_ref‖ / ‖Δ_ref‖ over real pixels (where the reference's camera ray hits no virtual
-/// object), and ‖Δ_ref‖ itself.
+/// ‖Δ − Δ_ref‖ / ‖Δ_ref‖ over real pixels (the bench's metric), and ‖Δ_ref‖ itself.
 pub fn relative_l2(delta: &[Vec3], reference: &[Vec3], virtual_mask: &[bool]) -> (f32, f32) {
-    let (mut err, mut norm) = (0.0f64, 0.0f64);
-    for ((d, r), v) in delta.iter().zip(reference).zip(virtual_mask) {
-        if *v {
-            continue;
-        }
-        err += f64::from((*d - *r).length_squared());
-        norm += f64::from(r.length_squared());
-    }
-    ((err / norm.max(1e-30)).sqrt() as f32, norm.sqrt() as f32)
+    let (error, _) = relight_engines::offline::delta_error(delta, reference, virtual_mask);
+    let norm = reference
+        .iter()
+        .zip(virtual_mask)
+        .filter(|(_, v)| !**v)
+        .map(|(r, _)| f64::from(r.length_squared()))
+        .sum::<f64>()
+        .sqrt();
+    (error as f32, norm as f32)
 }
 
 /// Pixels whose 8-neighbourhood in `delta` spans more than `fraction` of the image's largest
@@ -143,15 +129,4 @@ pub fn edge_pixels(delta: &[Vec3], width: usize, height: usize, fraction: f32) -
             (hi - lo).max_element() > threshold
         })
         .collect()
-}
-
-/// Write engine and reference Δ for `scripts`-free inspection: f32 × 6 per pixel.
-pub fn dump(path: &str, delta: &[Vec3], reference: &[Vec3]) {
-    let mut bytes = Vec::new();
-    for (d, r) in delta.iter().zip(reference) {
-        for v in [d.x, d.y, d.z, r.x, r.y, r.z] {
-            bytes.extend_from_slice(&v.to_le_bytes());
-        }
-    }
-    std::fs::write(path, bytes).unwrap();
 }
