@@ -36,6 +36,9 @@ pub struct LiveScene {
     /// The scene without per-frame parts, shared while nothing changes (engines cache uploads
     /// by `Arc` identity).
     fixed: Option<Arc<Scene>>,
+    /// The lamp's last reported state: its serial line reports less often than the cameras run,
+    /// so most frame sets carry no lamp message and the lamp must not blink off in between.
+    lamp: Option<LampState>,
 }
 
 impl LiveScene {
@@ -69,13 +72,19 @@ impl LiveScene {
             depth_camera,
             stride: stride.max(1),
             fixed: None,
+            lamp: None,
         }
     }
 
     /// The scene for one frame set; `None` when the real surface is to come from depth and
-    /// there is no usable depth frame (or no depth calibration).
+    /// there is no usable depth frame (or no depth calibration). `lamp` is the set's lamp message,
+    /// if it has one; without one the lamp keeps its last reported state.
     pub fn frame(&mut self, depth: Option<&Image>, lamp: Option<&LampState>) -> Option<Arc<Scene>> {
-        let lamp_light = lamp
+        if let Some(lamp) = lamp {
+            self.lamp = Some(*lamp);
+        }
+        let lamp_light = self
+            .lamp
             .filter(|l| l.on && l.position_in_world.is_finite())
             .map(|l| Light::Point {
                 position_in_world: l.position_in_world,
@@ -228,6 +237,49 @@ mod tests {
             assert!((p.z + 2.0).abs() < 1e-6, "{p}");
             assert!((*n - Vec3::Z).length() < 1e-5, "{n}");
         }
+    }
+
+    #[test]
+    fn the_lamp_holds_its_last_state_between_reports() {
+        let mut depth = Image::new(8, 6, PixelFormat::DepthF32M);
+        depth.as_f32_mut().unwrap().fill(2.0);
+        let base = Scene {
+            name: "t".into(),
+            meshes: Vec::new(),
+            materials: Vec::new(),
+            camera: relight_core::scene::SceneCamera {
+                world_from_camera: Pose::IDENTITY,
+                yfov_rad: 1.0,
+                width: 8,
+                height: 6,
+            },
+            lights: Vec::new(),
+            environment: None,
+        };
+        let mut live = LiveScene::new(base, RealGeometry::Depth, 0.5, Some(camera()), 1);
+        let lamp = LampState {
+            on: true,
+            position_in_world: Vec3::Y,
+            intensity: Vec3::ONE,
+        };
+        assert!(live.frame(Some(&depth), None).unwrap().lights.is_empty());
+        assert_eq!(
+            live.frame(Some(&depth), Some(&lamp)).unwrap().lights.len(),
+            1
+        );
+        assert_eq!(
+            live.frame(Some(&depth), None).unwrap().lights.len(),
+            1,
+            "held"
+        );
+        let off = LampState { on: false, ..lamp };
+        assert!(
+            live.frame(Some(&depth), Some(&off))
+                .unwrap()
+                .lights
+                .is_empty()
+        );
+        assert!(live.frame(None, None).is_none(), "no depth, no surface");
     }
 
     #[test]
