@@ -66,3 +66,30 @@ fn matches_the_reference_direct_delta() {
         assert_eq!(bad, 0, "{name}");
     }
 }
+
+/// A lost device is an error, not a panic, and the shared context hands out a fresh device, on
+/// which a rebuilt engine renders again (what the pipeline does after a loss).
+#[test]
+fn a_lost_device_is_an_error_and_a_rebuilt_engine_renders_again() {
+    use relight_engines::differential::Differential;
+    use relight_engines::gpu::{GpuError, SharedGpu};
+    use relight_engines::{Engine, EngineError, RelitFrame};
+
+    let shared = SharedGpu::default();
+    let ctx = shared.get().unwrap();
+    let scene = Arc::new(load_scene("desk_box"));
+    let frame = frame(scene, 32, 24);
+    let mut engine = Differential::new(ctx.clone()).unwrap();
+    let mut out = RelitFrame::default();
+    engine.render(&frame, &mut out).unwrap();
+    ctx.device.destroy();
+    let err = engine.render(&frame, &mut out).unwrap_err();
+    assert!(
+        matches!(err, EngineError::Gpu(GpuError::Lost { .. })),
+        "{err}"
+    );
+    let fresh = shared.get().unwrap();
+    assert!(!Arc::ptr_eq(&ctx, &fresh), "a new device after the loss");
+    let mut rebuilt = Differential::new(fresh).unwrap();
+    rebuilt.render(&frame, &mut out).unwrap();
+}
