@@ -44,6 +44,23 @@ struct Face {
     light: vec4<u32>,
 }
 
+// The scene's vertex layout (engines/src/gpu_scene.rs `GpuVertex`), for the raster passes.
+struct VertexIn {
+    @location(0) position: vec3<f32>,
+    @location(1) normal: vec3<f32>,
+    @location(2) material: u32,
+    @location(3) flags: u32,
+}
+
+// Unit shading normal from the interpolated vertex normal, or the facet's when the mesh has
+// none (zero normals). Fragment stage only (it takes screen-space derivatives).
+fn surface_normal(interpolated: vec3<f32>, world: vec3<f32>) -> vec3<f32> {
+    if dot(interpolated, interpolated) < 1e-12 {
+        return normalize(cross(dpdx(world), dpdy(world)));
+    }
+    return normalize(interpolated);
+}
+
 // Hermite smoothstep in cos θ between the outer and inner cone (core::light::spot_falloff).
 fn spot_falloff(cos_angle: f32, cos_inner: f32, cos_outer: f32) -> f32 {
     if cos_angle >= cos_inner {

@@ -5,13 +5,6 @@
 @group(0) @binding(0) var<uniform> camera: Camera;
 @group(0) @binding(1) var<storage, read> materials: array<Material>;
 
-struct VertexIn {
-    @location(0) position: vec3<f32>,
-    @location(1) normal: vec3<f32>,
-    @location(2) material: u32,
-    @location(3) flags: u32,
-}
-
 struct VertexOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) world: vec3<f32>,
@@ -39,11 +32,7 @@ fn vs_main(v: VertexIn) -> VertexOut {
 
 @fragment
 fn fs_main(in: VertexOut) -> GBufferOut {
-    var n = in.normal;
-    if dot(n, n) < 1e-12 {
-        n = normalize(cross(dpdx(in.world), dpdy(in.world)));
-    }
-    n = normalize(n);
+    var n = surface_normal(in.normal, in.world);
     // Shade the side the camera sees, as the reference does.
     if dot(n, camera.position.xyz - in.world) < 0.0 {
         n = -n;

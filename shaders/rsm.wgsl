@@ -8,13 +8,6 @@
 @group(0) @binding(1) var<storage, read> faces: array<Face>;
 @group(0) @binding(2) var<storage, read> materials: array<Material>;
 
-struct VertexIn {
-    @location(0) position: vec3<f32>,
-    @location(1) normal: vec3<f32>,
-    @location(2) material: u32,
-    @location(3) flags: u32,
-}
-
 struct VertexOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) world: vec3<f32>,
@@ -46,11 +39,7 @@ fn vs_main(v: VertexIn, @builtin(instance_index) face: u32) -> VertexOut {
 @fragment
 fn fs_main(in: VertexOut) -> RsmOut {
     let l = lights[faces[in.face].light.x];
-    var n = in.normal;
-    if dot(n, n) < 1e-12 {
-        n = normalize(cross(dpdx(in.world), dpdy(in.world)));
-    }
-    n = normalize(n);
+    var n = surface_normal(in.normal, in.world);
     let to_light = incident(l, in.world).to_light;
     if dot(n, to_light) < 0.0 {
         n = -n;

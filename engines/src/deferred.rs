@@ -84,17 +84,7 @@ const MAX_LAYERS: u32 = 64;
 
 impl Deferred {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
-        let shade_module = shaders::module(&ctx.device, "shade", shaders::SHADE);
-        let shade = ctx
-            .device
-            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("shade"),
-                layout: None,
-                module: &shade_module,
-                entry_point: Some("main"),
-                compilation_options: Default::default(),
-                cache: None,
-            });
+        let shade = shaders::compute_pipeline(&ctx.device, "shade", shaders::SHADE);
         let uniform = |label, size| {
             ctx.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -125,12 +115,6 @@ impl Deferred {
         &self.ctx
     }
 
-    /// Check a shadow-map size against the adapter before it is used.
-    pub fn check_rsm_size(ctx: &GpuContext, rsm_size: u32) -> Result<(), EngineError> {
-        ctx.require("max_texture_dimension_2d", u64::from(rsm_size), "rsm_size")?;
-        Ok(())
-    }
-
     /// Upload what changed for this frame and rasterise the G-buffers and shadow maps.
     /// Returns the colour image's size.
     pub fn prepare(
@@ -152,7 +136,7 @@ impl Deferred {
             u64::from(width.max(height)),
             "the camera resolution",
         )?;
-        Self::check_rsm_size(&ctx, rsm_size)?;
+        ctx.require("max_texture_dimension_2d", u64::from(rsm_size), "rsm_size")?;
 
         let started = Instant::now();
         if !self
@@ -352,49 +336,24 @@ impl Deferred {
             array(&light_res.rsm_mu.position),
             view(&frame_res.background),
         ];
-        let mut entries = vec![
-            wgpu::BindGroupEntry {
-                binding: 0,
-                resource: self.params.as_entire_binding(),
-            },
-            wgpu::BindGroupEntry {
-                binding: 1,
-                resource: self.camera.as_entire_binding(),
-            },
-            wgpu::BindGroupEntry {
-                binding: 2,
-                resource: light_res.lights.as_entire_binding(),
-            },
-            wgpu::BindGroupEntry {
-                binding: 3,
-                resource: light_res.faces.as_entire_binding(),
-            },
-            wgpu::BindGroupEntry {
-                binding: 4,
-                resource: gpu_scene.materials.as_entire_binding(),
-            },
+        let mut resources = vec![
+            self.params.as_entire_binding(),
+            self.camera.as_entire_binding(),
+            light_res.lights.as_entire_binding(),
+            light_res.faces.as_entire_binding(),
+            gpu_scene.materials.as_entire_binding(),
         ];
-        for (i, v) in views.iter().enumerate() {
-            entries.push(wgpu::BindGroupEntry {
-                binding: 5 + i as u32,
-                resource: wgpu::BindingResource::TextureView(v),
-            });
-        }
-        for (binding, buffer) in [
-            (14, &frame_res.indirect),
-            (15, &frame_res.delta),
-            (16, &frame_res.composite),
-        ] {
-            entries.push(wgpu::BindGroupEntry {
-                binding,
-                resource: buffer.as_entire_binding(),
-            });
-        }
-        let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("shade"),
-            layout: &self.shade.get_bind_group_layout(0),
-            entries: &entries,
-        });
+        resources.extend(views.iter().map(wgpu::BindingResource::TextureView));
+        resources.extend(
+            [&frame_res.indirect, &frame_res.delta, &frame_res.composite]
+                .map(|b| b.as_entire_binding()),
+        );
+        let group = shaders::bind_group(
+            &ctx.device,
+            "shade",
+            &self.shade.get_bind_group_layout(0),
+            &resources,
+        );
         let mut encoder = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {

@@ -203,20 +203,15 @@ impl GBufferPass {
         camera: &wgpu::Buffer,
         scene: &GpuScene,
     ) -> wgpu::BindGroup {
-        ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("gbuffer"),
-            layout: &self.pipeline.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: camera.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: scene.materials.as_entire_binding(),
-                },
+        shaders::bind_group(
+            &ctx.device,
+            "gbuffer",
+            &self.pipeline.get_bind_group_layout(0),
+            &[
+                camera.as_entire_binding(),
+                scene.materials.as_entire_binding(),
             ],
-        })
+        )
     }
 
     pub fn render(
@@ -264,24 +259,16 @@ impl RsmPass {
         faces: &wgpu::Buffer,
         scene: &GpuScene,
     ) -> wgpu::BindGroup {
-        ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("rsm"),
-            layout: &self.pipeline.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: lights.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: faces.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: scene.materials.as_entire_binding(),
-                },
+        shaders::bind_group(
+            &ctx.device,
+            "rsm",
+            &self.pipeline.get_bind_group_layout(0),
+            &[
+                lights.as_entire_binding(),
+                faces.as_entire_binding(),
+                scene.materials.as_entire_binding(),
             ],
-        })
+        )
     }
 
     /// Render every face (layer) of `targets` (one layer per light face).

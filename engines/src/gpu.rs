@@ -90,6 +90,23 @@ fn enumerate() -> Vec<wgpu::Adapter> {
     Vec::new()
 }
 
+/// The adapters as listed to the user (and numbered for `RELIGHT_ADAPTER=#N`).
+fn summarize(adapters: &[wgpu::Adapter]) -> Vec<AdapterSummary> {
+    adapters
+        .iter()
+        .enumerate()
+        .map(|(index, a)| {
+            let info = a.get_info();
+            AdapterSummary {
+                index,
+                name: info.name,
+                backend: info.backend,
+                device_type: info.device_type,
+            }
+        })
+        .collect()
+}
+
 fn rank(info: &wgpu::AdapterInfo) -> (u8, u8) {
     let kind = match info.device_type {
         wgpu::DeviceType::DiscreteGpu => 0,
@@ -120,19 +137,7 @@ impl GpuContext {
         if adapters.is_empty() {
             return Err(GpuError::NoAdapter);
         }
-        let summaries: Vec<AdapterSummary> = adapters
-            .iter()
-            .enumerate()
-            .map(|(index, a)| {
-                let info = a.get_info();
-                AdapterSummary {
-                    index,
-                    name: info.name,
-                    backend: info.backend,
-                    device_type: info.device_type,
-                }
-            })
-            .collect();
+        let summaries = summarize(&adapters);
         let chosen = match wanted {
             Some(wanted) => {
                 let by_index = wanted
@@ -217,19 +222,7 @@ impl GpuContext {
 
     /// Every adapter this machine offers, as `RELIGHT_ADAPTER` can name them.
     pub fn adapters() -> Vec<AdapterSummary> {
-        enumerate()
-            .iter()
-            .enumerate()
-            .map(|(index, a)| {
-                let info = a.get_info();
-                AdapterSummary {
-                    index,
-                    name: info.name,
-                    backend: info.backend,
-                    device_type: info.device_type,
-                }
-            })
-            .collect()
+        summarize(&enumerate())
     }
 
     /// Check that `needed` fits the adapter's `limit` (one of the names below); the error

@@ -100,19 +100,6 @@ pub struct Dlpv {
     volume: Option<VolumeBuffers>,
 }
 
-fn compute(ctx: &GpuContext, label: &str, source: &str) -> wgpu::ComputePipeline {
-    let module = shaders::module(&ctx.device, label, source);
-    ctx.device
-        .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some(label),
-            layout: None,
-            module: &module,
-            entry_point: Some("main"),
-            compilation_options: Default::default(),
-            cache: None,
-        })
-}
-
 /// A compute pass with start/end timestamps under `label` when the adapter has them.
 fn timed_pass<'e>(
     encoder: &'e mut wgpu::CommandEncoder,
@@ -123,17 +110,6 @@ fn timed_pass<'e>(
         label: Some(label),
         timestamp_writes: timer.as_mut().and_then(|t| t.compute(label)),
     })
-}
-
-fn entries<'a>(resources: &[wgpu::BindingResource<'a>]) -> Vec<wgpu::BindGroupEntry<'a>> {
-    resources
-        .iter()
-        .enumerate()
-        .map(|(i, r)| wgpu::BindGroupEntry {
-            binding: i as u32,
-            resource: r.clone(),
-        })
-        .collect()
 }
 
 impl Dlpv {
@@ -209,10 +185,14 @@ impl Dlpv {
             })
         };
         Ok(Self {
-            inject: compute(&ctx, "dlpv inject", shaders::DLPV_INJECT),
-            resolve: compute(&ctx, "dlpv resolve", shaders::DLPV_RESOLVE),
-            propagate: compute(&ctx, "dlpv propagate", shaders::DLPV_PROPAGATE),
-            lookup: compute(&ctx, "dlpv lookup", shaders::DLPV_LOOKUP),
+            inject: shaders::compute_pipeline(&ctx.device, "dlpv inject", shaders::DLPV_INJECT),
+            resolve: shaders::compute_pipeline(&ctx.device, "dlpv resolve", shaders::DLPV_RESOLVE),
+            propagate: shaders::compute_pipeline(
+                &ctx.device,
+                "dlpv propagate",
+                shaders::DLPV_PROPAGATE,
+            ),
+            lookup: shaders::compute_pipeline(&ctx.device, "dlpv lookup", shaders::DLPV_LOOKUP),
             volume_uniform: uniform("dlpv volume", size_of::<VolumeUniform>() as u64),
             lookup_uniform: uniform("dlpv lookup", size_of::<LookupUniform>() as u64),
             deferred: Deferred::new(ctx),
@@ -359,11 +339,12 @@ impl Engine for Dlpv {
             inject_resources.push(v.cells.as_entire_binding());
             let group =
                 |pipeline: &wgpu::ComputePipeline, label, resources: &[wgpu::BindingResource]| {
-                    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                        label: Some(label),
-                        layout: &pipeline.get_bind_group_layout(0),
-                        entries: &entries(resources),
-                    })
+                    shaders::bind_group(
+                        &ctx.device,
+                        label,
+                        &pipeline.get_bind_group_layout(0),
+                        resources,
+                    )
                 };
             let inject_group = group(&self.inject, "dlpv inject", &inject_resources);
             let resolve_group = group(
