@@ -424,15 +424,12 @@ fn recording_replays_frame_exact() {
             (p.kind(), p.seq(), p.stamp().device_ns),
             (e.kind(), e.seq(), e.stamp().device_ns)
         );
-        let same = match (p, e) {
-            (StreamMessage::Depth(a), StreamMessage::Depth(b))
-            | (StreamMessage::Color(a), StreamMessage::Color(b)) => a.payload == b.payload,
-            (StreamMessage::Probe(a), StreamMessage::Probe(b)) => a.payload == b.payload,
-            (StreamMessage::Markers(a), StreamMessage::Markers(b)) => a.payload == b.payload,
-            (StreamMessage::Lamp(a), StreamMessage::Lamp(b)) => a.payload == b.payload,
-            _ => false,
-        };
-        assert!(same, "{} seq {} differs after replay", p.kind(), p.seq());
+        assert!(
+            p.payload_eq(e),
+            "{} seq {} differs after replay",
+            p.kind(),
+            p.seq()
+        );
     }
 }
 

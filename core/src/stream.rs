@@ -136,4 +136,17 @@ impl StreamMessage {
             StreamMessage::Lamp(f) => f.seq,
         }
     }
+
+    /// Same stream and same payload, whatever the sequence numbers and timestamps (a replay
+    /// restamps host time; a looped one renumbers).
+    pub fn payload_eq(&self, other: &StreamMessage) -> bool {
+        match (self, other) {
+            (StreamMessage::Depth(a), StreamMessage::Depth(b))
+            | (StreamMessage::Color(a), StreamMessage::Color(b)) => a.payload == b.payload,
+            (StreamMessage::Probe(a), StreamMessage::Probe(b)) => a.payload == b.payload,
+            (StreamMessage::Markers(a), StreamMessage::Markers(b)) => a.payload == b.payload,
+            (StreamMessage::Lamp(a), StreamMessage::Lamp(b)) => a.payload == b.payload,
+            _ => false,
+        }
+    }
 }

@@ -29,6 +29,11 @@ impl Drop for Daemon {
 }
 
 fn start_daemon(dir: &Path) -> Daemon {
+    start_daemon_with(dir, "")
+}
+
+/// The replay daemon of `start_daemon` with `extra` TOML sections appended to its config.
+fn start_daemon_with(dir: &Path, extra: &str) -> Daemon {
     let socket = dir.join("control.sock");
     let config = dir.join("relightd.toml");
     std::fs::write(
@@ -52,6 +57,7 @@ dir = "{dir}/recordings"
 
 [snapshot]
 dir = "{dir}/snapshots"
+{extra}
 "#,
             socket = socket.display(),
             recording = fixture().display(),
@@ -323,7 +329,7 @@ fn assert_recording_is_frame_exact(recording: &Path) {
         let n = per_stream[&msg.kind()];
         assert_eq!(msg.seq() % n, original.seq() % n);
         assert!(
-            same_payload(&msg, original),
+            msg.payload_eq(original),
             "{} seq {} differs",
             msg.kind(),
             msg.seq()
@@ -335,68 +341,18 @@ fn assert_recording_is_frame_exact(recording: &Path) {
     assert!(count > 10);
 }
 
-fn same_payload(a: &StreamMessage, b: &StreamMessage) -> bool {
-    match (a, b) {
-        (StreamMessage::Depth(a), StreamMessage::Depth(b))
-        | (StreamMessage::Color(a), StreamMessage::Color(b)) => a.payload == b.payload,
-        (StreamMessage::Probe(a), StreamMessage::Probe(b)) => a.payload == b.payload,
-        (StreamMessage::Markers(a), StreamMessage::Markers(b)) => a.payload == b.payload,
-        (StreamMessage::Lamp(a), StreamMessage::Lamp(b)) => a.payload == b.payload,
-        _ => false,
-    }
-}
-
 /// Live engine switching on the bundled recording with a scene: passthrough → differential →
 /// dlpv (small settings so lavapipe keeps up), each built off the render thread and swapped
 /// between frames, every frame set rendered without an error.
 #[test]
 fn gpu_engines_switch_live_while_replaying() {
     let dir = tempfile::tempdir().unwrap();
-    let socket = dir.path().join("control.sock");
-    let config = dir.path().join("relightd.toml");
     let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/desk_box");
-    std::fs::write(
-        &config,
-        format!(
-            r#"
-[daemon]
-socket = "{socket}"
-watchdog = false
-
-[replay]
-path = "{recording}"
-mode = "realtime"
-loop = true
-
-[engine]
-name = "passthrough"
-
-[scene]
-dir = "{scene}"
-depth_stride = 4
-"#,
-            socket = socket.display(),
-            recording = fixture().display(),
-            scene = scene.display(),
-        ),
-    )
-    .unwrap();
-    let child = Command::new(env!("CARGO_BIN_EXE_relightd"))
-        .arg("--config")
-        .arg(&config)
-        .env("RELIGHT_LOG", "warn")
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let _daemon = Daemon {
-        child,
-        socket: socket.clone(),
-    };
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while UnixStream::connect(&socket).is_err() {
-        assert!(Instant::now() < deadline, "control socket never appeared");
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    let daemon = start_daemon_with(
+        dir.path(),
+        &format!("[scene]\ndir = \"{}\"\ndepth_stride = 4\n", scene.display()),
+    );
+    let socket = daemon.socket.clone();
     for (engine, params) in [
         ("differential", vec!["rsm_size=128"]),
         ("dlpv", vec!["rsm_size=64", "volume_size=8", "steps=4"]),

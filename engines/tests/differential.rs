@@ -6,32 +6,24 @@ mod support;
 use std::sync::Arc;
 
 use relight_core::scene::Scene;
-use support::{delta_of, engine, frame, load_scene, reference_direct, relative_l2};
+use support::{
+    delta_of, engine, frame, load_scene, max_abs, reference_direct, relative_l2,
+    virtual_moved_far_away,
+};
 
 #[test]
 fn no_virtual_object_means_no_delta() {
     let scene = load_scene("desk_box").without_virtual();
     let (delta, _) = delta_of(&mut engine("differential"), &frame(Arc::new(scene), 80, 60));
-    let worst = delta
-        .iter()
-        .map(|d| d.abs().max_element())
-        .fold(0.0, f32::max);
+    let worst = max_abs(&delta);
     assert!(worst <= 1e-6, "max |Δ| = {worst}");
 }
 
 #[test]
 fn object_far_outside_the_scene_means_no_delta() {
-    let mut scene = load_scene("desk_box");
-    for mesh in scene.meshes.iter_mut().filter(|m| m.is_virtual) {
-        for p in &mut mesh.positions_in_world {
-            p.x += 50.0;
-        }
-    }
+    let scene = virtual_moved_far_away(load_scene("desk_box"));
     let (delta, _) = delta_of(&mut engine("differential"), &frame(Arc::new(scene), 80, 60));
-    let worst = delta
-        .iter()
-        .map(|d| d.abs().max_element())
-        .fold(0.0, f32::max);
+    let worst = max_abs(&delta);
     assert!(worst <= 1e-6, "max |Δ| = {worst}");
 }
 

@@ -7,14 +7,10 @@ use std::sync::Arc;
 
 use glam::Vec3;
 use relight_core::scene::Scene;
-use support::{delta_of, engine, engine_with, frame, load_scene, reference_full, relative_l2};
-
-fn max_abs(delta: &[Vec3]) -> f32 {
-    delta
-        .iter()
-        .map(|d| d.abs().max_element())
-        .fold(0.0, f32::max)
-}
+use support::{
+    delta_of, engine, engine_with, frame, load_scene, max_abs, reference_full, relative_l2,
+    virtual_moved_far_away,
+};
 
 #[test]
 fn no_virtual_object_means_no_delta() {
@@ -32,12 +28,7 @@ fn no_virtual_object_means_no_delta() {
 
 #[test]
 fn object_far_away_leaves_the_visible_scene_unchanged() {
-    let mut scene = load_scene("spot_bleed");
-    for mesh in scene.meshes.iter_mut().filter(|m| m.is_virtual) {
-        for p in &mut mesh.positions_in_world {
-            p.x += 50.0;
-        }
-    }
+    let scene = virtual_moved_far_away(load_scene("spot_bleed"));
     let (delta, _) = delta_of(&mut engine("dlpv"), &frame(Arc::new(scene), 80, 60));
     assert!(max_abs(&delta) <= 1e-6, "max |Δ| = {}", max_abs(&delta));
 }

@@ -130,3 +130,21 @@ pub fn edge_pixels(delta: &[Vec3], width: usize, height: usize, fraction: f32) -
         })
         .collect()
 }
+
+/// Largest |Δ| over every pixel and channel.
+pub fn max_abs(delta: &[Vec3]) -> f32 {
+    delta
+        .iter()
+        .map(|d| d.abs().max_element())
+        .fold(0.0, f32::max)
+}
+
+/// `scene` with its virtual object(s) moved 50 m away along +x, far from everything visible.
+pub fn virtual_moved_far_away(mut scene: Scene) -> Scene {
+    for mesh in scene.meshes.iter_mut().filter(|m| m.is_virtual) {
+        for p in &mut mesh.positions_in_world {
+            p.x += 50.0;
+        }
+    }
+    scene
+}
