@@ -3,7 +3,7 @@
 //! printed as a table and written as CSV, JSON and a speed-vs-error plot (SVG).
 //!
 //! Each scene is rendered once by the reference (full light transport, pixel centres, so the
-//! engines' rasterised silhouettes line up); each engine is built once per setting, run on the
+//! engines' rasterised silhouettes line up), whose L^μ is also the camera image; each engine is built once per setting, run on the
 //! same offline [`SceneFrame`](relight_engines::SceneFrame) the daemon would give it, warmed up,
 //! then timed over `frames` renders: wall clock of `Engine::render`, including the readback of Δ
 //! and the composite (what the pipeline waits for), and the GPU time of its passes from
@@ -16,8 +16,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use plotters::prelude::*;
 use relight_core::scene::Scene;
-use relight_engines::offline::{background, delta_error, delta_pixels, scene_frame};
-use relight_engines::reference::{ReferenceSettings, render_reference};
+use relight_engines::offline::{background, delta_error, delta_pixels, reference, scene_frame};
 use relight_engines::{EngineRegistry, RelitFrame};
 use serde::Serialize;
 use serde_json::{Map, Value, json};
@@ -114,16 +113,8 @@ pub fn run(settings: &BenchSettings, mut progress: impl FnMut(&BenchRow)) -> Res
     let mut rows = Vec::new();
     for dir in &settings.scenes {
         let scene = Arc::new(Scene::load(dir)?);
-        let reference = render_reference(
-            &scene,
-            ReferenceSettings {
-                spp: settings.reference_spp,
-                pixel_jitter: false,
-                size: Some((w, h)),
-                ..ReferenceSettings::default()
-            },
-        )?;
-        let frame = scene_frame(scene.clone(), background(&scene, w, h, 16)?);
+        let reference = reference(&scene, w, h, settings.reference_spp)?;
+        let frame = scene_frame(scene.clone(), background(&reference));
         for case in &settings.cases {
             let mut engine = registry
                 .build(&case.engine, &case.params)

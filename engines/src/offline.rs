@@ -9,17 +9,17 @@ use relight_core::srgb::linear_to_srgb;
 use relight_core::{Frame, Image, PixelFormat, Timestamp};
 
 use crate::engine::SceneFrame;
-use crate::reference::{ReferenceError, ReferenceSettings, render_reference};
+use crate::reference::{ReferenceError, ReferenceImages, ReferenceSettings, render_reference};
 
-/// The camera image of an offline scene: the reference's L^μ (`spp` samples at pixel centres),
-/// sRGB-encoded and clipped, as a camera without tone curve would record it.
-pub fn background(
+/// What the engines are judged against: the reference with full light transport, `spp` samples
+/// at pixel centres (as the engines' rasteriser samples, so silhouettes agree pixel for pixel).
+pub fn reference(
     scene: &Scene,
     width: u32,
     height: u32,
     spp: u32,
-) -> Result<Image, ReferenceError> {
-    let images = render_reference(
+) -> Result<ReferenceImages, ReferenceError> {
+    render_reference(
         scene,
         ReferenceSettings {
             spp,
@@ -27,16 +27,21 @@ pub fn background(
             size: Some((width, height)),
             ..ReferenceSettings::default()
         },
-    )?;
-    let mut image = Image::new(width, height, PixelFormat::Rgb8);
+    )
+}
+
+/// The camera image of an offline scene: the reference's L^μ, sRGB-encoded and clipped, as a
+/// camera without tone curve would record it.
+pub fn background(reference: &ReferenceImages) -> Image {
+    let mut image = Image::new(reference.width, reference.height, PixelFormat::Rgb8);
     if let Some(px) = image.as_u8_mut() {
-        for (rgb, l) in px.chunks_exact_mut(3).zip(&images.l_mu) {
+        for (rgb, l) in px.chunks_exact_mut(3).zip(&reference.l_mu) {
             for (c, v) in rgb.iter_mut().zip(l.to_array()) {
                 *c = linear_to_srgb(v);
             }
         }
     }
-    Ok(image)
+    image
 }
 
 /// A scene frame of `scene` over `background` (its size is the render size).

@@ -165,6 +165,8 @@ enum Command {
         scene: PathBuf,
         #[arg(long, default_value = "reference")]
         engine: String,
+        /// Reference samples per pixel (for another engine: of the reference it is judged
+        /// against, whose L^μ is also its camera image).
         #[arg(long, default_value_t = 64)]
         spp: u32,
         #[arg(long)]
@@ -583,24 +585,16 @@ fn render_engine(
         map.insert(key.to_owned(), value);
     }
     let mut built = relight_engines::EngineRegistry::new().build(engine, &map)?;
+    let reference = relight_engines::offline::reference(&scene, w, h, spp)?;
     let frame = relight_engines::offline::scene_frame(
         scene.clone(),
-        relight_engines::offline::background(&scene, w, h, 16)?,
+        relight_engines::offline::background(&reference),
     );
     let mut relit = relight_engines::RelitFrame::default();
     built.engine.render(&frame, &mut relit)?;
     let started = Instant::now();
     built.engine.render(&frame, &mut relit)?;
     let ms = started.elapsed().as_secs_f64() * 1e3;
-    let reference = render_reference(
-        &scene,
-        ReferenceSettings {
-            spp,
-            pixel_jitter: false,
-            size: Some((w, h)),
-            ..ReferenceSettings::default()
-        },
-    )?;
     let delta = relight_engines::offline::delta_pixels(&relit.delta);
     let (relative_l2, max_abs) =
         relight_engines::offline::delta_error(&delta, &reference.delta, &reference.virtual_mask);

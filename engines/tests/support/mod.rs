@@ -59,38 +59,22 @@ pub fn delta_of(engine: &mut Box<dyn Engine>, frame: &SceneFrame) -> (Vec<Vec3>,
 /// The reference with direct light only (no bounce after the first hit), sampling pixel
 /// centres as the engines' rasteriser does (so silhouettes agree pixel for pixel).
 pub fn reference_direct(scene: &Scene, width: u32, height: u32, spp: u32) -> ReferenceImages {
-    reference(scene, width, height, spp, 0)
-}
-
-/// The full reference (all bounces), pixel centres.
-pub fn reference_full(scene: &Scene, width: u32, height: u32, spp: u32) -> ReferenceImages {
-    reference(
-        scene,
-        width,
-        height,
-        spp,
-        ReferenceSettings::default().max_bounces,
-    )
-}
-
-fn reference(
-    scene: &Scene,
-    width: u32,
-    height: u32,
-    spp: u32,
-    max_bounces: u32,
-) -> ReferenceImages {
     render_reference(
         scene,
         ReferenceSettings {
             spp,
-            max_bounces,
+            max_bounces: 0,
             pixel_jitter: false,
             size: Some((width, height)),
             ..ReferenceSettings::default()
         },
     )
     .unwrap()
+}
+
+/// The full reference (all bounces), pixel centres: what the bench judges by.
+pub fn reference_full(scene: &Scene, width: u32, height: u32, spp: u32) -> ReferenceImages {
+    relight_engines::offline::reference(scene, width, height, spp).unwrap()
 }
 
 /// ‖Δ − Δ_ref‖ / ‖Δ_ref‖ over real pixels (the bench's metric), and ‖Δ_ref‖ itself.
