@@ -44,7 +44,7 @@ use relight_core::{
     Timestamp,
 };
 use relight_reference::accel::Geometry;
-use relight_reference::{ReferenceRenderer, ReferenceSettings};
+use relight_reference::{ReferenceError, ReferenceRenderer, ReferenceSettings};
 
 use super::kinect::{KinectModel, TrueSurface};
 use super::markers::{MarkerBoard, corners_in_marker};
@@ -367,22 +367,10 @@ impl SimRig {
     /// window, a lamp's bulb) just stays below saturation in the shortest exposure of the
     /// bracket. Returns the rig with those exposures.
     pub fn metered(mut self) -> Self {
-        let world_from_camera = self.world_from_camera(0);
         let lights = self.lights(0);
-        let mut scene = self.scene.clone();
-        scene.camera.world_from_camera = world_from_camera;
-        scene.lights = lights.clone();
-        let settings = ReferenceSettings {
-            spp: 1,
-            seed: self.settings.seed,
-            size: Some((self.settings.width, self.settings.height)),
-            ..ReferenceSettings::default()
-        };
-        if let Ok(mut renderer) = ReferenceRenderer::new(&scene, settings) {
-            renderer.add_samples(1);
-            let mut values: Vec<f32> = renderer
-                .images()
-                .l_mu
+        let radiance = self.radiance(&self.world_from_camera(0), &lights, 1, self.settings.seed);
+        if let Ok(radiance) = radiance {
+            let mut values: Vec<f32> = radiance
                 .iter()
                 .map(|l| l.max_element())
                 .filter(|v| v.is_finite() && *v > 0.0)
@@ -714,26 +702,14 @@ impl SimRig {
         surface: &SurfaceImage,
     ) -> Image {
         let (w, h) = (self.settings.width, self.settings.height);
-        let mut scene = self.scene.clone();
-        scene.camera.world_from_camera = *world_from_camera;
-        scene.lights = lights.to_vec();
-        let settings = ReferenceSettings {
-            spp: self.settings.color_spp,
-            seed: self.settings.seed ^ (u64::from(i) << 32),
-            size: Some((w, h)),
-            ..ReferenceSettings::default()
-        };
-        let radiance = match ReferenceRenderer::new(&scene, settings) {
-            Ok(mut renderer) => {
-                renderer.add_samples(self.settings.color_spp);
-                renderer.images().l_mu
-            }
+        let seed = self.settings.seed ^ (u64::from(i) << 32);
+        let radiance = self
+            .radiance(world_from_camera, lights, self.settings.color_spp, seed)
             // Checked in `new`: the camera is valid and the size positive.
-            Err(e) => {
+            .unwrap_or_else(|e| {
                 tracing::error!(error = %e, "reference renderer refused the simulated frame");
                 vec![Vec3::ZERO; w as usize * h as usize]
-            }
-        };
+            });
         let mut rng =
             Pcg64Mcg::seed_from_u64(self.settings.seed.wrapping_add(0x51_7cc1) ^ u64::from(i));
         let unit = Normal::new(0.0f32, 1.0).unwrap_or_else(|_| unreachable!("σ = 1 is valid"));
@@ -751,6 +727,29 @@ impl SimRig {
             }
         }
         image
+    }
+
+    /// L^μ as the colour camera at `world_from_camera` sees it under `lights`: `spp` path-traced
+    /// samples per pixel of the real scene.
+    fn radiance(
+        &self,
+        world_from_camera: &Pose,
+        lights: &[Light],
+        spp: u32,
+        seed: u64,
+    ) -> Result<Vec<Vec3>, ReferenceError> {
+        let mut scene = self.scene.clone();
+        scene.camera.world_from_camera = *world_from_camera;
+        scene.lights = lights.to_vec();
+        let settings = ReferenceSettings {
+            spp,
+            seed,
+            size: Some((self.settings.width, self.settings.height)),
+            ..ReferenceSettings::default()
+        };
+        let mut renderer = ReferenceRenderer::new(&scene, settings)?;
+        renderer.add_samples(spp);
+        Ok(renderer.images().l_mu)
     }
 
     /// What the probe sees in `dir`: the environment plus each light as a small disc.

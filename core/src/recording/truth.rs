@@ -84,8 +84,9 @@ pub struct MarkerTruth {
 pub struct TruthState {
     /// Colour/depth camera, glTF convention (looks down −Z, +Y up).
     pub world_from_camera: Pose,
-    /// The fish-eye probe, same convention; absent on rigs without one.
-    #[serde(default)]
+    /// The fish-eye probe, same convention; absent on rigs without one (and then left out of
+    /// the JSON, so a `null` always means a non-finite number).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub world_from_probe: Option<Pose>,
     /// Every light of the real scene at this instant, the pocket lamp included (as a point).
     pub lights: Vec<Light>,
@@ -134,7 +135,7 @@ pub const TRUTH_STATE_JSON_SCHEMA: &str = r##"{
   "type": "object",
   "properties": {
     "world_from_camera": { "type": "object" },
-    "world_from_probe": { "type": ["object", "null"] },
+    "world_from_probe": { "type": "object" },
     "lights": { "type": "array", "items": { "type": "object" } },
     "markers": { "type": "array", "items": { "type": "object" } }
   },
@@ -159,9 +160,9 @@ fn contains_null_number(value: &serde_json::Value) -> bool {
         serde_json::Value::Array(items) => {
             items.iter().any(|v| v.is_null() || contains_null_number(v))
         }
-        serde_json::Value::Object(map) => map
-            .iter()
-            .any(|(key, v)| (v.is_null() && key != "world_from_probe") || contains_null_number(v)),
+        serde_json::Value::Object(map) => {
+            map.values().any(|v| v.is_null() || contains_null_number(v))
+        }
         _ => false,
     }
 }
