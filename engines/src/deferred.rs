@@ -282,10 +282,6 @@ impl Deferred {
             .map(|f| (&f.gb_rho, &f.gb_mu, &f.indirect))
     }
 
-    pub fn camera(&self) -> &wgpu::Buffer {
-        &self.camera
-    }
-
     /// Lend the frame's GPU pass timer to an engine's own passes (`None` without timestamp
     /// queries); give it back with [`return_timer`](Self::return_timer) before `finish`.
     pub fn lend_timer(&mut self) -> Option<GpuTimer> {

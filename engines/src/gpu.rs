@@ -220,11 +220,6 @@ impl GpuContext {
         })
     }
 
-    /// Every adapter this machine offers, as `RELIGHT_ADAPTER` can name them.
-    pub fn adapters() -> Vec<AdapterSummary> {
-        summarize(&enumerate())
-    }
-
     /// Check that `needed` fits the adapter's `limit` (one of the names below); the error
     /// names `setting` as the thing to lower.
     pub fn require(&self, limit: &'static str, needed: u64, setting: &str) -> Result<(), GpuError> {

@@ -201,10 +201,6 @@ impl Dlpv {
         })
     }
 
-    pub fn settings(&self) -> DlpvSettings {
-        self.settings
-    }
-
     fn volume_buffers(&mut self) -> Result<&VolumeBuffers, EngineError> {
         let n = self.settings.volume_size;
         let ctx = self.deferred.ctx().clone();
