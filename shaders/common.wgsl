@@ -225,3 +225,28 @@ fn sh_basis(d: vec3<f32>) -> vec4<f32> {
 fn cosine_lobe(d: vec3<f32>) -> vec4<f32> {
     return vec4<f32>(0.886226925, 1.023326708 * d.y, 1.023326708 * d.z, 1.023326708 * d.x);
 }
+
+// The DVCT volumes (engines/src/dvct): occlusion and L1 SH radiance mip chains over n³ cells.
+struct Dvct {
+    // xyz: minimum corner; w: level-0 cell edge (m).
+    origin: vec4<f32>,
+    // x: cells per axis at level 0; y: mip levels; z: light count; w: shadow-map size.
+    dims: vec4<u32>,
+    // x: tan of the diffuse cones' half angle; y: step as a fraction of the cone's diameter;
+    // z: tan of the shadow cones' half angle; w: cone start offset along the normal, in cells.
+    cone: vec4<f32>,
+    // x: 1 = shadow cones (antiradiance), 0 = shadow maps; y: shadow bias in texels;
+    // z: tan of the glossy cone's smallest half angle; w: fixed-point counts per unit.
+    options: vec4<f32>,
+    // Cell offset of each level in the chain (level L at [L / 4][L % 4]); the entry after the
+    // last level holds the total.
+    offsets: array<vec4<u32>, 3>,
+}
+
+fn dvct_offset(d: Dvct, level: u32) -> u32 {
+    return d.offsets[level / 4u][level % 4u];
+}
+
+fn dvct_level_size(d: Dvct, level: u32) -> u32 {
+    return max(d.dims.x >> level, 1u);
+}

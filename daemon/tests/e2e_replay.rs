@@ -178,7 +178,7 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
         .collect();
     assert_eq!(
         names,
-        ["passthrough", "depth_preview", "differential", "dlpv"]
+        ["passthrough", "depth_preview", "differential", "dlpv", "dvct"]
     );
     let unknown = ctl(&socket, &["engine", "set", "dlvp"]);
     assert_eq!(unknown.status.code(), Some(1));
@@ -342,7 +342,7 @@ fn assert_recording_is_frame_exact(recording: &Path) {
 }
 
 /// Live engine switching on the bundled recording with a scene: passthrough → differential →
-/// dlpv (small settings so lavapipe keeps up), each built off the render thread and swapped
+/// dlpv → dvct (small settings so lavapipe keeps up), each built off the render thread and swapped
 /// between frames, every frame set rendered without an error.
 #[test]
 fn gpu_engines_switch_live_while_replaying() {
@@ -356,6 +356,7 @@ fn gpu_engines_switch_live_while_replaying() {
     for (engine, params) in [
         ("differential", vec!["rsm_size=128"]),
         ("dlpv", vec!["rsm_size=64", "volume_size=8", "steps=4"]),
+        ("dvct", vec!["rsm_size=64", "volume_size=16"]),
     ] {
         let out = ctl(&socket, &["engine", "set", engine]);
         assert!(

@@ -260,6 +260,11 @@ impl Deferred {
         self.scene.as_ref().map(|(_, s)| s)
     }
 
+    /// The camera uniform (`Camera` in `shaders/common.wgsl`).
+    pub fn camera_buffer(&self) -> &wgpu::Buffer {
+        &self.camera
+    }
+
     pub fn lights(&self) -> &[GpuLight] {
         &self.lights_cpu
     }

@@ -165,7 +165,8 @@ impl GpuScene {
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                     label: Some("scene vertices"),
                     contents: bytemuck::cast_slice(&vertices),
-                    usage: wgpu::BufferUsages::VERTEX,
+                    // Storage too: DVCT voxelises the triangles in a compute pass.
+                    usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::STORAGE,
                 }),
             real_vertices,
             all_vertices: all_vertices.min(vertices.len() as u32),

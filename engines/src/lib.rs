@@ -8,6 +8,7 @@
 pub mod deferred;
 pub mod differential;
 pub mod dlpv;
+pub mod dvct;
 pub mod engine;
 pub mod gbuffer;
 pub mod gpu;
@@ -18,6 +19,7 @@ pub mod params;
 pub mod registry;
 pub mod shaders;
 pub mod timer;
+mod volume;
 
 mod depth_preview;
 mod passthrough;

@@ -8,6 +8,7 @@ use serde_json::{Map, Value};
 use crate::depth_preview::DepthPreview;
 use crate::differential::Differential;
 use crate::dlpv::Dlpv;
+use crate::dvct::Dvct;
 use crate::engine::Engine;
 use crate::gpu::{GpuError, SharedGpu};
 use crate::params::{ParamError, ParamsSchema};
@@ -99,6 +100,13 @@ impl EngineRegistry {
                     gpu: true,
                     build: |gpu| Ok(Box::new(Dlpv::new(gpu.get()?)?)),
                 },
+                EngineSpec {
+                    name: Dvct::NAME,
+                    description: "Delta Voxel Cone Tracing: split-injected V^Δ/V^ρ mip chains, 9 diffuse + 1 glossy cone, shadow cones as antiradiance (Franke 2014)",
+                    schema: Dvct::schema(),
+                    gpu: true,
+                    build: |gpu| Ok(Box::new(Dvct::new(gpu.get()?)?)),
+                },
             ],
             gpu: Arc::new(SharedGpu::default()),
         }
@@ -151,7 +159,7 @@ mod tests {
             .unwrap();
         assert_eq!(
             err.to_string(),
-            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential, dlpv"
+            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential, dlpv, dvct"
         );
     }
 

@@ -24,25 +24,15 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
-use glam::Vec3;
 use serde_json::{Map, Value};
 
 use crate::deferred::{Deferred, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
-use crate::gpu_scene::GpuLight;
 use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64, get_i64, get_str};
 use crate::shaders;
-use crate::timer::GpuTimer;
-
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct VolumeUniform {
-    origin: [f32; 4],
-    dims: [u32; 4],
-    scale: [f32; 4],
-}
+use crate::volume::{VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer};
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -98,18 +88,6 @@ pub struct Dlpv {
     volume_uniform: wgpu::Buffer,
     lookup_uniform: wgpu::Buffer,
     volume: Option<VolumeBuffers>,
-}
-
-/// A compute pass with start/end timestamps under `label` when the adapter has them.
-fn timed_pass<'e>(
-    encoder: &'e mut wgpu::CommandEncoder,
-    timer: &mut Option<GpuTimer>,
-    label: &'static str,
-) -> wgpu::ComputePass<'e> {
-    encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-        label: Some(label),
-        timestamp_writes: timer.as_mut().and_then(|t| t.compute(label)),
-    })
 }
 
 impl Dlpv {
@@ -176,14 +154,7 @@ impl Dlpv {
     }
 
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
-        let uniform = |label, size| {
-            ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            })
-        };
+        let uniform = |label, size| uniform_buffer(&ctx.device, label, size);
         Ok(Self {
             inject: shaders::compute_pipeline(&ctx.device, "dlpv inject", shaders::DLPV_INJECT),
             resolve: shaders::compute_pipeline(&ctx.device, "dlpv resolve", shaders::DLPV_RESOLVE),
@@ -193,8 +164,8 @@ impl Dlpv {
                 shaders::DLPV_PROPAGATE,
             ),
             lookup: shaders::compute_pipeline(&ctx.device, "dlpv lookup", shaders::DLPV_LOOKUP),
-            volume_uniform: uniform("dlpv volume", size_of::<VolumeUniform>() as u64),
-            lookup_uniform: uniform("dlpv lookup", size_of::<LookupUniform>() as u64),
+            volume_uniform: uniform("dlpv volume", size_of::<VolumeUniform>()),
+            lookup_uniform: uniform("dlpv lookup", size_of::<LookupUniform>()),
             deferred: Deferred::new(ctx),
             settings: DlpvSettings::default(),
             volume: None,
@@ -233,28 +204,6 @@ impl Dlpv {
     }
 }
 
-/// A bound on any single injected SH coefficient's magnitude summed over a frame: every light's
-/// total flux (4π I for point and spot lights, E · (2R)² for directional ones over the scene's
-/// bounding sphere), twice (direct and indirect), twice (ρ and μ), times the cosine lobe's
-/// largest coefficient over π.
-fn injection_bound(lights: &[GpuLight], scene_radius: f32) -> f32 {
-    let total: f32 = lights
-        .iter()
-        .map(|l| {
-            let peak = l.intensity[0]
-                .max(l.intensity[1])
-                .max(l.intensity[2])
-                .max(0.0);
-            if l.position[3] as u32 == 2 {
-                peak * (2.0 * scene_radius).powi(2)
-            } else {
-                peak * 4.0 * std::f32::consts::PI
-            }
-        })
-        .sum();
-    total * 4.0 * 1.0234 / std::f32::consts::PI
-}
-
 impl Engine for Dlpv {
     fn name(&self) -> &'static str {
         Self::NAME
@@ -274,16 +223,9 @@ impl Engine for Dlpv {
         let faces = self.deferred.faces().len() as u32;
         if let (Some((lo, hi)), true) = (virtual_bounds, faces > 0) {
             let n = settings.volume_size;
-            let edge = (hi - lo).max_element().max(1e-3) * settings.volume_scale;
-            let cell = edge / n as f32;
-            let origin = (lo + hi) / 2.0 - Vec3::splat(edge / 2.0);
-            let bound =
-                injection_bound(self.deferred.lights(), (bounds.1 - bounds.0).length() / 2.0);
-            let scale = if bound > 0.0 && bound.is_finite() {
-                (1u64 << 30) as f32 / bound
-            } else {
-                1.0
-            };
+            let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
+            let scale =
+                fixed_point_scale(self.deferred.lights(), (bounds.1 - bounds.0).length() / 2.0);
             let volume = VolumeUniform {
                 origin: origin.extend(cell).to_array(),
                 dims: [

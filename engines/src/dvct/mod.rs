@@ -1,0 +1,528 @@
+//! `dvct`: Delta Voxel Cone Tracing (Franke, ISMAR 2014).
+//!
+//! Per frame, after the shared G-buffers and reflective shadow maps (R^ρ, R^μ):
+//! 1. **voxelise** (`dvct_voxelize.wgsl`) every triangle, real and virtual, into n³ cells around
+//!    the virtual object, conservatively, one occupancy bit for real and one for virtual;
+//! 2. **split injection**: R^ρ's VPLs into V^Δ and V^ρ, R^μ's VPLs negatively into V^Δ, as L1
+//!    SH intensity (the DLPV injection pass with its direct injection off, so the same fixed-point
+//!    atomics make VPLs seen in both maps cancel exactly);
+//! 3. **mip chain** (`dvct_mip.wgsl`): level 0 resolves occlusion (any surface, virtual object)
+//!    and radiance; each coarser level averages its children;
+//! 4. **cone tracing** (`dvct_trace.wgsl`) per pixel: 9 diffuse cones and 1 glossy cone whose
+//!    aperture follows the Phong exponent, through V^Δ on real pixels and V^ρ on virtual ones;
+//!    on real pixels, shadow cones towards each light take the virtual object's occlusion times
+//!    the direct light as antiradiance;
+//! 5. the shared shading pass composites.
+//!
+//! The mip chain is **isotropic** (one occlusion value and one L1 SH radiance per cell) rather
+//! than anisotropic (six directional values per cell, Crassin et al. 2011): the radiance is
+//! already directional through its SH, and six occlusion and radiance copies would multiply the
+//! memory by six, which at the paper's 256³ is the difference between fitting a GPU or not.
+//! The cost is that a thin wall seen edge-on at a coarse level occludes as much as seen face-on.
+//! The voxels keep no normals: all radiance comes from the RSMs' VPLs, which carry their own.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bytemuck::{Pod, Zeroable};
+use serde_json::{Map, Value};
+
+use crate::deferred::{Deferred, ShadeOptions};
+use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
+use crate::gbuffer::Targets;
+use crate::gpu::{GpuContext, GpuError};
+use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64, get_i64, get_str};
+use crate::shaders;
+use crate::volume::{VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer};
+
+/// `Dvct` in `shaders/common.wgsl`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct DvctUniform {
+    origin: [f32; 4],
+    dims: [u32; 4],
+    cone: [f32; 4],
+    options: [f32; 4],
+    offsets: [u32; 12],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct MipUniform {
+    level: [u32; 4],
+}
+
+/// The engine's settings (see [`Dvct::schema`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DvctSettings {
+    pub rsm_size: u32,
+    pub volume_size: u32,
+    pub volume_scale: f32,
+    pub step: f32,
+    pub cone_aperture_deg: f32,
+    pub glossy_min_aperture_deg: f32,
+    pub shadow_aperture_deg: f32,
+    pub cone_offset: f32,
+    pub shadow_cones: bool,
+    pub shadow_bias: f32,
+}
+
+impl Default for DvctSettings {
+    fn default() -> Self {
+        Self {
+            rsm_size: 512,
+            volume_size: 64,
+            volume_scale: 3.0,
+            step: 0.5,
+            cone_aperture_deg: 27.3,
+            glossy_min_aperture_deg: 2.0,
+            shadow_aperture_deg: 3.0,
+            cone_offset: 1.0,
+            shadow_cones: false,
+            shadow_bias: 1.5,
+        }
+    }
+}
+
+/// Mip levels of an `n`³ chain down to one cell, and each level's first cell (plus the total).
+fn mip_offsets(n: u32) -> (u32, Vec<u32>) {
+    let levels = n.ilog2() + 1;
+    let mut offsets = vec![0u32];
+    for level in 0..levels {
+        let m = (n >> level).max(1);
+        offsets.push(offsets[level as usize] + m * m * m);
+    }
+    (levels, offsets)
+}
+
+#[derive(Debug)]
+struct VolumeBuffers {
+    n: u32,
+    levels: u32,
+    cells: wgpu::Buffer,
+    occupancy: wgpu::Buffer,
+    radiance: wgpu::Buffer,
+    occlusion: wgpu::Buffer,
+    mips: Vec<wgpu::Buffer>,
+}
+
+#[derive(Debug)]
+pub struct Dvct {
+    deferred: Deferred,
+    settings: DvctSettings,
+    voxelize: wgpu::ComputePipeline,
+    inject: wgpu::ComputePipeline,
+    mip: wgpu::ComputePipeline,
+    trace: wgpu::ComputePipeline,
+    inject_uniform: wgpu::Buffer,
+    dvct_uniform: wgpu::Buffer,
+    volume: Option<VolumeBuffers>,
+}
+
+impl Dvct {
+    pub const NAME: &'static str = "dvct";
+
+    pub fn schema() -> ParamsSchema {
+        let d = DvctSettings::default();
+        let int = |name, doc, min, max, default: u32| ParamSpec {
+            name,
+            doc,
+            kind: ParamKind::Int {
+                min,
+                max,
+                default: i64::from(default),
+            },
+        };
+        let float = |name, doc, min, max, default: f32| ParamSpec {
+            name,
+            doc,
+            kind: ParamKind::Float {
+                min,
+                max,
+                default: f64::from(default),
+            },
+        };
+        ParamsSchema::new(vec![
+            int(
+                "rsm_size",
+                "reflective-shadow-map edge per light face; every texel is a VPL",
+                32,
+                2048,
+                d.rsm_size,
+            ),
+            int(
+                "volume_size",
+                "cells per axis of the voxel volume (the paper: 256); memory grows as its cube",
+                16,
+                256,
+                d.volume_size,
+            ),
+            float(
+                "volume_scale",
+                "volume edge as a multiple of the virtual object's largest bounding-box edge",
+                1.0,
+                16.0,
+                d.volume_scale,
+            ),
+            float(
+                "step",
+                "cone-marching step as a fraction of the cone's diameter",
+                0.1,
+                2.0,
+                d.step,
+            ),
+            float(
+                "cone_aperture",
+                "half angle of the 9 diffuse cones, degrees",
+                5.0,
+                45.0,
+                d.cone_aperture_deg,
+            ),
+            float(
+                "glossy_min_aperture",
+                "smallest half angle of the glossy cone (a mirror-like Phong exponent), degrees",
+                0.5,
+                30.0,
+                d.glossy_min_aperture_deg,
+            ),
+            float(
+                "shadow_aperture",
+                "half angle of the shadow cones towards each light, degrees (soft shadow size)",
+                0.5,
+                30.0,
+                d.shadow_aperture_deg,
+            ),
+            float(
+                "cone_offset",
+                "cone apex moved off the surface along its normal, in cells (self-occlusion)",
+                0.0,
+                4.0,
+                d.cone_offset,
+            ),
+            ParamSpec {
+                name: "shadows",
+                doc: "`shadow_map`: the differential engine's shadows; `cones`: shadow cones, the object's occlusion as antiradiance (the paper; the voxels' conservative footprint darkens ~1.5 cells around the object's contact)",
+                kind: ParamKind::Choice {
+                    options: vec!["shadow_map", "cones"],
+                    default: "shadow_map",
+                },
+            },
+            float(
+                "shadow_bias",
+                "shadow-map depth bias in texel footprints",
+                0.0,
+                8.0,
+                d.shadow_bias,
+            ),
+        ])
+    }
+
+    pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
+        let pipeline = |label, source| shaders::compute_pipeline(&ctx.device, label, source);
+        Ok(Self {
+            voxelize: pipeline("dvct voxelize", shaders::DVCT_VOXELIZE),
+            inject: pipeline("dvct inject", shaders::DLPV_INJECT),
+            mip: pipeline("dvct mip", shaders::DVCT_MIP),
+            trace: pipeline("dvct trace", shaders::DVCT_TRACE),
+            inject_uniform: uniform_buffer(&ctx.device, "dvct inject", size_of::<VolumeUniform>()),
+            dvct_uniform: uniform_buffer(&ctx.device, "dvct", size_of::<DvctUniform>()),
+            deferred: Deferred::new(ctx),
+            settings: DvctSettings::default(),
+            volume: None,
+        })
+    }
+
+    fn volume_buffers(&mut self) -> Result<&VolumeBuffers, EngineError> {
+        let n = self.settings.volume_size;
+        let ctx = self.deferred.ctx().clone();
+        let (levels, offsets) = mip_offsets(n);
+        let total = u64::from(offsets[levels as usize]);
+        let cells = 2 * u64::from(n).pow(3) * 48;
+        let radiance = 2 * total * 48;
+        ctx.require("max_storage_buffer_binding_size", cells, "volume_size")?;
+        ctx.require("max_storage_buffer_binding_size", radiance, "volume_size")?;
+        ctx.require(
+            "max_compute_workgroups_per_dimension",
+            u64::from(n).div_ceil(4),
+            "volume_size",
+        )?;
+        if self.volume.as_ref().is_none_or(|v| v.n != n) {
+            let buffer = |label, size, usage| {
+                ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(label),
+                    size,
+                    usage,
+                    mapped_at_creation: false,
+                })
+            };
+            use wgpu::BufferUsages as U;
+            let mips = (0..levels)
+                .map(|level| {
+                    let mip = buffer(
+                        "dvct mip",
+                        size_of::<MipUniform>() as u64,
+                        U::UNIFORM | U::COPY_DST,
+                    );
+                    let below = if level == 0 {
+                        n
+                    } else {
+                        (n >> (level - 1)).max(1)
+                    };
+                    ctx.queue.write_buffer(
+                        &mip,
+                        0,
+                        bytemuck::bytes_of(&MipUniform {
+                            level: [level, (n >> level).max(1), below, 0],
+                        }),
+                    );
+                    mip
+                })
+                .collect();
+            self.volume = Some(VolumeBuffers {
+                n,
+                levels,
+                cells: buffer("dvct cells", cells, U::STORAGE | U::COPY_DST),
+                occupancy: buffer(
+                    "dvct occupancy",
+                    u64::from(n).pow(3) * 4,
+                    U::STORAGE | U::COPY_DST,
+                ),
+                radiance: buffer("dvct radiance", radiance, U::STORAGE),
+                occlusion: buffer("dvct occlusion", total * 8, U::STORAGE),
+                mips,
+            });
+        }
+        self.volume.as_ref().ok_or(EngineError::NotPrepared)
+    }
+}
+
+impl Engine for Dvct {
+    fn name(&self) -> &'static str {
+        Self::NAME
+    }
+
+    fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
+        let settings = self.settings;
+        let (width, height) = self
+            .deferred
+            .prepare(Self::NAME, frame, out, settings.rsm_size)?;
+        let started = Instant::now();
+        let ctx = self.deferred.ctx().clone();
+        let Some(scene) = self.deferred.scene() else {
+            return Err(EngineError::NotPrepared);
+        };
+        let (bounds, virtual_bounds, vertices) =
+            (scene.bounds, scene.virtual_bounds, scene.all_vertices);
+        let faces = self.deferred.faces().len() as u32;
+        if let Some((lo, hi)) = virtual_bounds {
+            let n = settings.volume_size;
+            let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
+            let scale =
+                fixed_point_scale(self.deferred.lights(), (bounds.1 - bounds.0).length() / 2.0);
+            let (levels, offsets) = mip_offsets(n);
+            let mut offsets12 = [0u32; 12];
+            offsets12[..offsets.len()].copy_from_slice(&offsets);
+            let tan = |deg: f32| deg.to_radians().tan();
+            ctx.queue.write_buffer(
+                &self.inject_uniform,
+                0,
+                bytemuck::bytes_of(&VolumeUniform {
+                    origin: origin.extend(cell).to_array(),
+                    dims: [
+                        n,
+                        settings.rsm_size,
+                        faces,
+                        self.deferred.lights().len() as u32,
+                    ],
+                    scale: [scale, 0.0, 0.0, 0.0],
+                }),
+            );
+            ctx.queue.write_buffer(
+                &self.dvct_uniform,
+                0,
+                bytemuck::bytes_of(&DvctUniform {
+                    origin: origin.extend(cell).to_array(),
+                    dims: [
+                        n,
+                        levels,
+                        self.deferred.lights().len() as u32,
+                        settings.rsm_size,
+                    ],
+                    cone: [
+                        tan(settings.cone_aperture_deg),
+                        settings.step,
+                        tan(settings.shadow_aperture_deg),
+                        settings.cone_offset,
+                    ],
+                    options: [
+                        if settings.shadow_cones { 1.0 } else { 0.0 },
+                        settings.shadow_bias,
+                        tan(settings.glossy_min_aperture_deg),
+                        scale,
+                    ],
+                    offsets: offsets12,
+                }),
+            );
+            self.volume_buffers()?;
+            let mut timer = self.deferred.lend_timer();
+            let (
+                Some(v),
+                Some((lights, faces_buf, rsm_rho, rsm_mu)),
+                Some((gb_rho, _, indirect)),
+                Some(scene),
+            ) = (
+                self.volume.as_ref(),
+                self.deferred.light_buffers(),
+                self.deferred.frame_buffers(),
+                self.deferred.scene(),
+            )
+            else {
+                return Err(EngineError::NotPrepared);
+            };
+            let group =
+                |pipeline: &wgpu::ComputePipeline, label, resources: &[wgpu::BindingResource]| {
+                    shaders::bind_group(
+                        &ctx.device,
+                        label,
+                        &pipeline.get_bind_group_layout(0),
+                        resources,
+                    )
+                };
+            let voxelize_group = group(
+                &self.voxelize,
+                "dvct voxelize",
+                &[
+                    self.dvct_uniform.as_entire_binding(),
+                    scene.vertices.as_entire_binding(),
+                    v.occupancy.as_entire_binding(),
+                ],
+            );
+            let array = Targets::array_view;
+            let rsm_views = [
+                array(&rsm_rho.position),
+                array(&rsm_rho.normal),
+                array(&rsm_rho.albedo),
+                array(&rsm_mu.position),
+                array(&rsm_mu.normal),
+                array(&rsm_mu.albedo),
+            ];
+            let mut inject_resources = vec![
+                self.inject_uniform.as_entire_binding(),
+                lights.as_entire_binding(),
+                faces_buf.as_entire_binding(),
+            ];
+            inject_resources.extend(rsm_views.iter().map(wgpu::BindingResource::TextureView));
+            inject_resources.push(v.cells.as_entire_binding());
+            let inject_group = group(&self.inject, "dvct inject", &inject_resources);
+            let mip_groups: Vec<wgpu::BindGroup> = v
+                .mips
+                .iter()
+                .map(|mip| {
+                    group(
+                        &self.mip,
+                        "dvct mip",
+                        &[
+                            self.dvct_uniform.as_entire_binding(),
+                            mip.as_entire_binding(),
+                            v.cells.as_entire_binding(),
+                            v.occupancy.as_entire_binding(),
+                            v.radiance.as_entire_binding(),
+                            v.occlusion.as_entire_binding(),
+                        ],
+                    )
+                })
+                .collect();
+            let gb_views = [
+                Targets::view(&gb_rho.position),
+                Targets::view(&gb_rho.normal),
+                Targets::view(&gb_rho.albedo),
+                array(&rsm_mu.position),
+            ];
+            let mut trace_resources = vec![
+                self.dvct_uniform.as_entire_binding(),
+                self.deferred.camera_buffer().as_entire_binding(),
+                lights.as_entire_binding(),
+                faces_buf.as_entire_binding(),
+                scene.materials.as_entire_binding(),
+            ];
+            trace_resources.extend(gb_views.iter().map(wgpu::BindingResource::TextureView));
+            trace_resources
+                .extend([&v.radiance, &v.occlusion, indirect].map(|b| b.as_entire_binding()));
+            let trace_group = group(&self.trace, "dvct trace", &trace_resources);
+
+            let mut encoder = ctx
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("dvct"),
+                });
+            encoder.clear_buffer(&v.cells, 0, None);
+            encoder.clear_buffer(&v.occupancy, 0, None);
+            {
+                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.voxelize");
+                pass.set_pipeline(&self.voxelize);
+                pass.set_bind_group(0, &voxelize_group, &[]);
+                let groups = (vertices / 3).div_ceil(64);
+                if groups > 0 {
+                    pass.dispatch_workgroups(groups.min(65535), groups.div_ceil(65535), 1);
+                }
+            }
+            {
+                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
+                if faces > 0 {
+                    pass.set_pipeline(&self.inject);
+                    pass.set_bind_group(0, &inject_group, &[]);
+                    let s = settings.rsm_size.div_ceil(8);
+                    pass.dispatch_workgroups(s, s, faces * 2);
+                }
+            }
+            {
+                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.mip");
+                pass.set_pipeline(&self.mip);
+                for (level, mip_group) in mip_groups.iter().enumerate() {
+                    let m = (n >> level).max(1).div_ceil(4);
+                    pass.set_bind_group(0, mip_group, &[]);
+                    pass.dispatch_workgroups(m, m, m);
+                }
+            }
+            {
+                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.trace");
+                pass.set_pipeline(&self.trace);
+                pass.set_bind_group(0, &trace_group, &[]);
+                pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+            }
+            ctx.queue.submit([encoder.finish()]);
+            ctx.check()?;
+            debug_assert_eq!(v.levels as usize, v.mips.len());
+            self.deferred.return_timer(timer);
+        }
+        out.timings.push(PassTiming {
+            pass: "volume",
+            ms: started.elapsed().as_secs_f64() * 1e3,
+        });
+        self.deferred.finish(
+            ShadeOptions {
+                shadow_bias_texels: settings.shadow_bias,
+                direct_delta: !settings.shadow_cones,
+            },
+            out,
+        )
+    }
+
+    fn set_params(&mut self, params: &Map<String, Value>) {
+        let d = DvctSettings::default();
+        let float = |name, default: f32| get_f64(params, name, f64::from(default)) as f32;
+        self.settings = DvctSettings {
+            rsm_size: get_i64(params, "rsm_size", i64::from(d.rsm_size)).clamp(32, 2048) as u32,
+            volume_size: get_i64(params, "volume_size", i64::from(d.volume_size)).clamp(16, 256)
+                as u32,
+            volume_scale: float("volume_scale", d.volume_scale),
+            step: float("step", d.step),
+            cone_aperture_deg: float("cone_aperture", d.cone_aperture_deg),
+            glossy_min_aperture_deg: float("glossy_min_aperture", d.glossy_min_aperture_deg),
+            shadow_aperture_deg: float("shadow_aperture", d.shadow_aperture_deg),
+            cone_offset: float("cone_offset", d.cone_offset),
+            shadow_cones: get_str(params, "shadows", "shadow_map") == "cones",
+            shadow_bias: float("shadow_bias", d.shadow_bias),
+        };
+    }
+}

@@ -1,0 +1,74 @@
+//! The volume around the virtual object that DLPV and DVCT both inject into: its placement, the
+//! injection uniform (`Volume` in `shaders/common.wgsl`), the fixed-point scale that keeps the
+//! integer atomics from overflowing, and timed compute passes.
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+
+use crate::gpu_scene::GpuLight;
+use crate::timer::GpuTimer;
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub(crate) struct VolumeUniform {
+    pub origin: [f32; 4],
+    pub dims: [u32; 4],
+    pub scale: [f32; 4],
+}
+
+/// A cube of `n`³ cells centred on the virtual object's bounds `(lo, hi)`, `scale` × their
+/// largest edge on a side: (minimum corner, cell edge).
+pub(crate) fn placement(lo: Vec3, hi: Vec3, n: u32, scale: f32) -> (Vec3, f32) {
+    let edge = (hi - lo).max_element().max(1e-3) * scale;
+    ((lo + hi) / 2.0 - Vec3::splat(edge / 2.0), edge / n as f32)
+}
+
+/// Fixed-point counts per unit for injection: 2³⁰ over a bound on any single injected SH
+/// coefficient's magnitude summed over a frame, which is every light's total flux (4π I for
+/// point and spot lights, E · (2R)² for directional ones over the scene's bounding sphere of
+/// radius `scene_radius`), twice (direct and indirect), twice (ρ and μ), times the cosine
+/// lobe's largest coefficient over π.
+pub(crate) fn fixed_point_scale(lights: &[GpuLight], scene_radius: f32) -> f32 {
+    let total: f32 = lights
+        .iter()
+        .map(|l| {
+            let peak = l.intensity[0]
+                .max(l.intensity[1])
+                .max(l.intensity[2])
+                .max(0.0);
+            if l.position[3] as u32 == 2 {
+                peak * (2.0 * scene_radius).powi(2)
+            } else {
+                peak * 4.0 * std::f32::consts::PI
+            }
+        })
+        .sum();
+    let bound = total * 4.0 * 1.0234 / std::f32::consts::PI;
+    if bound > 0.0 && bound.is_finite() {
+        (1u64 << 30) as f32 / bound
+    } else {
+        1.0
+    }
+}
+
+/// A compute pass with start/end timestamps under `label` when the adapter has them.
+pub(crate) fn timed_pass<'e>(
+    encoder: &'e mut wgpu::CommandEncoder,
+    timer: &mut Option<GpuTimer>,
+    label: &'static str,
+) -> wgpu::ComputePass<'e> {
+    encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+        label: Some(label),
+        timestamp_writes: timer.as_mut().and_then(|t| t.compute(label)),
+    })
+}
+
+/// A uniform buffer of `size` bytes that the CPU rewrites every frame.
+pub(crate) fn uniform_buffer(device: &wgpu::Device, label: &str, size: usize) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: size as u64,
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}

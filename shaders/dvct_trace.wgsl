@@ -1,0 +1,200 @@
+// DVCT cone tracing (Franke 2014, Sec. 3.3), one thread per camera pixel, into the engine's
+// indirect buffer (the shared shading pass adds it to Δ on real pixels and to L^ρ on virtual
+// ones):
+//   real pixels:    albedo/π · Σ 9 diffuse cones through V^Δ + k_s · 1 glossy cone through V^Δ
+//                   − Σ_lights (occlusion of the virtual object along a shadow cone towards the
+//                   light) · (the light's shadow-mapped direct radiance without the object);
+//   virtual pixels: the same diffuse and glossy cones through V^ρ.
+// Cones march front to back through the mip chain at the level whose cells match the cone's
+// diameter (quadrilinear), accumulating premultiplied radiance and opacity
+// (c += (1 − a) L Δt/d, a += (1 − a) α).
+
+@group(0) @binding(0) var<uniform> dvct: Dvct;
+@group(0) @binding(1) var<uniform> camera: Camera;
+@group(0) @binding(2) var<storage, read> lights: array<Light>;
+@group(0) @binding(3) var<storage, read> faces: array<Face>;
+@group(0) @binding(4) var<storage, read> materials: array<Material>;
+@group(0) @binding(5) var gb_position: texture_2d<f32>;
+@group(0) @binding(6) var gb_normal: texture_2d<f32>;
+@group(0) @binding(7) var gb_albedo: texture_2d<f32>;
+@group(0) @binding(8) var rsm_mu: texture_2d_array<f32>;
+@group(0) @binding(9) var<storage, read> radiance: array<vec4<f32>>;
+@group(0) @binding(10) var<storage, read> occlusion: array<vec2<f32>>;
+@group(0) @binding(11) var<storage, read_write> indirect: array<vec4<f32>>;
+
+// The hemisphere split into a central cone (half angle acos(8/9)) and eight around it, each
+// holding an equal solid angle; weights are ∫ cos θ dω over each part (they sum to π), ring
+// axes at sin θ = 7/9, the cosine-weighted middle of the ring.
+const CENTRAL_WEIGHT: f32 = 0.659374; // π · 17/81
+const RING_WEIGHT: f32 = 0.310282; // π · 8/81
+const RING_SIN: f32 = 0.777778;
+const RING_COS: f32 = 0.628539;
+
+struct Sample {
+    // Radiance (W/sr/m²) towards the cone's apex.
+    light: vec3<f32>,
+    // Mean occlusion: x every surface, y the virtual object.
+    occ: vec2<f32>,
+}
+
+fn fetch(which: u32, level: u32, c: vec3<i32>, basis: vec4<f32>) -> Sample {
+    var s: Sample;
+    let m = i32(dvct_level_size(dvct, level));
+    if any(c < vec3<i32>(0)) || any(c >= vec3<i32>(m)) {
+        return s;
+    }
+    let cell = dvct_offset(dvct, level) + u32((c.z * m + c.y) * m + c.x);
+    let r = (which * dvct_offset(dvct, dvct.dims.y) + cell) * 3u;
+    s.light = vec3<f32>(dot(radiance[r], basis), dot(radiance[r + 1u], basis),
+                        dot(radiance[r + 2u], basis));
+    s.occ = occlusion[cell];
+    return s;
+}
+
+// Trilinear at one level. A level-L cell holds the mean intensity per level-0 cell of its
+// block of 8^L; the block's radiance seen from outside is its total intensity over its
+// projected area, mean · 8^L / (2^L s)².
+fn sample_level(which: u32, level: u32, p: vec3<f32>, basis: vec4<f32>) -> Sample {
+    let scale = f32(1u << level);
+    let size = dvct.origin.w * scale;
+    let g = (p - dvct.origin.xyz) / size - vec3<f32>(0.5);
+    let c0 = vec3<i32>(floor(g));
+    let f = g - floor(g);
+    var out: Sample;
+    for (var k = 0u; k < 8u; k++) {
+        let o = vec3<i32>(i32(k & 1u), i32((k >> 1u) & 1u), i32((k >> 2u) & 1u));
+        let w = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1)
+            * select(1.0 - f.z, f.z, o.z == 1);
+        if w <= 0.0 {
+            continue;
+        }
+        let s = fetch(which, level, c0 + o, basis);
+        out.light += w * s.light;
+        out.occ += w * s.occ;
+    }
+    out.light *= scale / (dvct.origin.w * dvct.origin.w);
+    return out;
+}
+
+fn sample(which: u32, level: f32, p: vec3<f32>, basis: vec4<f32>) -> Sample {
+    let top = f32(dvct.dims.y - 1u);
+    let l = clamp(level, 0.0, top);
+    let l0 = floor(l);
+    let a = sample_level(which, u32(l0), p, basis);
+    let f = l - l0;
+    if f <= 0.0 {
+        return a;
+    }
+    let b = sample_level(which, u32(l0) + 1u, p, basis);
+    var out: Sample;
+    out.light = mix(a.light, b.light, f);
+    out.occ = mix(a.occ, b.occ, f);
+    return out;
+}
+
+struct Cone {
+    light: vec3<f32>,
+    alpha: f32,
+}
+
+// March a cone from `apex` along unit `dir` (half angle with tangent `tan_half`) up to `max_t`
+// or out of the volume: radiance from volume `which` (0 V^Δ, 1 V^ρ) when `gather`, opacity of
+// occlusion channel `channel` (0 every surface, 1 the virtual object).
+fn trace(which: u32, apex: vec3<f32>, dir: vec3<f32>, tan_half: f32, max_t: f32, channel: u32,
+         gather: bool) -> Cone {
+    let s0 = dvct.origin.w;
+    let lo = dvct.origin.xyz - vec3<f32>(s0);
+    let hi = dvct.origin.xyz + vec3<f32>(s0 * f32(dvct.dims.x + 1u));
+    let basis = sh_basis(-dir);
+    var out: Cone;
+    var t = s0;
+    for (var i = 0u; i < 2048u && t < max_t && out.alpha < 0.99; i++) {
+        let d = max(2.0 * t * tan_half, s0);
+        let p = apex + dir * t;
+        if any(p < lo) || any(p > hi) {
+            break;
+        }
+        let s = sample(which, log2(d / s0), p, basis);
+        let dt = max(d * dvct.cone.y, 0.25 * s0);
+        let occ = clamp(select(s.occ.x, s.occ.y, channel == 1u), 0.0, 1.0);
+        if gather {
+            out.light += (1.0 - out.alpha) * s.light * (dt / d);
+        }
+        out.alpha += (1.0 - out.alpha) * (1.0 - pow(max(1.0 - occ, 1e-6), dt / s0));
+        t += dt;
+    }
+    return out;
+}
+
+// Irradiance from the nine diffuse cones around `n`.
+fn diffuse(which: u32, apex: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    let up = select(vec3<f32>(0.0, 0.0, 1.0), vec3<f32>(1.0, 0.0, 0.0), abs(n.z) > 0.9);
+    let t1 = normalize(cross(up, n));
+    let t2 = cross(n, t1);
+    let tan_half = dvct.cone.x;
+    var e = CENTRAL_WEIGHT * trace(which, apex, n, tan_half, 1e30, 0u, true).light;
+    for (var k = 0u; k < 8u; k++) {
+        let phi = f32(k) * PI / 4.0;
+        let dir = n * RING_COS + (t1 * cos(phi) + t2 * sin(phi)) * RING_SIN;
+        e += RING_WEIGHT * trace(which, apex, dir, tan_half, 1e30, 0u, true).light;
+    }
+    return e;
+}
+
+@compute @workgroup_size(8, 8)
+fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    let size = vec2<u32>(camera.size.xy);
+    if id.x >= size.x || id.y >= size.y {
+        return;
+    }
+    let i = id.y * size.x + id.x;
+    let xy = vec2<i32>(id.xy);
+    let p = textureLoad(gb_position, xy, 0);
+    if p.w < 0.5 {
+        indirect[i] = vec4<f32>(0.0);
+        return;
+    }
+    let normal = textureLoad(gb_normal, xy, 0);
+    let n = normalize(normal.xyz);
+    let is_virtual = normal.w > 0.5;
+    let which = select(0u, 1u, is_virtual);
+    let albedo = textureLoad(gb_albedo, xy, 0).rgb;
+    let m = materials[u32(p.w) - 1u];
+    let wo = normalize(camera.position.xyz - p.xyz);
+    let apex = p.xyz + n * dvct.cone.w * dvct.origin.w;
+    var out = albedo / PI * diffuse(which, apex, n);
+    let shininess = m.albedo.w;
+    if shininess > 0.0 && any(m.specular.rgb > vec3<f32>(0.0)) {
+        // A normalised Phong lobe holds its energy within 2π/(n + 1) sr: a cone of
+        // cos θ = n/(n + 1).
+        let c = shininess / (shininess + 1.0);
+        let tan_half = max(sqrt(1.0 - c * c) / c, dvct.options.z);
+        let r = reflect(-wo, n);
+        let cone = trace(which, apex, r, tan_half, 1e30, 0u, true);
+        out += m.specular.rgb * cone.light * max(dot(n, r), 0.0);
+    }
+    if !is_virtual && dvct.options.x > 0.5 {
+        for (var li = 0u; li < dvct.dims.z; li++) {
+            let l = lights[li];
+            let inc = incident(l, p.xyz);
+            let cos_theta = dot(n, inc.to_light);
+            if cos_theta <= 0.0 || all(inc.irradiance <= vec3<f32>(0.0)) {
+                continue;
+            }
+            let layer = face_of(l, p.xyz);
+            let vis = lit(l, faces[layer], layer, p.xyz, n, inc.to_light, rsm_mu, dvct.dims.w,
+                          dvct.options.y);
+            let direct = brdf(m, albedo, n, inc.to_light, wo) * inc.irradiance * cos_theta * vis;
+            if all(direct <= vec3<f32>(0.0)) {
+                continue;
+            }
+            var max_t = 1e30;
+            if u32(l.position.w) != KIND_DIRECTIONAL {
+                max_t = distance(l.position.xyz, p.xyz);
+            }
+            let shadow = trace(0u, apex, inc.to_light, dvct.cone.z, max_t, 1u, false);
+            out -= shadow.alpha * direct;
+        }
+    }
+    indirect[i] = vec4<f32>(out, 0.0);
+}
