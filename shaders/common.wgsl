@@ -250,3 +250,74 @@ fn dvct_offset(d: Dvct, level: u32) -> u32 {
 fn dvct_level_size(d: Dvct, level: u32) -> u32 {
     return max(d.dims.x >> level, 1u);
 }
+
+// Differential Instant Radiosity (engines/src/dir): one VPL, `position.w` its group (0: on a
+// real surface, lights L_rv and L_r; 1: on the virtual object, L_rv only; 2: "VPL3", on a real
+// surface the virtual object hides from the light, L_r only).
+struct Vpl {
+    position: vec4<f32>,
+    normal: vec4<f32>,
+    // rgb: flux Φ (W) with the importance-sampling compensation applied.
+    flux: vec4<f32>,
+}
+
+struct Dir {
+    // x: VPL count; y: shadow-map size; z: light faces; w: ISM edge in texels.
+    dims: vec4<u32>,
+    // x: width; y: height; z: ISM points; w: unused.
+    size: vec4<u32>,
+    // x: distance clamp (m); y: ISM depth bias in texel footprints.
+    params: vec4<f32>,
+}
+
+const LUMINANCE: vec3<f32> = vec3<f32>(0.2126, 0.7152, 0.0722);
+
+struct VplTexel {
+    valid: bool,
+    position: vec3<f32>,
+    normal: vec3<f32>,
+    albedo: vec3<f32>,
+}
+
+// Texel `t` of shadow-map layer `layer` as a VPL of `group`: R^ρ's texels on real surfaces
+// (group 0) and on the virtual object (group 1), and R^μ's texels where R^ρ sees the virtual
+// object in front (group 2).
+fn vpl_texel(group: u32, layer: u32, t: vec2<i32>,
+             rho_position: texture_2d_array<f32>, rho_normal: texture_2d_array<f32>,
+             rho_albedo: texture_2d_array<f32>, mu_position: texture_2d_array<f32>,
+             mu_normal: texture_2d_array<f32>, mu_albedo: texture_2d_array<f32>) -> VplTexel {
+    var out: VplTexel;
+    let albedo = textureLoad(rho_albedo, t, i32(layer), 0);
+    if albedo.w < 0.5 {
+        return out;
+    }
+    let normal = textureLoad(rho_normal, t, i32(layer), 0);
+    let on_virtual = normal.w > 0.5;
+    if group == 2u {
+        let mu = textureLoad(mu_albedo, t, i32(layer), 0);
+        out.valid = on_virtual && mu.w > 0.5;
+        out.position = textureLoad(mu_position, t, i32(layer), 0).xyz;
+        out.normal = textureLoad(mu_normal, t, i32(layer), 0).xyz;
+        out.albedo = mu.rgb;
+        return out;
+    }
+    out.valid = on_virtual == (group == 1u);
+    out.position = textureLoad(rho_position, t, i32(layer), 0).xyz;
+    out.normal = normal.xyz;
+    out.albedo = albedo.rgb;
+    return out;
+}
+
+// Where unit direction `d` falls in the paraboloid map (Brabec et al. 2002) of the hemisphere
+// around unit `n`, in texels of an `size`² map; x < 0 when `d` is behind.
+fn paraboloid_texel(n: vec3<f32>, d: vec3<f32>, size: f32) -> vec2<f32> {
+    let z = dot(d, n);
+    if z <= 0.0 {
+        return vec2<f32>(-1.0);
+    }
+    let up = select(vec3<f32>(0.0, 0.0, 1.0), vec3<f32>(1.0, 0.0, 0.0), abs(n.z) > 0.9);
+    let t1 = normalize(cross(up, n));
+    let t2 = cross(n, t1);
+    let uv = vec2<f32>(dot(d, t1), dot(d, t2)) / (1.0 + z);
+    return clamp((uv * 0.5 + 0.5) * size, vec2<f32>(0.0), vec2<f32>(size - 1.0));
+}

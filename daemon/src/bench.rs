@@ -53,8 +53,9 @@ impl BenchCase {
 
 /// The default cases: each engine at its defaults, and with `sweep` the paper's parameter
 /// sweeps (DLPV: volume 16³/32³/64³ × steps 8/16/32/64, RSM 256²/512²/1024²; DVCT: volume
-/// 32³/64³/128³/256³ × step 0.25/0.5/1 and both shadow modes; the differential baseline's
-/// shadow-map sizes). Volumes an adapter cannot hold are reported as that case's error.
+/// 32³/64³/128³/256³ × step 0.25/0.5/1; DIR: 64/128/256/512/1024 VPLs, ISM 32²/64²/128²; the
+/// differential baseline's shadow-map sizes). A setting an adapter cannot hold is logged and
+/// left out of the results.
 pub fn default_cases(sweep: bool) -> Vec<BenchCase> {
     let mut cases = vec![
         BenchCase::new("differential", json!({})),
@@ -62,6 +63,7 @@ pub fn default_cases(sweep: bool) -> Vec<BenchCase> {
         BenchCase::new("dlpv", json!({ "shadows": "shadow_map" })),
         BenchCase::new("dvct", json!({})),
         BenchCase::new("dvct", json!({ "shadows": "cones" })),
+        BenchCase::new("dir", json!({})),
     ];
     if sweep {
         for rsm in [256, 1024] {
@@ -77,6 +79,12 @@ pub fn default_cases(sweep: bool) -> Vec<BenchCase> {
         }
         for rsm in [256, 1024] {
             cases.push(BenchCase::new("dlpv", json!({ "rsm_size": rsm })));
+        }
+        for vpls in [64, 128, 512, 1024] {
+            cases.push(BenchCase::new("dir", json!({ "vpl_count": vpls })));
+        }
+        for ism in [32, 128] {
+            cases.push(BenchCase::new("dir", json!({ "ism_size": ism })));
         }
         for volume in [32, 64, 128, 256] {
             for step in [0.25, 0.5, 1.0] {

@@ -178,7 +178,13 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
         .collect();
     assert_eq!(
         names,
-        ["passthrough", "depth_preview", "differential", "dlpv", "dvct"]
+        [
+            "passthrough",
+            "depth_preview",
+            "differential",
+            "dlpv",
+            "dvct"
+        ]
     );
     let unknown = ctl(&socket, &["engine", "set", "dlvp"]);
     assert_eq!(unknown.status.code(), Some(1));
@@ -342,7 +348,7 @@ fn assert_recording_is_frame_exact(recording: &Path) {
 }
 
 /// Live engine switching on the bundled recording with a scene: passthrough → differential →
-/// dlpv → dvct (small settings so lavapipe keeps up), each built off the render thread and swapped
+/// dlpv → dvct → dir (small settings so lavapipe keeps up), each built off the render thread and swapped
 /// between frames, every frame set rendered without an error.
 #[test]
 fn gpu_engines_switch_live_while_replaying() {
@@ -357,6 +363,10 @@ fn gpu_engines_switch_live_while_replaying() {
         ("differential", vec!["rsm_size=128"]),
         ("dlpv", vec!["rsm_size=64", "volume_size=8", "steps=4"]),
         ("dvct", vec!["rsm_size=64", "volume_size=16"]),
+        (
+            "dir",
+            vec!["rsm_size=64", "vpl_count=32", "ism_points=2048"],
+        ),
     ] {
         let out = ctl(&socket, &["engine", "set", engine]);
         assert!(

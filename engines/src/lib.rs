@@ -7,6 +7,7 @@
 
 pub mod deferred;
 pub mod differential;
+pub mod dir;
 pub mod dlpv;
 pub mod dvct;
 pub mod engine;

@@ -7,6 +7,7 @@ use serde_json::{Map, Value};
 
 use crate::depth_preview::DepthPreview;
 use crate::differential::Differential;
+use crate::dir::Dir;
 use crate::dlpv::Dlpv;
 use crate::dvct::Dvct;
 use crate::engine::Engine;
@@ -107,6 +108,13 @@ impl EngineRegistry {
                     gpu: true,
                     build: |gpu| Ok(Box::new(Dvct::new(gpu.get()?)?)),
                 },
+                EngineSpec {
+                    name: Dir::NAME,
+                    description: "Differential Instant Radiosity: real/virtual-flagged VPLs from the RSMs, imperfect shadow maps, L_rv − L_r in one gather (Knecht 2012)",
+                    schema: Dir::schema(),
+                    gpu: true,
+                    build: |gpu| Ok(Box::new(Dir::new(gpu.get()?)?)),
+                },
             ],
             gpu: Arc::new(SharedGpu::default()),
         }
@@ -159,7 +167,7 @@ mod tests {
             .unwrap();
         assert_eq!(
             err.to_string(),
-            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential, dlpv, dvct"
+            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential, dlpv, dvct, dir"
         );
     }
 

@@ -22,6 +22,11 @@ pub const DLPV_LOOKUP: &str = pass!("dlpv_lookup.wgsl");
 pub const DVCT_VOXELIZE: &str = pass!("dvct_voxelize.wgsl");
 pub const DVCT_MIP: &str = pass!("dvct_mip.wgsl");
 pub const DVCT_TRACE: &str = pass!("dvct_trace.wgsl");
+pub const DIR_ROWS: &str = pass!("dir_rows.wgsl");
+pub const DIR_ALLOC: &str = pass!("dir_alloc.wgsl");
+pub const DIR_VPL: &str = pass!("dir_vpl.wgsl");
+pub const DIR_ISM: &str = pass!("dir_ism.wgsl");
+pub const DIR_GATHER: &str = pass!("dir_gather.wgsl");
 
 /// (file name, full source) of every pass.
 pub const ALL: &[(&str, &str)] = &[
@@ -35,6 +40,11 @@ pub const ALL: &[(&str, &str)] = &[
     ("dvct_voxelize.wgsl", DVCT_VOXELIZE),
     ("dvct_mip.wgsl", DVCT_MIP),
     ("dvct_trace.wgsl", DVCT_TRACE),
+    ("dir_rows.wgsl", DIR_ROWS),
+    ("dir_alloc.wgsl", DIR_ALLOC),
+    ("dir_vpl.wgsl", DIR_VPL),
+    ("dir_ism.wgsl", DIR_ISM),
+    ("dir_gather.wgsl", DIR_GATHER),
 ];
 
 /// Compile a pass into a shader module.

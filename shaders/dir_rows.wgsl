@@ -1,0 +1,36 @@
+// DIR VPL sampling, step 1 of 3: per shadow-map layer, VPL group and row, the summed luminance
+// of the texels' VPL flux (the density VPLs are importance-sampled from).
+
+@group(0) @binding(0) var<uniform> dir: Dir;
+@group(0) @binding(1) var<storage, read> lights: array<Light>;
+@group(0) @binding(2) var<storage, read> faces: array<Face>;
+@group(0) @binding(3) var rsm_rho_position: texture_2d_array<f32>;
+@group(0) @binding(4) var rsm_rho_normal: texture_2d_array<f32>;
+@group(0) @binding(5) var rsm_rho_albedo: texture_2d_array<f32>;
+@group(0) @binding(6) var rsm_mu_position: texture_2d_array<f32>;
+@group(0) @binding(7) var rsm_mu_normal: texture_2d_array<f32>;
+@group(0) @binding(8) var rsm_mu_albedo: texture_2d_array<f32>;
+// [layer][group][row]
+@group(0) @binding(9) var<storage, read_write> rows: array<f32>;
+
+@compute @workgroup_size(64)
+fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    let size = dir.dims.y;
+    let layer = id.y;
+    let group = id.z;
+    if id.x >= size || layer >= dir.dims.z {
+        return;
+    }
+    let face = faces[layer];
+    let l = lights[face.light.x];
+    var sum = 0.0;
+    for (var x = 0u; x < size; x++) {
+        let v = vpl_texel(group, layer, vec2<i32>(i32(x), i32(id.x)), rsm_rho_position,
+                          rsm_rho_normal, rsm_rho_albedo, rsm_mu_position, rsm_mu_normal,
+                          rsm_mu_albedo);
+        if v.valid {
+            sum += dot(vpl_flux(l, face, v.position, v.albedo, size), LUMINANCE);
+        }
+    }
+    rows[(layer * 3u + group) * size + id.x] = sum;
+}
