@@ -183,7 +183,8 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
             "depth_preview",
             "differential",
             "dlpv",
-            "dvct"
+            "dvct",
+            "dir"
         ]
     );
     let unknown = ctl(&socket, &["engine", "set", "dlvp"]);
