@@ -7,6 +7,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
+use relight_core::light::Light;
 use relight_core::scene::Scene;
 use relight_core::{Image, PixelFormat};
 use wgpu::util::DeviceExt;
@@ -77,6 +78,8 @@ pub struct Deferred {
     rgba: Vec<u8>,
     lights_cpu: Vec<GpuLight>,
     faces_cpu: Vec<GpuFace>,
+    /// Lights an engine adds to the scene's own (DIR's environment lights).
+    extra_lights: Vec<Light>,
     timer: Option<GpuTimer>,
 }
 
@@ -106,6 +109,7 @@ impl Deferred {
             rgba: Vec::new(),
             lights_cpu: Vec::new(),
             faces_cpu: Vec::new(),
+            extra_lights: Vec::new(),
             timer: GpuTimer::new(&ctx),
             ctx,
         }
@@ -158,7 +162,17 @@ impl Deferred {
         {
             self.frame = Some(FrameResources::new(&ctx, width, height));
         }
-        (self.lights_cpu, self.faces_cpu) = light_faces(&scene.lights, bounds, rsm_size);
+        (self.lights_cpu, self.faces_cpu) = if self.extra_lights.is_empty() {
+            light_faces(&scene.lights, bounds, rsm_size)
+        } else {
+            let all: Vec<Light> = scene
+                .lights
+                .iter()
+                .chain(&self.extra_lights)
+                .copied()
+                .collect();
+            light_faces(&all, bounds, rsm_size)
+        };
         let layers = (self.faces_cpu.len() as u32).max(1);
         ctx.require(
             "max_texture_array_layers",
@@ -258,6 +272,12 @@ impl Deferred {
     /// The uploaded scene (after [`prepare`](Self::prepare)).
     pub fn scene(&self) -> Option<&GpuScene> {
         self.scene.as_ref().map(|(_, s)| s)
+    }
+
+    /// Lights shaded, shadowed and given reflective shadow maps like the scene's own, from the
+    /// next [`prepare`](Self::prepare) on.
+    pub fn set_extra_lights(&mut self, lights: Vec<Light>) {
+        self.extra_lights = lights;
     }
 
     /// The camera uniform (`Camera` in `shaders/common.wgsl`).

@@ -181,3 +181,27 @@ fn static_scene_does_not_flicker() {
         assert_eq!(next, first);
     }
 }
+
+/// window_env is lit by its environment map alone: the engines that take point, spot and
+/// directional lights only leave Δ = 0 there (error 1); DIR's environment lights give the
+/// object its shadow and bleeding.
+#[test]
+fn environment_light_reaches_delta() {
+    let scene = Arc::new(load_scene("window_env"));
+    let (w, h) = (160, 120);
+    let reference = reference_full(&scene, w, h, 256);
+    let error = |params: serde_json::Value| {
+        let (delta, _) = delta_of(
+            &mut support::engine_with("dir", params),
+            &frame(scene.clone(), w, h),
+        );
+        support::relative_l2(&delta, &reference.delta, &reference.virtual_mask).0
+    };
+    let (with_env, without) = (
+        error(serde_json::json!({})),
+        error(serde_json::json!({ "env_lights": 0 })),
+    );
+    eprintln!("window_env: dir {with_env:.4}, without environment lights {without:.4}");
+    assert!((without - 1.0).abs() < 1e-6);
+    assert!(with_env < 0.3, "{with_env}");
+}

@@ -34,6 +34,8 @@ pub mod accel;
 mod brdf;
 mod integrator;
 mod sampling;
+
+pub use sampling::{EnvSampler, env_radiance};
 pub mod shapes;
 
 use std::f32::consts::PI;
@@ -44,7 +46,7 @@ use relight_core::scene::Scene;
 
 use self::accel::Geometry;
 use self::integrator::{PathContext, radiance};
-use self::sampling::{EnvSampler, SampleRng};
+use self::sampling::SampleRng;
 
 /// How the reference renders.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -18,11 +18,17 @@
 //!   virtual points in separate layers (st_r, and st_rv = min(st_r, st_v)).
 //! - **Gather** (`dir_gather`): per pixel, every VPL into both solutions.
 //!
-//! One bounce of indirect light (the VPLs are lit directly). The paper's multiple bounces and
-//! its environment-light VPLs are not built yet (see the closing notes).
+//! - **Environment light** ([`environment::environment_lights`]): `env_lights` directional
+//!   lights importance-sampled from the scene's environment map, shadowed and bounced like the
+//!   others.
+//!
+//! One bounce of indirect light (the VPLs are lit directly); the paper's multiple bounces are
+//! not built (see the closing notes).
 
+mod environment;
 mod points;
 
+pub use environment::environment_lights;
 pub use points::surface_points;
 
 use std::sync::Arc;
@@ -60,6 +66,7 @@ pub struct DirSettings {
     pub ism_bias: f32,
     pub clamp_distance: f32,
     pub shadow_bias: f32,
+    pub env_lights: u32,
 }
 
 impl Default for DirSettings {
@@ -72,6 +79,7 @@ impl Default for DirSettings {
             ism_bias: 1.5,
             clamp_distance: 0.05,
             shadow_bias: 1.5,
+            env_lights: 16,
         }
     }
 }
@@ -98,6 +106,8 @@ pub struct Dir {
     uniform: wgpu::Buffer,
     /// The surface points of the scene they were sampled from, and how many were asked for.
     points: Option<(Arc<Scene>, u32, u32, wgpu::Buffer)>,
+    /// The scene and light count the environment lights were sampled for.
+    environment: Option<(Arc<Scene>, u32)>,
     buffers: Option<VplBuffers>,
 }
 
@@ -174,6 +184,13 @@ impl Dir {
                 8.0,
                 d.shadow_bias,
             ),
+            int(
+                "env_lights",
+                "directional lights sampled from the environment map (0: ignore it); each costs a shadow map",
+                0,
+                48,
+                d.env_lights,
+            ),
         ])
     }
 
@@ -189,6 +206,7 @@ impl Dir {
             deferred: Deferred::new(ctx),
             settings: DirSettings::default(),
             points: None,
+            environment: None,
             buffers: None,
         })
     }
@@ -268,6 +286,20 @@ impl Engine for Dir {
 
     fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
         let s = self.settings;
+        if let Some(scene) = &frame.scene
+            && !self
+                .environment
+                .as_ref()
+                .is_some_and(|(e, n)| Arc::ptr_eq(e, scene) && *n == s.env_lights)
+        {
+            let lights = scene
+                .environment
+                .as_ref()
+                .map(|env| environment_lights(env, s.env_lights))
+                .unwrap_or_default();
+            self.deferred.set_extra_lights(lights);
+            self.environment = Some((scene.clone(), s.env_lights));
+        }
         let (width, height) = self.deferred.prepare(Self::NAME, frame, out, s.rsm_size)?;
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();
@@ -426,6 +458,7 @@ impl Engine for Dir {
             ism_bias: float("ism_bias", d.ism_bias),
             clamp_distance: float("clamp_distance", d.clamp_distance),
             shadow_bias: float("shadow_bias", d.shadow_bias),
+            env_lights: int("env_lights", d.env_lights, 0, 48),
         };
     }
 }
