@@ -62,6 +62,16 @@ impl Targets {
         })
     }
 
+    /// Array views of R^ρ's and R^μ's position, normal and albedo, in that order (how every
+    /// pass that reads VPLs binds them).
+    pub fn rsm_views(rho: &Targets, mu: &Targets) -> [wgpu::TextureView; 6] {
+        [rho, mu]
+            .map(|t| [&t.position, &t.normal, &t.albedo].map(Self::array_view))
+            .concat()
+            .try_into()
+            .unwrap_or_else(|_| unreachable!("two maps of three views"))
+    }
+
     pub fn view(texture: &wgpu::Texture) -> wgpu::TextureView {
         texture.create_view(&wgpu::TextureViewDescriptor::default())
     }

@@ -121,6 +121,37 @@ impl ParamsSchema {
 }
 
 impl ParamSpec {
+    pub fn int(name: &'static str, doc: &'static str, min: i64, max: i64, default: i64) -> Self {
+        Self {
+            name,
+            doc,
+            kind: ParamKind::Int { min, max, default },
+        }
+    }
+
+    /// A float parameter (defaults given as f32, the precision engines keep them in).
+    pub fn float(name: &'static str, doc: &'static str, min: f64, max: f64, default: f32) -> Self {
+        Self {
+            name,
+            doc,
+            kind: ParamKind::Float {
+                min,
+                max,
+                default: f64::from(default),
+            },
+        }
+    }
+
+    /// A choice among `options`; the first is the default.
+    pub fn choice(name: &'static str, doc: &'static str, options: Vec<&'static str>) -> Self {
+        let default = options[0];
+        Self {
+            name,
+            doc,
+            kind: ParamKind::Choice { options, default },
+        }
+    }
+
     fn check(&self, value: &Value) -> Result<Value, ParamError> {
         let wrong_type = |expected| ParamError::WrongType {
             name: self.name.to_owned(),

@@ -91,3 +91,13 @@ pub fn bind_group(
         entries: &entries,
     })
 }
+
+/// A bind group for group 0 of `pipeline`'s derived layout (see [`bind_group`]).
+pub fn pipeline_bind_group(
+    device: &wgpu::Device,
+    pipeline: &wgpu::ComputePipeline,
+    label: &str,
+    resources: &[wgpu::BindingResource],
+) -> wgpu::BindGroup {
+    bind_group(device, label, &pipeline.get_bind_group_layout(0), resources)
+}

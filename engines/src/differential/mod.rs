@@ -10,7 +10,7 @@ use serde_json::{Map, Value};
 use crate::deferred::{Deferred, ShadeOptions};
 use crate::engine::{Engine, EngineError, RelitFrame, SceneFrame};
 use crate::gpu::{GpuContext, GpuError};
-use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64, get_i64};
+use crate::params::{ParamSpec, ParamsSchema, get_f64, get_i64};
 
 #[derive(Debug)]
 pub struct Differential {
@@ -24,24 +24,20 @@ impl Differential {
 
     pub fn schema() -> ParamsSchema {
         ParamsSchema::new(vec![
-            ParamSpec {
-                name: "rsm_size",
-                doc: "shadow-map edge in texels, per light face",
-                kind: ParamKind::Int {
-                    min: 64,
-                    max: 4096,
-                    default: 512,
-                },
-            },
-            ParamSpec {
-                name: "shadow_bias",
-                doc: "shadow-map depth bias in texel footprints (grows with the surface slope)",
-                kind: ParamKind::Float {
-                    min: 0.0,
-                    max: 8.0,
-                    default: 1.5,
-                },
-            },
+            ParamSpec::int(
+                "rsm_size",
+                "shadow-map edge in texels, per light face",
+                64,
+                4096,
+                512,
+            ),
+            ParamSpec::float(
+                "shadow_bias",
+                "shadow-map depth bias in texel footprints (grows with the surface slope)",
+                0.0,
+                8.0,
+                1.5,
+            ),
         ])
     }
 

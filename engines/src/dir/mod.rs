@@ -43,7 +43,7 @@ use crate::deferred::{Deferred, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
-use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64, get_i64};
+use crate::params::{ParamSpec, ParamsSchema, get_f64, get_i64};
 use crate::shaders;
 use crate::volume::{timed_pass, uniform_buffer};
 
@@ -116,24 +116,10 @@ impl Dir {
 
     pub fn schema() -> ParamsSchema {
         let d = DirSettings::default();
-        let int = |name, doc, min, max, default: u32| ParamSpec {
-            name,
-            doc,
-            kind: ParamKind::Int {
-                min,
-                max,
-                default: i64::from(default),
-            },
+        let int = |name, doc, min, max, default: u32| {
+            ParamSpec::int(name, doc, min, max, i64::from(default))
         };
-        let float = |name, doc, min, max, default: f32| ParamSpec {
-            name,
-            doc,
-            kind: ParamKind::Float {
-                min,
-                max,
-                default: f64::from(default),
-            },
-        };
+        let float = ParamSpec::float;
         ParamsSchema::new(vec![
             int(
                 "rsm_size",
@@ -334,24 +320,10 @@ impl Engine for Dir {
             else {
                 return Err(EngineError::NotPrepared);
             };
-            let group =
-                |pipeline: &wgpu::ComputePipeline, label, resources: &[wgpu::BindingResource]| {
-                    shaders::bind_group(
-                        &ctx.device,
-                        label,
-                        &pipeline.get_bind_group_layout(0),
-                        resources,
-                    )
-                };
-            let array = Targets::array_view;
-            let rsm_views = [
-                array(&rsm_rho.position),
-                array(&rsm_rho.normal),
-                array(&rsm_rho.albedo),
-                array(&rsm_mu.position),
-                array(&rsm_mu.normal),
-                array(&rsm_mu.albedo),
-            ];
+            let group = |pipeline, label, resources: &[wgpu::BindingResource]| {
+                shaders::pipeline_bind_group(&ctx.device, pipeline, label, resources)
+            };
+            let rsm_views = Targets::rsm_views(rsm_rho, rsm_mu);
             let mut sampling = vec![
                 self.uniform.as_entire_binding(),
                 lights.as_entire_binding(),

@@ -30,7 +30,7 @@ use crate::deferred::{Deferred, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
-use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64, get_i64, get_str};
+use crate::params::{ParamSpec, ParamsSchema, get_f64, get_i64, get_str};
 use crate::shaders;
 use crate::volume::{VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer};
 
@@ -94,16 +94,7 @@ impl Dlpv {
     pub const NAME: &'static str = "dlpv";
 
     pub fn schema() -> ParamsSchema {
-        let int = |name, doc, min, max, default| ParamSpec {
-            name,
-            doc,
-            kind: ParamKind::Int { min, max, default },
-        };
-        let float = |name, doc, min, max, default| ParamSpec {
-            name,
-            doc,
-            kind: ParamKind::Float { min, max, default },
-        };
+        let (int, float) = (ParamSpec::int, ParamSpec::float);
         ParamsSchema::new(vec![
             int(
                 "rsm_size",
@@ -121,14 +112,11 @@ impl Dlpv {
                 1.0,
                 0.5,
             ),
-            ParamSpec {
-                name: "shadows",
-                doc: "`antiradiance`: direct injection as in the paper; `shadow_map`: the differential engine's shadows, volume for indirect only",
-                kind: ParamKind::Choice {
-                    options: vec!["antiradiance", "shadow_map"],
-                    default: "antiradiance",
-                },
-            },
+            ParamSpec::choice(
+                "shadows",
+                "`antiradiance`: direct injection as in the paper; `shadow_map`: the differential engine's shadows, volume for indirect only",
+                vec!["antiradiance", "shadow_map"],
+            ),
             float(
                 "volume_scale",
                 "volume edge as a multiple of the virtual object's largest bounding-box edge",
@@ -259,15 +247,7 @@ impl Engine for Dlpv {
             ) else {
                 return Err(EngineError::NotPrepared);
             };
-            let array = Targets::array_view;
-            let rsm_views = [
-                array(&rsm_rho.position),
-                array(&rsm_rho.normal),
-                array(&rsm_rho.albedo),
-                array(&rsm_mu.position),
-                array(&rsm_mu.normal),
-                array(&rsm_mu.albedo),
-            ];
+            let rsm_views = Targets::rsm_views(rsm_rho, rsm_mu);
             let mut inject_resources = vec![
                 self.volume_uniform.as_entire_binding(),
                 lights.as_entire_binding(),
@@ -275,15 +255,9 @@ impl Engine for Dlpv {
             ];
             inject_resources.extend(rsm_views.iter().map(wgpu::BindingResource::TextureView));
             inject_resources.push(v.cells.as_entire_binding());
-            let group =
-                |pipeline: &wgpu::ComputePipeline, label, resources: &[wgpu::BindingResource]| {
-                    shaders::bind_group(
-                        &ctx.device,
-                        label,
-                        &pipeline.get_bind_group_layout(0),
-                        resources,
-                    )
-                };
+            let group = |pipeline, label, resources: &[wgpu::BindingResource]| {
+                shaders::pipeline_bind_group(&ctx.device, pipeline, label, resources)
+            };
             let inject_group = group(&self.inject, "dlpv inject", &inject_resources);
             let resolve_group = group(
                 &self.resolve,

@@ -31,7 +31,7 @@ use crate::deferred::{Deferred, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
-use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64, get_i64, get_str};
+use crate::params::{ParamSpec, ParamsSchema, get_f64, get_i64, get_str};
 use crate::shaders;
 use crate::volume::{VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer};
 
@@ -98,7 +98,6 @@ fn mip_offsets(n: u32) -> (u32, Vec<u32>) {
 #[derive(Debug)]
 struct VolumeBuffers {
     n: u32,
-    levels: u32,
     cells: wgpu::Buffer,
     occupancy: wgpu::Buffer,
     radiance: wgpu::Buffer,
@@ -124,24 +123,10 @@ impl Dvct {
 
     pub fn schema() -> ParamsSchema {
         let d = DvctSettings::default();
-        let int = |name, doc, min, max, default: u32| ParamSpec {
-            name,
-            doc,
-            kind: ParamKind::Int {
-                min,
-                max,
-                default: i64::from(default),
-            },
+        let int = |name, doc, min, max, default: u32| {
+            ParamSpec::int(name, doc, min, max, i64::from(default))
         };
-        let float = |name, doc, min, max, default: f32| ParamSpec {
-            name,
-            doc,
-            kind: ParamKind::Float {
-                min,
-                max,
-                default: f64::from(default),
-            },
-        };
+        let float = ParamSpec::float;
         ParamsSchema::new(vec![
             int(
                 "rsm_size",
@@ -199,14 +184,11 @@ impl Dvct {
                 4.0,
                 d.cone_offset,
             ),
-            ParamSpec {
-                name: "shadows",
-                doc: "`shadow_map`: the differential engine's shadows; `cones`: shadow cones, the object's occlusion as antiradiance (the paper; the voxels' conservative footprint darkens ~1.5 cells around the object's contact)",
-                kind: ParamKind::Choice {
-                    options: vec!["shadow_map", "cones"],
-                    default: "shadow_map",
-                },
-            },
+            ParamSpec::choice(
+                "shadows",
+                "`shadow_map`: the differential engine's shadows; `cones`: shadow cones, the object's occlusion as antiradiance (the paper; the voxels' conservative footprint darkens ~1.5 cells around the object's contact)",
+                vec!["shadow_map", "cones"],
+            ),
             float(
                 "shadow_bias",
                 "shadow-map depth bias in texel footprints",
@@ -280,7 +262,6 @@ impl Dvct {
                 .collect();
             self.volume = Some(VolumeBuffers {
                 n,
-                levels,
                 cells: buffer("dvct cells", cells, U::STORAGE | U::COPY_DST),
                 occupancy: buffer(
                     "dvct occupancy",
@@ -379,15 +360,9 @@ impl Engine for Dvct {
             else {
                 return Err(EngineError::NotPrepared);
             };
-            let group =
-                |pipeline: &wgpu::ComputePipeline, label, resources: &[wgpu::BindingResource]| {
-                    shaders::bind_group(
-                        &ctx.device,
-                        label,
-                        &pipeline.get_bind_group_layout(0),
-                        resources,
-                    )
-                };
+            let group = |pipeline, label, resources: &[wgpu::BindingResource]| {
+                shaders::pipeline_bind_group(&ctx.device, pipeline, label, resources)
+            };
             let voxelize_group = group(
                 &self.voxelize,
                 "dvct voxelize",
@@ -398,14 +373,7 @@ impl Engine for Dvct {
                 ],
             );
             let array = Targets::array_view;
-            let rsm_views = [
-                array(&rsm_rho.position),
-                array(&rsm_rho.normal),
-                array(&rsm_rho.albedo),
-                array(&rsm_mu.position),
-                array(&rsm_mu.normal),
-                array(&rsm_mu.albedo),
-            ];
+            let rsm_views = Targets::rsm_views(rsm_rho, rsm_mu);
             let mut inject_resources = vec![
                 self.inject_uniform.as_entire_binding(),
                 lights.as_entire_binding(),
@@ -492,7 +460,6 @@ impl Engine for Dvct {
             }
             ctx.queue.submit([encoder.finish()]);
             ctx.check()?;
-            debug_assert_eq!(v.levels as usize, v.mips.len());
             self.deferred.return_timer(timer);
         }
         out.timings.push(PassTiming {
