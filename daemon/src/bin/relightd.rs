@@ -149,7 +149,7 @@ enum Command {
         /// Timed frames per case (after two warm-up frames); the median is reported.
         #[arg(long, default_value_t = 5)]
         frames: u32,
-        /// Add the paper's parameter sweeps (DLPV volume × steps, RSM sizes).
+        /// Add the papers' parameter sweeps (DLPV volume × steps and RSM sizes, DVCT volume × step, DIR VPL count and ISM size).
         #[arg(long)]
         sweep: bool,
         /// Only these engines.
