@@ -6,7 +6,7 @@ use serde_json::{Map, Value};
 use relight_core::PixelFormat;
 
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
-use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64};
+use crate::params::{ParamSpec, ParamsSchema};
 
 #[derive(Debug)]
 pub struct DepthPreview {
@@ -29,23 +29,28 @@ impl DepthPreview {
     pub const NAME: &'static str = "depth_preview";
 
     pub fn schema() -> ParamsSchema {
-        let float = |min, max, default| ParamKind::Float { min, max, default };
         ParamsSchema::new(vec![
-            ParamSpec {
-                name: "near_m",
-                doc: "depth mapped to the first colour of the ramp, metres",
-                kind: float(0.0, 20.0, 0.5),
-            },
-            ParamSpec {
-                name: "far_m",
-                doc: "depth mapped to the last colour of the ramp, metres",
-                kind: float(0.01, 20.0, 4.0),
-            },
-            ParamSpec {
-                name: "opacity",
-                doc: "weight of the depth colour over the camera image",
-                kind: float(0.0, 1.0, 0.5),
-            },
+            ParamSpec::float(
+                "near_m",
+                "depth mapped to the first colour of the ramp, metres",
+                0.0,
+                20.0,
+                0.5,
+            ),
+            ParamSpec::float(
+                "far_m",
+                "depth mapped to the last colour of the ramp, metres",
+                0.01,
+                20.0,
+                4.0,
+            ),
+            ParamSpec::float(
+                "opacity",
+                "weight of the depth colour over the camera image",
+                0.0,
+                1.0,
+                0.5,
+            ),
         ])
     }
 
@@ -121,9 +126,10 @@ impl Engine for DepthPreview {
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {
-        self.near_m = get_f64(params, "near_m", 0.5) as f32;
-        self.far_m = get_f64(params, "far_m", 4.0) as f32;
-        self.opacity = get_f64(params, "opacity", 0.5) as f32;
+        let schema = Self::schema();
+        self.near_m = schema.float(params, "near_m") as f32;
+        self.far_m = schema.float(params, "far_m") as f32;
+        self.opacity = schema.float(params, "opacity") as f32;
     }
 }
 

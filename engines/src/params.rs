@@ -86,6 +86,52 @@ impl ParamsSchema {
             .collect()
     }
 
+    fn spec(&self, name: &str) -> &ParamSpec {
+        self.params
+            .iter()
+            .find(|p| p.name == name)
+            .unwrap_or_else(|| panic!("the engine reads `{name}`, which its schema lacks"))
+    }
+
+    /// Integer parameter `name` from `params` (as [`validate`](Self::validate) returns them),
+    /// else its default; within the spec's range either way, so an engine's settings take
+    /// their default and bounds from one place.
+    pub fn int(&self, params: &Map<String, Value>, name: &str) -> i64 {
+        match self.spec(name).kind {
+            ParamKind::Int { min, max, default } => params
+                .get(name)
+                .and_then(Value::as_i64)
+                .unwrap_or(default)
+                .clamp(min, max),
+            _ => panic!("parameter `{name}` is not an integer"),
+        }
+    }
+
+    /// Float parameter `name`, as [`int`](Self::int).
+    pub fn float(&self, params: &Map<String, Value>, name: &str) -> f64 {
+        match self.spec(name).kind {
+            ParamKind::Float { min, max, default } => params
+                .get(name)
+                .and_then(Value::as_f64)
+                .filter(|v| v.is_finite())
+                .unwrap_or(default)
+                .clamp(min, max),
+            _ => panic!("parameter `{name}` is not a number"),
+        }
+    }
+
+    /// Choice parameter `name`: one of its options, else its default.
+    pub fn choice<'a>(&'a self, params: &'a Map<String, Value>, name: &str) -> &'a str {
+        match &self.spec(name).kind {
+            ParamKind::Choice { options, default } => params
+                .get(name)
+                .and_then(Value::as_str)
+                .filter(|v| options.contains(v))
+                .unwrap_or(default),
+            _ => panic!("parameter `{name}` is not a choice"),
+        }
+    }
+
     /// Check `update` against the schema and return `current` with the update applied.
     /// Nothing is applied unless every entry is valid.
     pub fn validate(
@@ -199,21 +245,6 @@ impl ParamSpec {
     }
 }
 
-/// Read a float parameter that [`ParamsSchema::validate`] has already checked.
-pub fn get_f64(params: &Map<String, Value>, name: &str, default: f64) -> f64 {
-    params.get(name).and_then(Value::as_f64).unwrap_or(default)
-}
-
-/// Read an integer parameter that [`ParamsSchema::validate`] has already checked.
-pub fn get_i64(params: &Map<String, Value>, name: &str, default: i64) -> i64 {
-    params.get(name).and_then(Value::as_i64).unwrap_or(default)
-}
-
-/// Read a choice parameter that [`ParamsSchema::validate`] has already checked.
-pub fn get_str<'a>(params: &'a Map<String, Value>, name: &str, default: &'a str) -> &'a str {
-    params.get(name).and_then(Value::as_str).unwrap_or(default)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -239,6 +270,21 @@ mod tests {
                 },
             },
         ])
+    }
+
+    /// Settings read back take the spec's default when absent and stay within its range.
+    #[test]
+    fn readers_take_default_and_range_from_the_spec() {
+        let schema = schema();
+        let none = Map::new();
+        assert_eq!(schema.int(&none, "steps"), 32);
+        assert_eq!(schema.choice(&none, "mode"), "a");
+        let given = json!({ "steps": 500, "mode": "b" });
+        let given = given.as_object().unwrap();
+        assert_eq!(schema.int(given, "steps"), 64);
+        assert_eq!(schema.choice(given, "mode"), "b");
+        let odd = json!({ "mode": "c" });
+        assert_eq!(schema.choice(odd.as_object().unwrap(), "mode"), "a");
     }
 
     fn map(v: Value) -> Map<String, Value> {

@@ -4,7 +4,7 @@
 use serde_json::{Map, Value};
 
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
-use crate::params::{ParamKind, ParamSpec, ParamsSchema, get_f64};
+use crate::params::{ParamSpec, ParamsSchema};
 use relight_core::srgb;
 
 #[derive(Debug)]
@@ -25,15 +25,13 @@ impl Passthrough {
     pub const NAME: &'static str = "passthrough";
 
     pub fn schema() -> ParamsSchema {
-        ParamsSchema::new(vec![ParamSpec {
-            name: "exposure_ev",
-            doc: "exposure change applied in linear space before re-encoding, in stops",
-            kind: ParamKind::Float {
-                min: -8.0,
-                max: 8.0,
-                default: 0.0,
-            },
-        }])
+        ParamsSchema::new(vec![ParamSpec::float(
+            "exposure_ev",
+            "exposure change applied in linear space before re-encoding, in stops",
+            -8.0,
+            8.0,
+            0.0,
+        )])
     }
 }
 
@@ -56,7 +54,7 @@ impl Engine for Passthrough {
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {
-        self.lut = srgb::exposure_lut(get_f64(params, "exposure_ev", 0.0));
+        self.lut = srgb::exposure_lut(Self::schema().float(params, "exposure_ev"));
     }
 }
 

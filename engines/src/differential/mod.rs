@@ -10,7 +10,7 @@ use serde_json::{Map, Value};
 use crate::deferred::{Deferred, ShadeOptions};
 use crate::engine::{Engine, EngineError, RelitFrame, SceneFrame};
 use crate::gpu::{GpuContext, GpuError};
-use crate::params::{ParamSpec, ParamsSchema, get_f64, get_i64};
+use crate::params::{ParamSpec, ParamsSchema};
 
 #[derive(Debug)]
 pub struct Differential {
@@ -68,7 +68,8 @@ impl Engine for Differential {
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {
-        self.rsm_size = get_i64(params, "rsm_size", 512).clamp(64, 4096) as u32;
-        self.shadow_bias_texels = get_f64(params, "shadow_bias", 1.5) as f32;
+        let schema = Self::schema();
+        self.rsm_size = schema.int(params, "rsm_size") as u32;
+        self.shadow_bias_texels = schema.float(params, "shadow_bias") as f32;
     }
 }

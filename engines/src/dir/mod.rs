@@ -43,7 +43,7 @@ use crate::deferred::{Deferred, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
-use crate::params::{ParamSpec, ParamsSchema, get_f64, get_i64};
+use crate::params::{ParamSpec, ParamsSchema};
 use crate::shaders;
 use crate::volume::{timed_pass, uniform_buffer};
 
@@ -417,20 +417,20 @@ impl Engine for Dir {
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {
-        let d = DirSettings::default();
-        let int = |name, default: u32, min: u32, max: u32| {
-            get_i64(params, name, i64::from(default)).clamp(i64::from(min), i64::from(max)) as u32
-        };
-        let float = |name, default: f32| get_f64(params, name, f64::from(default)) as f32;
+        let schema = Self::schema();
+        let (int, float) = (
+            |name| schema.int(params, name) as u32,
+            |name| schema.float(params, name) as f32,
+        );
         self.settings = DirSettings {
-            rsm_size: int("rsm_size", d.rsm_size, 32, 2048),
-            vpl_count: int("vpl_count", d.vpl_count, 1, 1024),
-            ism_size: int("ism_size", d.ism_size, 8, 256),
-            ism_points: int("ism_points", d.ism_points, 256, 262_144),
-            ism_bias: float("ism_bias", d.ism_bias),
-            clamp_distance: float("clamp_distance", d.clamp_distance),
-            shadow_bias: float("shadow_bias", d.shadow_bias),
-            env_lights: int("env_lights", d.env_lights, 0, 48),
+            rsm_size: int("rsm_size"),
+            vpl_count: int("vpl_count"),
+            ism_size: int("ism_size"),
+            ism_points: int("ism_points"),
+            ism_bias: float("ism_bias"),
+            clamp_distance: float("clamp_distance"),
+            shadow_bias: float("shadow_bias"),
+            env_lights: int("env_lights"),
         };
     }
 }

@@ -30,7 +30,7 @@ use crate::deferred::{Deferred, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
-use crate::params::{ParamSpec, ParamsSchema, get_f64, get_i64, get_str};
+use crate::params::{ParamSpec, ParamsSchema};
 use crate::shaders;
 use crate::volume::{VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer};
 
@@ -345,17 +345,20 @@ impl Engine for Dlpv {
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {
-        let d = DlpvSettings::default();
+        let schema = Self::schema();
+        let (int, float) = (
+            |name| schema.int(params, name) as u32,
+            |name| schema.float(params, name) as f32,
+        );
         self.settings = DlpvSettings {
-            rsm_size: get_i64(params, "rsm_size", i64::from(d.rsm_size)).clamp(32, 2048) as u32,
-            volume_size: get_i64(params, "volume_size", i64::from(d.volume_size)).clamp(4, 128)
-                as u32,
-            steps: get_i64(params, "steps", i64::from(d.steps)).clamp(0, 256) as u32,
-            dampening: get_f64(params, "dampening", f64::from(d.dampening)) as f32,
-            antiradiance: get_str(params, "shadows", "antiradiance") == "antiradiance",
-            volume_scale: get_f64(params, "volume_scale", f64::from(d.volume_scale)) as f32,
-            shadow_bias: get_f64(params, "shadow_bias", f64::from(d.shadow_bias)) as f32,
-            lookup_offset: get_f64(params, "lookup_offset", f64::from(d.lookup_offset)) as f32,
+            rsm_size: int("rsm_size"),
+            volume_size: int("volume_size"),
+            steps: int("steps"),
+            dampening: float("dampening"),
+            antiradiance: schema.choice(params, "shadows") == "antiradiance",
+            volume_scale: float("volume_scale"),
+            shadow_bias: float("shadow_bias"),
+            lookup_offset: float("lookup_offset"),
         };
     }
 }

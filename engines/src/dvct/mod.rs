@@ -31,7 +31,7 @@ use crate::deferred::{Deferred, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
-use crate::params::{ParamSpec, ParamsSchema, get_f64, get_i64, get_str};
+use crate::params::{ParamSpec, ParamsSchema};
 use crate::shaders;
 use crate::volume::{VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer};
 
@@ -476,20 +476,22 @@ impl Engine for Dvct {
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {
-        let d = DvctSettings::default();
-        let float = |name, default: f32| get_f64(params, name, f64::from(default)) as f32;
+        let schema = Self::schema();
+        let (int, float) = (
+            |name| schema.int(params, name) as u32,
+            |name| schema.float(params, name) as f32,
+        );
         self.settings = DvctSettings {
-            rsm_size: get_i64(params, "rsm_size", i64::from(d.rsm_size)).clamp(32, 2048) as u32,
-            volume_size: get_i64(params, "volume_size", i64::from(d.volume_size)).clamp(16, 256)
-                as u32,
-            volume_scale: float("volume_scale", d.volume_scale),
-            step: float("step", d.step),
-            cone_aperture_deg: float("cone_aperture", d.cone_aperture_deg),
-            glossy_min_aperture_deg: float("glossy_min_aperture", d.glossy_min_aperture_deg),
-            shadow_aperture_deg: float("shadow_aperture", d.shadow_aperture_deg),
-            cone_offset: float("cone_offset", d.cone_offset),
-            shadow_cones: get_str(params, "shadows", "shadow_map") == "cones",
-            shadow_bias: float("shadow_bias", d.shadow_bias),
+            rsm_size: int("rsm_size"),
+            volume_size: int("volume_size"),
+            volume_scale: float("volume_scale"),
+            step: float("step"),
+            cone_aperture_deg: float("cone_aperture"),
+            glossy_min_aperture_deg: float("glossy_min_aperture"),
+            shadow_aperture_deg: float("shadow_aperture"),
+            cone_offset: float("cone_offset"),
+            shadow_cones: schema.choice(params, "shadows") == "cones",
+            shadow_bias: float("shadow_bias"),
         };
     }
 }
