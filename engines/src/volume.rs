@@ -5,7 +5,9 @@
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
+use crate::gbuffer::Targets;
 use crate::gpu_scene::GpuLight;
+use crate::shaders;
 use crate::timer::GpuTimer;
 
 #[repr(C)]
@@ -71,4 +73,56 @@ pub(crate) fn uniform_buffer(device: &wgpu::Device, label: &str, size: usize) ->
         usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     })
+}
+
+/// The VPL injection pass (`dlpv_inject.wgsl`) both volume engines run: every R^ρ and R^μ
+/// texel into fixed-point L1 SH cells (DLPV with direct injection on, DVCT's split injection
+/// with it off).
+#[derive(Debug)]
+pub(crate) struct InjectPass {
+    pipeline: wgpu::ComputePipeline,
+}
+
+impl InjectPass {
+    pub fn new(device: &wgpu::Device, label: &str) -> Self {
+        Self {
+            pipeline: shaders::compute_pipeline(device, label, shaders::DLPV_INJECT),
+        }
+    }
+
+    /// Bind the injection uniform, the light and face buffers, both maps and the cells.
+    pub fn bind_group(
+        &self,
+        device: &wgpu::Device,
+        uniform: &wgpu::Buffer,
+        (lights, faces, rsm_rho, rsm_mu): (&wgpu::Buffer, &wgpu::Buffer, &Targets, &Targets),
+        cells: &wgpu::Buffer,
+    ) -> wgpu::BindGroup {
+        let rsm_views = Targets::rsm_views(rsm_rho, rsm_mu);
+        let mut resources = vec![
+            uniform.as_entire_binding(),
+            lights.as_entire_binding(),
+            faces.as_entire_binding(),
+        ];
+        resources.extend(rsm_views.iter().map(wgpu::BindingResource::TextureView));
+        resources.push(cells.as_entire_binding());
+        shaders::pipeline_bind_group(device, &self.pipeline, "inject", &resources)
+    }
+
+    /// Inject every texel of `layers` shadow-map layers of `rsm_size`², both maps.
+    pub fn dispatch(
+        &self,
+        pass: &mut wgpu::ComputePass,
+        group: &wgpu::BindGroup,
+        rsm_size: u32,
+        layers: u32,
+    ) {
+        if layers == 0 {
+            return;
+        }
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, group, &[]);
+        let s = rsm_size.div_ceil(8);
+        pass.dispatch_workgroups(s, s, layers * 2);
+    }
 }

@@ -32,7 +32,9 @@ use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::shaders;
-use crate::volume::{VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer};
+use crate::volume::{
+    InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer,
+};
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -81,7 +83,7 @@ struct VolumeBuffers {
 pub struct Dlpv {
     deferred: Deferred,
     settings: DlpvSettings,
-    inject: wgpu::ComputePipeline,
+    inject: InjectPass,
     resolve: wgpu::ComputePipeline,
     propagate: wgpu::ComputePipeline,
     lookup: wgpu::ComputePipeline,
@@ -144,7 +146,7 @@ impl Dlpv {
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
         let uniform = |label, size| uniform_buffer(&ctx.device, label, size);
         Ok(Self {
-            inject: shaders::compute_pipeline(&ctx.device, "dlpv inject", shaders::DLPV_INJECT),
+            inject: InjectPass::new(&ctx.device, "dlpv inject"),
             resolve: shaders::compute_pipeline(&ctx.device, "dlpv resolve", shaders::DLPV_RESOLVE),
             propagate: shaders::compute_pipeline(
                 &ctx.device,
@@ -240,25 +242,19 @@ impl Engine for Dlpv {
             );
             self.volume_buffers()?;
             let mut timer = self.deferred.lend_timer();
-            let (Some(v), Some((lights, faces_buf, rsm_rho, rsm_mu)), Some((gb_rho, _, indirect))) = (
+            let (Some(v), Some(light_buffers), Some((gb_rho, _, indirect))) = (
                 self.volume.as_ref(),
                 self.deferred.light_buffers(),
                 self.deferred.frame_buffers(),
             ) else {
                 return Err(EngineError::NotPrepared);
             };
-            let rsm_views = Targets::rsm_views(rsm_rho, rsm_mu);
-            let mut inject_resources = vec![
-                self.volume_uniform.as_entire_binding(),
-                lights.as_entire_binding(),
-                faces_buf.as_entire_binding(),
-            ];
-            inject_resources.extend(rsm_views.iter().map(wgpu::BindingResource::TextureView));
-            inject_resources.push(v.cells.as_entire_binding());
+            let inject_group =
+                self.inject
+                    .bind_group(&ctx.device, &self.volume_uniform, light_buffers, &v.cells);
             let group = |pipeline, label, resources: &[wgpu::BindingResource]| {
                 shaders::pipeline_bind_group(&ctx.device, pipeline, label, resources)
             };
-            let inject_group = group(&self.inject, "dlpv inject", &inject_resources);
             let resolve_group = group(
                 &self.resolve,
                 "dlpv resolve",
@@ -305,10 +301,8 @@ impl Engine for Dlpv {
             encoder.clear_buffer(&v.cells, 0, None);
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
-                pass.set_pipeline(&self.inject);
-                pass.set_bind_group(0, &inject_group, &[]);
-                let s = settings.rsm_size.div_ceil(8);
-                pass.dispatch_workgroups(s, s, faces * 2);
+                self.inject
+                    .dispatch(&mut pass, &inject_group, settings.rsm_size, faces);
                 pass.set_pipeline(&self.resolve);
                 pass.set_bind_group(0, &resolve_group, &[]);
                 pass.dispatch_workgroups((2 * n.pow(3) * 3).div_ceil(64), 1, 1);

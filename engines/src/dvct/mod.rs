@@ -33,7 +33,9 @@ use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::shaders;
-use crate::volume::{VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer};
+use crate::volume::{
+    InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer,
+};
 
 /// `Dvct` in `shaders/common.wgsl`.
 #[repr(C)]
@@ -110,7 +112,7 @@ pub struct Dvct {
     deferred: Deferred,
     settings: DvctSettings,
     voxelize: wgpu::ComputePipeline,
-    inject: wgpu::ComputePipeline,
+    inject: InjectPass,
     mip: wgpu::ComputePipeline,
     trace: wgpu::ComputePipeline,
     inject_uniform: wgpu::Buffer,
@@ -203,7 +205,7 @@ impl Dvct {
         let pipeline = |label, source| shaders::compute_pipeline(&ctx.device, label, source);
         Ok(Self {
             voxelize: pipeline("dvct voxelize", shaders::DVCT_VOXELIZE),
-            inject: pipeline("dvct inject", shaders::DLPV_INJECT),
+            inject: InjectPass::new(&ctx.device, "dvct inject"),
             mip: pipeline("dvct mip", shaders::DVCT_MIP),
             trace: pipeline("dvct trace", shaders::DVCT_TRACE),
             inject_uniform: uniform_buffer(&ctx.device, "dvct inject", size_of::<VolumeUniform>()),
@@ -373,15 +375,12 @@ impl Engine for Dvct {
                 ],
             );
             let array = Targets::array_view;
-            let rsm_views = Targets::rsm_views(rsm_rho, rsm_mu);
-            let mut inject_resources = vec![
-                self.inject_uniform.as_entire_binding(),
-                lights.as_entire_binding(),
-                faces_buf.as_entire_binding(),
-            ];
-            inject_resources.extend(rsm_views.iter().map(wgpu::BindingResource::TextureView));
-            inject_resources.push(v.cells.as_entire_binding());
-            let inject_group = group(&self.inject, "dvct inject", &inject_resources);
+            let inject_group = self.inject.bind_group(
+                &ctx.device,
+                &self.inject_uniform,
+                (lights, faces_buf, rsm_rho, rsm_mu),
+                &v.cells,
+            );
             let mip_groups: Vec<wgpu::BindGroup> = v
                 .mips
                 .iter()
@@ -436,12 +435,8 @@ impl Engine for Dvct {
             }
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
-                if faces > 0 {
-                    pass.set_pipeline(&self.inject);
-                    pass.set_bind_group(0, &inject_group, &[]);
-                    let s = settings.rsm_size.div_ceil(8);
-                    pass.dispatch_workgroups(s, s, faces * 2);
-                }
+                self.inject
+                    .dispatch(&mut pass, &inject_group, settings.rsm_size, faces);
             }
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.mip");
