@@ -5,6 +5,7 @@ use std::path::Path;
 
 use glam::Vec3;
 use relight_core::Pose;
+use relight_core::scene::Mesh;
 use serde_json::{Value, json};
 
 struct Object {
@@ -57,27 +58,6 @@ impl Gltf {
 }
 
 /// A box as 6 faces with their own vertices (flat normals), counter-clockwise from outside.
-fn cuboid(lo: Vec3, hi: Vec3) -> (Vec<Vec3>, Vec<Vec3>, Vec<u32>) {
-    let c =
-        |x: usize, y: usize, z: usize| Vec3::new([lo.x, hi.x][x], [lo.y, hi.y][y], [lo.z, hi.z][z]);
-    let faces = [
-        ([c(0, 0, 1), c(1, 0, 1), c(1, 1, 1), c(0, 1, 1)], Vec3::Z),
-        ([c(1, 0, 0), c(0, 0, 0), c(0, 1, 0), c(1, 1, 0)], -Vec3::Z),
-        ([c(1, 0, 1), c(1, 0, 0), c(1, 1, 0), c(1, 1, 1)], Vec3::X),
-        ([c(0, 0, 0), c(0, 0, 1), c(0, 1, 1), c(0, 1, 0)], -Vec3::X),
-        ([c(0, 1, 1), c(1, 1, 1), c(1, 1, 0), c(0, 1, 0)], Vec3::Y),
-        ([c(0, 0, 0), c(1, 0, 0), c(1, 0, 1), c(0, 0, 1)], -Vec3::Y),
-    ];
-    let (mut p, mut n, mut i) = (Vec::new(), Vec::new(), Vec::new());
-    for (quad, normal) in faces {
-        let base = p.len() as u32;
-        p.extend(quad);
-        n.extend([normal; 4]);
-        i.extend([base, base + 1, base + 2, base, base + 2, base + 3]);
-    }
-    (p, n, i)
-}
-
 /// (name, base colour, metallic, roughness, emission)
 type MaterialSpec = (&'static str, [f32; 3], f32, f32);
 
@@ -99,8 +79,13 @@ fn write_scene(
     let mut nodes = Vec::new();
     let mut meshes = Vec::new();
     for object in objects {
-        let (p, n, i) = cuboid(object.lo, object.hi);
-        let (pos, nrm, idx) = (g.vec3s(&p, true), g.vec3s(&n, false), g.indices(&i));
+        let mesh = Mesh::cuboid(object.name, object.lo, object.hi, object.material, false);
+        let indices: Vec<u32> = mesh.triangles.iter().flatten().copied().collect();
+        let (pos, nrm, idx) = (
+            g.vec3s(&mesh.positions_in_world, true),
+            g.vec3s(&mesh.normals_in_world, false),
+            g.indices(&indices),
+        );
         meshes.push(json!({"name": object.name, "primitives": [{"attributes": {"POSITION": pos, "NORMAL": nrm}, "indices": idx, "material": object.material}]}));
         nodes.push(json!({"name": object.name, "mesh": meshes.len() - 1}));
     }

@@ -6,9 +6,9 @@ mod support;
 use std::sync::Arc;
 
 use glam::Vec3;
-use relight_core::scene::Scene;
+use relight_core::scene::{Mesh, Scene};
 use support::{
-    cuboid, delta_of, engine, frame, load_scene, max_abs, reference_direct, reference_full,
+    delta_of, engine, frame, load_scene, max_abs, reference_direct, reference_full,
     virtual_moved_far_away,
 };
 
@@ -47,7 +47,7 @@ fn no_double_shadow() {
         albedo: Vec3::splat(0.5),
         ..Default::default()
     });
-    let pillar = cuboid(
+    let pillar = Mesh::cuboid(
         "pillar",
         Vec3::new(-0.32, 0.0, 0.12),
         Vec3::new(-0.24, 0.8, 0.2),
@@ -136,7 +136,7 @@ fn blocked_real_bleeding_is_removed() {
         albedo: Vec3::splat(0.5),
         ..Default::default()
     });
-    scene.meshes.push(cuboid(
+    scene.meshes.push(Mesh::cuboid(
         "plate",
         Vec3::new(-0.38, 0.62, 0.12),
         Vec3::new(-0.14, 0.64, 0.36),

@@ -84,6 +84,40 @@ pub struct Scene {
     pub environment: Option<EnvironmentMap>,
 }
 
+impl Mesh {
+    /// An axis-aligned box from `lo` to `hi`: four vertices per face with the face's outward
+    /// normal, two triangles per face (what the test scenes and hand-built test cases use).
+    pub fn cuboid(name: &str, lo: Vec3, hi: Vec3, material: usize, is_virtual: bool) -> Mesh {
+        let c = |x: usize, y: usize, z: usize| {
+            Vec3::new([lo.x, hi.x][x], [lo.y, hi.y][y], [lo.z, hi.z][z])
+        };
+        let faces = [
+            ([c(0, 0, 1), c(1, 0, 1), c(1, 1, 1), c(0, 1, 1)], Vec3::Z),
+            ([c(1, 0, 0), c(0, 0, 0), c(0, 1, 0), c(1, 1, 0)], -Vec3::Z),
+            ([c(1, 0, 1), c(1, 0, 0), c(1, 1, 0), c(1, 1, 1)], Vec3::X),
+            ([c(0, 0, 0), c(0, 0, 1), c(0, 1, 1), c(0, 1, 0)], -Vec3::X),
+            ([c(0, 1, 1), c(1, 1, 1), c(1, 1, 0), c(0, 1, 0)], Vec3::Y),
+            ([c(0, 0, 0), c(1, 0, 0), c(1, 0, 1), c(0, 0, 1)], -Vec3::Y),
+        ];
+        let mut mesh = Mesh {
+            name: name.into(),
+            positions_in_world: Vec::new(),
+            normals_in_world: Vec::new(),
+            triangles: Vec::new(),
+            material,
+            is_virtual,
+        };
+        for (quad, normal) in faces {
+            let base = mesh.positions_in_world.len() as u32;
+            mesh.positions_in_world.extend(quad);
+            mesh.normals_in_world.extend([normal; 4]);
+            mesh.triangles
+                .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
+        }
+        mesh
+    }
+}
+
 impl Scene {
     /// The real scene alone (what L^μ is rendered from).
     pub fn without_virtual(&self) -> Scene {

@@ -5,7 +5,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use glam::Vec3;
-use relight_core::scene::{Mesh, Scene};
+use relight_core::scene::Scene;
 use relight_core::{Frame, Image, PixelFormat, Timestamp};
 use relight_engines::reference::{ReferenceImages, ReferenceSettings, render_reference};
 use relight_engines::{Engine, EngineRegistry, RelitFrame, SceneFrame};
@@ -131,34 +131,4 @@ pub fn virtual_moved_far_away(mut scene: Scene) -> Scene {
         }
     }
     scene
-}
-
-/// An axis-aligned box mesh from `lo` to `hi` (outward face normals).
-pub fn cuboid(name: &str, lo: Vec3, hi: Vec3, material: usize, is_virtual: bool) -> Mesh {
-    let c =
-        |x: usize, y: usize, z: usize| Vec3::new([lo.x, hi.x][x], [lo.y, hi.y][y], [lo.z, hi.z][z]);
-    let faces = [
-        ([c(0, 0, 1), c(1, 0, 1), c(1, 1, 1), c(0, 1, 1)], Vec3::Z),
-        ([c(1, 0, 0), c(0, 0, 0), c(0, 1, 0), c(1, 1, 0)], -Vec3::Z),
-        ([c(1, 0, 1), c(1, 0, 0), c(1, 1, 0), c(1, 1, 1)], Vec3::X),
-        ([c(0, 0, 0), c(0, 0, 1), c(0, 1, 1), c(0, 1, 0)], -Vec3::X),
-        ([c(0, 1, 1), c(1, 1, 1), c(1, 1, 0), c(0, 1, 0)], Vec3::Y),
-        ([c(0, 0, 0), c(1, 0, 0), c(1, 0, 1), c(0, 0, 1)], -Vec3::Y),
-    ];
-    let mut mesh = Mesh {
-        name: name.into(),
-        positions_in_world: Vec::new(),
-        normals_in_world: Vec::new(),
-        triangles: Vec::new(),
-        material,
-        is_virtual,
-    };
-    for (quad, normal) in faces {
-        let base = mesh.positions_in_world.len() as u32;
-        mesh.positions_in_world.extend(quad);
-        mesh.normals_in_world.extend([normal; 4]);
-        mesh.triangles
-            .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
-    }
-    mesh
 }
