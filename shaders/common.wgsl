@@ -321,3 +321,44 @@ fn paraboloid_texel(n: vec3<f32>, d: vec3<f32>, size: f32) -> vec2<f32> {
     let uv = vec2<f32>(dot(d, t1), dot(d, t2)) / (1.0 + z);
     return clamp((uv * 0.5 + 0.5) * size, vec2<f32>(0.0), vec2<f32>(size - 1.0));
 }
+
+// `Light.faces.z`: a light that stands for part of the environment whose unshadowed light an
+// engine adds itself (IBL): it shades real surfaces in both solutions, so it shows in Δ only
+// where the virtual object shadows it, and is left out of virtual pixels' direct light.
+const LIGHT_SHADOW_ONLY: u32 = 1u;
+
+// The reflection-map engine's settings (engines/src/ibl).
+struct Ibl {
+    // x: map edge (texels); y: shininess levels; z: input texels; w: unused.
+    dims: vec4<u32>,
+    // x, y: frame size; z: light count; w: shadow-map size.
+    frame: vec4<u32>,
+    // x: shadow bias in texels.
+    params: vec4<f32>,
+    // Phong exponents of the specular levels (8 at most), in order.
+    shininess: array<vec4<f32>, 2>,
+}
+
+// Octahedral map (Engelhardt & Dachsbacher 2008): the unit sphere folded onto [0, 1]², +Z at
+// the centre, −Z at the corners.
+fn oct_decode(uv: vec2<f32>) -> vec3<f32> {
+    let f = uv * 2.0 - 1.0;
+    var n = vec3<f32>(f.x, f.y, 1.0 - abs(f.x) - abs(f.y));
+    let t = max(-n.z, 0.0);
+    n.x += select(t, -t, n.x >= 0.0);
+    n.y += select(t, -t, n.y >= 0.0);
+    return normalize(n);
+}
+
+fn oct_encode(d: vec3<f32>) -> vec2<f32> {
+    let n = d / (abs(d.x) + abs(d.y) + abs(d.z));
+    var f = n.xy;
+    if n.z < 0.0 {
+        f = (vec2<f32>(1.0) - abs(n.yx)) * select(vec2<f32>(-1.0), vec2<f32>(1.0), n.xy >= vec2<f32>(0.0));
+    }
+    return f * 0.5 + 0.5;
+}
+
+fn ibl_shininess(ibl: Ibl, level: u32) -> f32 {
+    return ibl.shininess[level / 4u][level % 4u];
+}

@@ -31,12 +31,16 @@ struct ShadeParams {
 @group(0) @binding(15) var<storage, read_write> delta: array<vec4<f32>>;
 @group(0) @binding(16) var<storage, read_write> composite: array<u32>;
 
-fn direct(p: vec4<f32>, n: vec3<f32>, albedo: vec3<f32>, rho: bool) -> vec3<f32> {
+// `on_virtual`: the point is on the virtual object, which LIGHT_SHADOW_ONLY lights do not shade.
+fn direct(p: vec4<f32>, n: vec3<f32>, albedo: vec3<f32>, rho: bool, on_virtual: bool) -> vec3<f32> {
     let m = materials[u32(p.w) - 1u];
     let wo = normalize(camera.position.xyz - p.xyz);
     var sum = vec3<f32>(0.0);
     for (var i = 0u; i < params.size.z; i++) {
         let l = lights[i];
+        if on_virtual && l.faces.z == LIGHT_SHADOW_ONLY {
+            continue;
+        }
         let inc = incident(l, p.xyz);
         let cos_theta = dot(n, inc.to_light);
         if cos_theta <= 0.0 || all(inc.irradiance <= vec3<f32>(0.0)) {
@@ -68,11 +72,11 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     var l_rho = vec3<f32>(0.0);
     var l_mu = vec3<f32>(0.0);
     if p_rho.w > 0.5 {
-        l_rho = direct(p_rho, normalize(n_rho.xyz), textureLoad(gb_rho_albedo, xy, 0).rgb, true);
+        l_rho = direct(p_rho, normalize(n_rho.xyz), textureLoad(gb_rho_albedo, xy, 0).rgb, true, n_rho.w > 0.5);
     }
     if p_mu.w > 0.5 {
         let n_mu = textureLoad(gb_mu_normal, xy, 0).xyz;
-        l_mu = direct(p_mu, normalize(n_mu), textureLoad(gb_mu_albedo, xy, 0).rgb, false);
+        l_mu = direct(p_mu, normalize(n_mu), textureLoad(gb_mu_albedo, xy, 0).rgb, false, false);
     }
     var d = vec3<f32>(0.0);
     var out = background_linear;

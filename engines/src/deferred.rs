@@ -36,6 +36,18 @@ pub struct ShadeOptions {
     pub direct_delta: bool,
 }
 
+/// What the lights an engine adds to the scene's own do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ExtraLights {
+    /// Shaded, shadowed and given reflective shadow maps like the scene's own.
+    Full,
+    /// Stand-ins for part of the environment whose unshadowed light the engine adds itself:
+    /// they light real surfaces in both solutions (so Δ holds only the shadows the virtual
+    /// object casts in them) and leave virtual pixels' direct light alone
+    /// (`LIGHT_SHADOW_ONLY` in `shaders/common.wgsl`).
+    ShadowOnly,
+}
+
 /// Per-size resources: G-buffers, background, outputs and their staging copies.
 #[derive(Debug)]
 struct FrameResources {
@@ -78,12 +90,16 @@ pub struct Deferred {
     rgba: Vec<u8>,
     lights_cpu: Vec<GpuLight>,
     faces_cpu: Vec<GpuFace>,
-    /// Lights an engine adds to the scene's own (DIR's environment lights).
+    /// Lights an engine adds to the scene's own (DIR's and IBL's environment lights).
     extra_lights: Vec<Light>,
+    extra_role: ExtraLights,
     timer: Option<GpuTimer>,
 }
 
 const MAX_LAYERS: u32 = 64;
+
+/// `LIGHT_SHADOW_ONLY` in `shaders/common.wgsl`, in `GpuLight::faces[2]`.
+const LIGHT_SHADOW_ONLY: u32 = 1;
 
 impl Deferred {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
@@ -110,6 +126,7 @@ impl Deferred {
             lights_cpu: Vec::new(),
             faces_cpu: Vec::new(),
             extra_lights: Vec::new(),
+            extra_role: ExtraLights::Full,
             timer: GpuTimer::new(&ctx),
             ctx,
         }
@@ -171,7 +188,19 @@ impl Deferred {
                 .chain(&self.extra_lights)
                 .copied()
                 .collect();
-            light_faces(&all, bounds, rsm_size)
+            let (mut lights, faces) = light_faces(&all, bounds, rsm_size);
+            if self.extra_role == ExtraLights::ShadowOnly {
+                let extras = self
+                    .extra_lights
+                    .iter()
+                    .filter(|l| l.validate().is_ok() && !matches!(l, Light::Environment { .. }))
+                    .count();
+                let first = lights.len().saturating_sub(extras);
+                for light in &mut lights[first..] {
+                    light.faces[2] = LIGHT_SHADOW_ONLY;
+                }
+            }
+            (lights, faces)
         };
         let layers = (self.faces_cpu.len() as u32).max(1);
         ctx.require(
@@ -274,10 +303,10 @@ impl Deferred {
         self.scene.as_ref().map(|(_, s)| s)
     }
 
-    /// Lights shaded, shadowed and given reflective shadow maps like the scene's own, from the
-    /// next [`prepare`](Self::prepare) on.
-    pub fn set_extra_lights(&mut self, lights: Vec<Light>) {
+    /// Lights added to the scene's own from the next [`prepare`](Self::prepare) on, in `role`.
+    pub fn set_extra_lights(&mut self, lights: Vec<Light>, role: ExtraLights) {
         self.extra_lights = lights;
+        self.extra_role = role;
     }
 
     /// The camera uniform (`Camera` in `shaders/common.wgsl`).

@@ -14,6 +14,7 @@ pub mod engine;
 pub mod gbuffer;
 pub mod gpu;
 pub mod gpu_scene;
+pub mod ibl;
 pub mod live_scene;
 pub mod offline;
 pub mod params;

@@ -12,6 +12,7 @@ use crate::dlpv::Dlpv;
 use crate::dvct::Dvct;
 use crate::engine::Engine;
 use crate::gpu::{GpuError, SharedGpu};
+use crate::ibl::Ibl;
 use crate::params::{ParamError, ParamsSchema};
 use crate::passthrough::Passthrough;
 
@@ -115,6 +116,13 @@ impl EngineRegistry {
                     gpu: true,
                     build: |gpu| Ok(Box::new(Dir::new(gpu.get()?)?)),
                 },
+                EngineSpec {
+                    name: Ibl::NAME,
+                    description: "reflection-map convolution: full convolution of the HDR environment into diffuse and Phong maps, median-cut shadow lights for Δ and ambient occlusion (Kan et al.)",
+                    schema: Ibl::schema(),
+                    gpu: true,
+                    build: |gpu| Ok(Box::new(Ibl::new(gpu.get()?)?)),
+                },
             ],
             gpu: Arc::new(SharedGpu::default()),
         }
@@ -167,7 +175,7 @@ mod tests {
             .unwrap();
         assert_eq!(
             err.to_string(),
-            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential, dlpv, dvct, dir"
+            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential, dlpv, dvct, dir, ibl"
         );
     }
 

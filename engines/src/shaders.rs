@@ -27,6 +27,8 @@ pub const DIR_ALLOC: &str = pass!("dir_alloc.wgsl");
 pub const DIR_VPL: &str = pass!("dir_vpl.wgsl");
 pub const DIR_ISM: &str = pass!("dir_ism.wgsl");
 pub const DIR_GATHER: &str = pass!("dir_gather.wgsl");
+pub const IBL_CONVOLVE: &str = pass!("ibl_convolve.wgsl");
+pub const IBL_SHADE: &str = pass!("ibl_shade.wgsl");
 
 /// (file name, full source) of every pass.
 pub const ALL: &[(&str, &str)] = &[
@@ -45,6 +47,8 @@ pub const ALL: &[(&str, &str)] = &[
     ("dir_vpl.wgsl", DIR_VPL),
     ("dir_ism.wgsl", DIR_ISM),
     ("dir_gather.wgsl", DIR_GATHER),
+    ("ibl_convolve.wgsl", IBL_CONVOLVE),
+    ("ibl_shade.wgsl", IBL_SHADE),
 ];
 
 /// Compile a pass into a shader module.

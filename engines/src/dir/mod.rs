@@ -39,7 +39,7 @@ use relight_core::scene::Scene;
 use serde_json::{Map, Value};
 use wgpu::util::DeviceExt;
 
-use crate::deferred::{Deferred, ShadeOptions};
+use crate::deferred::{Deferred, ExtraLights, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -283,7 +283,7 @@ impl Engine for Dir {
                 .as_ref()
                 .map(|env| environment_lights(env, s.env_lights))
                 .unwrap_or_default();
-            self.deferred.set_extra_lights(lights);
+            self.deferred.set_extra_lights(lights, ExtraLights::Full);
             self.environment = Some((scene.clone(), s.env_lights));
         }
         let (width, height) = self.deferred.prepare(Self::NAME, frame, out, s.rsm_size)?;

@@ -1,0 +1,432 @@
+//! `ibl`: reflection-map convolution for AR (Kan, Unterguggenberger, Kaufmann).
+//!
+//! - **Maps** ([`maps`], `shaders/ibl_convolve.wgsl`): the environment (the probe's HDR map, or
+//!   the scene file's) resampled to `input_width`, then per output texel the full convolution
+//!   with the BRDF — a diffuse irradiance map E_d(n) and one specular map E_s^n(r) per Phong
+//!   exponent, all in one pass. The exponents are the ones the scene needs (the virtual
+//!   materials' own, up to eight) unless `levels` asks for a fixed log-spaced set.
+//! - **Recomputed only on change**: the maps are kept until the environment differs from the one
+//!   they were made from by more than `update_threshold` (relative L1 over the resampled map),
+//!   or the exponents change. Comparing with the map they were made from, not the previous
+//!   frame, lets slow drift add up and trigger an update.
+//! - **Shading** (`shaders/ibl_shade.wgsl`): virtual pixels L_o = k_d E_d(n)·AO + k_s E_s^n(r);
+//!   the scene's point, spot and directional lights add their shadow-mapped direct light as in
+//!   `differential`.
+//! - **Occlusion**: `env_lights` lights extracted from the map by median cut each get a shadow
+//!   map; on real pixels they give Δ = the light the virtual object takes away (shadows and
+//!   contact occlusion, nothing added: no bounce off the object), on the object the ambient
+//!   occlusion of its diffuse term.
+
+pub mod maps;
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use relight_core::light::Light;
+use relight_core::scene::{EnvironmentMap, Scene};
+use serde_json::{Map, Value};
+
+use crate::deferred::{Deferred, ExtraLights, ShadeOptions};
+use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
+use crate::gbuffer::Targets;
+use crate::gpu::{GpuContext, GpuError};
+use crate::params::{ParamSpec, ParamsSchema};
+use crate::shaders;
+use crate::volume::{timed_pass, uniform_buffer};
+use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, resample};
+
+/// The engine's settings (see [`Ibl::schema`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IblSettings {
+    pub map_size: u32,
+    pub input_width: u32,
+    pub levels: u32,
+    pub env_lights: u32,
+    pub rsm_size: u32,
+    pub shadow_bias: f32,
+    pub update_threshold: f32,
+}
+
+impl Default for IblSettings {
+    fn default() -> Self {
+        Self {
+            map_size: 64,
+            input_width: 128,
+            levels: 0,
+            env_lights: 16,
+            rsm_size: 256,
+            shadow_bias: 1.5,
+            update_threshold: 0.02,
+        }
+    }
+}
+
+/// What the current maps and shadow lights were made from.
+#[derive(Debug)]
+struct Environment {
+    scene: Arc<Scene>,
+    /// The resampled map the maps were convolved from (`None`: the scene has no environment).
+    input: Option<EnvironmentMap>,
+    shininess: Vec<f32>,
+    settings: IblSettings,
+}
+
+#[derive(Debug)]
+pub struct Ibl {
+    deferred: Deferred,
+    settings: IblSettings,
+    shade: wgpu::ComputePipeline,
+    uniform: wgpu::Buffer,
+    maps: ReflectionMaps,
+    environment: Option<Environment>,
+    convolutions: u64,
+}
+
+impl Ibl {
+    pub const NAME: &'static str = "ibl";
+
+    pub fn schema() -> ParamsSchema {
+        let d = IblSettings::default();
+        let int = |name, doc, min, max, default: u32| {
+            ParamSpec::int(name, doc, min, max, i64::from(default))
+        };
+        ParamsSchema::new(vec![
+            int(
+                "map_size",
+                "edge of the octahedral irradiance and reflection maps, texels",
+                8,
+                512,
+                d.map_size,
+            ),
+            int(
+                "input_width",
+                "width the environment is resampled to before the convolution (height: half)",
+                16,
+                2048,
+                d.input_width,
+            ),
+            int(
+                "levels",
+                "specular maps: 0 = one per Phong exponent of the virtual materials (up to 8), N = N exponents log-spaced from 1 to 512",
+                0,
+                MAX_LEVELS as i64,
+                d.levels,
+            ),
+            int(
+                "env_lights",
+                "median-cut lights whose shadow maps give the object's shadows and ambient occlusion",
+                0,
+                48,
+                d.env_lights,
+            ),
+            int(
+                "rsm_size",
+                "shadow-map edge per light face, texels",
+                64,
+                4096,
+                d.rsm_size,
+            ),
+            ParamSpec::float(
+                "shadow_bias",
+                "shadow-map depth bias in texel footprints (grows with the surface slope)",
+                0.0,
+                8.0,
+                d.shadow_bias,
+            ),
+            ParamSpec::float(
+                "update_threshold",
+                "relative change of the environment (L1) that makes the maps be convolved again",
+                0.0,
+                1.0,
+                d.update_threshold,
+            ),
+        ])
+    }
+
+    pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
+        Ok(Self {
+            shade: shaders::compute_pipeline(&ctx.device, "ibl shade", shaders::IBL_SHADE),
+            uniform: uniform_buffer(&ctx.device, "ibl shade", size_of::<IblUniform>()),
+            maps: ReflectionMaps::new(&ctx),
+            deferred: Deferred::new(ctx),
+            settings: IblSettings::default(),
+            environment: None,
+            convolutions: 0,
+        })
+    }
+
+    /// How many times the maps have been convolved (they are kept while the environment holds).
+    pub fn convolutions(&self) -> u64 {
+        self.convolutions
+    }
+
+    /// The current maps (layer 0 diffuse, then one per [`ReflectionMaps::shininess`]).
+    pub fn maps(&self) -> &ReflectionMaps {
+        &self.maps
+    }
+
+    /// Convolve the maps and extract the shadow lights again if `scene`'s environment or the
+    /// exponents it needs changed enough since the last time.
+    fn update_environment(
+        &mut self,
+        scene: &Arc<Scene>,
+        out: &mut RelitFrame,
+    ) -> Result<(), EngineError> {
+        let s = self.settings;
+        if let Some(e) = &self.environment
+            && Arc::ptr_eq(&e.scene, scene)
+            && e.settings == s
+        {
+            return Ok(());
+        }
+        let input = scene
+            .environment
+            .as_ref()
+            .map(|env| resample(env, s.input_width));
+        let shininess = specular_levels(scene, s.levels);
+        let unchanged = self.environment.as_ref().is_some_and(|e| {
+            e.settings == s
+                && e.shininess == shininess
+                && match (&e.input, &input) {
+                    (None, None) => true,
+                    (Some(a), Some(b)) => relative_change(a, b) <= s.update_threshold,
+                    _ => false,
+                }
+        });
+        if unchanged {
+            if let Some(e) = self.environment.as_mut() {
+                e.scene = scene.clone();
+            }
+            return Ok(());
+        }
+        let started = Instant::now();
+        let ctx = self.deferred.ctx().clone();
+        let lights = match &input {
+            Some(env) => {
+                let mut timer = self.deferred.lend_timer();
+                self.maps
+                    .convolve(&ctx, &input_texels(env), s.map_size, &shininess, &mut timer)?;
+                self.deferred.return_timer(timer);
+                self.convolutions += 1;
+                shadow_lights(env, s.env_lights)
+            }
+            None => Vec::new(),
+        };
+        self.deferred
+            .set_extra_lights(lights, ExtraLights::ShadowOnly);
+        self.environment = Some(Environment {
+            scene: scene.clone(),
+            input,
+            shininess,
+            settings: s,
+        });
+        out.timings.push(PassTiming {
+            pass: "convolve",
+            ms: started.elapsed().as_secs_f64() * 1e3,
+        });
+        Ok(())
+    }
+}
+
+/// The median-cut lights standing in for `env` as shadow casters.
+fn shadow_lights(env: &EnvironmentMap, count: u32) -> Vec<Light> {
+    crate::dir::environment_lights(env, count)
+}
+
+/// The Phong exponents to convolve: `levels` log-spaced from 1 to 512, or (`levels` = 0) the
+/// distinct exponents of the virtual object's glossy materials, thinned log-evenly to
+/// [`MAX_LEVELS`] when there are more.
+fn specular_levels(scene: &Scene, levels: u32) -> Vec<f32> {
+    if levels > 0 {
+        let last = (levels - 1).max(1) as f32;
+        return (0..levels)
+            .map(|k| 512f32.powf(k as f32 / last).round())
+            .collect();
+    }
+    let mut exponents: Vec<f32> = scene
+        .meshes
+        .iter()
+        .filter(|m| m.is_virtual)
+        .filter_map(|m| scene.materials.get(m.material))
+        .filter(|m| m.shininess > 0.0 && m.specular.max_element() > 0.0)
+        .map(|m| m.shininess)
+        .collect();
+    exponents.sort_by(f32::total_cmp);
+    exponents.dedup();
+    if exponents.len() > MAX_LEVELS {
+        let last = exponents.len() - 1;
+        exponents = (0..MAX_LEVELS)
+            .map(|k| exponents[k * last / (MAX_LEVELS - 1)])
+            .collect();
+    }
+    exponents
+}
+
+/// Σ|b − a| / Σ|a| over the texels' RGB (1 when the sizes differ or `a` is black and `b` not).
+fn relative_change(a: &EnvironmentMap, b: &EnvironmentMap) -> f32 {
+    if a.width != b.width || a.height != b.height {
+        return 1.0;
+    }
+    let (mut diff, mut norm) = (0f64, 0f64);
+    for (x, y) in a.radiance.iter().zip(&b.radiance) {
+        diff += f64::from((*y - *x).abs().element_sum());
+        norm += f64::from(x.abs().element_sum());
+    }
+    if norm > 0.0 {
+        (diff / norm) as f32
+    } else if diff > 0.0 {
+        1.0
+    } else {
+        0.0
+    }
+}
+
+impl Engine for Ibl {
+    fn name(&self) -> &'static str {
+        Self::NAME
+    }
+
+    fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
+        if let Some(scene) = &frame.scene {
+            self.update_environment(scene, out)?;
+        }
+        let s = self.settings;
+        let (width, height) = self.deferred.prepare(Self::NAME, frame, out, s.rsm_size)?;
+        let has_maps = self.environment.as_ref().is_some_and(|e| e.input.is_some());
+        if has_maps {
+            let started = Instant::now();
+            let ctx = self.deferred.ctx().clone();
+            let mut uniform = IblUniform {
+                dims: [self.maps.size(), self.maps.shininess().len() as u32, 0, 0],
+                frame: [
+                    width,
+                    height,
+                    self.deferred.lights().len() as u32,
+                    s.rsm_size,
+                ],
+                params: [s.shadow_bias, 0.0, 0.0, 0.0],
+                shininess: [0.0; MAX_LEVELS],
+            };
+            uniform.shininess[..self.maps.shininess().len()].copy_from_slice(self.maps.shininess());
+            ctx.queue
+                .write_buffer(&self.uniform, 0, bytemuck::bytes_of(&uniform));
+            let mut timer = self.deferred.lend_timer();
+            let (
+                Some((lights, faces, rsm_rho, _)),
+                Some((gb_rho, _, indirect)),
+                Some(gpu_scene),
+                Some(maps),
+            ) = (
+                self.deferred.light_buffers(),
+                self.deferred.frame_buffers(),
+                self.deferred.scene(),
+                self.maps.buffer(),
+            )
+            else {
+                return Err(EngineError::NotPrepared);
+            };
+            let views = [
+                Targets::view(&gb_rho.position),
+                Targets::view(&gb_rho.normal),
+                Targets::view(&gb_rho.albedo),
+                Targets::array_view(&rsm_rho.position),
+            ];
+            let mut resources = vec![
+                self.uniform.as_entire_binding(),
+                self.deferred.camera_buffer().as_entire_binding(),
+                lights.as_entire_binding(),
+                faces.as_entire_binding(),
+                gpu_scene.materials.as_entire_binding(),
+            ];
+            resources.extend(views.iter().map(wgpu::BindingResource::TextureView));
+            resources.extend([maps, indirect].map(|b| b.as_entire_binding()));
+            let group =
+                shaders::pipeline_bind_group(&ctx.device, &self.shade, "ibl shade", &resources);
+            let mut encoder = ctx
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("ibl shade"),
+                });
+            {
+                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.ibl_shade");
+                pass.set_pipeline(&self.shade);
+                pass.set_bind_group(0, &group, &[]);
+                pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+            }
+            ctx.queue.submit([encoder.finish()]);
+            ctx.check()?;
+            self.deferred.return_timer(timer);
+            out.timings.push(PassTiming {
+                pass: "ibl shade",
+                ms: started.elapsed().as_secs_f64() * 1e3,
+            });
+        }
+        self.deferred.finish(
+            ShadeOptions {
+                shadow_bias_texels: s.shadow_bias,
+                direct_delta: true,
+            },
+            out,
+        )
+    }
+
+    fn set_params(&mut self, params: &Map<String, Value>) {
+        let schema = Self::schema();
+        let (int, float) = (
+            |name| schema.int(params, name) as u32,
+            |name| schema.float(params, name) as f32,
+        );
+        self.settings = IblSettings {
+            map_size: int("map_size"),
+            input_width: int("input_width"),
+            levels: int("levels"),
+            env_lights: int("env_lights"),
+            rsm_size: int("rsm_size"),
+            shadow_bias: float("shadow_bias"),
+            update_threshold: float("update_threshold"),
+        };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    fn map(value: f32) -> EnvironmentMap {
+        EnvironmentMap {
+            width: 8,
+            height: 4,
+            radiance: vec![Vec3::splat(value); 32],
+        }
+    }
+
+    #[test]
+    fn relative_change_is_l1() {
+        assert_eq!(relative_change(&map(1.0), &map(1.0)), 0.0);
+        assert!((relative_change(&map(1.0), &map(1.05)) - 0.05).abs() < 1e-5);
+        assert_eq!(relative_change(&map(0.0), &map(1.0)), 1.0);
+        assert_eq!(relative_change(&map(0.0), &map(0.0)), 0.0);
+    }
+
+    #[test]
+    fn fixed_levels_span_one_to_512() {
+        let scene = Scene {
+            name: String::new(),
+            meshes: Vec::new(),
+            materials: Vec::new(),
+            camera: relight_core::scene::SceneCamera {
+                world_from_camera: relight_core::Pose::IDENTITY,
+                yfov_rad: 1.0,
+                width: 4,
+                height: 4,
+            },
+            lights: Vec::new(),
+            environment: None,
+        };
+        let levels = specular_levels(&scene, 8);
+        assert_eq!(levels.len(), 8);
+        assert_eq!((levels[0], levels[7]), (1.0, 512.0));
+        assert!(specular_levels(&scene, 0).is_empty());
+    }
+}
