@@ -9,7 +9,7 @@ use crate::camera::CameraModel;
 use crate::pose::Pose;
 
 /// Calibration of one rig. Every field is optional so a partial rig (depth only) still loads.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RigCalibration {
     /// Free-form rig name, e.g. `lab-desk-1`.
@@ -30,6 +30,14 @@ pub struct RigCalibration {
     /// The probe's inverse response, 256 entries mapping 8-bit value → relative linear radiance.
     #[serde(default)]
     pub probe_response: Vec<f32>,
+    /// Radiance, W/(m²·sr), per unit of the inverse response per second of exposure: the
+    /// probe's absolute scale, which turns merged HDR values into radiance (1: relative units).
+    #[serde(default = "unit_scale")]
+    pub probe_radiance_scale: f32,
+}
+
+fn unit_scale() -> f32 {
+    1.0
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -38,6 +46,22 @@ pub enum RigCalibrationError {
     Parse(#[from] toml::de::Error),
     #[error("calibration to TOML: {0}")]
     Serialize(#[from] toml::ser::Error),
+}
+
+impl Default for RigCalibration {
+    fn default() -> Self {
+        Self {
+            name: String::new(),
+            depth: None,
+            color: None,
+            probe: None,
+            color_from_depth: Pose::default(),
+            world_from_probe: Pose::default(),
+            lamp_marker_from_light: Pose::default(),
+            probe_response: Vec::new(),
+            probe_radiance_scale: 1.0,
+        }
+    }
 }
 
 impl RigCalibration {

@@ -53,7 +53,8 @@ impl BenchCase {
 
 /// The default cases: each engine at its defaults, and with `sweep` the paper's parameter
 /// sweeps (DLPV: volume 16³/32³/64³ × steps 8/16/32/64, RSM 256²/512²/1024²; DVCT: volume
-/// 32³/64³/128³/256³ × step 0.25/0.5/1; DIR: 64/128/256/512/1024 VPLs, ISM 32²/64²/128²; the
+/// 32³/64³/128³/256³ × step 0.25/0.5/1; DIR: 64/128/256/512/1024 VPLs, ISM 32²/64²/128²; IBL:
+/// maps 32²/64²/128², 4/16/32 shadow lights; the
 /// differential baseline's shadow-map sizes). A setting an adapter cannot hold is logged and
 /// left out of the results.
 pub fn default_cases(sweep: bool) -> Vec<BenchCase> {
@@ -64,6 +65,7 @@ pub fn default_cases(sweep: bool) -> Vec<BenchCase> {
         BenchCase::new("dvct", json!({})),
         BenchCase::new("dvct", json!({ "shadows": "cones" })),
         BenchCase::new("dir", json!({})),
+        BenchCase::new("ibl", json!({})),
     ];
     if sweep {
         for rsm in [256, 1024] {
@@ -85,6 +87,12 @@ pub fn default_cases(sweep: bool) -> Vec<BenchCase> {
         }
         for ism in [32, 128] {
             cases.push(BenchCase::new("dir", json!({ "ism_size": ism })));
+        }
+        for size in [32, 128] {
+            cases.push(BenchCase::new("ibl", json!({ "map_size": size })));
+        }
+        for lights in [4, 32] {
+            cases.push(BenchCase::new("ibl", json!({ "env_lights": lights })));
         }
         for volume in [32, 64, 128, 256] {
             for step in [0.25, 0.5, 1.0] {
@@ -304,4 +312,76 @@ fn plot(rows: &[BenchRow], path: &Path, adapter: &str) -> Result<()> {
         .map_err(|e| anyhow::anyhow!("{e}"))?;
     root.present().map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(())
+}
+
+/// One row of the reflection-map timing (`relightd bench --ibl-maps`).
+#[derive(Debug, Clone, Serialize)]
+pub struct MapTiming {
+    /// Output maps are `size × size` texels (octahedral), the input about as many.
+    pub size: u32,
+    pub input_texels: usize,
+    pub levels: usize,
+    /// Median wall clock of one convolution of all maps, submit to completion.
+    pub median_ms: f64,
+}
+
+/// Kan et al.'s timing table: the diffuse map and `levels` specular maps convolved in one pass
+/// at each output size S² from an input of about S² texels (an equirectangular sky with a sun,
+/// every texel non-black, so none is skipped), median of `repeats` runs after one warm-up.
+pub fn ibl_map_timings(sizes: &[u32], levels: u32, repeats: u32) -> Result<Vec<MapTiming>> {
+    use relight_engines::gpu::GpuContext;
+    use relight_engines::ibl::maps::{ReflectionMaps, input_texels};
+
+    let ctx = GpuContext::new().context("the map convolution needs a GPU adapter")?;
+    let shininess: Vec<f32> = (0..levels.max(1))
+        .map(|k| 512f32.powf(k as f32 / (levels.max(2) - 1) as f32).round())
+        .collect();
+    let mut rows = Vec::new();
+    for &size in sizes {
+        let width = (f64::from(size) * std::f64::consts::SQRT_2).round() as u32;
+        let texels = input_texels(&sky(width.max(2), (width / 2).max(1)));
+        let mut maps = ReflectionMaps::new(&ctx);
+        let mut times = Vec::new();
+        for run in 0..=repeats.max(1) {
+            let started = Instant::now();
+            maps.convolve(&ctx, &texels, size, &shininess, &mut None)
+                .with_context(|| format!("convolving {size}² maps"))?;
+            ctx.wait().context("waiting for the GPU")?;
+            if run > 0 {
+                times.push(started.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+        times.sort_by(f64::total_cmp);
+        rows.push(MapTiming {
+            size,
+            input_texels: texels.len(),
+            levels: shininess.len(),
+            median_ms: times[times.len() / 2],
+        });
+    }
+    Ok(rows)
+}
+
+/// A sky for timing: a vertical gradient, a dim ground and a small bright sun.
+fn sky(width: u32, height: u32) -> relight_core::scene::EnvironmentMap {
+    use glam::Vec3;
+    let radiance = (0..width * height)
+        .map(|i| {
+            let (x, y) = (i % width, i / width);
+            let v = (y as f32 + 0.5) / height as f32;
+            let sun = x * 8 / width == 3 && y * 8 / height == 2;
+            if sun {
+                Vec3::splat(1e4)
+            } else if v < 0.5 {
+                Vec3::new(0.4, 0.6, 1.0) * (1.0 - v)
+            } else {
+                Vec3::splat(0.1)
+            }
+        })
+        .collect();
+    relight_core::scene::EnvironmentMap {
+        width,
+        height,
+        radiance,
+    }
 }

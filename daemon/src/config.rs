@@ -23,7 +23,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use relight_core::StreamKind;
-use relight_engines::live_scene::RealGeometry;
+use relight_engines::live_scene::{LightSource, RealGeometry};
 use serde::Deserialize;
 use toml::de::{DeTable, DeValue};
 
@@ -74,6 +74,8 @@ pub struct SceneConfig {
     pub real_albedo: f32,
     /// Use every Nth depth pixel per axis for the surface.
     pub depth_stride: u32,
+    /// Where the real scene's light comes from: the scene file, or the light probe.
+    pub lighting: LightSource,
 }
 
 impl Default for SceneConfig {
@@ -83,6 +85,7 @@ impl Default for SceneConfig {
             real: RealGeometry::Depth,
             real_albedo: 0.6,
             depth_stride: 2,
+            lighting: LightSource::Scene,
         }
     }
 }
@@ -594,6 +597,7 @@ struct RawScene {
     real: Option<String>,
     real_albedo: Option<f64>,
     depth_stride: Option<i64>,
+    lighting: Option<String>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -976,6 +980,14 @@ impl Validator<'_> {
             Some(other) => self.error(
                 "scene.real",
                 format!("must be \"depth\" or \"scene\", got \"{other}\""),
+            ),
+        }
+        match raw.lighting.as_deref() {
+            None | Some("scene") => {}
+            Some("probe") => scene.lighting = LightSource::Probe,
+            Some(other) => self.error(
+                "scene.lighting",
+                format!("must be \"scene\" or \"probe\", got \"{other}\""),
             ),
         }
         if let Some(albedo) = raw.real_albedo {

@@ -16,22 +16,29 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
 use crossbeam_channel::{Receiver, Sender, bounded};
+use glam::Vec3;
 use relight_backends::device::{Backoff, DeviceStatus as BackendStatus, Stepper};
 use relight_backends::sim::device::{SimDevice, SimSourceConfig};
 use relight_backends::{Device as _, DeviceRunner, DeviceState, Replay, ReplayConfig, ReplayMode};
 use relight_core::bus::Bus;
 use relight_core::camera::CameraModel;
 use relight_core::frame::host_now_ns;
+use relight_core::light::Light;
 use relight_core::recording::RecordingMeta;
 use relight_core::scene::Scene;
+use relight_core::sh::Sh9Rgb;
 use relight_core::sync::{FrameSet, SyncConfig as CoreSyncConfig, Synchronizer};
-use relight_core::{StreamKind, StreamMessage};
+use relight_core::{Frame, ProbeImage, StreamKind, StreamMessage, Timestamp};
 use relight_engines::gpu::GpuError;
-use relight_engines::live_scene::{LiveScene, RealGeometry};
+use relight_engines::live_scene::{LightSource, LiveScene, RealGeometry};
 use relight_engines::{Engine, EngineError, EngineRegistry, RelitFrame, SceneFrame};
+use relight_recon::estimate::LightingEstimate;
+use relight_recon::irradiance::project_sh9;
+use relight_recon::probe::{ProbeEstimate, ProbeLighting, ProbeSettings};
 use serde_json::{Map, Value, json};
 
 use crate::config::{self, Config, SourceConfig};
+use crate::control::lights::LightsBoard;
 use crate::control::types::{
     ControlError, ControlTarget, DeviceStatus, EngineInfo, RecordingStatus, StageTiming,
     StatusReport, SyncStreamStatus,
@@ -88,6 +95,8 @@ struct Shared {
     /// Present when the source is a stepped replay.
     steppers: Vec<Stepper>,
     recorder: Recorder,
+    /// The lighting estimate published on the control socket (`lights.*`).
+    lights: Arc<LightsBoard>,
     /// Milliseconds since `started` at the render loop's last iteration (the watchdog's view).
     heartbeat_ms: AtomicU64,
     stop: AtomicBool,
@@ -206,10 +215,26 @@ impl Pipeline {
         }
         let synchronizer = Synchronizer::new(sync)
             .with_context(|| format!("{}: [sync]", config.path.display()))?;
+        let mut scene_lights = None;
         let live_scene = match &config.scene.dir {
             Some(dir) => {
                 let scene = Scene::load(dir)
                     .with_context(|| format!("{}: [scene] dir", config.path.display()))?;
+                let probe = meta.calibration.as_ref().and_then(|rig| {
+                    ProbeLighting::new(rig, ProbeSettings::default())
+                        .inspect_err(|error| {
+                            if rig.probe.is_some() {
+                                tracing::warn!(%error, "the light probe is not used");
+                            }
+                        })
+                        .ok()
+                });
+                if probe.is_none() && config.scene.lighting == LightSource::Probe {
+                    tracing::warn!(
+                        "[scene] lighting = \"probe\" but the rig has no usable probe calibration: only the lamp lights the scene"
+                    );
+                }
+                scene_lights = Some(SceneLights::new(&scene, probe));
                 let depth_camera = meta.calibration.as_ref().and_then(|c| {
                     match c.depth.as_ref().or(c.color.as_ref()) {
                         Some(CameraModel::Pinhole(p)) => Some(*p),
@@ -221,13 +246,15 @@ impl Pipeline {
                         "[scene] real = \"depth\" but the source has no pinhole depth calibration: the GPU engines get no scene"
                     );
                 }
-                Some(LiveScene::new(
+                let mut live = LiveScene::new(
                     scene,
                     config.scene.real,
                     config.scene.real_albedo,
                     depth_camera,
                     config.scene.depth_stride,
-                ))
+                );
+                live.set_light_source(config.scene.lighting);
+                Some(live)
             }
             None => None,
         };
@@ -260,6 +287,7 @@ impl Pipeline {
             devices: runners.iter().map(|r| r.status().clone()).collect(),
             steppers,
             recorder,
+            lights: Arc::new(LightsBoard::new()),
             heartbeat_ms: AtomicU64::new(0),
             stop: AtomicBool::new(false),
             finished: AtomicBool::new(false),
@@ -283,6 +311,7 @@ impl Pipeline {
                         synchronizer,
                         engine: built.engine,
                         live_scene,
+                        scene_lights,
                         relit: RelitFrame::default(),
                         arrivals: VecDeque::new(),
                         exit_at_end: options.exit_at_end,
@@ -304,6 +333,12 @@ impl Pipeline {
         Arc::new(PipelineControl {
             shared: self.shared.clone(),
         })
+    }
+
+    /// Where the lighting estimate is published; what `lights.get` and `lights.subscribe` serve.
+    /// Estimates from the light probe go here too ([`LightsBoard::publish`]).
+    pub fn lights(&self) -> Arc<LightsBoard> {
+        Arc::clone(&self.shared.lights)
     }
 
     /// True once every source has ended and every frame set has been rendered.
@@ -358,6 +393,8 @@ struct RenderLoop<'a> {
     engine: Box<dyn Engine>,
     /// Builds each frame's scene for the GPU engines (`[scene]`).
     live_scene: Option<LiveScene>,
+    /// Publishes the live scene's lights as the lighting estimate (with `[scene]`).
+    scene_lights: Option<SceneLights>,
     relit: RelitFrame,
     /// Wall-clock arrival of recent reference frames, to time how long sets wait in the sync.
     arrivals: VecDeque<(u64, Instant)>,
@@ -394,6 +431,9 @@ impl RenderLoop<'_> {
                         self.arrivals.pop_front();
                     }
                     self.arrivals.push_back((host_ns, Instant::now()));
+                }
+                if let StreamMessage::Probe(frame) = &msg {
+                    self.probe_frame(frame);
                 }
                 self.synchronizer.push(msg);
                 received = subscription.try_recv();
@@ -512,6 +552,21 @@ impl RenderLoop<'_> {
         }
     }
 
+    /// Every probe frame, not only those the synchroniser matches to a frame set: a bracket
+    /// needs each of its exposures.
+    fn probe_frame(&mut self, frame: &Arc<Frame<ProbeImage>>) {
+        let Some(scene_lights) = self.scene_lights.as_mut() else {
+            return;
+        };
+        let start = Instant::now();
+        if let Some(estimate) = scene_lights.probe_frame(frame)
+            && let Some(live) = self.live_scene.as_mut()
+        {
+            live.set_probe_environment(&estimate.environment);
+        }
+        self.record_stage("probe", start.elapsed().as_secs_f64() * 1e3);
+    }
+
     fn process(&mut self, set: FrameSet) {
         let shared = self.shared;
         self.apply_pending();
@@ -539,6 +594,9 @@ impl RenderLoop<'_> {
                 set.depth.as_ref().map(|d| &d.payload),
                 set.lamp.as_ref().map(|l| &l.payload),
             );
+            if let Some(scene_lights) = &mut self.scene_lights {
+                scene_lights.publish_if_changed(live, &shared.lights);
+            }
             self.record_stage("scene", start.elapsed().as_secs_f64() * 1e3);
         }
         let start = Instant::now();
@@ -607,6 +665,80 @@ impl RenderLoop<'_> {
         let path = dir.join(format!("{stem}_composite.png"));
         write_png(&path, &self.relit.composite).map_err(|e| e.to_string())?;
         Ok(vec![path])
+    }
+}
+
+/// The lighting estimate, seen from the virtual object: the light probe's (its median-cut
+/// lights and SH9, stamped with the probe's time) once it has given one, else the scene file's
+/// lights and environment map; the lamp where it is now in both cases. Published when it
+/// changes (a new probe bracket, the lamp moves or switches), not every frame.
+struct SceneLights {
+    /// Centre of the virtual object's bounds (the world origin without one).
+    reference_point: Vec3,
+    /// The scene file's environment map as SH (zero without one).
+    scene_sh9: Sh9Rgb,
+    /// The probe's estimate of the live scene (with a probe in the rig's calibration).
+    probe: Option<ProbeLighting>,
+    probe_estimate: Option<ProbeEstimate>,
+    /// What the last published estimate was made of.
+    published: Option<(Vec<Light>, Option<Timestamp>)>,
+}
+
+impl SceneLights {
+    fn new(scene: &Scene, probe: Option<ProbeLighting>) -> Self {
+        Self {
+            reference_point: scene
+                .virtual_bounds()
+                .map_or(Vec3::ZERO, |(lo, hi)| (lo + hi) * 0.5),
+            scene_sh9: scene
+                .environment
+                .as_ref()
+                .and_then(|env| project_sh9(env).ok())
+                .unwrap_or(Sh9Rgb::ZERO),
+            probe,
+            probe_estimate: None,
+            published: None,
+        }
+    }
+
+    /// Take a probe frame; returns the new estimate when it completes a bracket.
+    fn probe_frame(&mut self, frame: &Arc<Frame<ProbeImage>>) -> Option<&ProbeEstimate> {
+        match self.probe.as_mut()?.push(frame) {
+            Ok(Some(estimate)) => {
+                self.probe_estimate = Some(estimate);
+                self.probe_estimate.as_ref()
+            }
+            Ok(None) => None,
+            Err(error) => {
+                tracing::warn!(%error, "probe bracket not used");
+                None
+            }
+        }
+    }
+
+    /// Publish what `live` is lit by now, if it changed since the last time.
+    fn publish_if_changed(&mut self, live: &LiveScene, board: &LightsBoard) {
+        let (lights, sh9, stamp) = match &self.probe_estimate {
+            Some(probe) => {
+                let lamp = live
+                    .lights()
+                    .into_iter()
+                    .filter(|l| matches!(l, Light::Point { .. }));
+                let lights: Vec<Light> = probe.lights.iter().copied().chain(lamp).collect();
+                (lights, probe.sh9, Some(probe.stamp))
+            }
+            None => (live.lights(), self.scene_sh9, None),
+        };
+        let key = (lights, stamp);
+        if self.published.as_ref() == Some(&key) {
+            return;
+        }
+        let estimate =
+            LightingEstimate::from_lights(key.0.clone(), sh9, stamp, self.reference_point);
+        self.published = Some(key);
+        if board.publish(estimate) {
+            tracing::trace!("lighting estimate published");
+        }
     }
 }
 
@@ -701,6 +833,10 @@ impl PipelineControl {
 impl ControlTarget for PipelineControl {
     fn status(&self) -> StatusReport {
         status_report(&self.shared)
+    }
+
+    fn lights(&self) -> Option<&LightsBoard> {
+        Some(&self.shared.lights)
     }
 
     fn engine_list(&self) -> Vec<EngineInfo> {
@@ -856,5 +992,54 @@ impl ControlTarget for PipelineControl {
         *lock(&self.shared.config) = new;
         tracing::info!(?applied, ?restart_required, "configuration reloaded");
         Ok(json!({ "applied": applied, "restart_required": restart_required }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scene_lights_publish_only_changes() {
+        let board = LightsBoard::new();
+        let scene = Scene {
+            name: "t".into(),
+            meshes: vec![relight_core::scene::Mesh::cuboid(
+                "box",
+                Vec3::new(-0.1, 0.0, -0.1),
+                Vec3::new(0.1, 0.2, 0.1),
+                0,
+                true,
+            )],
+            materials: Vec::new(),
+            camera: relight_core::scene::SceneCamera {
+                world_from_camera: relight_core::Pose::IDENTITY,
+                yfov_rad: 1.0,
+                width: 8,
+                height: 6,
+            },
+            lights: Vec::new(),
+            environment: None,
+        };
+        let mut scene_lights = SceneLights::new(&scene, None);
+        assert_eq!(scene_lights.reference_point, Vec3::new(0.0, 0.1, 0.0));
+        let mut live = LiveScene::new(scene, RealGeometry::Scene, 0.5, None, 1);
+        let lamp = relight_core::LampState {
+            on: true,
+            position_in_world: Vec3::new(0.0, 1.1, 0.0),
+            intensity: Vec3::splat(2.0),
+        };
+        live.frame(None, Some(&lamp));
+        scene_lights.publish_if_changed(&live, &board);
+        scene_lights.publish_if_changed(&live, &board);
+        assert_eq!(board.published(), 1);
+        let estimate = board.latest().expect("published");
+        let main = estimate.main_light.expect("the lamp");
+        assert!((main.direction_in_world - Vec3::NEG_Y).length() < 1e-6);
+        assert!((main.intensity - 2.0).abs() < 1e-5);
+        live.frame(None, Some(&relight_core::LampState::default()));
+        scene_lights.publish_if_changed(&live, &board);
+        assert_eq!(board.published(), 2);
+        assert_eq!(board.latest().expect("published").main_light, None);
     }
 }

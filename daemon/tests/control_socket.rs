@@ -10,8 +10,8 @@ use std::time::Duration;
 use relight_core::StreamKind;
 use relight_daemon::control::{
     Client, ClientError, ControlError, ControlServer, ControlServerHandle, ControlTarget,
-    DeviceState, DeviceStatus, EngineInfo, PeerCred, RecordingStatus, ServerError, ServerOptions,
-    StageTiming, StatusReport, SyncStreamStatus, codes, peer_allowed,
+    DeviceState, DeviceStatus, EngineInfo, LightsBoard, PeerCred, RecordingStatus, ServerError,
+    ServerOptions, StageTiming, StatusReport, SyncStreamStatus, codes, peer_allowed,
 };
 use serde_json::{Map, Value, json};
 
@@ -24,6 +24,7 @@ struct FakePipeline {
     engine: Mutex<String>,
     params: Mutex<Map<String, Value>>,
     recording: Mutex<Option<PathBuf>>,
+    lights: LightsBoard,
 }
 
 impl FakePipeline {
@@ -153,6 +154,10 @@ impl ControlTarget for FakePipeline {
     fn config_reload(&self) -> Result<Value, ControlError> {
         self.log("config_reload".into());
         Ok(json!({ "changed": ["sync.tolerance_ms"] }))
+    }
+
+    fn lights(&self) -> Option<&LightsBoard> {
+        Some(&self.lights)
     }
 }
 
@@ -870,4 +875,262 @@ fn relightctl_exit_codes_and_output() {
     assert_eq!(code, 2);
     assert!(err.contains("absent.sock"), "{err}");
     assert!(err.contains("systemctl status relightd"), "{err}");
+}
+
+/// An estimate whose main light is a point light of `intensity` 1 m above the origin, with
+/// `extra` more lights (to make its JSON line long).
+fn lamp_estimate(intensity: f32, extra: usize) -> relight_recon::estimate::LightingEstimate {
+    use relight_core::light::Light;
+    let lamp = Light::Point {
+        position_in_world: glam::Vec3::Y,
+        intensity: glam::Vec3::splat(intensity),
+    };
+    let dim = Light::Directional {
+        direction_in_world: glam::Vec3::NEG_Y,
+        irradiance: glam::Vec3::splat(1e-3),
+    };
+    let mut lights = vec![lamp];
+    lights.extend(std::iter::repeat_n(dim, extra));
+    relight_recon::estimate::LightingEstimate::from_lights(
+        lights,
+        relight_core::sh::Sh9Rgb::ZERO,
+        None,
+        glam::Vec3::ZERO,
+    )
+}
+
+fn update_intensity(message: &Value) -> f64 {
+    assert_eq!(message["jsonrpc"], "2.0", "{message}");
+    assert_eq!(message["method"], "lights.update", "{message}");
+    assert!(message.get("id").is_none(), "{message}");
+    message["params"]["main_light"]["intensity"]
+        .as_f64()
+        .unwrap_or_else(|| panic!("no main light in {message}"))
+}
+
+#[test]
+fn lights_get_is_null_until_the_first_estimate() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    assert_eq!(c.call("lights.get", None).expect("get"), Value::Null);
+    fx.fake.lights.publish(lamp_estimate(2.0, 0));
+    let estimate = c.call("lights.get", Some(json!([]))).expect("get");
+    assert_eq!(estimate["main_light"]["intensity"], 2.0, "{estimate}");
+    assert_eq!(
+        estimate["main_light"]["direction_in_world"],
+        json!([0.0, -1.0, 0.0])
+    );
+    assert_eq!(estimate["lights"][0]["type"], "point");
+    assert_eq!(estimate["environment_stamp"], Value::Null);
+    assert_eq!(estimate["sh9"].as_array().map(Vec::len), Some(9));
+}
+
+#[test]
+fn subscriber_gets_the_current_estimate_after_the_ack_then_each_change() {
+    let fx = default_fixture();
+    fx.fake.lights.publish(lamp_estimate(1.0, 0));
+    let mut c = fx.client();
+
+    // Raw lines, to see the order: the response first, then the current estimate.
+    let ack = exchange(
+        &mut c,
+        br#"{"jsonrpc":"2.0","id":7,"method":"lights.subscribe"}"#,
+    );
+    assert_eq!(ack, json!({ "jsonrpc": "2.0", "result": null, "id": 7 }));
+    assert_eq!(update_intensity(&c.read_response().expect("update")), 1.0);
+
+    fx.fake.lights.publish(lamp_estimate(2.0, 0));
+    assert_eq!(update_intensity(&c.read_response().expect("update")), 2.0);
+    // An unchanged estimate is not sent again: the next line is the ping's answer.
+    assert!(!fx.fake.lights.publish(lamp_estimate(2.0, 0)));
+    assert_usable(&mut c);
+    // Subscribing twice changes nothing.
+    assert_eq!(
+        c.call("lights.subscribe", None).expect("again"),
+        Value::Null
+    );
+    fx.fake.lights.publish(lamp_estimate(3.0, 0));
+    let notification = c.next_notification().expect("update");
+    assert_eq!(notification.method, "lights.update");
+    assert_eq!(notification.params["main_light"]["intensity"], 3.0);
+
+    // After the unsubscribe response, nothing more comes.
+    assert_eq!(
+        c.call("lights.unsubscribe", None).expect("unsubscribe"),
+        Value::Null
+    );
+    assert_eq!(fx.fake.lights.subscribers(), 0);
+    fx.fake.lights.publish(lamp_estimate(4.0, 0));
+    assert_usable(&mut c);
+    assert_eq!(fx.fake.lights.subscribers(), 0);
+}
+
+#[test]
+fn notifications_arriving_during_a_call_are_kept_for_later() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    c.call("lights.subscribe", None).expect("subscribe");
+    fx.fake.lights.publish(lamp_estimate(5.0, 0));
+    // The update is on the wire before the ping's response; the call skips and keeps it.
+    std::thread::sleep(Duration::from_millis(50));
+    assert_usable(&mut c);
+    let notification = c.next_notification().expect("kept update");
+    assert_eq!(notification.params["main_light"]["intensity"], 5.0);
+}
+
+#[test]
+fn lights_methods_reject_params_and_the_connection_goes_on() {
+    let fx = default_fixture();
+    let mut c = fx.client();
+    for (method, params) in [
+        ("lights.subscribe", json!({ "rate": 10 })),
+        ("lights.subscribe", json!([1])),
+        ("lights.get", json!({ "verbose": true })),
+        ("lights.unsubscribe", json!(["now"])),
+    ] {
+        let error = rpc_error(c.call(method, Some(params.clone())));
+        assert_eq!(
+            error.code,
+            codes::INVALID_PARAMS,
+            "{method} {params}: {error:?}"
+        );
+    }
+    let response = exchange(
+        &mut c,
+        br#"{"jsonrpc":"2.0","id":1,"method":"lights.subscribe","params":"x"}"#,
+    );
+    assert_eq!(error_code(&response), codes::INVALID_REQUEST, "{response}");
+    // None of them subscribed.
+    fx.fake.lights.publish(lamp_estimate(1.0, 0));
+    assert_usable(&mut c);
+    assert_eq!(fx.fake.lights.subscribers(), 0);
+    let error = rpc_error(c.call("lights.sub", None));
+    assert_eq!(error.code, codes::METHOD_NOT_FOUND);
+    let methods = error.data.expect("method list")["methods"].clone();
+    for method in ["lights.get", "lights.subscribe", "lights.unsubscribe"] {
+        assert!(
+            methods
+                .as_array()
+                .is_some_and(|m| m.contains(&json!(method))),
+            "{methods}"
+        );
+    }
+}
+
+#[test]
+fn subscribed_connections_are_not_closed_for_idling() {
+    let fx = Fixture::new(ServerOptions {
+        idle_timeout: Duration::from_millis(100),
+        ..ServerOptions::default()
+    });
+    let mut idle = fx.client();
+    assert_usable(&mut idle);
+    let mut listening = fx.client();
+    listening.call("lights.subscribe", None).expect("subscribe");
+    std::thread::sleep(Duration::from_millis(400));
+    assert!(matches!(idle.read_response(), Err(ClientError::Closed)));
+    fx.fake.lights.publish(lamp_estimate(6.0, 0));
+    let update = listening.next_notification().expect("still listening");
+    assert_eq!(update.params["main_light"]["intensity"], 6.0);
+}
+
+/// A subscriber that never reads fills its socket buffer; the publisher and the other clients go
+/// on regardless, and it is disconnected after the write timeout.
+#[test]
+fn a_subscriber_that_never_reads_blocks_nobody_and_is_dropped() {
+    let fx = Fixture::new(ServerOptions {
+        write_timeout: Duration::from_millis(300),
+        ..ServerOptions::default()
+    });
+    let mut stuck = fx.client();
+    stuck.call("lights.subscribe", None).expect("subscribe");
+    let mut reader = fx.client();
+    reader.call("lights.subscribe", None).expect("subscribe");
+
+    // Each update is some 10 KB of JSON: a few dozen fill the stuck client's socket buffer.
+    for i in 1..=400 {
+        fx.fake.lights.publish(lamp_estimate(i as f32, 100));
+        assert_usable(&mut reader);
+    }
+    let mut other = fx.client();
+    assert_usable(&mut other);
+    // The reader took some updates along the way; coalescing may skip some, but the last one it
+    // gets is the newest.
+    let mut last = 0.0;
+    while let Ok(update) = reader.next_notification() {
+        last = update.params["main_light"]["intensity"]
+            .as_f64()
+            .unwrap_or(0.0);
+        if last == 400.0 {
+            break;
+        }
+    }
+    assert_eq!(last, 400.0);
+
+    // The stuck subscriber is disconnected once a write has waited for the timeout.
+    let deadline = std::time::Instant::now() + TIMEOUT;
+    while fx.fake.lights.subscribers() > 1 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "stuck subscriber still registered"
+        );
+        fx.fake.lights.publish(lamp_estimate(
+            1000.0 + fx.fake.lights.published() as f32,
+            100,
+        ));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let mut ended = false;
+    while !ended {
+        match stuck.next_notification() {
+            Ok(_) => {}
+            Err(ClientError::Closed | ClientError::Io(_)) => ended = true,
+            Err(err) => panic!("expected the connection to end, got {err}"),
+        }
+    }
+    assert_usable(&mut other);
+}
+
+#[test]
+fn relightctl_lights_get_and_watch() {
+    let fx = default_fixture();
+    let (code, out, err) = relightctl(&fx.socket, &["lights", "get"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(out.trim(), "no lighting estimate yet");
+    let (code, out, err) = relightctl(&fx.socket, &["--json", "lights", "get"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(out.trim(), "null");
+
+    fx.fake.lights.publish(lamp_estimate(2.0, 0));
+    let (code, out, err) = relightctl(&fx.socket, &["lights", "get"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        out.contains("main light") && out.contains("2.000 W/m²"),
+        "{out}"
+    );
+    assert!(out.contains(r#""type":"point""#), "{out}");
+
+    let mut watch = Command::new(env!("CARGO_BIN_EXE_relightctl"))
+        .arg("--socket")
+        .arg(&fx.socket)
+        .args(["--timeout-ms", "200", "lights", "watch"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .expect("relightctl lights watch");
+    let stdout = watch.stdout.take().expect("stdout");
+    let mut lines = std::io::BufRead::lines(std::io::BufReader::new(stdout));
+    let mut next_intensity = || -> f64 {
+        let line = lines.next().expect("a line").expect("utf-8");
+        let estimate: Value = serde_json::from_str(&line).expect("one JSON estimate per line");
+        estimate["main_light"]["intensity"]
+            .as_f64()
+            .expect("intensity")
+    };
+    assert_eq!(next_intensity(), 2.0);
+    // Quiet for longer than the client timeout: it keeps watching.
+    std::thread::sleep(Duration::from_millis(500));
+    fx.fake.lights.publish(lamp_estimate(3.0, 0));
+    assert_eq!(next_intensity(), 3.0);
+    let _ = watch.kill();
+    let _ = watch.wait();
 }

@@ -184,7 +184,8 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
             "differential",
             "dlpv",
             "dvct",
-            "dir"
+            "dir",
+            "ibl"
         ]
     );
     let unknown = ctl(&socket, &["engine", "set", "dlvp"]);
@@ -368,6 +369,7 @@ fn gpu_engines_switch_live_while_replaying() {
             "dir",
             vec!["rsm_size=64", "vpl_count=32", "ism_points=2048"],
         ),
+        ("ibl", vec!["rsm_size=64", "map_size=16", "env_lights=4"]),
     ] {
         let out = ctl(&socket, &["engine", "set", engine]);
         assert!(

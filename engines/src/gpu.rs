@@ -268,6 +268,14 @@ impl GpuContext {
         self.lost.lock().map(|l| l.is_some()).unwrap_or(true)
     }
 
+    /// Block until every submitted command has finished (for timing whole passes).
+    pub fn wait(&self) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        self.check()
+    }
+
     /// Copy `size` bytes of `source` into `staging` (MAP_READ | COPY_DST, at least `size`),
     /// wait, and hand the bytes to `read`.
     pub fn read_back<T>(

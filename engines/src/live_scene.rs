@@ -11,7 +11,7 @@ use std::sync::Arc;
 use glam::Vec3;
 use relight_core::camera::Pinhole;
 use relight_core::light::Light;
-use relight_core::scene::{Material, Mesh, Scene};
+use relight_core::scene::{EnvironmentMap, Material, Mesh, Scene};
 use relight_core::{Image, LampState, Pose};
 
 /// Where the real geometry comes from.
@@ -23,6 +23,17 @@ pub enum RealGeometry {
     Scene,
 }
 
+/// Where the real scene's light comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LightSource {
+    /// The scene file's lights and environment map (a known room).
+    Scene,
+    /// The light probe's environment map, as estimated live; the scene file's lights and map are
+    /// left out (the probe sees them). Only the engines that take environment light (`ibl`,
+    /// `dir`) see it; the others are lit by the lamp alone.
+    Probe,
+}
+
 /// Neighbouring depth samples further apart than this (relative) are not joined: a depth edge.
 const MAX_RELATIVE_JUMP: f32 = 0.05;
 
@@ -31,6 +42,7 @@ pub struct LiveScene {
     base: Scene,
     real: RealGeometry,
     real_material: usize,
+    light_source: LightSource,
     depth_camera: Option<Pinhole>,
     stride: u32,
     /// The scene without per-frame parts, shared while nothing changes (engines cache uploads
@@ -69,11 +81,50 @@ impl LiveScene {
             base,
             real,
             real_material,
+            light_source: LightSource::Scene,
             depth_camera,
             stride: stride.max(1),
             fixed: None,
             lamp: None,
         }
+    }
+
+    /// Take the real scene's light from `source` from now on.
+    pub fn set_light_source(&mut self, source: LightSource) {
+        if source == LightSource::Probe {
+            self.base.lights.clear();
+            self.base.environment = None;
+        }
+        self.light_source = source;
+        self.fixed = None;
+    }
+
+    /// The probe's newest environment map (used with [`LightSource::Probe`]).
+    pub fn set_probe_environment(&mut self, environment: &EnvironmentMap) {
+        if self.light_source == LightSource::Probe {
+            self.base.environment = Some(environment.clone());
+            self.fixed = None;
+        }
+    }
+
+    /// The lights the next frame is lit by: the scene file's (with [`LightSource::Scene`]) and
+    /// the lamp as last reported.
+    pub fn lights(&self) -> Vec<Light> {
+        self.base
+            .lights
+            .iter()
+            .copied()
+            .chain(self.lamp_light())
+            .collect()
+    }
+
+    fn lamp_light(&self) -> Option<Light> {
+        self.lamp
+            .filter(|l| l.on && l.position_in_world.is_finite())
+            .map(|l| Light::Point {
+                position_in_world: l.position_in_world,
+                intensity: l.intensity,
+            })
     }
 
     /// The scene for one frame set; `None` when the real surface is to come from depth and
@@ -83,13 +134,7 @@ impl LiveScene {
         if let Some(lamp) = lamp {
             self.lamp = Some(*lamp);
         }
-        let lamp_light = self
-            .lamp
-            .filter(|l| l.on && l.position_in_world.is_finite())
-            .map(|l| Light::Point {
-                position_in_world: l.position_in_world,
-                intensity: l.intensity,
-            });
+        let lamp_light = self.lamp_light();
         if self.real == RealGeometry::Scene && lamp_light.is_none() {
             return Some(
                 self.fixed

@@ -85,7 +85,7 @@ fn shipped_scenes_give_finite_images() {
         "window_env",
     ] {
         let scene = Arc::new(load_scene(name));
-        for engine_name in ["differential", "dlpv", "dvct", "dir"] {
+        for engine_name in ["differential", "dlpv", "dvct", "dir", "ibl"] {
             let (delta, out) = delta_of(&mut engine(engine_name), &frame(scene.clone(), 64, 48));
             assert!(
                 delta.iter().all(|d| d.is_finite()),

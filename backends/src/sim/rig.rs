@@ -428,6 +428,7 @@ impl SimRig {
             probe_response: probe
                 .map(|_| self.settings.response.inverse_table())
                 .unwrap_or_default(),
+            probe_radiance_scale: probe.map_or(1.0, |p| 1.0 / p.exposure_scale),
             ..RigCalibration::default()
         }
     }

@@ -3,13 +3,16 @@
 //! Exit status: 0 on success, 1 when the daemon answers with an error (or the exchange fails after
 //! connecting), 2 when the socket cannot be reached or the command line is wrong.
 
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::{Parser, Subcommand};
 use relight_daemon::config::DEFAULT_SOCKET_PATH;
+use relight_daemon::control::rpc::LIGHTS_UPDATE;
 use relight_daemon::control::{Client, ClientError, EngineInfo, StatusReport};
+use relight_recon::estimate::LightingEstimate;
 use serde_json::{Map, Value, json};
 
 #[derive(Debug, Parser)]
@@ -48,6 +51,11 @@ enum Command {
     Reload,
     /// Advance a stepped replay by FRAMES messages (default 1).
     Step { frames: Option<u32> },
+    /// The lighting estimate: main light, SH9, extracted lights.
+    Lights {
+        #[command(subcommand)]
+        action: LightsAction,
+    },
     /// Call any JSON-RPC method; JSON is its params (an object or an array).
     Call {
         method: String,
@@ -82,6 +90,14 @@ enum ParamsAction {
 }
 
 #[derive(Debug, Subcommand)]
+enum LightsAction {
+    /// Show the current estimate (`null` with --json before the first).
+    Get,
+    /// Print every update as one JSON line (the first is the current estimate) until interrupted.
+    Watch,
+}
+
+#[derive(Debug, Subcommand)]
 enum RecordAction {
     /// Start recording (to PATH, or a new file in the configured recordings directory).
     Start { path: Option<PathBuf> },
@@ -111,17 +127,58 @@ fn parse_assignment(text: &str) -> Result<(String, Value), String> {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let (method, params) = request(&cli.command);
-    let result = Client::connect(&cli.socket, Duration::from_millis(cli.timeout_ms))
-        .and_then(|mut client| client.call(method, params));
-    match result {
-        Ok(result) => {
-            if cli.json {
-                println!("{result}");
-            } else {
-                print!("{}", render(&cli.command, &result));
-            }
-            ExitCode::SUCCESS
+    let timeout = Duration::from_millis(cli.timeout_ms);
+    if matches!(
+        cli.command,
+        Command::Lights {
+            action: LightsAction::Watch
         }
+    ) {
+        return exit_code(method, watch_lights(&cli.socket, timeout));
+    }
+    let result = Client::connect(&cli.socket, timeout)
+        .and_then(|mut client| client.call(method, params))
+        .map(|result| {
+            let text = if cli.json {
+                format!("{result}\n")
+            } else {
+                render(&cli.command, &result)
+            };
+            // A closed stdout (`| head`) is not the daemon's fault; nothing more to say.
+            let _ = std::io::stdout().lock().write_all(text.as_bytes());
+        });
+    exit_code(method, result)
+}
+
+/// Subscribes to the lighting estimate and prints each `lights.update` as a JSON line. Returns
+/// only on an error (the daemon went away) or when stdout is closed.
+fn watch_lights(socket: &Path, timeout: Duration) -> Result<(), ClientError> {
+    let mut client = Client::connect(socket, timeout)?;
+    client.call("lights.subscribe", None)?;
+    let mut stdout = std::io::stdout().lock();
+    loop {
+        let notification = match client.next_notification() {
+            Ok(notification) => notification,
+            // Nothing changed for a while: keep listening.
+            Err(ClientError::Timeout(_)) => continue,
+            Err(err) => return Err(err),
+        };
+        if notification.method != LIGHTS_UPDATE {
+            continue;
+        }
+        if writeln!(stdout, "{}", notification.params)
+            .and_then(|()| stdout.flush())
+            .is_err()
+        {
+            return Ok(());
+        }
+    }
+}
+
+/// The exit status of a finished command, after saying what went wrong.
+fn exit_code(method: &str, result: Result<(), ClientError>) -> ExitCode {
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
         Err(ClientError::Rpc(error)) => {
             eprintln!("relightctl: {method}: {}", error.message);
             if let Some(data) = &error.data {
@@ -164,6 +221,10 @@ fn request(command: &Command) -> (&str, Option<Value>) {
         Command::Snapshot { path } => ("snapshot", path_params(path.as_deref())),
         Command::Reload => ("config.reload", None),
         Command::Step { frames } => ("replay.step", frames.map(|n| json!({ "frames": n }))),
+        Command::Lights { action } => match action {
+            LightsAction::Get => ("lights.get", None),
+            LightsAction::Watch => ("lights.subscribe", None),
+        },
         Command::Call { method, params } => (method.as_str(), params.clone()),
     }
 }
@@ -211,8 +272,46 @@ fn render(command: &Command, result: &Value) -> String {
                 .collect(),
             None => pretty(result),
         },
+        Command::Lights {
+            action: LightsAction::Get,
+        } if result.is_null() => "no lighting estimate yet\n".to_owned(),
+        Command::Lights {
+            action: LightsAction::Get,
+        } => match serde_json::from_value::<LightingEstimate>(result.clone()) {
+            Ok(estimate) => render_lights(&estimate),
+            Err(_) => pretty(result),
+        },
         _ => pretty(result),
     }
+}
+
+fn render_lights(estimate: &LightingEstimate) -> String {
+    let vector = |v: glam::Vec3| format!("[{:.3}, {:.3}, {:.3}]", v.x, v.y, v.z);
+    let main = match &estimate.main_light {
+        Some(main) => format!(
+            "direction {}  colour {}  intensity {:.3} W/m²",
+            vector(main.direction_in_world),
+            vector(main.color),
+            main.intensity
+        ),
+        None => "none".to_owned(),
+    };
+    let environment = match estimate.environment_stamp {
+        Some(stamp) => format!("probe frame at {} ns (host)", stamp.host_ns),
+        None => "no probe".to_owned(),
+    };
+    let mut out = format!(
+        "main light   {main}\nenvironment  {environment}; SH9 DC {}\nlights       {}\n",
+        vector(estimate.sh9.coeffs[0]),
+        estimate.lights.len()
+    );
+    for light in &estimate.lights {
+        out.push_str(&format!(
+            "  {}\n",
+            serde_json::to_string(light).unwrap_or_default()
+        ));
+    }
+    out
 }
 
 fn pretty(value: &Value) -> String {

@@ -149,12 +149,16 @@ enum Command {
         /// Timed frames per case (after two warm-up frames); the median is reported.
         #[arg(long, default_value_t = 5)]
         frames: u32,
-        /// Add the papers' parameter sweeps (DLPV volume × steps and RSM sizes, DVCT volume × step, DIR VPL count and ISM size).
+        /// Add the papers' parameter sweeps (DLPV volume × steps and RSM sizes, DVCT volume × step, DIR VPL count and ISM size, IBL map size).
         #[arg(long)]
         sweep: bool,
         /// Only these engines.
         #[arg(long = "engine")]
         engines: Vec<String>,
+        /// Instead of the engine table: time the `ibl` map convolution (diffuse + 8 specular
+        /// maps in one pass) at these output sizes, e.g. `--ibl-maps 128,256,512`.
+        #[arg(long, value_delimiter = ',')]
+        ibl_maps: Vec<u32>,
         #[arg(long, default_value = "target/bench")]
         out: PathBuf,
     },
@@ -218,8 +222,22 @@ fn run(cli: Cli) -> Result<()> {
             frames,
             sweep,
             engines,
+            ibl_maps,
             out,
         } => {
+            if !ibl_maps.is_empty() {
+                println!("size     input texels  maps  median ms");
+                for row in bench::ibl_map_timings(&ibl_maps, 8, frames)? {
+                    println!(
+                        "{:>4}²  {:>13}  {:>4}  {:>9.1}",
+                        row.size,
+                        row.input_texels,
+                        row.levels + 1,
+                        row.median_ms
+                    );
+                }
+                return Ok(());
+            }
             let scenes = if scenes.is_empty() {
                 let mut found: Vec<PathBuf> = std::fs::read_dir("tests/scenes")
                     .context("no --scene given and no tests/scenes here")?

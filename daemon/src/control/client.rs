@@ -1,5 +1,9 @@
 //! A blocking client of the control socket, used by `relightctl` and by end-to-end tests.
+//!
+//! Notifications the daemon sends (`lights.update` after `lights.subscribe`) may arrive while a
+//! call waits for its response; they are kept, in order, for [`Client::next_notification`].
 
+use std::collections::VecDeque;
 use std::io::{self, BufRead, BufReader, Read, Write};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
@@ -30,6 +34,31 @@ pub enum ClientError {
     Rpc(ControlError),
 }
 
+/// A notification from the daemon: a JSON-RPC request without `id`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Notification {
+    pub method: String,
+    /// `null` when the notification has no params.
+    pub params: Value,
+}
+
+impl Notification {
+    /// The notification `message` holds, if it is one (a `method` and no `id`).
+    pub fn from_message(message: &Value) -> Option<Notification> {
+        let object = message.as_object()?;
+        if object.contains_key("id") {
+            return None;
+        }
+        Some(Notification {
+            method: object.get("method")?.as_str()?.to_owned(),
+            params: object.get("params").cloned().unwrap_or(Value::Null),
+        })
+    }
+}
+
+/// Notifications kept while calls wait for their responses, at most; older ones are dropped.
+const MAX_QUEUED_NOTIFICATIONS: usize = 1024;
+
 /// One connection to the control socket; requests are answered in order.
 #[derive(Debug)]
 pub struct Client {
@@ -37,6 +66,10 @@ pub struct Client {
     reader: BufReader<UnixStream>,
     timeout: Duration,
     next_id: u64,
+    /// Notifications read while waiting for a response.
+    notifications: VecDeque<Notification>,
+    /// The start of a line whose end has not arrived yet (a read timed out in between).
+    partial: Vec<u8>,
 }
 
 impl Client {
@@ -59,6 +92,8 @@ impl Client {
             reader,
             timeout,
             next_id: 1,
+            notifications: VecDeque::new(),
+            partial: Vec::new(),
         })
     }
 
@@ -79,7 +114,13 @@ impl Client {
                 Err(_) => Err(err),
             };
         }
-        let response = self.read_response()?;
+        let response = loop {
+            let message = self.read_response()?;
+            match Notification::from_message(&message) {
+                Some(notification) => self.queue_notification(notification),
+                None => break message,
+            }
+        };
         if let Some(err) = response_error(&response) {
             return Err(err);
         }
@@ -106,6 +147,25 @@ impl Client {
         self.send_raw(line.as_bytes())
     }
 
+    /// The next notification from the daemon: one that arrived during a call, else the next
+    /// line read (waiting at most the timeout; [`ClientError::Timeout`] leaves the connection
+    /// usable). A line that is not a notification is a protocol error.
+    pub fn next_notification(&mut self) -> Result<Notification, ClientError> {
+        if let Some(notification) = self.notifications.pop_front() {
+            return Ok(notification);
+        }
+        let message = self.read_response()?;
+        Notification::from_message(&message)
+            .ok_or_else(|| ClientError::Protocol(format!("expected a notification, got {message}")))
+    }
+
+    fn queue_notification(&mut self, notification: Notification) {
+        if self.notifications.len() == MAX_QUEUED_NOTIFICATIONS {
+            self.notifications.pop_front();
+        }
+        self.notifications.push_back(notification);
+    }
+
     /// Writes bytes as they are (the caller adds the newline).
     pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), ClientError> {
         self.writer
@@ -114,16 +174,20 @@ impl Client {
             .map_err(|err| self.io_error(err))
     }
 
-    /// Reads one response line and parses it as JSON.
+    /// Reads one line (a response or a notification) and parses it as JSON.
+    ///
+    /// A timeout in the middle of a line keeps what was read, so the next read goes on from
+    /// there.
     pub fn read_response(&mut self) -> Result<Value, ClientError> {
-        let mut line = Vec::new();
+        let limit = MAX_RESPONSE_BYTES.saturating_sub(self.partial.len() as u64);
         let read = (&mut self.reader)
-            .take(MAX_RESPONSE_BYTES)
-            .read_until(b'\n', &mut line)
-            .map_err(|err| self.io_error(err))?;
-        if read == 0 {
+            .take(limit)
+            .read_until(b'\n', &mut self.partial);
+        let read = read.map_err(|err| self.io_error(err))?;
+        if read == 0 && self.partial.is_empty() {
             return Err(ClientError::Closed);
         }
+        let line = std::mem::take(&mut self.partial);
         if line.last() != Some(&b'\n') {
             return Err(ClientError::Protocol(format!(
                 "response line not terminated after {} bytes",

@@ -17,6 +17,20 @@
 //! | `replay.step`       | `frames`? (integer ≥ 1, def. 1)| `{"frames": n}`                |
 //! | `rpc.ping`          | —                              | `"pong"`                       |
 //! | `version`           | —                              | `{"name", "version", "protocol"}` |
+//! | `lights.get`        | —                              | [`LightingEstimate`] or `null` |
+//! | `lights.subscribe`  | —                              | `null`, then notifications     |
+//! | `lights.unsubscribe`| —                              | `null`                         |
+//!
+//! After `lights.subscribe` the server sends, on that connection, a notification
+//! `{"jsonrpc": "2.0", "method": "lights.update", "params": <LightingEstimate>}` each time the
+//! estimate changes, the first one right after the `lights.subscribe` response (when there is an
+//! estimate already). `lights.get` is `null` until the pipeline publishes its first estimate
+//! (with a `[scene]`, from the first frame set it renders). Subscribing twice is harmless; after
+//! the `lights.unsubscribe` response no more updates come. A subscribed connection is not closed
+//! for being idle. Updates are coalesced to the newest for a subscriber that reads slowly, and
+//! one that stops reading is disconnected (see [`super::lights`] and [`super::server`]); either
+//! way the pipeline and the other connections never wait for it. Subscriptions need a
+//! connection: [`handle_line`] (no transport) answers `lights.subscribe` with an error.
 //!
 //! `engine.params.set` accepts `{"params": {...}}`, `[{...}]`, or the parameter object itself
 //! (`{"exposure": 2.0}`); an object whose only key is `params` is always read as the wrapped form.
@@ -28,12 +42,18 @@ use std::path::PathBuf;
 use serde::Serialize;
 use serde_json::{Map, Value, json};
 
+use super::lights::LightsSubscription;
 use super::types::{ControlError, ControlTarget};
 #[cfg(doc)]
 use super::types::{EngineInfo, StatusReport};
+#[cfg(doc)]
+use relight_recon::estimate::LightingEstimate;
+
+/// The method of the notifications a `lights.subscribe` connection receives.
+pub const LIGHTS_UPDATE: &str = "lights.update";
 
 /// Every method the server answers, for `method not found` hints.
-pub const METHODS: [&str; 12] = [
+pub const METHODS: [&str; 15] = [
     "status",
     "engine.list",
     "engine.set",
@@ -46,11 +66,72 @@ pub const METHODS: [&str; 12] = [
     "replay.step",
     "rpc.ping",
     "version",
+    "lights.get",
+    "lights.subscribe",
+    "lights.unsubscribe",
 ];
 
+/// The connection a request arrived on, for methods whose effect outlives the request.
+pub trait Session {
+    /// Whether `lights.update` notifications are being sent on this connection.
+    fn lights_subscribed(&self) -> bool;
+    /// Sends `lights.update` notifications from `subscription`, starting after the response to
+    /// the current request (line) has been written.
+    fn subscribe_lights(&mut self, subscription: LightsSubscription) -> Result<(), ControlError>;
+    /// Stops the notifications; when this returns, none will be written any more.
+    fn unsubscribe_lights(&mut self);
+}
+
+/// The session of a caller without a connection ([`handle_line`]): it cannot take notifications.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct NoSession;
+
+impl Session for NoSession {
+    fn lights_subscribed(&self) -> bool {
+        false
+    }
+
+    fn subscribe_lights(&mut self, subscription: LightsSubscription) -> Result<(), ControlError> {
+        subscription.close();
+        Err(ControlError::failed(
+            "lights.subscribe needs a connection that can receive notifications (the control socket)",
+        ))
+    }
+
+    fn unsubscribe_lights(&mut self) {}
+}
+
+/// The `lights.update` notification line (without newline) for `estimate`.
+pub fn lights_update_line<T: Serialize + ?Sized>(
+    estimate: &T,
+) -> Result<String, serde_json::Error> {
+    #[derive(Serialize)]
+    struct Notification<'a, T: ?Sized> {
+        jsonrpc: &'static str,
+        method: &'static str,
+        params: &'a T,
+    }
+    // Serialised directly (not through `Value`), so that f32 fields keep their shortest form.
+    serde_json::to_string(&Notification {
+        jsonrpc: "2.0",
+        method: LIGHTS_UPDATE,
+        params: estimate,
+    })
+}
+
 /// Handles one request line (without its newline). Returns the response line (without newline),
-/// or `None` when nothing must be sent back (notifications, blank lines).
+/// or `None` when nothing must be sent back (notifications, blank lines). Without a connection:
+/// `lights.subscribe` is an error (see [`handle_line_in`]).
 pub fn handle_line(line: &[u8], target: &dyn ControlTarget) -> Option<String> {
+    handle_line_in(line, target, &mut NoSession)
+}
+
+/// [`handle_line`] for a request that arrived on a connection, `session`.
+pub fn handle_line_in(
+    line: &[u8],
+    target: &dyn ControlTarget,
+    session: &mut dyn Session,
+) -> Option<String> {
     let text = match std::str::from_utf8(line) {
         Ok(text) => text,
         Err(err) => {
@@ -66,7 +147,7 @@ pub fn handle_line(line: &[u8], target: &dyn ControlTarget) -> Option<String> {
         return None;
     }
     let response = match serde_json::from_str::<Value>(text) {
-        Ok(value) => handle_value(value, target)?,
+        Ok(value) => handle_value_in(value, target, session)?,
         Err(err) => error_response(
             Value::Null,
             &ControlError::parse_error(format!("parse error: {err}")),
@@ -77,6 +158,15 @@ pub fn handle_line(line: &[u8], target: &dyn ControlTarget) -> Option<String> {
 
 /// Handles one parsed request or batch; `None` when no response is due.
 pub fn handle_value(value: Value, target: &dyn ControlTarget) -> Option<Value> {
+    handle_value_in(value, target, &mut NoSession)
+}
+
+/// [`handle_value`] for a request that arrived on a connection, `session`.
+pub fn handle_value_in(
+    value: Value,
+    target: &dyn ControlTarget,
+    session: &mut dyn Session,
+) -> Option<Value> {
     match value {
         Value::Array(batch) if batch.is_empty() => Some(error_response(
             Value::Null,
@@ -85,11 +175,11 @@ pub fn handle_value(value: Value, target: &dyn ControlTarget) -> Option<Value> {
         Value::Array(batch) => {
             let responses: Vec<Value> = batch
                 .into_iter()
-                .filter_map(|request| handle_request(request, target))
+                .filter_map(|request| handle_request(request, target, session))
                 .collect();
             (!responses.is_empty()).then_some(Value::Array(responses))
         }
-        request => handle_request(request, target),
+        request => handle_request(request, target, session),
     }
 }
 
@@ -109,7 +199,11 @@ pub fn error_response(id: Value, error: &ControlError) -> Value {
     json!({ "jsonrpc": "2.0", "error": Value::Object(object), "id": id })
 }
 
-fn handle_request(request: Value, target: &dyn ControlTarget) -> Option<Value> {
+fn handle_request(
+    request: Value,
+    target: &dyn ControlTarget,
+    session: &mut dyn Session,
+) -> Option<Value> {
     let Value::Object(mut request) = request else {
         let error = ControlError::invalid_request(format!(
             "invalid request: expected a JSON object, got {}",
@@ -142,12 +236,14 @@ fn handle_request(request: Value, target: &dyn ControlTarget) -> Option<Value> {
         }
     };
     let params = request.remove("params");
-    let outcome = catch_unwind(AssertUnwindSafe(|| dispatch(&method, params, target)))
-        .unwrap_or_else(|_| {
-            Err(ControlError::internal(format!(
-                "internal error: `{method}` handler panicked"
-            )))
-        });
+    let outcome = catch_unwind(AssertUnwindSafe(|| {
+        dispatch(&method, params, target, session)
+    }))
+    .unwrap_or_else(|_| {
+        Err(ControlError::internal(format!(
+            "internal error: `{method}` handler panicked"
+        )))
+    });
     if id.is_none() {
         if let Err(error) = &outcome {
             tracing::debug!(method, %error, "control notification failed");
@@ -205,6 +301,7 @@ fn dispatch(
     method: &str,
     params: Option<Value>,
     target: &dyn ControlTarget,
+    session: &mut dyn Session,
 ) -> Result<Value, ControlError> {
     match method {
         "status" => {
@@ -277,6 +374,32 @@ fn dispatch(
                 "version": env!("CARGO_PKG_VERSION"),
                 "protocol": "jsonrpc-2.0",
             }))
+        }
+        "lights.get" => {
+            no_params(method, params)?;
+            match target.lights().and_then(|board| board.latest()) {
+                // Through text, so that f32 fields print in their shortest form (0.1, not
+                // 0.10000000149011612).
+                Some(estimate) => serde_json::to_string(&*estimate)
+                    .and_then(|text| serde_json::from_str(&text))
+                    .map_err(|err| ControlError::internal(format!("cannot encode result: {err}"))),
+                None => Ok(Value::Null),
+            }
+        }
+        "lights.subscribe" => {
+            no_params(method, params)?;
+            let board = target.lights().ok_or_else(|| {
+                ControlError::failed("this daemon publishes no lighting estimate")
+            })?;
+            if !session.lights_subscribed() {
+                session.subscribe_lights(board.subscribe())?;
+            }
+            Ok(Value::Null)
+        }
+        "lights.unsubscribe" => {
+            no_params(method, params)?;
+            session.unsubscribe_lights();
+            Ok(Value::Null)
         }
         _ => Err(ControlError::method_not_found(method).with_data(json!({ "methods": METHODS }))),
     }

@@ -1,6 +1,13 @@
 //! The control socket server: a Unix stream socket, one thread per connection, newline-delimited
 //! JSON-RPC 2.0 (see [`super::rpc`]).
 //!
+//! A connection subscribed to the lighting estimate (`lights.subscribe`) gets a second thread that
+//! writes its `lights.update` notifications; responses and notifications share one write lock, so
+//! lines never interleave. Updates wait in the subscriber's one-slot mailbox (coalesced to the
+//! newest, see [`super::lights`]); a subscriber that stops reading for
+//! [`ServerOptions::write_timeout`] is disconnected. Neither ever holds up the pipeline or another
+//! connection.
+//!
 //! Access control has two layers: the socket file's mode and group (so that `connect` itself fails
 //! for strangers), and the peer's credentials (`SO_PEERCRED`), checked on every connection so
 //! that a wrong file mode cannot open the daemon to everyone.
@@ -17,15 +24,16 @@ use std::time::Duration;
 
 use serde_json::Value;
 
-use super::rpc;
+use super::lights::LightsSubscription;
+use super::rpc::{self, Session as _};
 use super::types::{ControlError, ControlTarget, codes};
 
 /// Connections served at once; further ones get an error line and are closed.
 pub const DEFAULT_MAX_CONNECTIONS: usize = 16;
 /// A connection that sends nothing for this long is closed (it would hold a connection slot).
 pub const DEFAULT_IDLE_TIMEOUT: Duration = Duration::from_secs(60);
-/// A peer that does not read its responses for this long is dropped.
-const WRITE_TIMEOUT: Duration = Duration::from_secs(10);
+/// A peer that does not read its responses (or notifications) for this long is dropped.
+pub const DEFAULT_WRITE_TIMEOUT: Duration = Duration::from_secs(10);
 /// Bytes read from the socket at a time.
 const READ_CHUNK_BYTES: usize = 8192;
 
@@ -39,7 +47,10 @@ pub struct ServerOptions {
     /// Longest accepted request line, bytes (without the newline).
     pub max_request_bytes: usize,
     pub max_connections: usize,
+    /// A connection that sends nothing for this long is closed, unless it is subscribed.
     pub idle_timeout: Duration,
+    /// A peer that does not read what it is sent for this long is disconnected.
+    pub write_timeout: Duration,
 }
 
 impl Default for ServerOptions {
@@ -50,6 +61,7 @@ impl Default for ServerOptions {
             max_request_bytes: crate::config::DEFAULT_MAX_REQUEST_BYTES,
             max_connections: DEFAULT_MAX_CONNECTIONS,
             idle_timeout: DEFAULT_IDLE_TIMEOUT,
+            write_timeout: DEFAULT_WRITE_TIMEOUT,
         }
     }
 }
@@ -356,7 +368,7 @@ fn accept_loop(listener: &UnixListener, shared: &Arc<Shared>) {
 
 /// Checks the peer and the connection cap, then starts the connection's thread.
 fn admit(mut stream: UnixStream, shared: &Arc<Shared>) {
-    let _ = stream.set_write_timeout(Some(WRITE_TIMEOUT));
+    let _ = stream.set_write_timeout(Some(shared.options.write_timeout));
     let cred = match rustix::net::sockopt::socket_peercred(&stream) {
         Ok(cred) => PeerCred {
             pid: u32::try_from(cred.pid.as_raw_nonzero().get()).ok(),
@@ -435,12 +447,17 @@ fn serve_connection(stream: UnixStream, shared: &Shared, connection_id: u64) {
     if let Err(err) = stream.set_read_timeout(Some(shared.options.idle_timeout)) {
         tracing::warn!(connection_id, %err, "cannot set control read timeout");
     }
-    let mut writer = match stream.try_clone() {
-        Ok(writer) => writer,
+    let writer = match stream.try_clone() {
+        Ok(writer) => Arc::new(Mutex::new(writer)),
         Err(err) => {
             tracing::warn!(connection_id, %err, "cannot clone control connection");
             return;
         }
+    };
+    let mut session = ConnectionSession {
+        connection_id,
+        writer: Arc::clone(&writer),
+        lights: LightsPush::Off,
     };
     let max_bytes = shared.options.max_request_bytes;
     let mut reader = LineReader::new(stream, max_bytes);
@@ -449,7 +466,9 @@ fn serve_connection(stream: UnixStream, shared: &Shared, connection_id: u64) {
             break;
         }
         let response = match reader.next_line() {
-            Ok(ReadLine::Line(line)) => rpc::handle_line(&line, shared.target.as_ref()),
+            Ok(ReadLine::Line(line)) => {
+                rpc::handle_line_in(&line, shared.target.as_ref(), &mut session)
+            }
             Ok(ReadLine::TooLong(bytes)) => {
                 tracing::debug!(connection_id, bytes, "control request too large");
                 let error = ControlError::invalid_request(format!(
@@ -464,6 +483,10 @@ fn serve_connection(stream: UnixStream, shared: &Shared, connection_id: u64) {
                     io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
                 ) =>
             {
+                if session.lights_subscribed() {
+                    // Listening for updates is not idling.
+                    continue;
+                }
                 tracing::debug!(connection_id, "control connection idle, closing");
                 break;
             }
@@ -474,13 +497,148 @@ fn serve_connection(stream: UnixStream, shared: &Shared, connection_id: u64) {
         };
         if let Some(mut line) = response {
             line.push('\n');
-            if let Err(err) = writer.write_all(line.as_bytes()) {
+            if let Err(err) = lock(&writer).write_all(line.as_bytes()) {
                 tracing::debug!(connection_id, %err, "control connection write failed");
                 break;
             }
         }
+        session.start_pushing();
     }
+    drop(session);
     tracing::debug!(connection_id, "control connection closed");
+}
+
+/// A connection's state for the methods that outlive a request.
+struct ConnectionSession {
+    connection_id: u64,
+    /// Shared by responses and notifications, so that lines never interleave.
+    writer: Arc<Mutex<UnixStream>>,
+    lights: LightsPush,
+}
+
+/// The `lights.update` notifications of one connection.
+enum LightsPush {
+    Off,
+    /// Subscribed during the current request; pushing starts once its response is written.
+    Armed(LightsSubscription),
+    /// A thread writes each update as it comes.
+    Running {
+        subscription: LightsSubscription,
+        thread: JoinHandle<()>,
+    },
+}
+
+impl ConnectionSession {
+    /// Starts the notification thread of a subscription made by the request just answered.
+    fn start_pushing(&mut self) {
+        let subscription = match std::mem::replace(&mut self.lights, LightsPush::Off) {
+            LightsPush::Armed(subscription) => subscription,
+            other => {
+                self.lights = other;
+                return;
+            }
+        };
+        let connection_id = self.connection_id;
+        let writer = Arc::clone(&self.writer);
+        let pushed = subscription.clone();
+        let spawned = std::thread::Builder::new()
+            .name(format!("relightd-ctl-{connection_id}-lights"))
+            .spawn(move || push_lights(&pushed, &writer, connection_id));
+        match spawned {
+            Ok(thread) => {
+                self.lights = LightsPush::Running {
+                    subscription,
+                    thread,
+                };
+            }
+            Err(err) => {
+                tracing::warn!(
+                    connection_id,
+                    %err,
+                    "lights subscription dropped: cannot spawn a thread"
+                );
+                subscription.close();
+            }
+        }
+    }
+}
+
+impl rpc::Session for ConnectionSession {
+    fn lights_subscribed(&self) -> bool {
+        match &self.lights {
+            LightsPush::Off => false,
+            LightsPush::Armed(_) => true,
+            LightsPush::Running { thread, .. } => !thread.is_finished(),
+        }
+    }
+
+    fn subscribe_lights(&mut self, subscription: LightsSubscription) -> Result<(), ControlError> {
+        self.unsubscribe_lights();
+        tracing::debug!(connection_id = self.connection_id, "lights subscribed");
+        self.lights = LightsPush::Armed(subscription);
+        Ok(())
+    }
+
+    fn unsubscribe_lights(&mut self) {
+        match std::mem::replace(&mut self.lights, LightsPush::Off) {
+            LightsPush::Off => {}
+            LightsPush::Armed(subscription) => subscription.close(),
+            LightsPush::Running {
+                subscription,
+                thread,
+            } => {
+                subscription.close();
+                // At most one write in progress, bounded by the write timeout.
+                if thread.join().is_err() {
+                    tracing::error!(
+                        connection_id = self.connection_id,
+                        "lights notification thread panicked"
+                    );
+                }
+            }
+        }
+    }
+}
+
+impl Drop for ConnectionSession {
+    fn drop(&mut self) {
+        self.unsubscribe_lights();
+    }
+}
+
+/// Writes a `lights.update` line for each update until the subscription closes. A failed write
+/// (the peer went away, or did not read for [`ServerOptions::write_timeout`]) shuts the
+/// connection down, which also ends its reading thread.
+fn push_lights(subscription: &LightsSubscription, writer: &Mutex<UnixStream>, connection_id: u64) {
+    while let Some(estimate) = subscription.recv() {
+        let mut line = match rpc::lights_update_line(&*estimate) {
+            Ok(line) => line,
+            Err(err) => {
+                tracing::warn!(connection_id, %err, "cannot encode the lighting estimate");
+                continue;
+            }
+        };
+        line.push('\n');
+        let writer = lock(writer);
+        if let Err(err) = (&*writer).write_all(line.as_bytes()) {
+            let coalesced = subscription.coalesced();
+            if matches!(
+                err.kind(),
+                io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+            ) {
+                tracing::warn!(
+                    connection_id,
+                    coalesced,
+                    "lights subscriber disconnected: it stopped reading"
+                );
+            } else {
+                tracing::debug!(connection_id, %err, coalesced, "lights subscriber gone");
+            }
+            let _ = writer.shutdown(std::net::Shutdown::Both);
+            subscription.close();
+            return;
+        }
+    }
 }
 
 /// One outcome of [`LineReader::next_line`].

@@ -7,6 +7,8 @@ use relight_core::StreamKind;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+use super::lights::LightsBoard;
+
 /// JSON-RPC 2.0 error codes: the five the spec defines, then relightd's application codes
 /// (the spec reserves −32000..−32099 for implementation-defined server errors).
 pub mod codes {
@@ -57,6 +59,12 @@ pub trait ControlTarget: Send + Sync + 'static {
     fn replay_step(&self, frames: u32) -> Result<Value, ControlError> {
         let _ = frames;
         Err(ControlError::failed("no stepped replay is running"))
+    }
+
+    /// Where the lighting estimate is published (`lights.get`, `lights.subscribe`); `None` when
+    /// this target publishes none.
+    fn lights(&self) -> Option<&LightsBoard> {
+        None
     }
 }
 

@@ -1,0 +1,197 @@
+//! The light probe's estimate, frame by frame: collect one bracket of exposures, merge it to HDR
+//! ([`crate::hdr::merge`], Robertson), resample it into a world-direction environment map through
+//! the calibrated lens and pose ([`crate::envmap::probe_to_environment`]), split it into lights
+//! ([`crate::median_cut::extract_lights`]) and project it to SH9
+//! ([`crate::irradiance::project_sh9`]).
+//!
+//! Brackets: the probe cycles through its exposures, one per frame. The newest frame of each
+//! exposure is kept. The cycle's length is learned from the stream: it is the number of
+//! exposures seen when one comes round again (and is learned anew when an exposure never seen
+//! appears, e.g. after the exposure settings change). A bracket is complete when every exposure
+//! of the cycle has a frame newer than the last estimate, so an estimate follows each full cycle
+//! and no frame enters two estimates. Frames older than [`ProbeSettings::max_age_ns`] are dropped (a stalled exposure
+//! must not hold a stale sky in the bracket). A change of image size starts over.
+
+use std::sync::Arc;
+
+use relight_core::camera::{CameraModel, KannalaBrandt};
+use relight_core::light::Light;
+use relight_core::rig::RigCalibration;
+use relight_core::scene::EnvironmentMap;
+use relight_core::sh::Sh9Rgb;
+use relight_core::{Frame, Pose, ProbeImage, Timestamp};
+
+use crate::envmap::{EnvMapError, EnvMapSettings, probe_to_environment};
+use crate::hdr::{HdrError, Response, merge};
+use crate::irradiance::project_sh9;
+use crate::median_cut::{MedianCutSettings, extract_lights};
+
+/// Why the probe cannot be used.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ProbeError {
+    #[error("the rig calibration has no Kannala–Brandt probe model")]
+    NoProbeModel,
+    #[error("the probe's response: {0}")]
+    Response(#[from] HdrError),
+    #[error("the probe's environment map: {0}")]
+    EnvMap(#[from] EnvMapError),
+}
+
+/// How the estimate is made.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProbeSettings {
+    pub envmap: EnvMapSettings,
+    pub lights: MedianCutSettings,
+    /// Radiance, W/(m²·sr), per unit of merged HDR value (linearised response per second of
+    /// exposure): the probe's absolute photometric calibration
+    /// ([`RigCalibration::probe_radiance_scale`]).
+    pub radiance_scale: f32,
+    /// Frames older than this (device clock, relative to the newest) leave the bracket.
+    pub max_age_ns: u64,
+}
+
+impl Default for ProbeSettings {
+    fn default() -> Self {
+        Self {
+            envmap: EnvMapSettings {
+                width: 128,
+                height: 64,
+                ..EnvMapSettings::default()
+            },
+            lights: MedianCutSettings::default(),
+            radiance_scale: 1.0,
+            max_age_ns: 2_000_000_000,
+        }
+    }
+}
+
+/// One estimate from one bracket.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ProbeEstimate {
+    /// Timestamp of the bracket's newest frame.
+    pub stamp: Timestamp,
+    /// World-direction radiance, W/(m²·sr); directions the probe does not see are black.
+    pub environment: Arc<EnvironmentMap>,
+    /// The map's radiance as L2 SH.
+    pub sh9: Sh9Rgb,
+    /// One directional light per median-cut region, brightest first.
+    pub lights: Vec<Light>,
+    /// Exposures merged.
+    pub exposures: usize,
+}
+
+/// Turns probe frames into estimates (see the module docs).
+#[derive(Debug)]
+pub struct ProbeLighting {
+    lens: KannalaBrandt,
+    world_from_probe: Pose,
+    response: Response,
+    settings: ProbeSettings,
+    /// Newest frame per exposure, and whether it arrived after the last estimate.
+    bracket: Vec<(Arc<Frame<ProbeImage>>, bool)>,
+    /// Exposures per cycle, once one has come round.
+    cycle: Option<usize>,
+}
+
+impl ProbeLighting {
+    /// From the rig's calibration: its Kannala–Brandt probe, the probe's pose and inverse
+    /// response (a linear response when the calibration has none), and its radiance scale.
+    pub fn new(rig: &RigCalibration, mut settings: ProbeSettings) -> Result<Self, ProbeError> {
+        let Some(CameraModel::KannalaBrandt(lens)) = rig.probe else {
+            return Err(ProbeError::NoProbeModel);
+        };
+        let response = if rig.probe_response.is_empty() {
+            Response::linear()
+        } else {
+            Response::from_calibration(rig)?
+        };
+        settings.radiance_scale = rig.probe_radiance_scale;
+        Ok(Self {
+            lens,
+            world_from_probe: rig.world_from_probe,
+            response,
+            settings,
+            bracket: Vec::new(),
+            cycle: None,
+        })
+    }
+
+    /// Take one probe frame; returns an estimate when it completes a bracket.
+    pub fn push(
+        &mut self,
+        frame: &Arc<Frame<ProbeImage>>,
+    ) -> Result<Option<ProbeEstimate>, ProbeError> {
+        let image = &frame.payload.image;
+        let newest = frame.stamp.device_ns;
+        let max_age = self.settings.max_age_ns;
+        let before = self.bracket.len();
+        self.bracket.retain(|(f, _)| {
+            f.payload.image.width() == image.width()
+                && f.payload.image.height() == image.height()
+                && newest.saturating_sub(f.stamp.device_ns) <= max_age
+        });
+        if self.bracket.len() != before {
+            self.cycle = None;
+        }
+        match self
+            .bracket
+            .iter_mut()
+            .find(|(f, _)| f.payload.exposure_us == frame.payload.exposure_us)
+        {
+            Some(slot) => {
+                *slot = (frame.clone(), true);
+                self.cycle.get_or_insert(self.bracket.len());
+            }
+            None => {
+                self.bracket.push((frame.clone(), true));
+                self.cycle = None;
+            }
+        }
+        let complete = self
+            .cycle
+            .is_some_and(|n| n >= 2 && self.bracket.len() >= n);
+        if !complete || !self.bracket.iter().all(|(_, fresh)| *fresh) {
+            return Ok(None);
+        }
+        for (_, fresh) in &mut self.bracket {
+            *fresh = false;
+        }
+        self.estimate().map(Some)
+    }
+
+    fn estimate(&self) -> Result<ProbeEstimate, ProbeError> {
+        let frames: Vec<&ProbeImage> = self.bracket.iter().map(|(f, _)| &f.payload).collect();
+        let mut hdr = merge(&frames, &self.response)?;
+        let scale = self.settings.radiance_scale;
+        if scale != 1.0 && scale.is_finite() && scale > 0.0 {
+            for l in &mut hdr.radiance {
+                *l *= scale;
+            }
+        }
+        let environment = probe_to_environment(
+            &hdr,
+            &self.lens,
+            &self.world_from_probe,
+            &self.settings.envmap,
+        )?
+        .map;
+        let lights = extract_lights(&environment, &self.settings.lights)?
+            .iter()
+            .map(|r| r.to_light())
+            .collect();
+        let sh9 = project_sh9(&environment)?;
+        let stamp = self
+            .bracket
+            .iter()
+            .map(|(f, _)| f.stamp)
+            .max()
+            .unwrap_or_default();
+        Ok(ProbeEstimate {
+            stamp,
+            environment: Arc::new(environment),
+            sh9,
+            lights,
+            exposures: frames.len(),
+        })
+    }
+}
