@@ -3,7 +3,7 @@
 // written to the indirect buffer, which the shared shading pass adds to virtual pixels' L^ρ.
 // ⟨n, r⟩ is the cosine of the scene format's Phong BRDF (without the paper's division by
 // |n·ω_i|) taken at the lobe's centre, exact as the lobe narrows. The ambient occlusion is the
-// visibility of the environment's shadow lights (the median-cut lights, flagged
+// visibility of the environment's shadow lights (importance-sampled from the map, flagged
 // LIGHT_SHADOW_ONLY) through R^ρ, weighted by the light each brings to the surface. Real
 // pixels get nothing here: their Δ is the shadow those lights' maps give (shade.wgsl).
 

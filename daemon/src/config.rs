@@ -76,6 +76,8 @@ pub struct SceneConfig {
     pub depth_stride: u32,
     /// Where the real scene's light comes from: the scene file, or the light probe.
     pub lighting: LightSource,
+    /// Filter depth (guided by colour) and merge it over time before triangulating it.
+    pub depth_filter: bool,
 }
 
 impl Default for SceneConfig {
@@ -86,6 +88,7 @@ impl Default for SceneConfig {
             real_albedo: 0.6,
             depth_stride: 2,
             lighting: LightSource::Scene,
+            depth_filter: true,
         }
     }
 }
@@ -598,6 +601,7 @@ struct RawScene {
     real_albedo: Option<f64>,
     depth_stride: Option<i64>,
     lighting: Option<String>,
+    depth_filter: Option<bool>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -981,6 +985,9 @@ impl Validator<'_> {
                 "scene.real",
                 format!("must be \"depth\" or \"scene\", got \"{other}\""),
             ),
+        }
+        if let Some(filter) = raw.depth_filter {
+            scene.depth_filter = filter;
         }
         match raw.lighting.as_deref() {
             None | Some("scene") => {}

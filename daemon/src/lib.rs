@@ -2,6 +2,7 @@
 pub mod bench;
 pub mod config;
 pub mod control;
+pub mod depth_stage;
 pub mod pipeline;
 pub mod sinks;
 pub mod timing;

@@ -43,6 +43,7 @@ use crate::control::types::{
     ControlError, ControlTarget, DeviceStatus, EngineInfo, RecordingStatus, StageTiming,
     StatusReport, SyncStreamStatus,
 };
+use crate::depth_stage::{DepthOutcome, DepthStage};
 use crate::sinks::png_out::write_png;
 use crate::sinks::recorder::Recorder;
 use crate::timing::StageStats;
@@ -216,6 +217,7 @@ impl Pipeline {
         let synchronizer = Synchronizer::new(sync)
             .with_context(|| format!("{}: [sync]", config.path.display()))?;
         let mut scene_lights = None;
+        let mut depth_stage = None;
         let live_scene = match &config.scene.dir {
             Some(dir) => {
                 let scene = Scene::load(dir)
@@ -246,6 +248,11 @@ impl Pipeline {
                         "[scene] real = \"depth\" but the source has no pinhole depth calibration: the GPU engines get no scene"
                     );
                 }
+                depth_stage = depth_camera
+                    .filter(|_| {
+                        config.scene.real == RealGeometry::Depth && config.scene.depth_filter
+                    })
+                    .map(DepthStage::new);
                 let mut live = LiveScene::new(
                     scene,
                     config.scene.real,
@@ -312,6 +319,7 @@ impl Pipeline {
                         engine: built.engine,
                         live_scene,
                         scene_lights,
+                        depth_stage,
                         relit: RelitFrame::default(),
                         arrivals: VecDeque::new(),
                         exit_at_end: options.exit_at_end,
@@ -395,6 +403,8 @@ struct RenderLoop<'a> {
     live_scene: Option<LiveScene>,
     /// Publishes the live scene's lights as the lighting estimate (with `[scene]`).
     scene_lights: Option<SceneLights>,
+    /// Filters and merges depth before it is triangulated (`[scene] depth_filter`).
+    depth_stage: Option<DepthStage>,
     relit: RelitFrame,
     /// Wall-clock arrival of recent reference frames, to time how long sets wait in the sync.
     arrivals: VecDeque<(u64, Instant)>,
@@ -590,14 +600,29 @@ impl RenderLoop<'_> {
         let mut scene = scene;
         if let Some(live) = self.live_scene.as_mut() {
             let start = Instant::now();
-            scene.scene = live.frame(
-                set.depth.as_ref().map(|d| &d.payload),
-                set.lamp.as_ref().map(|l| &l.payload),
-            );
+            let reconstructed = match (&mut self.depth_stage, &set.depth) {
+                (Some(stage), Some(depth)) => Some(stage.process(
+                    &depth.payload,
+                    set.color.as_ref().map(|c| &c.payload),
+                    &live.world_from_camera(),
+                )),
+                _ => None,
+            };
+            let depth_ms = start.elapsed().as_secs_f64() * 1e3;
+            let depth = match &reconstructed {
+                Some(DepthOutcome::Depth(image)) => Some(image),
+                Some(DepthOutcome::Proxy) => None,
+                None => set.depth.as_ref().map(|d| &d.payload),
+            };
+            scene.scene = live.frame(depth, set.lamp.as_ref().map(|l| &l.payload));
             if let Some(scene_lights) = &mut self.scene_lights {
                 scene_lights.publish_if_changed(live, &shared.lights);
             }
-            self.record_stage("scene", start.elapsed().as_secs_f64() * 1e3);
+            let scene_ms = start.elapsed().as_secs_f64() * 1e3 - depth_ms;
+            if self.depth_stage.is_some() {
+                self.record_stage("depth", depth_ms);
+            }
+            self.record_stage("scene", scene_ms);
         }
         let start = Instant::now();
         let rendered = self.engine.render(&scene, &mut self.relit);

@@ -18,6 +18,7 @@ pub mod ibl;
 pub mod live_scene;
 pub mod offline;
 pub mod params;
+pub mod recon_gpu;
 pub mod registry;
 pub mod shaders;
 pub mod timer;

@@ -42,6 +42,8 @@ pub struct LiveScene {
     base: Scene,
     real: RealGeometry,
     real_material: usize,
+    /// The scene file's real meshes, used when depth is unusable (with [`RealGeometry::Depth`]).
+    proxy: Vec<Mesh>,
     light_source: LightSource,
     depth_camera: Option<Pinhole>,
     stride: u32,
@@ -74,13 +76,15 @@ impl LiveScene {
             albedo: Vec3::splat(real_albedo.clamp(0.0, 1.0)),
             ..Material::default()
         });
+        let mut proxy = Vec::new();
         if real == RealGeometry::Depth {
-            base.meshes.retain(|m| m.is_virtual);
+            (base.meshes, proxy) = base.meshes.into_iter().partition(|m| m.is_virtual);
         }
         Self {
             base,
             real,
             real_material,
+            proxy,
             light_source: LightSource::Scene,
             depth_camera,
             stride: stride.max(1),
@@ -127,8 +131,14 @@ impl LiveScene {
             })
     }
 
-    /// The scene for one frame set; `None` when the real surface is to come from depth and
-    /// there is no usable depth frame (or no depth calibration). `lamp` is the set's lamp message,
+    /// Where the scene file puts the camera (glTF convention).
+    pub fn world_from_camera(&self) -> Pose {
+        self.base.camera.world_from_camera
+    }
+
+    /// The scene for one frame set. With [`RealGeometry::Depth`] and no usable depth (`None`,
+    /// nothing triangulated, or no depth calibration) the scene file's real meshes stand in as a
+    /// proxy of the room; `None` when it has none. `lamp` is the set's lamp message,
     /// if it has one; without one the lamp keeps its last reported state.
     pub fn frame(&mut self, depth: Option<&Image>, lamp: Option<&LampState>) -> Option<Arc<Scene>> {
         if let Some(lamp) = lamp {
@@ -145,18 +155,25 @@ impl LiveScene {
         let mut scene = self.base.clone();
         scene.lights.extend(lamp_light);
         if self.real == RealGeometry::Depth {
-            let camera = self.depth_camera.as_ref()?;
-            let mesh = depth_mesh(
-                depth?,
-                camera,
-                &scene.camera.world_from_camera,
-                self.real_material,
-                self.stride,
-            );
-            if mesh.triangles.is_empty() {
-                return None;
+            let mesh = depth
+                .zip(self.depth_camera.as_ref())
+                .map(|(depth, camera)| {
+                    depth_mesh(
+                        depth,
+                        camera,
+                        &scene.camera.world_from_camera,
+                        self.real_material,
+                        self.stride,
+                    )
+                })
+                .filter(|mesh| !mesh.triangles.is_empty());
+            match mesh {
+                Some(mesh) => scene.meshes.insert(0, mesh),
+                None if !self.proxy.is_empty() => {
+                    scene.meshes.splice(0..0, self.proxy.iter().cloned());
+                }
+                None => return None,
             }
-            scene.meshes.insert(0, mesh);
         }
         Some(Arc::new(scene))
     }

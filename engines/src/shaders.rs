@@ -29,6 +29,25 @@ pub const DIR_ISM: &str = pass!("dir_ism.wgsl");
 pub const DIR_GATHER: &str = pass!("dir_gather.wgsl");
 pub const IBL_CONVOLVE: &str = pass!("ibl_convolve.wgsl");
 pub const IBL_SHADE: &str = pass!("ibl_shade.wgsl");
+/// The depth-reconstruction passes (`recon_gpu`) share `recon_common.wgsl` after `common.wgsl`.
+macro_rules! recon_pass {
+    ($file:literal) => {
+        concat!(
+            include_str!("../../shaders/common.wgsl"),
+            "\n",
+            include_str!("../../shaders/recon_common.wgsl"),
+            "\n",
+            include_str!(concat!("../../shaders/", $file))
+        )
+    };
+}
+pub const RECON_MOMENTS: &str = recon_pass!("recon_moments.wgsl");
+pub const RECON_SOLVE: &str = recon_pass!("recon_solve.wgsl");
+pub const RECON_SPREAD: &str = recon_pass!("recon_spread.wgsl");
+pub const RECON_APPLY: &str = recon_pass!("recon_apply.wgsl");
+pub const RECON_MERGE: &str = recon_pass!("recon_merge.wgsl");
+pub const RECON_SELECT: &str = recon_pass!("recon_select.wgsl");
+pub const RECON_NORMALS: &str = recon_pass!("recon_normals.wgsl");
 
 /// (file name, full source) of every pass.
 pub const ALL: &[(&str, &str)] = &[
@@ -49,6 +68,14 @@ pub const ALL: &[(&str, &str)] = &[
     ("dir_gather.wgsl", DIR_GATHER),
     ("ibl_convolve.wgsl", IBL_CONVOLVE),
     ("ibl_shade.wgsl", IBL_SHADE),
+    ("recon_common.wgsl", pass!("recon_common.wgsl")),
+    ("recon_moments.wgsl", RECON_MOMENTS),
+    ("recon_solve.wgsl", RECON_SOLVE),
+    ("recon_spread.wgsl", RECON_SPREAD),
+    ("recon_apply.wgsl", RECON_APPLY),
+    ("recon_merge.wgsl", RECON_MERGE),
+    ("recon_select.wgsl", RECON_SELECT),
+    ("recon_normals.wgsl", RECON_NORMALS),
 ];
 
 /// Compile a pass into a shader module.

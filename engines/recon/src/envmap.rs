@@ -119,6 +119,8 @@ pub struct EnvMapSettings {
     pub field_of_view_deg: f64,
     /// Sample directions per texel along θ; `None` chooses about four per probe pixel (at the
     /// image centre), between 2 and 16. Along φ a row gets proportionally fewer (× sin θ).
+    /// A probe image fine enough that a texel spans more than two pixels is first box-filtered
+    /// (see [`probe_to_environment`]).
     pub samples_per_axis: Option<u32>,
 }
 
@@ -164,6 +166,12 @@ const MAX_RENORMALISATION: f64 = 4.0;
 /// keeps only the share of its energy that falls inside. The factor is capped at 4, for pixels at
 /// the edge of the lens model's valid field that samples barely reach.
 ///
+/// Resolution: the map cannot show detail finer than a texel, so a probe image fine enough that a
+/// texel spans more than two of its pixels (a 1280 × 1024 probe against a 128 × 64 map) is first
+/// box-filtered by an integer factor (energy-preserving, cropping fewer than `factor` rows and
+/// columns at the right and bottom, outside any image circle) with the lens scaled to match;
+/// the cost then stays that of a probe of about the map's resolution.
+///
 /// Unseen directions: a texel's radiance is the energy seen in it divided by its *whole* solid
 /// angle, so the map holds exactly the energy the probe saw and nothing invented (below the
 /// horizon of an upward probe is black); [`ProbeEnvironment::coverage`] says how much of each
@@ -194,6 +202,14 @@ pub fn probe_to_environment(
             lens_height: lens.height,
         });
     }
+    let factor = downsampling_factor(lens, height);
+    let filtered;
+    let (hdr, lens) = if factor > 1 {
+        filtered = box_filtered(hdr, lens, factor);
+        (&filtered.0, &filtered.1)
+    } else {
+        (hdr, lens)
+    };
     let sampler = Sampler::new(lens, world_from_probe, settings, fov);
     let pixel_solid_angle = pixel_solid_angles(lens);
 
@@ -270,6 +286,51 @@ pub fn probe_to_environment(
         },
         coverage,
     })
+}
+
+/// Most probe pixels a texel may span (along θ) before the probe image is box-filtered.
+const MAX_PIXELS_PER_TEXEL: f64 = 2.0;
+
+/// Integer factor by which to box-filter the probe image so that a texel of a map `height` rows
+/// high spans at most [`MAX_PIXELS_PER_TEXEL`] pixels at the image centre (1: none).
+fn downsampling_factor(lens: &KannalaBrandt, height: u32) -> u32 {
+    let texel_px = std::f64::consts::PI / f64::from(height) * lens.fx.max(lens.fy);
+    let factor = (texel_px / MAX_PIXELS_PER_TEXEL).floor().max(1.0);
+    (factor as u32).min(lens.width.min(lens.height).max(1))
+}
+
+/// The image box-filtered by `factor` (each pixel the mean of `factor²`, which keeps
+/// `Σ L ΔΩ`), cropped to a multiple of `factor`, and the lens that sees it.
+fn box_filtered(hdr: &HdrImage, lens: &KannalaBrandt, factor: u32) -> (HdrImage, KannalaBrandt) {
+    let (width, height) = (lens.width / factor, lens.height / factor);
+    let cropped = KannalaBrandt {
+        width: width * factor,
+        height: height * factor,
+        ..*lens
+    };
+    let k = factor as usize;
+    let old_width = hdr.width as usize;
+    let radiance = (0..width as usize * height as usize)
+        .into_par_iter()
+        .map(|i| {
+            let (x, y) = (i % width as usize, i / width as usize);
+            let mut sum = DVec3::ZERO;
+            for dy in 0..k {
+                let row = (y * k + dy) * old_width + x * k;
+                for l in &hdr.radiance[row..row + k] {
+                    sum += sanitized(*l).as_dvec3();
+                }
+            }
+            (sum / (k * k) as f64).as_vec3()
+        })
+        .collect();
+    let filtered = HdrImage {
+        width,
+        height,
+        radiance,
+        saturated: vec![false; width as usize * height as usize],
+    };
+    (filtered, cropped.resized(width, height))
 }
 
 /// Bilinear taps: up to four (pixel index, weight).

@@ -285,3 +285,102 @@ fn resampling_time_for_a_256_by_128_map() {
     );
     assert_eq!(env.map.radiance.len(), 256 * 128);
 }
+
+#[test]
+fn a_fine_real_probe_is_filtered_to_the_map_and_keeps_its_energy() {
+    // A 1280 × 1024, 185° lens with distortion (the camera tests' probe) at 2/5 scale against a
+    // 64 × 32 map: a texel spans ~6 of its pixels, so the image is box-filtered ×3 first.
+    let model = KannalaBrandt {
+        width: 1280,
+        height: 1024,
+        fx: 330.0,
+        fy: 331.0,
+        cx: 639.5,
+        cy: 511.5,
+        k1: -0.01,
+        k2: 0.005,
+        k3: -0.002,
+        k4: 0.0005,
+    }
+    .resized(512, 410);
+    let pose = Pose::new(
+        Quat::from_rotation_x(std::f32::consts::FRAC_PI_2),
+        Vec3::ZERO,
+    );
+    let lamp_dir = Vec3::new(0.3, 0.9, -0.2).normalize();
+    let lamp_world = lamp(lamp_dir, 2.0);
+    let world = |d: Vec3| smooth_world(d) + lamp_world(d);
+    // Pixel-centre radiance over the lens's 185° (no supersampling: the world is smooth, the
+    // lamp 5 pixels wide).
+    let width = model.width as usize;
+    let radiance: Vec<Vec3> = (0..width * model.height as usize)
+        .map(|i| {
+            let pixel = glam::DVec2::new((i % width) as f64, (i / width) as f64);
+            model
+                .unproject(pixel)
+                .filter(|ray| ray.z >= 92.5f64.to_radians().cos())
+                .map_or(Vec3::ZERO, |ray| {
+                    world(
+                        pose.transform_vector(relight_core::camera::gl_from_optical(ray).as_vec3()),
+                    )
+                })
+        })
+        .collect();
+    let hdr = relight_recon::hdr::HdrImage {
+        width: model.width,
+        height: model.height,
+        saturated: vec![false; radiance.len()],
+        radiance,
+    };
+    let settings = EnvMapSettings {
+        width: 64,
+        height: 32,
+        ..EnvMapSettings::default()
+    };
+    let start = std::time::Instant::now();
+    let env = probe_to_environment(&hdr, &model, &pose, &settings).unwrap();
+    let elapsed = start.elapsed();
+    let seen = probe_energy(&hdr, &model, 180.0).unwrap();
+    let mapped = map_energy(&env.map).unwrap();
+    let energy_error = ((mapped - seen).abs() / seen).max_element();
+    let errors: Vec<f32> = (0..64 * 32u32)
+        .filter(|&i| {
+            env.coverage[i as usize] == 1.0 && {
+                let d = texel_direction(64, 32, i % 64, i / 64);
+                d.dot(lamp_dir) < 10f32.to_radians().cos()
+            }
+        })
+        .map(|i| {
+            let truth = texel_mean(64, 32, i % 64, i / 64, smooth_world);
+            ((env.map.radiance[i as usize] - truth).abs() / truth).max_element()
+        })
+        .collect();
+    let angle = angle_deg(
+        energy_centroid_of(&env.map, &|d| d.dot(lamp_dir) > 0.98),
+        lamp_dir,
+    );
+    println!(
+        "512×410 distorted probe → 64×32 map in {elapsed:?}: map/probe energy − 1 = \
+         {energy_error:.2e}; sky texels relative error mean {:.4}, max {:.4}; lamp centroid {angle:.3}° off",
+        errors.iter().sum::<f32>() / errors.len() as f32,
+        quantile(&errors, 1.0)
+    );
+    assert!(energy_error < 2e-3);
+    assert!(quantile(&errors, 1.0) < 0.03);
+    assert!(angle < 0.5);
+}
+
+/// Energy centroid of the texels whose direction passes `keep`.
+fn energy_centroid_of(map: &EnvironmentMap, keep: &dyn Fn(Vec3) -> bool) -> Vec3 {
+    (0..map.width * map.height)
+        .filter_map(|i| {
+            let (x, y) = (i % map.width, i / map.width);
+            let d = texel_direction(map.width, map.height, x, y);
+            keep(d).then(|| {
+                d * luminance(map.radiance[i as usize])
+                    * texel_solid_angle(map.width, map.height, y) as f32
+            })
+        })
+        .sum::<Vec3>()
+        .normalize()
+}
