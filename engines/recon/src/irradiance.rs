@@ -6,14 +6,15 @@
 //! # Accuracy of L2 irradiance
 //!
 //! Irradiance is radiance convolved with the clamped cosine `A(x) = max(0, x)`, `x = n·ω`. Keeping
-//! bands l ≤ 2 replaces `A` by its truncation (R&H eq. 8–9, `Â = (π, 2π/3, π/4)`):
+//! bands l ≤ 2 replaces `A` by its truncation (R&H eq. 7–8, `Â = (π, 2π/3, π/4)`):
 //! `A₂(x) = Σ_{l≤2} Â_l (2l+1)/(4π) P_l(x) = 3/32 + x/2 + 15x²/32`.
 //! The error `A₂ − A` is largest at grazing incidence, `A₂(0) − A(0) = 3/32`, and `E_SH − E`
 //! is the radiance integrated against it, so for any non-negative radiance
 //! `|E_SH(n) − E(n)| ≤ (3/32) ∫ L dω` per channel, whatever the normal. A map whose energy
-//! is a single point source reaches that bound (its error is 3/32 of its irradiance at grazing
-//! normals, +6.25% facing it: `A₂(1) = 34/32`); smooth maps, whose higher bands are small, are far
-//! below it (R&H report errors of about 1% and less for real environments).
+//! is a single point source reaches that bound at normals perpendicular to the source (where
+//! the truth is 0 and L2 gives 3/32 of the head-on irradiance; facing the source it is 6.25% too
+//! bright, `A₂(1) = 34/32`); smooth maps, whose higher bands are small, stay far below it (0.4%
+//! at worst on the smooth sky of the tests).
 
 use glam::{DVec3, Vec3};
 use rayon::prelude::*;
@@ -29,7 +30,7 @@ pub const SH9_IRRADIANCE_ERROR_BOUND: f64 = 3.0 / 32.0;
 /// The map's radiance projected onto the L2 basis of `relight_core::sh`, in world directions:
 /// `L_lm = Σ_texels L ∫_texel Y_lm dω`, the map read as piecewise-constant radiance and each
 /// texel's basis integral taken over 4 × 4 sub-directions of equal solid angle (a constant map
-/// then projects to band 0 alone, to 1e-5), accumulated in f64. `Sh9Rgb::irradiance(n)` gives the
+/// gives πL to 1e-4 at every normal), accumulated in f64. `Sh9Rgb::irradiance(n)` gives the
 /// irradiance (R&H eq. 7–8).
 pub fn project_sh9(map: &EnvironmentMap) -> Result<Sh9Rgb, EnvMapError> {
     check_map(map)?;

@@ -19,12 +19,15 @@
 //! Light count: the papers split every region each round, giving `2^n` lights. For any `N`,
 //! rounds split every splittable region while the count stays within `N`; the last, partial
 //! round splits the `N − count` regions with the most energy (median cut) or the largest variance
-//! (variance minimisation). For `N = 2^n` this is the papers' algorithm exactly. A region of one
-//! texel, or without energy, is not split, so fewer than `N` lights can come out.
+//! (variance minimisation). For `N = 2^n` this is the papers' algorithm exactly (as long as every
+//! region can be split). A region of one texel, or without energy, is not split, so fewer than
+//! `N` lights can come out; `N = 0` gives none.
 //!
-//! Lights: direction at the region's energy centroid (the normalised energy-weighted mean of its
-//! texel directions), RGB irradiance `Σ L ΔΩ` over the region — so the lights sum exactly to the
-//! map's energy ([`crate::envmap::map_energy`]). Regions without energy give no light.
+//! Lights: direction at the region's energy centroid, taken as the normalised energy-weighted mean
+//! of its texel directions (the papers take it in the lat-long image: the same for small regions,
+//! and still on the region's energy for wide ones near a pole), RGB irradiance `Σ L ΔΩ` over the
+//! region — so the lights sum exactly to the map's energy ([`crate::envmap::map_energy`]).
+//! Regions without energy give no light.
 
 use glam::{DVec3, Vec3};
 use relight_core::light::Light;
