@@ -3,9 +3,17 @@
 //! guide, merged with the previous frames warped into the current view, and either handed on
 //! for triangulation or — when too little of it is valid (too close, too bright, covered) —
 //! replaced by the scene file's proxy of the room (`relight_recon::depth::ProxySwitch`).
+//!
+//! The filter and merge run on the GPU (`relight_engines::recon_gpu`) when the pipeline has a
+//! GPU context, on the CPU (`relight-recon`, the GPU pass's test oracle) otherwise, or for a
+//! frame the GPU failed on.
+
+use std::sync::Arc;
 
 use relight_core::camera::Pinhole;
 use relight_core::{Image, Pose};
+use relight_engines::gpu::GpuContext;
+use relight_engines::recon_gpu::{DepthPass, DepthPassSettings};
 use relight_recon::depth::{
     DepthMap, DepthRange, GeometrySource, GuidedFilterSettings, ProxySwitch, guided_filter,
 };
@@ -20,7 +28,7 @@ pub enum DepthOutcome {
     Proxy,
 }
 
-/// The CPU reconstruction (`relight-recon`) with its state across frames.
+/// The reconstruction with its state across frames.
 #[derive(Debug)]
 pub struct DepthStage {
     camera: Pinhole,
@@ -28,11 +36,13 @@ pub struct DepthStage {
     filter: GuidedFilterSettings,
     merge: TemporalMerge,
     switch: ProxySwitch,
+    gpu: Option<(DepthPass, DepthPassSettings)>,
 }
 
 impl DepthStage {
-    /// For a Kinect-v1-like sensor whose registered depth has the intrinsics `camera`.
-    pub fn new(camera: Pinhole) -> Self {
+    /// For a Kinect-v1-like sensor whose registered depth has the intrinsics `camera`; on
+    /// `gpu` when given.
+    pub fn new(camera: Pinhole, gpu: Option<Arc<GpuContext>>) -> Self {
         let focal = camera.fx as f32;
         Self {
             camera,
@@ -40,6 +50,7 @@ impl DepthStage {
             filter: GuidedFilterSettings::kinect_v1(focal),
             merge: TemporalMerge::new(TemporalSettings::kinect_v1(focal)),
             switch: ProxySwitch::default(),
+            gpu: gpu.map(|ctx| (DepthPass::new(ctx), DepthPassSettings::kinect_v1(focal))),
         }
     }
 
@@ -62,8 +73,16 @@ impl DepthStage {
         if self.switch.update(&census) == GeometrySource::Proxy {
             return DepthOutcome::Proxy;
         }
-        let filtered = colour
-            .filter(|c| c.width() == map.width && c.height() == map.height)
+        let guide = colour.filter(|c| c.width() == map.width && c.height() == map.height);
+        if let (Some((pass, settings)), Some(guide)) = (&mut self.gpu, guide) {
+            match pass.run(&map, guide, &self.camera, world_from_camera, settings) {
+                Ok(frame) => return DepthOutcome::Depth(frame.depth.to_image()),
+                Err(error) => {
+                    tracing::warn!(%error, "GPU depth pass failed: this frame on the CPU")
+                }
+            }
+        }
+        let filtered = guide
             .and_then(|guide| {
                 guided_filter(&map, guide, &self.filter)
                     .inspect_err(|error| tracing::debug!(%error, "depth not filtered"))

@@ -252,7 +252,15 @@ impl Pipeline {
                     .filter(|_| {
                         config.scene.real == RealGeometry::Depth && config.scene.depth_filter
                     })
-                    .map(DepthStage::new);
+                    .map(|camera| {
+                        let gpu = registry
+                            .gpu()
+                            .inspect_err(
+                                |error| tracing::info!(%error, "depth reconstruction on the CPU"),
+                            )
+                            .ok();
+                        DepthStage::new(camera, gpu)
+                    });
                 let mut live = LiveScene::new(
                     scene,
                     config.scene.real,

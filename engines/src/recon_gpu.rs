@@ -49,7 +49,9 @@ use relight_core::camera::Pinhole;
 use relight_core::{Image, PixelFormat, Pose};
 use relight_recon::depth::{DepthError, DepthMap, DepthNoise, GuidedFilterSettings, guided_filter};
 use relight_recon::normals::{NormalMap, NormalSettings, PixelRays};
-use relight_recon::temporal::{MergeReport, ResetReason, TemporalMerge, TemporalSettings};
+use relight_recon::temporal::{
+    MergeReport, ResetReason, TemporalMerge, TemporalSettings, reset_reason,
+};
 
 use crate::engine::PassTiming;
 use crate::gpu::{GpuContext, GpuError};
@@ -303,7 +305,12 @@ impl DepthPass {
         let (force_reset, slot) = match (&settings.temporal, &self.history) {
             (None, _) => (None, 0),
             (Some(temporal), history) => (
-                reset_reason(history.as_ref(), camera, world_from_camera, temporal),
+                reset_reason(
+                    history.as_ref().map(|h| (&h.camera, &h.world_from_camera)),
+                    camera,
+                    world_from_camera,
+                    temporal,
+                ),
                 history.map_or(0, |h| 1 - h.slot),
             ),
         };
@@ -734,47 +741,6 @@ fn kernel(radius_px: u32) -> Vec<f32> {
     let d = |offset: i64| offset as f32 / r.max(1) as f32;
     let offsets = || (-r..=r).map(d);
     offsets().chain(offsets().map(|d| d * d)).collect()
-}
-
-/// `TemporalMerge`'s decisions that need no pixels (its `reset_reason`).
-fn reset_reason(
-    history: Option<&History>,
-    camera: &Pinhole,
-    world_from_camera: &Pose,
-    settings: &TemporalSettings,
-) -> Option<ResetReason> {
-    let Some(history) = history else {
-        return Some(ResetReason::FirstFrame);
-    };
-    if history.camera != *camera {
-        return Some(ResetReason::CameraChanged);
-    }
-    let Some((translation_m, rotation_rad)) = motion(&history.world_from_camera, world_from_camera)
-    else {
-        return Some(ResetReason::NonFinitePose);
-    };
-    if translation_m > settings.max_translation_m || rotation_rad > settings.max_rotation_rad {
-        return Some(ResetReason::PoseJump {
-            translation_m,
-            rotation_rad,
-        });
-    }
-    None
-}
-
-/// Camera motion from `previous` to `current`: translation (m) and rotation angle (rad); `None`
-/// when either pose is not finite (temporal.rs `motion`).
-fn motion(previous: &Pose, current: &Pose) -> Option<(f32, f32)> {
-    let finite = |p: &Pose| p.translation.is_finite() && p.rotation.is_finite();
-    if !(finite(previous) && finite(current)) {
-        return None;
-    }
-    let translation = (current.translation - previous.translation).length();
-    let rotation = previous
-        .rotation
-        .normalize()
-        .angle_between(current.rotation.normalize());
-    (translation.is_finite() && rotation.is_finite()).then_some((translation, rotation))
 }
 
 /// The merge's report from the GPU's counts (merged, rejected, fresh, valid, reset by the

@@ -128,6 +128,12 @@ impl EngineRegistry {
         }
     }
 
+    /// The GPU context the engines share (created on first use), for other GPU work of the
+    /// pipeline such as the depth reconstruction.
+    pub fn gpu(&self) -> Result<Arc<crate::gpu::GpuContext>, GpuError> {
+        self.gpu.get()
+    }
+
     pub fn specs(&self) -> &[EngineSpec] {
         &self.specs
     }

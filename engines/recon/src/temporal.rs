@@ -198,6 +198,33 @@ fn bilinear_valid(depth: &DepthMap, values: &[f32], pixel: Vec2) -> Option<(f32,
     (weight_sum > 0.0).then(|| (depth_sum / weight_sum, value_sum / weight_sum))
 }
 
+/// Why the history must be dropped before a frame of `camera` at `world_from_camera` is merged,
+/// given the camera and pose the history was last merged at (`None`: no history yet); `None`
+/// when it can be kept. The per-pixel agreement test comes after this.
+pub fn reset_reason(
+    previous: Option<(&Pinhole, &Pose)>,
+    camera: &Pinhole,
+    world_from_camera: &Pose,
+    settings: &TemporalSettings,
+) -> Option<ResetReason> {
+    let Some((previous_camera, previous_pose)) = previous else {
+        return Some(ResetReason::FirstFrame);
+    };
+    if previous_camera != camera {
+        return Some(ResetReason::CameraChanged);
+    }
+    let Some((translation_m, rotation_rad)) = motion(previous_pose, world_from_camera) else {
+        return Some(ResetReason::NonFinitePose);
+    };
+    if translation_m > settings.max_translation_m || rotation_rad > settings.max_rotation_rad {
+        return Some(ResetReason::PoseJump {
+            translation_m,
+            rotation_rad,
+        });
+    }
+    None
+}
+
 /// Camera motion from `previous` to `current` (`world_from_camera` both): translation (m) and
 /// rotation angle (rad); `None` when either pose is not finite.
 pub(crate) fn motion(previous: &Pose, current: &Pose) -> Option<(f32, f32)> {
@@ -288,26 +315,14 @@ impl TemporalMerge {
     }
 
     fn reset_reason(&self, camera: &Pinhole, world_from_camera: &Pose) -> Option<ResetReason> {
-        let Some(history) = &self.history else {
-            return Some(ResetReason::FirstFrame);
-        };
-        if history.camera != *camera {
-            return Some(ResetReason::CameraChanged);
-        }
-        let Some((translation_m, rotation_rad)) =
-            motion(&history.world_from_camera, world_from_camera)
-        else {
-            return Some(ResetReason::NonFinitePose);
-        };
-        if translation_m > self.settings.max_translation_m
-            || rotation_rad > self.settings.max_rotation_rad
-        {
-            return Some(ResetReason::PoseJump {
-                translation_m,
-                rotation_rad,
-            });
-        }
-        None
+        reset_reason(
+            self.history
+                .as_ref()
+                .map(|h| (&h.camera, &h.world_from_camera)),
+            camera,
+            world_from_camera,
+            &self.settings,
+        )
     }
 
     /// The current depth alone (invalid values cleaned to 0), weight 1 where valid.
