@@ -54,7 +54,7 @@ impl Default for IblSettings {
             input_width: 128,
             levels: 0,
             env_lights: 16,
-            rsm_size: 256,
+            rsm_size: 512,
             shadow_bias: 1.5,
             update_threshold: 0.02,
         }
