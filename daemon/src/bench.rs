@@ -330,12 +330,10 @@ pub struct MapTiming {
 /// every texel non-black, so none is skipped), median of `repeats` runs after one warm-up.
 pub fn ibl_map_timings(sizes: &[u32], levels: u32, repeats: u32) -> Result<Vec<MapTiming>> {
     use relight_engines::gpu::GpuContext;
-    use relight_engines::ibl::maps::{ReflectionMaps, input_texels};
+    use relight_engines::ibl::maps::{ReflectionMaps, input_texels, log_spaced_shininess};
 
     let ctx = GpuContext::new().context("the map convolution needs a GPU adapter")?;
-    let shininess: Vec<f32> = (0..levels.max(1))
-        .map(|k| 512f32.powf(k as f32 / (levels.max(2) - 1) as f32).round())
-        .collect();
+    let shininess = log_spaced_shininess(levels.max(1));
     let mut rows = Vec::new();
     for &size in sizes {
         let width = (f64::from(size) * std::f64::consts::SQRT_2).round() as u32;

@@ -15,7 +15,9 @@ use wgpu::util::DeviceExt;
 use crate::engine::{EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::{GBufferPass, RsmPass, Targets};
 use crate::gpu::GpuContext;
-use crate::gpu_scene::{GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, light_faces};
+use crate::gpu_scene::{
+    GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, is_shadowed, light_faces,
+};
 use crate::shaders;
 use crate::timer::GpuTimer;
 
@@ -190,11 +192,7 @@ impl Deferred {
                 .collect();
             let (mut lights, faces) = light_faces(&all, bounds, rsm_size);
             if self.extra_role == ExtraLights::ShadowOnly {
-                let extras = self
-                    .extra_lights
-                    .iter()
-                    .filter(|l| l.validate().is_ok() && !matches!(l, Light::Environment { .. }))
-                    .count();
+                let extras = self.extra_lights.iter().filter(|l| is_shadowed(l)).count();
                 let first = lights.len().saturating_sub(extras);
                 for light in &mut lights[first..] {
                     light.faces[2] = LIGHT_SHADOW_ONLY;

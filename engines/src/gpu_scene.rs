@@ -232,8 +232,14 @@ fn corners((lo, hi): (Vec3, Vec3)) -> [Vec3; 8] {
     })
 }
 
-/// Lights the passes can shadow (point, spot, directional; environment lights and invalid
-/// ones are left out) and their shadow-map faces, `rsm_size` texels square.
+/// Whether the passes shade and shadow `light` (point, spot, directional): environment lights
+/// and invalid ones are left out.
+pub fn is_shadowed(light: &Light) -> bool {
+    light.validate().is_ok() && !matches!(light, Light::Environment { .. })
+}
+
+/// Lights the passes can shadow ([`is_shadowed`]) and their shadow-map faces, `rsm_size`
+/// texels square.
 pub fn light_faces(
     lights: &[Light],
     bounds: (Vec3, Vec3),
@@ -249,7 +255,7 @@ pub fn light_faces(
             * 1.05
             + 0.01
     };
-    for light in lights.iter().filter(|l| l.validate().is_ok()) {
+    for light in lights.iter().filter(|l| is_shadowed(l)) {
         let index = gpu_lights.len() as u32;
         let first = faces.len() as u32;
         let cube = |position: Vec3, faces: &mut Vec<GpuFace>| {

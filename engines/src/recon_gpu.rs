@@ -47,11 +47,9 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 use relight_core::camera::Pinhole;
 use relight_core::{Image, PixelFormat, Pose};
-use relight_recon::depth::{DepthError, DepthMap, DepthNoise, GuidedFilterSettings, guided_filter};
+use relight_recon::depth::{DepthError, DepthMap, DepthNoise, GuidedFilterSettings};
 use relight_recon::normals::{NormalMap, NormalSettings, PixelRays};
-use relight_recon::temporal::{
-    MergeReport, ResetReason, TemporalMerge, TemporalSettings, reset_reason,
-};
+use relight_recon::temporal::{MergeReport, ResetReason, TemporalSettings, reset_reason};
 
 use crate::engine::PassTiming;
 use crate::gpu::{GpuContext, GpuError};
@@ -419,33 +417,15 @@ impl DepthPass {
         Ok(())
     }
 
-    /// The oracle's own checks, so that the GPU accepts exactly the settings it accepts: each
-    /// step runs once on a one-pixel frame when the settings change.
+    /// The oracle's own checks of the settings, so that the GPU accepts exactly what it
+    /// accepts (once per change of settings).
     fn validate(&mut self, settings: &DepthPassSettings) -> Result<(), DepthError> {
         if self.validated.as_ref() == Some(settings) {
             return Ok(());
         }
-        let pixel = DepthMap::invalid(1, 1);
-        guided_filter(
-            &pixel,
-            &Image::new(1, 1, PixelFormat::Mono8),
-            &settings.filter,
-        )?;
-        if let Some(temporal) = settings.temporal {
-            let camera = Pinhole {
-                width: 1,
-                height: 1,
-                fx: 1.0,
-                fy: 1.0,
-                cx: 0.0,
-                cy: 0.0,
-                k1: 0.0,
-                k2: 0.0,
-                p1: 0.0,
-                p2: 0.0,
-                k3: 0.0,
-            };
-            TemporalMerge::new(temporal).merge(&pixel, &camera, &Pose::IDENTITY)?;
+        settings.filter.validate()?;
+        if let Some(temporal) = &settings.temporal {
+            temporal.validate()?;
         }
         self.validated = Some(*settings);
         Ok(())

@@ -386,7 +386,8 @@ impl GuidedFilterSettings {
         }
     }
 
-    fn validate(&self) -> Result<(), DepthError> {
+    /// The checks [`guided_filter`] makes of its settings.
+    pub fn validate(&self) -> Result<(), DepthError> {
         if self.radius_px > MAX_RADIUS_PX {
             return Err(DepthError::Setting {
                 setting: "radius_px",

@@ -51,7 +51,8 @@ pub struct TemporalSettings {
 }
 
 impl TemporalSettings {
-    fn validate(&self) -> Result<(), DepthError> {
+    /// The checks [`TemporalMerge::merge`] makes of its settings.
+    pub fn validate(&self) -> Result<(), DepthError> {
         let positive = |v: f32| v.is_finite() && v > 0.0;
         if !(positive(self.reject_sigmas)
             && self.max_weight.is_finite()

@@ -6,6 +6,7 @@
 use bytemuck::{Pod, Zeroable};
 use glam::{DVec3, Vec2, Vec3};
 use relight_core::scene::EnvironmentMap;
+use relight_recon::envmap::{texel_direction, texel_solid_angle};
 
 use crate::engine::EngineError;
 use crate::gpu::{GpuContext, GpuError};
@@ -15,6 +16,15 @@ use crate::volume::{timed_pass, uniform_buffer};
 
 /// Specular levels one pass computes (the shader's `MAX_LEVELS`).
 pub const MAX_LEVELS: usize = 8;
+
+/// `levels` Phong exponents spaced evenly in log scale from 1 to 512 (rounded): the fixed set
+/// of `ibl`'s `levels` parameter and of the convolution benchmark.
+pub fn log_spaced_shininess(levels: u32) -> Vec<f32> {
+    let last = (levels.max(1) - 1).max(1) as f32;
+    (0..levels)
+        .map(|k| 512f32.powf(k as f32 / last).round())
+        .collect()
+}
 
 /// One input texel: unit direction and solid angle, radiance (`InputTexel` in the shader).
 #[repr(C)]
@@ -51,13 +61,6 @@ pub fn oct_texel_direction(index: usize, size: u32) -> Vec3 {
     oct_decode(uv)
 }
 
-/// Solid angle of a texel of row `y` in an equirectangular map `width × height`:
-/// (cos θ₀ − cos θ₁) · 2π / width.
-fn equirect_solid_angle(y: usize, width: usize, height: usize) -> f64 {
-    let theta = |row: usize| std::f64::consts::PI * row as f64 / height as f64;
-    (theta(y).cos() - theta(y + 1).cos()) * std::f64::consts::TAU / width as f64
-}
-
 /// `env` resampled to `width × width/2` texels by solid-angle-weighted averaging, so that the
 /// map's energy Σ L ΔΩ is kept (exactly when the sizes divide); maps already that small or
 /// smaller are returned as they are.
@@ -70,7 +73,7 @@ pub fn resample(env: &EnvironmentMap, width: u32) -> EnvironmentMap {
     let mut sum = vec![DVec3::ZERO; ow * oh];
     let mut omega = vec![0f64; ow * oh];
     for y in 0..h {
-        let o = equirect_solid_angle(y, w, h);
+        let o = texel_solid_angle(env.width, env.height, y as u32);
         let oy = y * oh / h;
         for x in 0..w {
             let l = env.radiance[y * w + x];
@@ -109,22 +112,17 @@ pub fn input_texels(env: &EnvironmentMap) -> Vec<InputTexel> {
         return Vec::new();
     }
     let mut texels = Vec::new();
-    for y in 0..h {
-        let omega = equirect_solid_angle(y, w, h) as f32;
-        let theta = std::f32::consts::PI * (y as f32 + 0.5) / h as f32;
-        for x in 0..w {
-            let l = env.radiance[y * w + x];
+    for y in 0..env.height {
+        let omega = texel_solid_angle(env.width, env.height, y) as f32;
+        for x in 0..env.width {
+            let l = env.radiance[y as usize * w + x as usize];
             if !l.is_finite() || l.max_element() <= 0.0 {
                 continue;
             }
-            let phi = std::f32::consts::TAU * (x as f32 + 0.5) / w as f32;
-            let dir = Vec3::new(
-                theta.sin() * phi.sin(),
-                theta.cos(),
-                -theta.sin() * phi.cos(),
-            );
             texels.push(InputTexel {
-                direction: dir.extend(omega).to_array(),
+                direction: texel_direction(env.width, env.height, x, y)
+                    .extend(omega)
+                    .to_array(),
                 radiance: l.max(Vec3::ZERO).extend(0.0).to_array(),
             });
         }

@@ -33,7 +33,7 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::shaders;
 use crate::volume::{timed_pass, uniform_buffer};
-use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, resample};
+use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, log_spaced_shininess, resample};
 
 /// The engine's settings (see [`Ibl::schema`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -242,10 +242,7 @@ fn shadow_lights(env: &EnvironmentMap, count: u32) -> Vec<Light> {
 /// [`MAX_LEVELS`] when there are more.
 fn specular_levels(scene: &Scene, levels: u32) -> Vec<f32> {
     if levels > 0 {
-        let last = (levels - 1).max(1) as f32;
-        return (0..levels)
-            .map(|k| 512f32.powf(k as f32 / last).round())
-            .collect();
+        return log_spaced_shininess(levels);
     }
     let mut exponents: Vec<f32> = scene
         .meshes
