@@ -191,6 +191,8 @@ pub struct DeviceContext {
     status: Arc<DeviceStatus>,
     stop: Arc<AtomicBool>,
     steps: Receiver<u32>,
+    /// Cuts the reconnect backoff short (a hot-plug arrival); see [`DeviceRunner::spawn_with_wake`].
+    wake: Receiver<()>,
 }
 
 impl DeviceContext {
@@ -203,6 +205,12 @@ impl DeviceContext {
     /// Count a frame that was captured but had to be dropped (bad data, pool exhausted).
     pub fn count_drop(&self) {
         self.status.drops.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// The bus this device publishes to, for devices that consume other streams (a marker
+    /// tracker reads the colour stream, the lamp reads its marker's pose).
+    pub fn bus(&self) -> &Arc<Bus> {
+        &self.bus
     }
 
     pub fn should_stop(&self) -> bool {
@@ -238,6 +246,49 @@ impl DeviceContext {
             }
         }
     }
+
+    /// The reconnect backoff: sleep up to `duration`, ending early on a stop request or a
+    /// wake. A wake channel whose sender is gone (the hot-plug watcher stopped or never
+    /// started) degrades to the plain sleep.
+    fn backoff_sleep(&self, duration: Duration) -> BackoffEnd {
+        let deadline = Instant::now() + duration;
+        loop {
+            if self.should_stop() {
+                return BackoffEnd::Stopped;
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return BackoffEnd::Elapsed;
+            }
+            match self
+                .wake
+                .recv_timeout((deadline - now).min(Duration::from_millis(20)))
+            {
+                Ok(()) => return BackoffEnd::Woken,
+                Err(RecvTimeoutError::Timeout) => {}
+                Err(RecvTimeoutError::Disconnected) => {
+                    return if self.sleep(deadline.saturating_duration_since(Instant::now())) {
+                        BackoffEnd::Elapsed
+                    } else {
+                        BackoffEnd::Stopped
+                    };
+                }
+            }
+        }
+    }
+
+    /// Forget wakes that came before an open attempt: that attempt already sees the device.
+    fn drain_wakes(&self) {
+        while self.wake.try_recv().is_ok() {}
+    }
+}
+
+/// How a reconnect backoff ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum BackoffEnd {
+    Elapsed,
+    Woken,
+    Stopped,
 }
 
 /// A source of frames. Implementations open their hardware (or file) in `open`, and capture in
@@ -299,6 +350,22 @@ impl DeviceRunner {
         bus: Arc<Bus>,
         backoff: Backoff,
     ) -> std::io::Result<Self> {
+        Self::spawn_with_wake(name, device, bus, backoff, crossbeam_channel::never())
+    }
+
+    /// Like [`Self::spawn`], with a channel that cuts the reconnect backoff short: a message on
+    /// `wake` (a matching USB device arrived, from `hotplug::HotplugWatcher::wake_on`) ends the
+    /// current backoff sleep, retries the open at once and restarts the backoff from
+    /// `backoff.initial`, because the device node (a tty, a video node) may appear a little
+    /// after the USB device itself. Without messages, or once every sender is dropped, the
+    /// runner polls with the plain backoff.
+    pub fn spawn_with_wake(
+        name: impl Into<String>,
+        device: Box<dyn Device>,
+        bus: Arc<Bus>,
+        backoff: Backoff,
+        wake: Receiver<()>,
+    ) -> std::io::Result<Self> {
         let name = name.into();
         let status = Arc::new(DeviceStatus::new(
             name.clone(),
@@ -312,6 +379,7 @@ impl DeviceRunner {
             status: status.clone(),
             stop: stop.clone(),
             steps: steps_rx,
+            wake,
         };
         let thread = std::thread::Builder::new()
             .name(format!("dev-{name}"))
@@ -360,6 +428,7 @@ fn run_device(mut device: Box<dyn Device>, ctx: &DeviceContext, backoff: Backoff
     let mut delay = backoff.initial;
     while !ctx.should_stop() {
         status.set_state(DeviceState::Connecting);
+        ctx.drain_wakes();
         if let Err(error) = device.open() {
             status.set_error(&error);
             if !error.retryable() {
@@ -368,10 +437,11 @@ fn run_device(mut device: Box<dyn Device>, ctx: &DeviceContext, backoff: Backoff
             }
             tracing::warn!(device = %status.name, %error, retry_in_ms = delay.as_millis(), "cannot open device");
             status.set_state(DeviceState::Lost);
-            if !ctx.sleep(delay) {
-                break;
+            match ctx.backoff_sleep(delay) {
+                BackoffEnd::Stopped => break,
+                BackoffEnd::Woken => delay = backoff.initial,
+                BackoffEnd::Elapsed => delay = (delay * 2).min(backoff.max),
             }
-            delay = (delay * 2).min(backoff.max);
             continue;
         }
         status.set_state(DeviceState::Running);
@@ -393,7 +463,7 @@ fn run_device(mut device: Box<dyn Device>, ctx: &DeviceContext, backoff: Backoff
                 status.set_state(DeviceState::Lost);
                 status.reconnects.fetch_add(1, Ordering::Relaxed);
                 delay = backoff.initial;
-                if !ctx.sleep(delay) {
+                if ctx.backoff_sleep(delay) == BackoffEnd::Stopped {
                     break;
                 }
             }
@@ -482,6 +552,116 @@ mod tests {
             .map(|f| f.seq)
             .collect();
         assert_eq!(seqs, (1..=15).collect::<Vec<_>>());
+    }
+
+    /// Refuses to open until `plugged`; once open, publishes one frame and runs until stopped.
+    struct Pluggable {
+        plugged: Arc<AtomicBool>,
+        opens: Arc<AtomicU64>,
+    }
+
+    impl Device for Pluggable {
+        fn backend(&self) -> &'static str {
+            "pluggable"
+        }
+        fn streams(&self) -> Vec<StreamKind> {
+            vec![StreamKind::Lamp]
+        }
+        fn open(&mut self) -> Result<(), DeviceError> {
+            self.opens.fetch_add(1, Ordering::SeqCst);
+            if self.plugged.load(Ordering::SeqCst) {
+                Ok(())
+            } else {
+                Err(DeviceError::NotFound {
+                    device: "pluggable".into(),
+                    reason: "not plugged in".into(),
+                })
+            }
+        }
+        fn run(&mut self, ctx: &DeviceContext) -> Result<RunEnd, DeviceError> {
+            ctx.publish(StreamMessage::Lamp(Arc::new(Frame::new(
+                1,
+                Timestamp::now(),
+                LampState::default(),
+            ))));
+            while ctx.sleep(Duration::from_millis(5)) {}
+            Ok(RunEnd::StopRequested)
+        }
+    }
+
+    fn wait_until(what: &str, mut done: impl FnMut() -> bool) {
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while !done() {
+            assert!(Instant::now() < deadline, "timed out waiting for {what}");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+
+    #[test]
+    fn a_hotplug_wake_cuts_a_long_backoff_short() {
+        // With a one-minute backoff, the device can only be opened within the test's 10 s
+        // deadline through the wake channel.
+        let backoff = Backoff {
+            initial: Duration::from_secs(60),
+            max: Duration::from_secs(60),
+        };
+        let plugged = Arc::new(AtomicBool::new(false));
+        let opens = Arc::new(AtomicU64::new(0));
+        let device = Pluggable {
+            plugged: plugged.clone(),
+            opens: opens.clone(),
+        };
+        let (wake_tx, wake_rx) = crossbeam_channel::bounded(1);
+        let bus = Arc::new(Bus::new());
+        let mut runner =
+            DeviceRunner::spawn_with_wake("lamp", Box::new(device), bus, backoff, wake_rx).unwrap();
+        let status = runner.status().clone();
+        wait_until("the first refused open", || {
+            status.state() == DeviceState::Lost && opens.load(Ordering::SeqCst) == 1
+        });
+        // The USB device arrives before its device node: the woken open still fails...
+        wake_tx.send(()).unwrap();
+        wait_until("the woken open to fail", || {
+            status.state() == DeviceState::Lost && opens.load(Ordering::SeqCst) == 2
+        });
+        // ...and the next arrival finds it.
+        plugged.store(true, Ordering::SeqCst);
+        wake_tx.send(()).unwrap();
+        wait_until("the device to run", || status.frames() == 1);
+        assert_eq!(status.state(), DeviceState::Running);
+        assert_eq!(opens.load(Ordering::SeqCst), 3);
+        runner.stop();
+        assert_eq!(status.state(), DeviceState::Stopped);
+    }
+
+    #[test]
+    fn without_a_wake_sender_the_runner_polls_with_its_backoff() {
+        // What a daemon gets when the hot-plug watcher cannot start or stops: every sender gone.
+        let backoff = Backoff {
+            initial: Duration::from_millis(50),
+            max: Duration::from_millis(50),
+        };
+        let plugged = Arc::new(AtomicBool::new(false));
+        let opens = Arc::new(AtomicU64::new(0));
+        let device = Pluggable {
+            plugged: plugged.clone(),
+            opens: opens.clone(),
+        };
+        let (wake_tx, wake_rx) = crossbeam_channel::bounded::<()>(1);
+        drop(wake_tx);
+        let bus = Arc::new(Bus::new());
+        let started = Instant::now();
+        let mut runner =
+            DeviceRunner::spawn_with_wake("lamp", Box::new(device), bus, backoff, wake_rx).unwrap();
+        let status = runner.status().clone();
+        wait_until("three refused opens", || opens.load(Ordering::SeqCst) >= 3);
+        // Two full backoffs lie between the first and the third attempt: a disconnected wake
+        // channel must not turn the backoff into a busy loop.
+        assert!(started.elapsed() >= 2 * backoff.initial);
+        plugged.store(true, Ordering::SeqCst);
+        wait_until("the device to run", || status.frames() == 1);
+        assert_eq!(status.state(), DeviceState::Running);
+        runner.stop();
     }
 
     struct BadConfig;

@@ -6,10 +6,25 @@
 //! recordings through the same contract, so the daemon cannot tell it from hardware.
 
 pub mod device;
+pub mod exposure_schedule;
+#[cfg(feature = "freenect")]
+pub mod freenect;
+#[cfg(feature = "hotplug")]
+pub mod hotplug;
+#[cfg(feature = "lamp")]
+pub mod lamp;
 pub mod lamp_protocol;
+pub mod markers;
+#[cfg(feature = "openni2")]
+pub mod openni2;
+pub mod pixel_convert;
 pub mod replay;
 pub mod sim;
 pub mod sources;
+#[cfg(feature = "ueye")]
+pub mod ueye;
+#[cfg(feature = "v4l2")]
+pub mod v4l2;
 
 pub use device::{
     Device, DeviceContext, DeviceError, DeviceRunner, DeviceState, DeviceStatus, RunEnd, Stepper,

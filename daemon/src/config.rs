@@ -60,6 +60,19 @@ pub struct Config {
     pub recorder: RecorderConfig,
     pub snapshot: SnapshotConfig,
     pub output: OutputConfig,
+    pub rig: RigConfig,
+}
+
+/// `[rig]`: the rig's calibration file, written by `relight-calibrate`.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RigConfig {
+    /// Where the calibration was read from.
+    pub calibration_path: Option<PathBuf>,
+    /// The calibration, parsed and checked when the configuration is loaded so that
+    /// `check-config` catches a broken file. The hardware devices use it (the marker trackers
+    /// need the colour camera) and the recorder embeds it; with `[replay]` it replaces the
+    /// recording's own calibration (a rig recalibrated after recording).
+    pub calibration: Option<relight_core::rig::RigCalibration>,
 }
 
 /// `[scene]`: what the relighting engines relight live.
@@ -215,6 +228,15 @@ impl DeviceBackend {
         Self::ALL.into_iter().find(|b| b.name() == name)
     }
 
+    /// The cargo feature of relight-daemon (and relight-backends) that compiles this backend in.
+    pub fn feature(self) -> &'static str {
+        match self {
+            DeviceBackend::Aruco => "opencv",
+            DeviceBackend::LampSerial => "lamp",
+            other => other.name(),
+        }
+    }
+
     /// The streams this backend can supply.
     pub fn streams(self) -> &'static [StreamKind] {
         match self {
@@ -290,6 +312,7 @@ impl Default for Config {
             recorder: RecorderConfig::default(),
             snapshot: SnapshotConfig::default(),
             output: OutputConfig::default(),
+            rig: RigConfig::default(),
         }
     }
 }
@@ -555,6 +578,13 @@ struct RawConfig {
     recorder: RawRecorder,
     snapshot: RawSnapshot,
     output: RawOutput,
+    rig: RawRig,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawRig {
+    calibration: Option<String>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -662,6 +692,33 @@ impl Validator<'_> {
                     .unwrap_or_else(|| PathBuf::from(DEFAULT_SNAPSHOTS_DIR)),
             },
             output: self.output(raw.output),
+            rig: self.rig(raw.rig, path),
+        }
+    }
+
+    /// A relative calibration path is taken relative to the configuration file's directory.
+    fn rig(&mut self, raw: RawRig, config_path: &Path) -> RigConfig {
+        let Some(path) = self.dir("rig.calibration", raw.calibration) else {
+            return RigConfig::default();
+        };
+        let path = match config_path.parent() {
+            Some(dir) if path.is_relative() => dir.join(path),
+            _ => path,
+        };
+        let parsed = std::fs::read_to_string(&path)
+            .map_err(|e| e.to_string())
+            .and_then(|text| {
+                relight_core::rig::RigCalibration::from_toml(&text).map_err(|e| e.to_string())
+            });
+        match parsed {
+            Ok(calibration) => RigConfig {
+                calibration_path: Some(path),
+                calibration: Some(calibration),
+            },
+            Err(error) => {
+                self.error("rig.calibration", format!("{}: {error}", path.display()));
+                RigConfig::default()
+            }
         }
     }
 

@@ -3,6 +3,7 @@ pub mod bench;
 pub mod config;
 pub mod control;
 pub mod depth_stage;
+pub mod devices;
 pub mod pipeline;
 pub mod sinks;
 pub mod timing;

@@ -204,15 +204,21 @@ impl Pipeline {
                 )?);
             }
             SourceConfig::Devices(devices) => {
-                if let Some((stream, device)) = devices.iter().next() {
-                    anyhow::bail!(
-                        "{}: [{stream}] backend `{}` is not compiled into this build",
-                        config.path.display(),
-                        device.backend.name()
-                    );
+                meta.calibration = config.rig.calibration.clone();
+                if devices.is_empty() {
+                    tracing::warn!("no source configured: serving the control socket only");
                 }
-                tracing::warn!("no source configured: serving the control socket only");
+                runners.extend(
+                    crate::devices::spawn(devices, config.rig.calibration.as_ref(), &bus)
+                        .with_context(|| config.path.display().to_string())?,
+                );
             }
+        }
+        if let (Some(calibration), SourceConfig::Replay(_) | SourceConfig::Sim(_)) =
+            (&config.rig.calibration, &config.source)
+        {
+            tracing::info!("[rig] calibration replaces the source's own");
+            meta.calibration = Some(calibration.clone());
         }
         let synchronizer = Synchronizer::new(sync)
             .with_context(|| format!("{}: [sync]", config.path.display()))?;

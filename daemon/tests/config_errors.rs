@@ -401,3 +401,37 @@ fn duplicate_key_names_the_key() {
     let d = err.diagnostics().first().cloned().expect("one diagnostic");
     assert_at(&d, 3, "sync.tolerance_ms", "duplicate key");
 }
+
+#[test]
+fn rig_calibration_is_loaded_relative_to_the_config_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let rig = relight_core::rig::RigCalibration {
+        name: "desk".into(),
+        probe_radiance_scale: 2.5,
+        ..Default::default()
+    };
+    std::fs::write(dir.path().join("rig.toml"), rig.to_toml().unwrap()).unwrap();
+    let config_path = dir.path().join("relightd.toml");
+    let config = Config::parse("[rig]\ncalibration = \"rig.toml\"\n", &config_path).unwrap();
+    assert_eq!(config.rig.calibration, Some(rig));
+    assert_eq!(
+        config.rig.calibration_path,
+        Some(dir.path().join("rig.toml"))
+    );
+}
+
+#[test]
+fn a_broken_rig_calibration_names_its_own_line() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("rig.toml"), "name = \"x\"\nfocal = 3\n").unwrap();
+    let text = format!(
+        "[sync]\ntolerance_ms = 10\n\n[rig]\ncalibration = \"{}\"\n",
+        dir.path().join("rig.toml").display()
+    );
+    let d = only_error(&text);
+    assert_at(&d, 5, "rig.calibration", "rig.toml");
+    assert!(d.message.contains("line 2"), "{d}");
+    assert!(d.message.contains("focal"), "{d}");
+    let missing = only_error("[rig]\ncalibration = \"/nonexistent/rig.toml\"\n");
+    assert_at(&missing, 2, "rig.calibration", "/nonexistent/rig.toml");
+}
