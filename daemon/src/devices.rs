@@ -203,6 +203,12 @@ fn build(
             let config = settings(plan.settings.clone())?;
             Ok(Box::new(apriltag_device(&config, colour_camera(rig)?)?))
         }
+        #[cfg(feature = "opencv")]
+        DeviceBackend::Aruco => {
+            use relight_backends::markers::aruco::aruco_device;
+            let config = settings(plan.settings.clone())?;
+            Ok(Box::new(aruco_device(&config, colour_camera(rig)?)?))
+        }
         #[cfg(feature = "lamp")]
         DeviceBackend::LampSerial => {
             use relight_backends::lamp::{BoardPose, SerialLamp};
