@@ -168,6 +168,12 @@ fn build(
 ) -> anyhow::Result<Box<dyn Device>> {
     let _ = (rig, bus);
     match plan.backend {
+        #[cfg(feature = "openni2")]
+        DeviceBackend::Openni2 => {
+            use relight_backends::openni2::{OpenNi2Config, OpenNi2Device};
+            let config: OpenNi2Config = settings(plan.settings.clone())?;
+            Ok(Box::new(OpenNi2Device::new(config, &plan.streams)?))
+        }
         #[cfg(feature = "freenect")]
         DeviceBackend::Freenect => {
             use relight_backends::freenect::{FreenectConfig, FreenectDevice};

@@ -144,7 +144,7 @@ fn example_file_sections_parse_when_uncommented() {
     assert_eq!(devices[&StreamKind::Probe].backend, DeviceBackend::Ueye);
     assert_eq!(
         devices[&StreamKind::Probe].settings,
-        json!({ "serial": "4102712345", "exposures_us": [250, 2000, 16000] })
+        json!({ "camera_id": 0, "bracket_us": [1000, 3000, 11000, 64000], "exposure_latency_frames": 2 })
     );
     assert_eq!(
         devices[&StreamKind::Lamp].backend,

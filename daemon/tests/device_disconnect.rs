@@ -359,3 +359,55 @@ mod freenect {
         );
     }
 }
+
+#[cfg(feature = "openni2")]
+mod openni2 {
+    use super::*;
+    use relight_backends::openni2::{OpenNi2Config, record_oni};
+    use relight_core::StreamKind;
+
+    /// OpenNI2's recorder makes a recording of its DummyDevice; relightd is told to play it
+    /// before it exists (the sensor is not plugged in: `lost`, retried), then it appears (plays),
+    /// then it ends (`stopped`) — and the control socket answers throughout.
+    #[test]
+    fn an_openni2_recording_that_appears_late_plays_and_its_end_stops_the_device() {
+        let dir = tempfile::tempdir().unwrap();
+        let made = dir.path().join("made.oni");
+        let config = OpenNi2Config {
+            uri: Some("Dummy".into()),
+            ..OpenNi2Config::default()
+        };
+        let summary = record_oni(&config, &[StreamKind::Depth], &made, 45).unwrap();
+        assert!(summary.frames(StreamKind::Depth).unwrap() >= 45);
+        let oni = dir.path().join("session.oni");
+        let daemon = start(
+            dir.path(),
+            &format!(
+                "[sync]\nstreams = [\"depth\"]\n\n[depth]\nbackend = \"openni2\"\nuri = \"{}\"\n",
+                oni.display()
+            ),
+            &[],
+        );
+        let lost = wait_for(&daemon, "depth", "lost (no recording yet)", |d| {
+            d["state"] == "lost"
+        });
+        assert!(
+            lost["last_error"]
+                .as_str()
+                .is_some_and(|e| e.contains("not found")),
+            "{lost}"
+        );
+        std::fs::rename(&made, &oni).unwrap();
+        wait_for(&daemon, "depth", "playing", |d| {
+            d["state"] == "running" && d["frames"].as_u64() > Some(3)
+        });
+        let ended = wait_for(&daemon, "depth", "stopped at the end", |d| {
+            d["state"] == "stopped"
+        });
+        assert!(ended["frames"].as_u64().unwrap() + ended["drops"].as_u64().unwrap() >= 45);
+        assert_eq!(
+            device(&status(&daemon.socket), "depth")["backend"],
+            "openni2"
+        );
+    }
+}
