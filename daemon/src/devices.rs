@@ -89,17 +89,42 @@ fn merge_settings(into: &mut Value, from: &Value) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Open every configured device on its own runner thread, publishing to `bus`.
+/// Keeps the USB hot-plug watcher (feature `hotplug`) running while the devices it wakes live.
+/// Without it (or where libusb cannot watch) devices reconnect by polling with backoff.
+#[derive(Debug, Default)]
+pub struct Hotplug {
+    #[cfg(feature = "hotplug")]
+    _watcher: Option<relight_backends::hotplug::HotplugWatcher>,
+}
+
+/// Open every configured device on its own runner thread, publishing to `bus`. With the
+/// `hotplug` feature, a rig USB device arriving (Kinect, PrimeSense, uEye, UVC camera, a lamp's
+/// `usb_id`) cuts every lost device's reconnect backoff short.
 pub fn spawn(
     devices: &BTreeMap<StreamKind, DeviceConfig>,
     rig: Option<&RigCalibration>,
     bus: &Arc<Bus>,
-) -> anyhow::Result<Vec<DeviceRunner>> {
+) -> anyhow::Result<(Vec<DeviceRunner>, Hotplug)> {
+    let plans = plan(devices)?;
+    #[cfg(feature = "hotplug")]
+    let watcher = (!plans.is_empty()).then(|| start_hotplug(&plans)).flatten();
     let mut runners = Vec::new();
-    for plan in plan(devices)? {
+    for plan in plans {
         let name = plan.name();
         let device =
             build(&plan, rig, bus).with_context(|| format!("[{name}] {}", plan.backend))?;
+        #[cfg(feature = "hotplug")]
+        if let Some(watcher) = &watcher {
+            let wake = watcher.wake_on(hotplug_filters(std::slice::from_ref(&plan)));
+            runners.push(DeviceRunner::spawn_with_wake(
+                name,
+                device,
+                bus.clone(),
+                Backoff::default(),
+                wake,
+            )?);
+            continue;
+        }
         runners.push(DeviceRunner::spawn(
             name,
             device,
@@ -107,7 +132,35 @@ pub fn spawn(
             Backoff::default(),
         )?);
     }
-    Ok(runners)
+    Ok((
+        runners,
+        Hotplug {
+            #[cfg(feature = "hotplug")]
+            _watcher: watcher,
+        },
+    ))
+}
+
+/// The rig's usual USB devices plus each lamp's adapter (`usb_id = "vvvv:pppp"`).
+#[cfg(feature = "hotplug")]
+fn hotplug_filters(plans: &[DevicePlan]) -> Vec<relight_backends::hotplug::UsbFilter> {
+    use relight_backends::hotplug::UsbFilter;
+    let mut filters = UsbFilter::rig_defaults();
+    filters.extend(plans.iter().filter_map(|p| {
+        p.settings
+            .get("usb_id")?
+            .as_str()?
+            .parse::<UsbFilter>()
+            .ok()
+    }));
+    filters
+}
+
+#[cfg(feature = "hotplug")]
+fn start_hotplug(plans: &[DevicePlan]) -> Option<relight_backends::hotplug::HotplugWatcher> {
+    relight_backends::hotplug::HotplugWatcher::start(hotplug_filters(plans))
+        .inspect_err(|error| tracing::info!(%error, "no USB hot-plug"))
+        .ok()
 }
 
 /// The backend's typed config from the section's settings; unknown keys and bad values are

@@ -112,6 +112,8 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 pub struct Pipeline {
     shared: Arc<Shared>,
     runners: Vec<DeviceRunner>,
+    /// Wakes the runners' reconnects on USB arrivals; outlives nothing it serves.
+    _hotplug: crate::devices::Hotplug,
     render: Option<JoinHandle<()>>,
 }
 
@@ -165,6 +167,7 @@ impl Pipeline {
             source: format!("relightd {}", env!("CARGO_PKG_VERSION")),
         };
         let mut runners = Vec::new();
+        let mut hotplug = crate::devices::Hotplug::default();
         let mut sync = core_sync_config(&config.sync);
         match &config.source {
             SourceConfig::Replay(replay) => {
@@ -208,10 +211,11 @@ impl Pipeline {
                 if devices.is_empty() {
                     tracing::warn!("no source configured: serving the control socket only");
                 }
-                runners.extend(
+                let (devices, watcher) =
                     crate::devices::spawn(devices, config.rig.calibration.as_ref(), &bus)
-                        .with_context(|| config.path.display().to_string())?,
-                );
+                        .with_context(|| config.path.display().to_string())?;
+                runners.extend(devices);
+                hotplug = watcher;
             }
         }
         if let (Some(calibration), SourceConfig::Replay(_) | SourceConfig::Sim(_)) =
@@ -346,6 +350,7 @@ impl Pipeline {
         Ok(Self {
             shared,
             runners,
+            _hotplug: hotplug,
             render: Some(render),
         })
     }
