@@ -69,7 +69,7 @@ use opencv::photo::{self, CalibrateCRFTrait};
 use opencv::prelude::*;
 use relight_core::ProbeImage;
 use relight_recon::hdr::{
-    HdrError, HdrImage, RESPONSE_LEN, RecoverySettings, Response, recover_response,
+    HdrError, HdrImage, RESPONSE_LEN, Response, piecewise_linear, pool_adjacent_violators,
 };
 
 use crate::vignetting::Vignetting;
@@ -186,15 +186,9 @@ pub fn effective_exposure_s(probe: &ProbeImage) -> f64 {
 
 /// Checks a calibration bracket exactly as `relight_recon::hdr::recover_response` does (sizes,
 /// `Rgb8`, positive exposure times, at least two different times, no ladder of one ratio, some
-/// overlap) without running its estimation: zero iterations.
+/// overlap).
 pub fn check_bracket(brackets: &[ProbeImage]) -> Result<(), PhotometricError> {
-    let checks_only = RecoverySettings {
-        max_samples: 1,
-        max_iterations: 0,
-        tolerance: f64::INFINITY,
-    };
-    recover_response(brackets, &checks_only)?;
-    Ok(())
+    Ok(relight_recon::hdr::check_bracket(brackets)?)
 }
 
 /// Recovers the probe's inverse response from a bracket of one static view (module docs).
@@ -416,45 +410,6 @@ fn regularised(raw: &[f32], counts: &[u32; RESPONSE_LEN]) -> Result<Vec<f32>, Ph
     Ok(table)
 }
 
-/// Weighted isotonic (non-decreasing) regression: the pool-adjacent-violators algorithm.
-fn pool_adjacent_violators(values: &[f64], weights: &[f64]) -> Vec<f64> {
-    // Blocks of (mean, weight, length).
-    let mut blocks: Vec<(f64, f64, usize)> = Vec::with_capacity(values.len());
-    for (&v, &w) in values.iter().zip(weights) {
-        blocks.push((v, w, 1));
-        while let [.., (a_mean, a_weight, a_len), (b_mean, b_weight, b_len)] = blocks[..] {
-            if a_mean <= b_mean {
-                break;
-            }
-            let weight = a_weight + b_weight;
-            let mean = (a_mean * a_weight + b_mean * b_weight) / weight;
-            blocks.truncate(blocks.len() - 2);
-            blocks.push((mean, weight, a_len + b_len));
-        }
-    }
-    blocks
-        .into_iter()
-        .flat_map(|(mean, _, len)| std::iter::repeat_n(mean, len))
-        .collect()
-}
-
-/// Linear interpolation through `(x, y)` anchors sorted by `x`, linear extrapolation beyond the
-/// last two, never below the last anchor.
-fn piecewise_linear(anchors: &[(f64, f64)], x: f64) -> f64 {
-    let upper = anchors.partition_point(|&(ax, _)| ax < x);
-    let below = upper.checked_sub(1).and_then(|i| anchors.get(i));
-    match (below, anchors.get(upper)) {
-        (_, Some(&(ax, ay))) if ax == x => ay,
-        (Some(&(x0, y0)), Some(&(x1, y1))) => y0 + (y1 - y0) * (x - x0) / (x1 - x0),
-        (Some(&(x1, y1)), None) => match upper.checked_sub(2).and_then(|i| anchors.get(i)) {
-            Some(&(x0, y0)) if x1 > x0 => (y1 + (y1 - y0) / (x1 - x0) * (x - x1)).max(y1),
-            _ => y1,
-        },
-        (None, Some(&(_, y1))) => y1,
-        (None, None) => 0.0,
-    }
-}
-
 /// A rectangle of pixels: columns `x..x + width`, rows `y..y + height`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PixelRect {
@@ -519,16 +474,6 @@ pub fn radiance_scale(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn pava_pools_violations_and_keeps_order() {
-        let fitted = pool_adjacent_violators(&[1.0, 3.0, 2.0, 4.0], &[1.0, 1.0, 1.0, 1.0]);
-        assert_eq!(fitted, vec![1.0, 2.5, 2.5, 4.0]);
-        assert_eq!(
-            pool_adjacent_violators(&[2.0, 1.0], &[3.0, 1.0]),
-            vec![1.75, 1.75]
-        );
-    }
 
     #[test]
     fn usable_codes_stop_at_sparse_codes_and_wide_bins() {

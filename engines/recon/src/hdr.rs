@@ -252,6 +252,37 @@ fn checked<B: Borrow<ProbeImage>>(
     Ok((width, height, out))
 }
 
+/// The checks [`recover_response`] makes of a bracket before estimating anything: sizes, `Rgb8`,
+/// positive exposure times, at least two different times, no ladder of one ratio
+/// ([`HdrError::CommensurateExposures`]) and some pixel-channel well exposed in two exposures.
+pub fn check_bracket<B: Borrow<ProbeImage>>(brackets: &[B]) -> Result<(), HdrError> {
+    let exposures = calibration_bracket(brackets)?;
+    if informative_samples(&exposures, 1).is_empty() {
+        return Err(HdrError::NoOverlap);
+    }
+    Ok(())
+}
+
+/// The bracket's exposures when its times can determine a response curve.
+fn calibration_bracket<B: Borrow<ProbeImage>>(
+    brackets: &[B],
+) -> Result<Vec<Exposure<'_>>, HdrError> {
+    let (_, _, exposures) = checked(brackets)?;
+    let (shortest, longest) = exposures
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(lo, hi), e| {
+            (lo.min(e.time_s), hi.max(e.time_s))
+        });
+    if longest <= shortest * (1.0 + 1e-9) {
+        return Err(HdrError::EqualExposures);
+    }
+    let times: Vec<f64> = exposures.iter().map(|e| e.time_s).collect();
+    if let Some(ratio) = common_ratio(&times) {
+        return Err(HdrError::CommensurateExposures { ratio });
+    }
+    Ok(exposures)
+}
+
 /// Recovers the probe's inverse response from a bracket of the same (static) view by
 /// Robertson's alternating minimisation (module docs), normalised to `I_128 = 1`, starting from
 /// a linear curve.
@@ -272,19 +303,8 @@ pub fn recover_response<B: Borrow<ProbeImage>>(
     brackets: &[B],
     settings: &RecoverySettings,
 ) -> Result<Response, HdrError> {
-    let (_, _, exposures) = checked(brackets)?;
-    let (shortest, longest) = exposures
-        .iter()
-        .fold((f64::INFINITY, 0.0f64), |(lo, hi), e| {
-            (lo.min(e.time_s), hi.max(e.time_s))
-        });
-    if longest <= shortest * (1.0 + 1e-9) {
-        return Err(HdrError::EqualExposures);
-    }
+    let exposures = calibration_bracket(brackets)?;
     let times: Vec<f64> = exposures.iter().map(|e| e.time_s).collect();
-    if let Some(ratio) = common_ratio(&times) {
-        return Err(HdrError::CommensurateExposures { ratio });
-    }
     let samples = informative_samples(&exposures, settings.max_samples);
     if samples.is_empty() {
         return Err(HdrError::NoOverlap);
@@ -468,7 +488,7 @@ fn regularised(estimate: &[f64; RESPONSE_LEN], counts: &[f64; RESPONSE_LEN]) -> 
 }
 
 /// Weighted isotonic (non-decreasing) regression: the pool-adjacent-violators algorithm.
-fn pool_adjacent_violators(values: &[f64], weights: &[f64]) -> Vec<f64> {
+pub fn pool_adjacent_violators(values: &[f64], weights: &[f64]) -> Vec<f64> {
     // Blocks of (mean, weight, length).
     let mut blocks: Vec<(f64, f64, usize)> = Vec::with_capacity(values.len());
     for (&v, &w) in values.iter().zip(weights) {
@@ -493,7 +513,7 @@ fn pool_adjacent_violators(values: &[f64], weights: &[f64]) -> Vec<f64> {
 
 /// Linear interpolation through `(x, y)` anchors sorted by `x`, linear extrapolation beyond the
 /// last two (flat with only one), never below the last anchor.
-fn piecewise_linear(anchors: &[(f64, f64)], x: f64) -> f64 {
+pub fn piecewise_linear(anchors: &[(f64, f64)], x: f64) -> f64 {
     let upper = anchors.partition_point(|&(ax, _)| ax < x);
     let below = upper.checked_sub(1).and_then(|i| anchors.get(i));
     match (below, anchors.get(upper)) {
