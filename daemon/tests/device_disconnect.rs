@@ -11,59 +11,27 @@
     feature = "openni2"
 ))]
 
+mod support;
+
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
-
-/// A relightd child process, killed when dropped.
-struct Daemon {
-    child: Child,
-    socket: PathBuf,
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
+use support::Daemon;
 
 /// Start relightd on `sections` (device sections, `[rig]`, `[sync]`) with `env` set.
 fn start(dir: &Path, sections: &str, env: &[(&str, &str)]) -> Daemon {
     let socket = dir.join("control.sock");
-    let config = dir.join("relightd.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[daemon]\nsocket = \"{}\"\nwatchdog = false\n\n[engine]\nname = \"passthrough\"\n\n\
-             [recorder]\ndir = \"{dir}/recordings\"\n\n[snapshot]\ndir = \"{dir}/snapshots\"\n\n{sections}",
-            socket.display(),
-            dir = dir.display(),
-        ),
-    )
-    .unwrap();
-    let child = Command::new(env!("CARGO_BIN_EXE_relightd"))
-        .arg("--config")
-        .arg(&config)
-        .env("RELIGHT_LOG", "error")
-        .envs(env.iter().copied())
-        .stdout(Stdio::null())
-        .spawn()
-        .expect("relightd starts");
-    let mut daemon = Daemon { child, socket };
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while UnixStream::connect(&daemon.socket).is_err() {
-        if let Some(status) = daemon.child.try_wait().unwrap() {
-            panic!("relightd exited with {status} before serving its socket");
-        }
-        assert!(Instant::now() < deadline, "control socket never appeared");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    daemon
+    let config = format!(
+        "[daemon]\nsocket = \"{}\"\nwatchdog = false\n\n[engine]\nname = \"passthrough\"\n\n\
+         [recorder]\ndir = \"{dir}/recordings\"\n\n[snapshot]\ndir = \"{dir}/snapshots\"\n\n{sections}",
+        socket.display(),
+        dir = dir.display(),
+    );
+    support::start(dir, &config, socket, "error", env)
 }
 
 fn status(socket: &Path) -> Value {

@@ -1,31 +1,22 @@
 //! End to end: `relightd` on a replay configuration with a temporary socket, driven by
 //! `relightctl` and by hostile raw requests; the recording it makes must read back frame-exact.
 
+mod support;
+
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
 use relight_core::recording::RecordingReader;
 use relight_core::{StreamKind, StreamMessage};
 use serde_json::{Value, json};
+use support::Daemon;
 
 fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/demo.mcap")
-}
-
-struct Daemon {
-    child: Child,
-    socket: PathBuf,
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 fn start_daemon(dir: &Path) -> Daemon {
@@ -35,11 +26,8 @@ fn start_daemon(dir: &Path) -> Daemon {
 /// The replay daemon of `start_daemon` with `extra` TOML sections appended to its config.
 fn start_daemon_with(dir: &Path, extra: &str) -> Daemon {
     let socket = dir.join("control.sock");
-    let config = dir.join("relightd.toml");
-    std::fs::write(
-        &config,
-        format!(
-            r#"
+    let config = format!(
+        r#"
 [daemon]
 socket = "{socket}"
 watchdog = false
@@ -59,26 +47,11 @@ dir = "{dir}/recordings"
 dir = "{dir}/snapshots"
 {extra}
 "#,
-            socket = socket.display(),
-            recording = fixture().display(),
-            dir = dir.display(),
-        ),
-    )
-    .unwrap();
-    let child = Command::new(env!("CARGO_BIN_EXE_relightd"))
-        .arg("--config")
-        .arg(&config)
-        .env("RELIGHT_LOG", "warn")
-        .stdout(Stdio::null())
-        .spawn()
-        .expect("relightd starts");
-    let daemon = Daemon { child, socket };
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while UnixStream::connect(&daemon.socket).is_err() {
-        assert!(Instant::now() < deadline, "control socket never appeared");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    daemon
+        socket = socket.display(),
+        recording = fixture().display(),
+        dir = dir.display(),
+    );
+    support::start(dir, &config, socket, "warn", &[])
 }
 
 fn ctl(socket: &Path, args: &[&str]) -> Output {

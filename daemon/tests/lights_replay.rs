@@ -4,39 +4,26 @@
 //! lamp — on the control socket (`lights.get`, `lights.subscribe` → `lights.update`), and bad `lights.*` requests get
 //! JSON-RPC errors while the daemon keeps serving.
 
-use std::os::unix::net::UnixStream;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+mod support;
+
+use std::path::Path;
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use relight_daemon::control::{Client, ClientError, codes};
 use relight_recon::estimate::LightingEstimate;
 use serde_json::{Value, json};
+use support::Daemon;
 
 const TIMEOUT: Duration = Duration::from_secs(10);
 /// The scene file's own light (tests/scenes/desk_box/scene.toml); other point lights: the lamp.
 const SCENE_LIGHT_POSITION: [f32; 3] = [0.0, 1.1, 0.2];
 
-struct Daemon {
-    child: Child,
-    socket: PathBuf,
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 fn start_daemon(dir: &Path) -> Daemon {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let socket = dir.join("control.sock");
-    let config = dir.join("relightd.toml");
-    std::fs::write(
-        &config,
-        format!(
-            r#"
+    let config = format!(
+        r#"
 [daemon]
 socket = "{socket}"
 watchdog = false
@@ -53,26 +40,11 @@ name = "passthrough"
 dir = "{scene}"
 depth_stride = 4
 "#,
-            socket = socket.display(),
-            recording = root.join("tests/fixtures/demo.mcap").display(),
-            scene = root.join("tests/scenes/desk_box").display(),
-        ),
-    )
-    .expect("config written");
-    let child = Command::new(env!("CARGO_BIN_EXE_relightd"))
-        .arg("--config")
-        .arg(&config)
-        .env("RELIGHT_LOG", "warn")
-        .stdout(Stdio::null())
-        .spawn()
-        .expect("relightd starts");
-    let daemon = Daemon { child, socket };
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while UnixStream::connect(&daemon.socket).is_err() {
-        assert!(Instant::now() < deadline, "control socket never appeared");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    daemon
+        socket = socket.display(),
+        recording = root.join("tests/fixtures/demo.mcap").display(),
+        scene = root.join("tests/scenes/desk_box").display(),
+    );
+    support::start(dir, &config, socket, "warn", &[])
 }
 
 /// The lamp's light in `estimate`, if the lamp is on.
