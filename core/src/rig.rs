@@ -24,6 +24,15 @@ pub struct RigCalibration {
     /// The fish-eye probe's pose in the world (marker board) frame.
     #[serde(default)]
     pub world_from_probe: Pose,
+    /// The world-defining marker board's pose in the world frame. The board on the table defines
+    /// the world (identity: the board's frame is the world's); a lab that keeps another world
+    /// frame, such as a simulator's scene, puts the board there.
+    #[serde(default)]
+    pub world_from_board: Pose,
+    /// The printed layout of that board, so a recording can be tracked without the rig's
+    /// configuration.
+    #[serde(default)]
+    pub board: Option<BoardLayout>,
     /// The lamp's light centre in its marker's frame.
     #[serde(default)]
     pub lamp_marker_from_light: Pose,
@@ -34,6 +43,23 @@ pub struct RigCalibration {
     /// probe's absolute scale, which turns merged HDR values into radiance (1: relative units).
     #[serde(default = "unit_scale")]
     pub probe_radiance_scale: f32,
+}
+
+/// A printed grid of square tags with consecutive ids, left to right from the top row; the board
+/// frame has its origin at the grid's centre, the tags in its x–y plane (+x right, +y up as
+/// printed) and +z out of the print.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BoardLayout {
+    /// Tag family, e.g. `tag36h11`.
+    pub family: String,
+    pub first_id: u32,
+    pub cols: u32,
+    pub rows: u32,
+    /// Edge of each tag's detected square, metres.
+    pub tag_size_m: f64,
+    /// Between neighbouring tags' squares, metres.
+    pub gap_m: f64,
 }
 
 fn unit_scale() -> f32 {
@@ -57,6 +83,8 @@ impl Default for RigCalibration {
             probe: None,
             color_from_depth: Pose::default(),
             world_from_probe: Pose::default(),
+            world_from_board: Pose::default(),
+            board: None,
             lamp_marker_from_light: Pose::default(),
             probe_response: Vec::new(),
             probe_radiance_scale: 1.0,

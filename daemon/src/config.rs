@@ -22,6 +22,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use crate::tracking::{TrackingConfig, TrackingSource};
 use relight_core::StreamKind;
 use relight_engines::live_scene::{LightSource, RealGeometry};
 use serde::Deserialize;
@@ -61,6 +62,7 @@ pub struct Config {
     pub snapshot: SnapshotConfig,
     pub output: OutputConfig,
     pub rig: RigConfig,
+    pub tracking: TrackingConfig,
 }
 
 /// `[rig]`: the rig's calibration file, written by `relight-calibrate`.
@@ -313,6 +315,7 @@ impl Default for Config {
             snapshot: SnapshotConfig::default(),
             output: OutputConfig::default(),
             rig: RigConfig::default(),
+            tracking: TrackingConfig::default(),
         }
     }
 }
@@ -579,6 +582,17 @@ struct RawConfig {
     snapshot: RawSnapshot,
     output: RawOutput,
     rig: RawRig,
+    tracking: RawTracking,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawTracking {
+    source: Option<String>,
+    max_age_ms: Option<f64>,
+    max_rms_px: Option<f64>,
+    board: Option<relight_backends::markers::board::BoardConfig>,
+    smoothing: Option<relight_backends::markers::one_euro::OneEuroConfig>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -693,7 +707,55 @@ impl Validator<'_> {
             },
             output: self.output(raw.output),
             rig: self.rig(raw.rig, path),
+            tracking: self.tracking(raw.tracking),
         }
+    }
+
+    fn tracking(&mut self, raw: RawTracking) -> TrackingConfig {
+        let mut tracking = TrackingConfig {
+            board: raw.board,
+            ..TrackingConfig::default()
+        };
+        match raw.source.as_deref() {
+            None => {}
+            Some("markers") => tracking.source = Some(TrackingSource::Markers),
+            Some("scene") => tracking.source = Some(TrackingSource::Scene),
+            Some(other) => self.error(
+                "tracking.source",
+                format!("must be \"markers\" or \"scene\", got \"{other}\""),
+            ),
+        }
+        if let Some(ms) = raw.max_age_ms {
+            match non_negative_ms(ms).filter(|d| *d <= Duration::from_secs(3600)) {
+                Some(age) => tracking.max_age = age,
+                None => self.error(
+                    "tracking.max_age_ms",
+                    format!("must be in [0, 3600000] ms, got {ms}"),
+                ),
+            }
+        }
+        if let Some(rms) = raw.max_rms_px {
+            if rms.is_finite() && rms > 0.0 && rms <= 100.0 {
+                tracking.max_rms_px = rms;
+            } else {
+                self.error(
+                    "tracking.max_rms_px",
+                    format!("must be in (0, 100] pixels, got {rms}"),
+                );
+            }
+        }
+        if let Some(smoothing) = raw.smoothing {
+            match smoothing.validate() {
+                Ok(()) => tracking.smoothing = smoothing,
+                Err(message) => self.error("tracking.smoothing", message),
+            }
+        }
+        if let Some(board) = &tracking.board
+            && let Err(error) = relight_backends::markers::board::Board::from_config(board)
+        {
+            self.error("tracking.board", error.to_string());
+        }
+        tracking
     }
 
     /// A relative calibration path is taken relative to the configuration file's directory.

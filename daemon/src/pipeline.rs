@@ -16,37 +16,29 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
 use crossbeam_channel::{Receiver, Sender, bounded};
-use glam::Vec3;
 use relight_backends::device::{Backoff, DeviceStatus as BackendStatus, Stepper};
 use relight_backends::sim::device::{SimDevice, SimSourceConfig};
 use relight_backends::{Device as _, DeviceRunner, DeviceState, Replay, ReplayConfig, ReplayMode};
 use relight_core::bus::Bus;
-use relight_core::camera::CameraModel;
 use relight_core::frame::host_now_ns;
-use relight_core::light::Light;
 use relight_core::recording::RecordingMeta;
-use relight_core::scene::Scene;
-use relight_core::sh::Sh9Rgb;
 use relight_core::sync::{FrameSet, SyncConfig as CoreSyncConfig, Synchronizer};
-use relight_core::{Frame, ProbeImage, StreamKind, StreamMessage, Timestamp};
+use relight_core::{Frame, ProbeImage, StreamKind, StreamMessage};
 use relight_engines::gpu::GpuError;
-use relight_engines::live_scene::{LightSource, LiveScene, RealGeometry};
-use relight_engines::{Engine, EngineError, EngineRegistry, RelitFrame, SceneFrame};
-use relight_recon::estimate::LightingEstimate;
-use relight_recon::irradiance::project_sh9;
-use relight_recon::probe::{ProbeEstimate, ProbeLighting, ProbeSettings};
+use relight_engines::{Engine, EngineError, EngineRegistry, RelitFrame};
 use serde_json::{Map, Value, json};
 
 use crate::config::{self, Config, SourceConfig};
 use crate::control::lights::LightsBoard;
 use crate::control::types::{
     ControlError, ControlTarget, DeviceStatus, EngineInfo, RecordingStatus, StageTiming,
-    StatusReport, SyncStreamStatus,
+    StatusReport, SyncStreamStatus, TrackingStatus,
 };
-use crate::depth_stage::{DepthOutcome, DepthStage};
+use crate::live_frame::LiveFrames;
 use crate::sinks::png_out::write_png;
 use crate::sinks::recorder::Recorder;
 use crate::timing::StageStats;
+use crate::tracking::TrackingReport;
 
 /// How long a control request waits for the render thread to serve a snapshot.
 const SNAPSHOT_TIMEOUT: Duration = Duration::from_secs(3);
@@ -91,6 +83,9 @@ struct Shared {
     sync_missing: AtomicU64,
     sync_streams: Mutex<Vec<SyncStreamStatus>>,
     render_errors: AtomicU64,
+    /// The last frame's registration, and how many frames were shown without Δ (untracked).
+    tracking: Mutex<Option<TrackingReport>>,
+    untracked_frames: AtomicU64,
     snapshots: (Sender<SnapshotRequest>, Receiver<SnapshotRequest>),
     devices: Vec<Arc<BackendStatus>>,
     /// Present when the source is a stepped replay.
@@ -125,7 +120,7 @@ impl std::fmt::Debug for Pipeline {
     }
 }
 
-fn core_sync_config(sync: &config::SyncConfig) -> CoreSyncConfig {
+pub fn core_sync_config(sync: &config::SyncConfig) -> CoreSyncConfig {
     CoreSyncConfig {
         reference: sync.reference,
         expected: sync.streams.clone(),
@@ -136,7 +131,11 @@ fn core_sync_config(sync: &config::SyncConfig) -> CoreSyncConfig {
 
 /// A recording without, say, a lamp channel would leave every frame set waiting for a lamp
 /// message that never comes; expect only what the recording holds, and say so.
-fn expect_only_recorded_streams(sync: &mut CoreSyncConfig, recorded: &[StreamKind], path: &Path) {
+pub fn expect_only_recorded_streams(
+    sync: &mut CoreSyncConfig,
+    recorded: &[StreamKind],
+    path: &Path,
+) {
     let absent: Vec<StreamKind> = sync
         .expected
         .iter()
@@ -226,63 +225,8 @@ impl Pipeline {
         }
         let synchronizer = Synchronizer::new(sync)
             .with_context(|| format!("{}: [sync]", config.path.display()))?;
-        let mut scene_lights = None;
-        let mut depth_stage = None;
-        let live_scene = match &config.scene.dir {
-            Some(dir) => {
-                let scene = Scene::load(dir)
-                    .with_context(|| format!("{}: [scene] dir", config.path.display()))?;
-                let probe = meta.calibration.as_ref().and_then(|rig| {
-                    ProbeLighting::new(rig, ProbeSettings::default())
-                        .inspect_err(|error| {
-                            if rig.probe.is_some() {
-                                tracing::warn!(%error, "the light probe is not used");
-                            }
-                        })
-                        .ok()
-                });
-                if probe.is_none() && config.scene.lighting == LightSource::Probe {
-                    tracing::warn!(
-                        "[scene] lighting = \"probe\" but the rig has no usable probe calibration: only the lamp lights the scene"
-                    );
-                }
-                scene_lights = Some(SceneLights::new(&scene, probe));
-                let depth_camera = meta.calibration.as_ref().and_then(|c| {
-                    match c.depth.as_ref().or(c.color.as_ref()) {
-                        Some(CameraModel::Pinhole(p)) => Some(*p),
-                        _ => None,
-                    }
-                });
-                if depth_camera.is_none() && config.scene.real == RealGeometry::Depth {
-                    tracing::warn!(
-                        "[scene] real = \"depth\" but the source has no pinhole depth calibration: the GPU engines get no scene"
-                    );
-                }
-                depth_stage = depth_camera
-                    .filter(|_| {
-                        config.scene.real == RealGeometry::Depth && config.scene.depth_filter
-                    })
-                    .map(|camera| {
-                        let gpu = registry
-                            .gpu()
-                            .inspect_err(
-                                |error| tracing::info!(%error, "depth reconstruction on the CPU"),
-                            )
-                            .ok();
-                        DepthStage::new(camera, gpu)
-                    });
-                let mut live = LiveScene::new(
-                    scene,
-                    config.scene.real,
-                    config.scene.real_albedo,
-                    depth_camera,
-                    config.scene.depth_stride,
-                );
-                live.set_light_source(config.scene.lighting);
-                Some(live)
-            }
-            None => None,
-        };
+        let live = LiveFrames::new(&config, meta.calibration.as_ref(), &registry)?;
+        let passthrough = registry.build("passthrough", &Map::new())?.engine;
         let recorder = Recorder::spawn(&bus, config.recorder.queue_frames, meta)?;
         let autostart = config
             .recorder
@@ -308,6 +252,8 @@ impl Pipeline {
             sync_missing: AtomicU64::new(0),
             sync_streams: Mutex::new(Vec::new()),
             render_errors: AtomicU64::new(0),
+            tracking: Mutex::new(None),
+            untracked_frames: AtomicU64::new(0),
             snapshots: bounded(8),
             devices: runners.iter().map(|r| r.status().clone()).collect(),
             steppers,
@@ -335,9 +281,8 @@ impl Pipeline {
                         shared: &shared,
                         synchronizer,
                         engine: built.engine,
-                        live_scene,
-                        scene_lights,
-                        depth_stage,
+                        passthrough,
+                        live,
                         relit: RelitFrame::default(),
                         arrivals: VecDeque::new(),
                         exit_at_end: options.exit_at_end,
@@ -418,12 +363,10 @@ struct RenderLoop<'a> {
     shared: &'a Shared,
     synchronizer: Synchronizer,
     engine: Box<dyn Engine>,
-    /// Builds each frame's scene for the GPU engines (`[scene]`).
-    live_scene: Option<LiveScene>,
-    /// Publishes the live scene's lights as the lighting estimate (with `[scene]`).
-    scene_lights: Option<SceneLights>,
-    /// Filters and merges depth before it is triangulated (`[scene] depth_filter`).
-    depth_stage: Option<DepthStage>,
+    /// Shows the camera image while the camera is untracked (no Δ rather than a wrong one).
+    passthrough: Box<dyn Engine>,
+    /// Registers the camera and builds each frame's scene for the GPU engines.
+    live: LiveFrames,
     relit: RelitFrame,
     /// Wall-clock arrival of recent reference frames, to time how long sets wait in the sync.
     arrivals: VecDeque<(u64, Instant)>,
@@ -581,19 +524,10 @@ impl RenderLoop<'_> {
         }
     }
 
-    /// Every probe frame, not only those the synchroniser matches to a frame set: a bracket
-    /// needs each of its exposures.
     fn probe_frame(&mut self, frame: &Arc<Frame<ProbeImage>>) {
-        let Some(scene_lights) = self.scene_lights.as_mut() else {
-            return;
-        };
-        let start = Instant::now();
-        if let Some(estimate) = scene_lights.probe_frame(frame)
-            && let Some(live) = self.live_scene.as_mut()
-        {
-            live.set_probe_environment(&estimate.environment);
+        if let Some(ms) = self.live.probe_frame(frame) {
+            self.record_stage("probe", ms);
         }
-        self.record_stage("probe", start.elapsed().as_secs_f64() * 1e3);
     }
 
     fn process(&mut self, set: FrameSet) {
@@ -609,42 +543,19 @@ impl RenderLoop<'_> {
             shared.sync_missing.fetch_add(1, Ordering::Relaxed);
         }
         let seq = shared.frame_sets.fetch_add(1, Ordering::Relaxed);
-        let scene = SceneFrame {
-            stamp: set.stamp,
-            seq,
-            color: set.color.clone(),
-            depth: set.depth.clone(),
-            scene: None,
-        };
-        let mut scene = scene;
-        if let Some(live) = self.live_scene.as_mut() {
-            let start = Instant::now();
-            let reconstructed = match (&mut self.depth_stage, &set.depth) {
-                (Some(stage), Some(depth)) => Some(stage.process(
-                    &depth.payload,
-                    set.color.as_ref().map(|c| &c.payload),
-                    &live.world_from_camera(),
-                )),
-                _ => None,
-            };
-            let depth_ms = start.elapsed().as_secs_f64() * 1e3;
-            let depth = match &reconstructed {
-                Some(DepthOutcome::Depth(image)) => Some(image),
-                Some(DepthOutcome::Proxy) => None,
-                None => set.depth.as_ref().map(|d| &d.payload),
-            };
-            scene.scene = live.frame(depth, set.lamp.as_ref().map(|l| &l.payload));
-            if let Some(scene_lights) = &mut self.scene_lights {
-                scene_lights.publish_if_changed(live, &shared.lights);
-            }
-            let scene_ms = start.elapsed().as_secs_f64() * 1e3 - depth_ms;
-            if self.depth_stage.is_some() {
-                self.record_stage("depth", depth_ms);
-            }
-            self.record_stage("scene", scene_ms);
+        let frame = self.live.frame(&set, seq, &shared.lights);
+        for (name, ms) in &frame.timings {
+            self.record_stage(name, *ms);
         }
+        *lock(&shared.tracking) = Some(frame.tracking);
+        let engine = if frame.tracking.is_usable() {
+            &mut self.engine
+        } else {
+            shared.untracked_frames.fetch_add(1, Ordering::Relaxed);
+            &mut self.passthrough
+        };
         let start = Instant::now();
-        let rendered = self.engine.render(&scene, &mut self.relit);
+        let rendered = engine.render(&frame.scene, &mut self.relit);
         self.record_stage("render", start.elapsed().as_secs_f64() * 1e3);
         match rendered {
             Ok(()) => {
@@ -712,80 +623,6 @@ impl RenderLoop<'_> {
     }
 }
 
-/// The lighting estimate, seen from the virtual object: the light probe's (its median-cut
-/// lights and SH9, stamped with the probe's time) once it has given one, else the scene file's
-/// lights and environment map; the lamp where it is now in both cases. Published when it
-/// changes (a new probe bracket, the lamp moves or switches), not every frame.
-struct SceneLights {
-    /// Centre of the virtual object's bounds (the world origin without one).
-    reference_point: Vec3,
-    /// The scene file's environment map as SH (zero without one).
-    scene_sh9: Sh9Rgb,
-    /// The probe's estimate of the live scene (with a probe in the rig's calibration).
-    probe: Option<ProbeLighting>,
-    probe_estimate: Option<ProbeEstimate>,
-    /// What the last published estimate was made of.
-    published: Option<(Vec<Light>, Option<Timestamp>)>,
-}
-
-impl SceneLights {
-    fn new(scene: &Scene, probe: Option<ProbeLighting>) -> Self {
-        Self {
-            reference_point: scene
-                .virtual_bounds()
-                .map_or(Vec3::ZERO, |(lo, hi)| (lo + hi) * 0.5),
-            scene_sh9: scene
-                .environment
-                .as_ref()
-                .and_then(|env| project_sh9(env).ok())
-                .unwrap_or(Sh9Rgb::ZERO),
-            probe,
-            probe_estimate: None,
-            published: None,
-        }
-    }
-
-    /// Take a probe frame; returns the new estimate when it completes a bracket.
-    fn probe_frame(&mut self, frame: &Arc<Frame<ProbeImage>>) -> Option<&ProbeEstimate> {
-        match self.probe.as_mut()?.push(frame) {
-            Ok(Some(estimate)) => {
-                self.probe_estimate = Some(estimate);
-                self.probe_estimate.as_ref()
-            }
-            Ok(None) => None,
-            Err(error) => {
-                tracing::warn!(%error, "probe bracket not used");
-                None
-            }
-        }
-    }
-
-    /// Publish what `live` is lit by now, if it changed since the last time.
-    fn publish_if_changed(&mut self, live: &LiveScene, board: &LightsBoard) {
-        let (lights, sh9, stamp) = match &self.probe_estimate {
-            Some(probe) => {
-                let lamp = live
-                    .lights()
-                    .into_iter()
-                    .filter(|l| matches!(l, Light::Point { .. }));
-                let lights: Vec<Light> = probe.lights.iter().copied().chain(lamp).collect();
-                (lights, probe.sh9, Some(probe.stamp))
-            }
-            None => (live.lights(), self.scene_sh9, None),
-        };
-        let key = (lights, stamp);
-        if self.published.as_ref() == Some(&key) {
-            return;
-        }
-        let estimate =
-            LightingEstimate::from_lights(key.0.clone(), sh9, stamp, self.reference_point);
-        self.published = Some(key);
-        if board.publish(estimate) {
-            tracing::trace!("lighting estimate published");
-        }
-    }
-}
-
 /// Stage names are few (fixed passes per engine) and live for the whole run.
 fn leak_stage_name(name: &str) -> &'static str {
     static NAMES: Mutex<Vec<&'static str>> = Mutex::new(Vec::new());
@@ -841,6 +678,15 @@ fn status_report(shared: &Shared) -> StatusReport {
             .current()
             .map(|(path, messages)| RecordingStatus { path, messages }),
         sync_streams: lock(&shared.sync_streams).clone(),
+        tracking: lock(&shared.tracking).map(|t| TrackingStatus {
+            source: t.source.name().to_owned(),
+            state: t.state,
+            pose_age_ms: t.pose_age_ms,
+            reprojection_rms_px: t.reprojection_rms_px,
+            tags_used: t.tags_used,
+            world_from_camera: t.world_from_camera,
+            untracked_frames: shared.untracked_frames.load(Ordering::Relaxed),
+        }),
     }
 }
 
@@ -1036,54 +882,5 @@ impl ControlTarget for PipelineControl {
         *lock(&self.shared.config) = new;
         tracing::info!(?applied, ?restart_required, "configuration reloaded");
         Ok(json!({ "applied": applied, "restart_required": restart_required }))
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn scene_lights_publish_only_changes() {
-        let board = LightsBoard::new();
-        let scene = Scene {
-            name: "t".into(),
-            meshes: vec![relight_core::scene::Mesh::cuboid(
-                "box",
-                Vec3::new(-0.1, 0.0, -0.1),
-                Vec3::new(0.1, 0.2, 0.1),
-                0,
-                true,
-            )],
-            materials: Vec::new(),
-            camera: relight_core::scene::SceneCamera {
-                world_from_camera: relight_core::Pose::IDENTITY,
-                yfov_rad: 1.0,
-                width: 8,
-                height: 6,
-            },
-            lights: Vec::new(),
-            environment: None,
-        };
-        let mut scene_lights = SceneLights::new(&scene, None);
-        assert_eq!(scene_lights.reference_point, Vec3::new(0.0, 0.1, 0.0));
-        let mut live = LiveScene::new(scene, RealGeometry::Scene, 0.5, None, 1);
-        let lamp = relight_core::LampState {
-            on: true,
-            position_in_world: Vec3::new(0.0, 1.1, 0.0),
-            intensity: Vec3::splat(2.0),
-        };
-        live.frame(None, Some(&lamp));
-        scene_lights.publish_if_changed(&live, &board);
-        scene_lights.publish_if_changed(&live, &board);
-        assert_eq!(board.published(), 1);
-        let estimate = board.latest().expect("published");
-        let main = estimate.main_light.expect("the lamp");
-        assert!((main.direction_in_world - Vec3::NEG_Y).length() < 1e-6);
-        assert!((main.intensity - 2.0).abs() < 1e-5);
-        live.frame(None, Some(&relight_core::LampState::default()));
-        scene_lights.publish_if_changed(&live, &board);
-        assert_eq!(board.published(), 2);
-        assert_eq!(board.latest().expect("published").main_light, None);
     }
 }

@@ -2,8 +2,8 @@
 //! file's own real meshes, for a known room), the virtual object(s), lights and camera pose from
 //! a scene file, and the pocket lamp where it is now.
 //!
-//! The camera pose is the scene file's (a rig on a tripod, registered once); marker tracking of
-//! the camera replaces it when the marker backends land. The depth-derived surface has one
+//! The camera pose is the scene file's until the daemon's tracker registers the camera
+//! ([`LiveScene::set_world_from_camera`]), frame by frame. The depth-derived surface has one
 //! diffuse albedo until albedo estimation (DLPV eq. 1) provides per-pixel values.
 
 use std::sync::Arc;
@@ -131,9 +131,18 @@ impl LiveScene {
             })
     }
 
-    /// Where the scene file puts the camera (glTF convention).
+    /// Where the camera is now (glTF convention): the scene file's pose until the tracker sets
+    /// one.
     pub fn world_from_camera(&self) -> Pose {
         self.base.camera.world_from_camera
+    }
+
+    /// The camera's registered pose for the next frame.
+    pub fn set_world_from_camera(&mut self, world_from_camera: Pose) {
+        if self.base.camera.world_from_camera != world_from_camera {
+            self.base.camera.world_from_camera = world_from_camera;
+            self.fixed = None;
+        }
     }
 
     /// The scene for one frame set. With [`RealGeometry::Depth`] and no usable depth (`None`,

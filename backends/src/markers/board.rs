@@ -13,6 +13,7 @@
 
 use glam::{DVec2, DVec3, Quat, Vec2, Vec3};
 use relight_core::camera::CameraModel;
+use relight_core::rig::BoardLayout;
 use relight_core::{MarkerDetection, Pose};
 use serde::{Deserialize, Serialize};
 
@@ -213,15 +214,20 @@ impl Board {
 
     /// The simulator's demo board (same layout and board frame as its truth), named `board`.
     pub fn from_sim(board: &MarkerBoard) -> Result<Self, BoardError> {
-        Self::grid(
-            &default_board_name(),
-            TAG36H11,
-            board.first_id,
-            board.cols,
-            board.rows,
-            f64::from(board.tag_size_m),
-            f64::from(board.gap_m),
-        )
+        Self::from_layout(&board.layout())
+    }
+
+    /// The grid a rig's calibration describes, named `board`.
+    pub fn from_layout(layout: &BoardLayout) -> Result<Self, BoardError> {
+        Self::from_config(&BoardConfig::Grid {
+            name: default_board_name(),
+            family: layout.family.clone(),
+            first_id: layout.first_id,
+            cols: layout.cols,
+            rows: layout.rows,
+            tag_size_m: layout.tag_size_m,
+            gap_m: layout.gap_m,
+        })
     }
 
     /// A printed grid laid out exactly as [`MarkerBoard::tags`] does.

@@ -86,9 +86,10 @@ impl SimDevice {
             "static" => CameraPath::Static,
             "shake" => CameraPath::Shake,
             "orbit" => CameraPath::Orbit,
+            "walk" => CameraPath::Walk,
             other => {
                 return Err(invalid(format!(
-                    "trajectory `{other}`: expected `static`, `shake` or `orbit`"
+                    "trajectory `{other}`: expected `static`, `shake`, `orbit` or `walk`"
                 )));
             }
         };

@@ -134,6 +134,18 @@ pub struct MarkerBoard {
 }
 
 impl MarkerBoard {
+    /// The printed layout, as a rig's calibration carries it.
+    pub fn layout(&self) -> relight_core::rig::BoardLayout {
+        relight_core::rig::BoardLayout {
+            family: TAG36H11.into(),
+            first_id: self.first_id,
+            cols: self.cols,
+            rows: self.rows,
+            tag_size_m: f64::from(self.tag_size_m),
+            gap_m: f64::from(self.gap_m),
+        }
+    }
+
     /// Tags of the board, each with its true pose (row 0 at the top, IDs left to right).
     pub fn tags(&self) -> Vec<MarkerTruth> {
         let pitch = self.tag_size_m + self.gap_m;

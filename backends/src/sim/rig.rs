@@ -27,7 +27,7 @@
 use std::f32::consts::{PI, TAU};
 use std::sync::Arc;
 
-use glam::{DVec2, DVec3, Vec2, Vec3};
+use glam::{DVec2, DVec3, Vec3};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use rand_pcg::Pcg64Mcg;
@@ -52,6 +52,7 @@ use super::probe::{ProbeLens, environment_radiance, render_probe};
 use super::response::CameraResponse;
 use super::trajectory::Trajectory;
 use crate::lamp_protocol::LampReport;
+use crate::markers::pose::{PoseSettings, estimate_square_pose};
 
 /// The fish-eye probe of the rig.
 #[derive(Debug, Clone, PartialEq)]
@@ -104,6 +105,9 @@ pub struct SimSettings {
     /// Sensor noise on the response's input: σ² = `shot_noise` · x + `read_noise`².
     pub shot_noise: f32,
     pub read_noise: f32,
+    /// Gaussian noise on each detected tag corner, pixels per coordinate (0: a detector's ideal
+    /// output). With noise, each tag's pose is fitted to its noisy corners as a detector would.
+    pub marker_corner_sigma_px: f32,
     /// Depth sensor model; its focal length is replaced by the camera's at this resolution.
     pub kinect: KinectModel,
     pub probe: Option<SimProbe>,
@@ -129,6 +133,7 @@ impl Default for SimSettings {
             response: CameraResponse::default(),
             shot_noise: 2e-4,
             read_noise: 2e-3,
+            marker_corner_sigma_px: 0.0,
             kinect: KinectModel::default(),
             probe: None,
             board: None,
@@ -147,34 +152,68 @@ pub enum CameraPath {
     Static,
     /// The scene camera held by hand: 1 cm and 0.5° of tremor.
     Shake,
-    /// A slow circle (one turn per 20 s) around the virtual object at the camera's distance
-    /// and height.
+    /// An arc around the virtual object at the camera's height, swinging
+    /// ±[`ORBIT_SWEEP_DEG`] about the scene camera's azimuth, always facing the object and
+    /// always inside the room (see [`CameraPath::trajectory`]).
     Orbit,
+    /// The orbit, held by hand (the shake's tremor on top): a person walking around the desk.
+    Walk,
 }
 
+/// Half-angle of the orbit's swing: at ±25° a desk scene's side walls stay in front of the camera
+/// and a board beside the object stays in view.
+pub const ORBIT_SWEEP_DEG: f32 = 25.0;
+/// Azimuth rate at the middle of the swing, degrees per second: a slow walk.
+const ORBIT_RATE_DEG_S: f32 = 18.0;
+/// Fraction of the distance to the nearest real surface behind the camera that the orbit's
+/// radius may use.
+const ORBIT_WALL_MARGIN: f32 = 0.9;
+
 impl CameraPath {
+    /// The path in `scene`. The orbit's radius is the scene camera's horizontal distance from the
+    /// object, shortened where some real surface (a wall) lies between the object and a point of
+    /// the arc, so the camera never sees the room from behind its walls.
     pub fn trajectory(self, scene: &Scene) -> Trajectory {
         let camera = scene.camera.world_from_camera;
+        let shake = |base| Trajectory::Shake {
+            base: Box::new(base),
+            amplitude_m: 0.01,
+            amplitude_deg: 0.5,
+        };
         match self {
             CameraPath::Static => Trajectory::Static(camera),
-            CameraPath::Shake => Trajectory::Shake {
-                base: camera,
-                amplitude_m: 0.01,
-                amplitude_deg: 0.5,
-            },
-            CameraPath::Orbit => {
-                let target = scene
-                    .virtual_bounds()
-                    .map_or(camera.translation, |(lo, hi)| (lo + hi) / 2.0);
-                let offset = camera.translation - target;
-                Trajectory::Orbit {
-                    center: target,
-                    radius_m: offset.with_y(0.0).length(),
-                    height_m: offset.y,
-                    period_s: 20.0,
-                }
-            }
+            CameraPath::Shake => shake(Trajectory::Static(camera)),
+            CameraPath::Orbit => orbit_in(scene),
+            CameraPath::Walk => shake(orbit_in(scene)),
         }
+    }
+}
+
+fn orbit_in(scene: &Scene) -> Trajectory {
+    let camera = scene.camera.world_from_camera;
+    let target = scene
+        .virtual_bounds()
+        .map_or(camera.translation, |(lo, hi)| (lo + hi) / 2.0);
+    let offset = camera.translation - target;
+    let sweep_rad = ORBIT_SWEEP_DEG.to_radians();
+    let start_rad = offset.x.atan2(offset.z);
+    let real = Geometry::new(&scene.without_virtual(), false);
+    let mut radius_m = offset.with_y(0.0).length();
+    for k in 0..=32 {
+        let azimuth = start_rad + sweep_rad * (k as f32 / 16.0 - 1.0);
+        let eye = Vec3::new(radius_m * azimuth.sin(), offset.y, radius_m * azimuth.cos());
+        let length = eye.length();
+        if let Some(hit) = real.intersect(target, eye / length, 1e-4, length) {
+            radius_m *= ORBIT_WALL_MARGIN * hit.t / length;
+        }
+    }
+    Trajectory::Orbit {
+        center: target,
+        radius_m,
+        height_m: offset.y,
+        period_s: TAU * ORBIT_SWEEP_DEG / ORBIT_RATE_DEG_S,
+        start_rad,
+        sweep_rad,
     }
 }
 
@@ -429,6 +468,12 @@ impl SimRig {
                 .map(|_| self.settings.response.inverse_table())
                 .unwrap_or_default(),
             probe_radiance_scale: probe.map_or(1.0, |p| 1.0 / p.exposure_scale),
+            world_from_board: self
+                .settings
+                .board
+                .as_ref()
+                .map_or(Pose::IDENTITY, |b| b.world_from_board),
+            board: self.settings.board.as_ref().map(MarkerBoard::layout),
             ..RigCalibration::default()
         }
     }
@@ -518,7 +563,7 @@ impl SimRig {
             messages.push(StreamMessage::Markers(Arc::new(Frame::new(
                 seq,
                 self.stamp(i, 3_000_000),
-                self.markers(&world_from_camera),
+                self.markers(i, &world_from_camera),
             ))));
         }
         if let Some(probe) = &self.settings.probe
@@ -786,26 +831,31 @@ impl SimRig {
         radiance
     }
 
-    /// The board's tags a detector would find in the camera image.
-    fn markers(&self, world_from_camera: &Pose) -> MarkerSet {
+    /// The board's tags a detector would find in frame `i`'s image: those whose four corners are
+    /// in the image and whose centre is not occluded, with the corners' noise.
+    fn markers(&self, i: u32, world_from_camera: &Pose) -> MarkerSet {
         let Some(board) = &self.settings.board else {
             return MarkerSet::default();
         };
         let camera_from_world = world_from_camera.inverse();
         let origin = world_from_camera.translation;
+        let sigma = f64::from(self.settings.marker_corner_sigma_px.max(0.0));
+        let mut rng =
+            Pcg64Mcg::seed_from_u64(self.settings.seed.wrapping_add(0x7a9_b0a2d) ^ u64::from(i));
+        let unit = Normal::new(0.0f64, 1.0).unwrap_or_else(|_| unreachable!("σ = 1 is valid"));
+        let model = CameraModel::Pinhole(self.camera);
         let detections = board
             .tags()
             .into_iter()
             .filter_map(|tag| {
-                let mut corners_px = [Vec2::ZERO; 4];
+                let mut corners_px = [DVec2::ZERO; 4];
                 for (px, corner) in corners_px.iter_mut().zip(corners_in_marker(tag.size_m)) {
                     let in_camera = camera_from_world
                         .transform_point(tag.world_from_marker.transform_point(corner));
-                    let p = self
+                    *px = self
                         .camera
                         .project(optical_from_gl(in_camera.as_dvec3()))
                         .filter(|p| self.camera.contains_pixel(*p))?;
-                    *px = p.as_vec2();
                 }
                 let centre = tag.world_from_marker.translation;
                 let to_centre = centre - origin;
@@ -813,13 +863,31 @@ impl SimRig {
                 let visible = self
                     .cast(origin, to_centre / distance)
                     .is_some_and(|(t, ..)| (t - distance).abs() < 0.01);
-                visible.then(|| MarkerDetection {
-                    family: tag.family.clone(),
-                    marker_id: tag.marker_id,
-                    corners_px,
-                    camera_from_marker: camera_from_world * tag.world_from_marker,
-                    reprojection_rms_px: 0.0,
-                })
+                if !visible {
+                    return None;
+                }
+                let camera_from_marker = camera_from_world * tag.world_from_marker;
+                if sigma == 0.0 {
+                    return Some(MarkerDetection {
+                        family: tag.family.clone(),
+                        marker_id: tag.marker_id,
+                        corners_px: corners_px.map(|c| c.as_vec2()),
+                        camera_from_marker,
+                        reprojection_rms_px: 0.0,
+                    });
+                }
+                for c in &mut corners_px {
+                    *c += DVec2::new(unit.sample(&mut rng), unit.sample(&mut rng)) * sigma;
+                }
+                let settings = PoseSettings {
+                    corner_sigma_px: sigma,
+                    ..PoseSettings::default()
+                };
+                estimate_square_pose(&corners_px, f64::from(tag.size_m), &model, &settings)
+                    .ok()
+                    .map(|fit| {
+                        fit.detection(&tag.family, tag.marker_id, corners_px.map(|c| c.as_vec2()))
+                    })
             })
             .collect();
         MarkerSet { detections }

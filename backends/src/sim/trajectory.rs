@@ -1,5 +1,5 @@
-//! Camera paths of the simulated rig: a tripod (static), a slow orbit around the virtual
-//! object, and a hand-held shake (smooth, deterministic tremor of a few Hz).
+//! Camera paths of the simulated rig: a tripod (static), an orbit that swings around the virtual
+//! object, and a hand-held tremor (smooth, deterministic, a few Hz) on top of either.
 
 use std::f32::consts::TAU;
 
@@ -9,18 +9,23 @@ use relight_core::Pose;
 #[derive(Debug, Clone, PartialEq)]
 pub enum Trajectory {
     Static(Pose),
-    /// Circle of `radius_m` at `height_m` above `center`, looking at `center`, one turn per
-    /// `period_s`, starting on the +Z side.
+    /// On a circle of `radius_m` at `height_m` above `center`, looking at `center`, starting at
+    /// azimuth `start_rad` (0: the +Z side, growing towards +X). With `sweep_rad` ≥ π it turns
+    /// once per `period_s`; below π it swings to and fro between `start ± sweep_rad`
+    /// (`start + sweep · sin(2π t / period)`), as a person walking an arc around a desk does.
     Orbit {
         center: Vec3,
         radius_m: f32,
         height_m: f32,
         period_s: f32,
+        start_rad: f32,
+        sweep_rad: f32,
     },
-    /// `base` perturbed by a sum of sines (1.3–7.9 Hz, incommensurate, so it never repeats
-    /// visibly) with peak translation `amplitude_m` and rotation `amplitude_deg` per axis.
+    /// `base`'s pose perturbed by a sum of sines (1.3–7.9 Hz, incommensurate, so it never
+    /// repeats visibly) with peak translation `amplitude_m` and rotation `amplitude_deg` per
+    /// axis.
     Shake {
-        base: Pose,
+        base: Box<Trajectory>,
         amplitude_m: f32,
         amplitude_deg: f32,
     },
@@ -47,8 +52,15 @@ impl Trajectory {
                 radius_m,
                 height_m,
                 period_s,
+                start_rad,
+                sweep_rad,
             } => {
-                let angle = TAU * t_s / period_s.max(1e-3);
+                let phase = TAU * t_s / period_s.max(1e-3);
+                let angle = if *sweep_rad >= std::f32::consts::PI {
+                    start_rad + phase
+                } else {
+                    start_rad + sweep_rad * phase.sin()
+                };
                 let eye =
                     *center + Vec3::new(radius_m * angle.sin(), *height_m, radius_m * angle.cos());
                 Pose::look_at(eye, *center, Vec3::Y)
@@ -58,6 +70,7 @@ impl Trajectory {
                 amplitude_m,
                 amplitude_deg,
             } => {
+                let base = base.pose_at(t_s);
                 let offset = Vec3::new(shake(t_s, 0), shake(t_s, 1), shake(t_s, 2)) * *amplitude_m;
                 let a = amplitude_deg.to_radians();
                 let wobble = Quat::from_euler(
@@ -84,6 +97,8 @@ mod tests {
             radius_m: 1.5,
             height_m: 0.8,
             period_s: 20.0,
+            start_rad: 0.0,
+            sweep_rad: TAU,
         };
         for i in 0..40 {
             let pose = orbit.pose_at(i as f32 * 0.5);
@@ -98,10 +113,34 @@ mod tests {
     }
 
     #[test]
+    fn a_partial_orbit_swings_within_its_sweep() {
+        let center = Vec3::new(0.0, 0.1, -0.1);
+        let swing = Trajectory::Orbit {
+            center,
+            radius_m: 2.0,
+            height_m: 0.7,
+            period_s: 8.0,
+            start_rad: 0.3,
+            sweep_rad: 0.4,
+        };
+        let mut seen = (f32::INFINITY, f32::NEG_INFINITY);
+        for i in 0..400 {
+            let eye = swing.pose_at(i as f32 * 0.02).translation - center;
+            let azimuth = eye.x.atan2(eye.z);
+            assert!((azimuth - 0.3).abs() <= 0.4 + 1e-5, "{azimuth}");
+            seen = (seen.0.min(azimuth), seen.1.max(azimuth));
+        }
+        assert!(
+            seen.0 < -0.09 && seen.1 > 0.69,
+            "it reaches both ends: {seen:?}"
+        );
+    }
+
+    #[test]
     fn shake_stays_within_its_amplitude_and_is_smooth() {
         let base = Pose::from_translation(Vec3::new(0.0, 1.0, 2.0));
         let shake = Trajectory::Shake {
-            base,
+            base: Box::new(Trajectory::Static(base)),
             amplitude_m: 0.01,
             amplitude_deg: 0.5,
         };

@@ -333,6 +333,22 @@ fn render_status(status: &StatusReport) -> String {
         status.bus_drops,
         recording,
     );
+    if let Some(t) = &status.tracking {
+        let state = serde_json::to_value(t.state)
+            .ok()
+            .and_then(|v| v.as_str().map(str::to_owned))
+            .unwrap_or_default();
+        let optional =
+            |v: Option<f64>, unit: &str| v.map_or("-".to_owned(), |v| format!("{v:.2} {unit}"));
+        out.push_str(&format!(
+            "tracking    {state} ({}): pose age {}, reprojection RMS {}, {} tags; {} frame sets untracked\n",
+            t.source,
+            optional(t.pose_age_ms, "ms"),
+            optional(t.reprojection_rms_px, "px"),
+            t.tags_used,
+            t.untracked_frames,
+        ));
+    }
     if !status.devices.is_empty() {
         out.push('\n');
         out.push_str(&table(

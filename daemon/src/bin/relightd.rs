@@ -48,8 +48,10 @@ enum TrajectoryKind {
     Static,
     /// The scene camera held by hand (1 cm, 0.5° tremor).
     Shake,
-    /// A slow circle (one turn per 20 s) around the scene camera's target, at its distance.
+    /// An arc swinging ±25° around the virtual object, facing it, kept inside the room.
     Orbit,
+    /// The orbit held by hand: a walk around the desk.
+    Walk,
 }
 
 #[derive(Debug, Subcommand)]
@@ -117,6 +119,9 @@ enum Command {
         truth_every: u32,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Gaussian noise on each detected tag corner, pixels (a sub-pixel detector's; 0: ideal).
+        #[arg(long, default_value_t = 0.15)]
+        corner_noise_px: f32,
         /// Leave out the marker board.
         #[arg(long)]
         no_board: bool,
@@ -130,6 +135,33 @@ enum Command {
         /// the first frame.
         #[arg(long)]
         no_auto_exposure: bool,
+    },
+    /// Replay a simulated recording with ground truth through the whole live pipeline (tracking,
+    /// depth filter and merge, live mesh, lighting estimate, engine) and score every truth frame:
+    /// pose, object reprojection, depth, albedo, light, composite and Δ against the truth, and
+    /// the same engine on oracle inputs. Prints a table per frame and a summary.
+    Score {
+        recording: PathBuf,
+        #[arg(long)]
+        scene: PathBuf,
+        #[arg(long, default_value = "differential")]
+        engine: String,
+        /// Engine parameters (`name=value`, repeatable).
+        #[arg(long = "param")]
+        params: Vec<String>,
+        /// Samples per pixel of the truth's reference renders.
+        #[arg(long, default_value_t = 32)]
+        reference_spp: u32,
+        /// Write each scored frame's live, oracle and true composites here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Write the summary (median and p95 per measure) and the per-frame scores here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        /// Take `[scene]`, `[tracking]` and `[sync]` from this configuration file (default: the
+        /// built-in defaults).
+        #[arg(long = "live-config")]
+        live_config: Option<PathBuf>,
     },
     /// Validate a configuration file and print it as understood.
     CheckConfig,
@@ -276,6 +308,48 @@ fn run(cli: Cli) -> Result<()> {
             println!("wrote {}/bench.{{csv,json,svg}}", out.display());
             Ok(())
         }
+        Command::Score {
+            recording,
+            scene,
+            engine,
+            params,
+            reference_spp,
+            out,
+            json,
+            live_config,
+        } => {
+            let config = match live_config {
+                Some(path) => Config::load(&path)?,
+                None => relight_daemon::score::default_config(),
+            };
+            let settings = relight_daemon::score::ScoreSettings {
+                recording,
+                scene,
+                engine,
+                params: parse_params(&params)?,
+                reference_spp,
+                out,
+                config,
+            };
+            let bar = indicatif::ProgressBar::new(0).with_style(
+                indicatif::ProgressStyle::with_template(
+                    "scoring {bar:30} {pos}/{len} truth frames ({elapsed})",
+                )
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+            );
+            let report = relight_daemon::score::run(&settings, |done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            })?;
+            bar.finish_and_clear();
+            print!("{}", report.table());
+            if let Some(path) = json {
+                std::fs::write(&path, serde_json::to_string_pretty(&report.to_json())?)
+                    .with_context(|| format!("writing {}", path.display()))?;
+                println!("wrote {}", path.display());
+            }
+            Ok(())
+        }
         Command::CheckConfig => {
             let config = Config::load(&cli.config)?;
             println!("{}: ok\n{config:#?}", cli.config.display());
@@ -337,6 +411,7 @@ fn run(cli: Cli) -> Result<()> {
             trajectory,
             truth_every,
             seed,
+            corner_noise_px,
             no_board,
             no_lamp,
             no_probe,
@@ -352,6 +427,7 @@ fn run(cli: Cli) -> Result<()> {
                     TrajectoryKind::Static => CameraPath::Static,
                     TrajectoryKind::Shake => CameraPath::Shake,
                     TrajectoryKind::Orbit => CameraPath::Orbit,
+                    TrajectoryKind::Walk => CameraPath::Walk,
                 }
                 .trajectory(&scene),
             );
@@ -362,6 +438,7 @@ fn run(cli: Cli) -> Result<()> {
             settings.color_spp = spp;
             settings.truth_every = truth_every;
             settings.seed = seed;
+            settings.marker_corner_sigma_px = corner_noise_px;
             if no_board {
                 settings.board = None;
             }
@@ -594,15 +671,7 @@ fn render_engine(
 ) -> Result<()> {
     let scene = Arc::new(Scene::load(scene_dir)?);
     let (w, h) = size.unwrap_or((scene.camera.width, scene.camera.height));
-    let mut map = serde_json::Map::new();
-    for param in params {
-        let (key, value) = param
-            .split_once('=')
-            .with_context(|| format!("--param `{param}`: expected name=value"))?;
-        let value = serde_json::from_str(value).unwrap_or_else(|_| serde_json::Value::from(value));
-        map.insert(key.to_owned(), value);
-    }
-    let mut built = relight_engines::EngineRegistry::new().build(engine, &map)?;
+    let mut built = relight_engines::EngineRegistry::new().build(engine, &parse_params(params)?)?;
     let reference = relight_engines::offline::reference(&scene, w, h, spp)?;
     let frame = relight_engines::offline::scene_frame(
         scene.clone(),
@@ -642,6 +711,19 @@ fn render_engine(
         out.display()
     );
     Ok(())
+}
+
+/// `--param name=value` arguments as engine parameters (values as JSON where they parse).
+fn parse_params(params: &[String]) -> Result<serde_json::Map<String, serde_json::Value>> {
+    let mut map = serde_json::Map::new();
+    for param in params {
+        let (key, value) = param
+            .split_once('=')
+            .with_context(|| format!("--param `{param}`: expected name=value"))?;
+        let value = serde_json::from_str(value).unwrap_or_else(|_| serde_json::Value::from(value));
+        map.insert(key.to_owned(), value);
+    }
+    Ok(map)
 }
 
 fn print_summary(status: &StatusReport, elapsed: Duration) {

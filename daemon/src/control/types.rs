@@ -164,6 +164,28 @@ pub struct StatusReport {
     /// Per expected stream: how the synchroniser used its messages.
     #[serde(default)]
     pub sync_streams: Vec<SyncStreamStatus>,
+    /// The camera's registration at the last frame set (none before the first).
+    #[serde(default)]
+    pub tracking: Option<TrackingStatus>,
+}
+
+/// Where the camera is, as the tracker last said (`[tracking]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrackingStatus {
+    /// `markers` or `scene`.
+    pub source: String,
+    /// `fixed` (scene pose), `tracked`, `held` (last pose, younger than `max_age_ms`) or
+    /// `untracked` (no Δ is drawn).
+    pub state: crate::tracking::TrackingState,
+    /// Milliseconds since the frame set the pose was fitted in.
+    pub pose_age_ms: Option<f64>,
+    /// Corner reprojection RMS of that fit, pixels.
+    pub reprojection_rms_px: Option<f64>,
+    pub tags_used: usize,
+    /// glTF convention (the camera looks down its −Z); absent when untracked.
+    pub world_from_camera: Option<relight_core::Pose>,
+    /// Frame sets shown without Δ because the camera was untracked.
+    pub untracked_frames: u64,
 }
 
 /// The synchroniser's counters for one stream.

@@ -1,0 +1,325 @@
+//! One live frame's scene, from a synchronised frame set: the camera registered
+//! ([`crate::tracking`]), depth reconstructed ([`DepthStage`]) with that pose, the real surface
+//! triangulated around the virtual object(s) placed in the world frame, and the lighting
+//! estimate (the light probe's, else the scene file's) published when it changes.
+//!
+//! The render thread and `relightd score` both build frames through [`LiveFrames`], so what is
+//! scored is what runs live.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use glam::Vec3;
+use relight_core::camera::CameraModel;
+use relight_core::light::Light;
+use relight_core::rig::RigCalibration;
+use relight_core::scene::Scene;
+use relight_core::sh::Sh9Rgb;
+use relight_core::sync::FrameSet;
+use relight_core::{Frame, ProbeImage, Timestamp};
+use relight_engines::live_scene::{LightSource, LiveScene, RealGeometry};
+use relight_engines::{EngineRegistry, SceneFrame};
+use relight_recon::estimate::LightingEstimate;
+use relight_recon::irradiance::project_sh9;
+use relight_recon::probe::{ProbeEstimate, ProbeLighting, ProbeSettings};
+
+use crate::config::Config;
+use crate::control::lights::LightsBoard;
+use crate::depth_stage::{DepthOutcome, DepthStage};
+use crate::tracking::{Tracker, TrackingReport};
+
+/// A frame set turned into what an engine renders.
+#[derive(Debug)]
+pub struct LiveFrame {
+    pub scene: SceneFrame,
+    pub tracking: TrackingReport,
+    /// What the depth stage made of the set's depth (`None` without a depth stage, or when the
+    /// camera is untracked and nothing was built).
+    pub depth: Option<DepthOutcome>,
+    /// Stage timings, milliseconds, in data-flow order.
+    pub timings: Vec<(&'static str, f64)>,
+}
+
+/// The per-frame state of the live path: tracker, depth reconstruction, live scene, lights.
+pub struct LiveFrames {
+    tracker: Tracker,
+    live_scene: Option<LiveScene>,
+    scene_lights: Option<SceneLights>,
+    depth_stage: Option<DepthStage>,
+}
+
+impl std::fmt::Debug for LiveFrames {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LiveFrames")
+            .field("tracker", &self.tracker)
+            .field("scene", &self.live_scene.is_some())
+            .field("depth_stage", &self.depth_stage.is_some())
+            .finish_non_exhaustive()
+    }
+}
+
+impl LiveFrames {
+    /// The live path `config` asks for, on a rig with `calibration`; the depth reconstruction runs
+    /// on `registry`'s GPU when it has one.
+    pub fn new(
+        config: &Config,
+        calibration: Option<&RigCalibration>,
+        registry: &EngineRegistry,
+    ) -> anyhow::Result<Self> {
+        let mut scene_pose = relight_core::Pose::IDENTITY;
+        let mut scene_lights = None;
+        let mut depth_stage = None;
+        let live_scene = match &config.scene.dir {
+            Some(dir) => {
+                let scene = Scene::load(dir)
+                    .map_err(|e| anyhow::anyhow!("{}: [scene] dir: {e}", config.path.display()))?;
+                scene_pose = scene.camera.world_from_camera;
+                let probe = calibration.and_then(|rig| {
+                    ProbeLighting::new(rig, ProbeSettings::default())
+                        .inspect_err(|error| {
+                            if rig.probe.is_some() {
+                                tracing::warn!(%error, "the light probe is not used");
+                            }
+                        })
+                        .ok()
+                });
+                if probe.is_none() && config.scene.lighting == LightSource::Probe {
+                    tracing::warn!(
+                        "[scene] lighting = \"probe\" but the rig has no usable probe calibration: only the lamp lights the scene"
+                    );
+                }
+                scene_lights = Some(SceneLights::new(&scene, probe));
+                let depth_camera =
+                    calibration.and_then(|c| match c.depth.as_ref().or(c.color.as_ref()) {
+                        Some(CameraModel::Pinhole(p)) => Some(*p),
+                        _ => None,
+                    });
+                if depth_camera.is_none() && config.scene.real == RealGeometry::Depth {
+                    tracing::warn!(
+                        "[scene] real = \"depth\" but the source has no pinhole depth calibration: the GPU engines get no scene"
+                    );
+                }
+                depth_stage = depth_camera
+                    .filter(|_| {
+                        config.scene.real == RealGeometry::Depth && config.scene.depth_filter
+                    })
+                    .map(|camera| {
+                        let gpu = registry
+                            .gpu()
+                            .inspect_err(
+                                |error| tracing::info!(%error, "depth reconstruction on the CPU"),
+                            )
+                            .ok();
+                        DepthStage::new(camera, gpu)
+                    });
+                let mut live = LiveScene::new(
+                    scene,
+                    config.scene.real,
+                    config.scene.real_albedo,
+                    depth_camera,
+                    config.scene.depth_stride,
+                );
+                live.set_light_source(config.scene.lighting);
+                Some(live)
+            }
+            None => None,
+        };
+        let tracker = Tracker::new(&config.tracking, calibration, scene_pose)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", config.path.display()))?;
+        Ok(Self {
+            tracker,
+            live_scene,
+            scene_lights,
+            depth_stage,
+        })
+    }
+
+    /// Take a probe frame (every one, not only those matched to a frame set: a bracket needs
+    /// each of its exposures). Returns how long it took, milliseconds, when there is a scene to
+    /// light.
+    pub fn probe_frame(&mut self, frame: &Arc<Frame<ProbeImage>>) -> Option<f64> {
+        let scene_lights = self.scene_lights.as_mut()?;
+        let start = Instant::now();
+        if let Some(estimate) = scene_lights.probe_frame(frame)
+            && let Some(live) = self.live_scene.as_mut()
+        {
+            live.set_probe_environment(&estimate.environment);
+        }
+        Some(start.elapsed().as_secs_f64() * 1e3)
+    }
+
+    /// The scene frame of `set` (number `seq`). Untracked, it carries the camera image alone
+    /// (nothing is reconstructed with a pose that is not known).
+    pub fn frame(&mut self, set: &FrameSet, seq: u64, lights: &LightsBoard) -> LiveFrame {
+        let start = Instant::now();
+        let tracking = self
+            .tracker
+            .update(set.stamp.host_ns, set.markers.as_ref().map(|m| &m.payload));
+        let mut timings = vec![("tracking", start.elapsed().as_secs_f64() * 1e3)];
+        let mut scene = SceneFrame {
+            stamp: set.stamp,
+            seq,
+            color: set.color.clone(),
+            depth: set.depth.clone(),
+            scene: None,
+        };
+        let mut reconstructed = None;
+        if let (Some(live), Some(world_from_camera)) =
+            (self.live_scene.as_mut(), tracking.world_from_camera)
+        {
+            live.set_world_from_camera(world_from_camera);
+            let start = Instant::now();
+            reconstructed = match (&mut self.depth_stage, &set.depth) {
+                (Some(stage), Some(depth)) => Some(stage.process(
+                    &depth.payload,
+                    set.color.as_ref().map(|c| &c.payload),
+                    &world_from_camera,
+                )),
+                _ => None,
+            };
+            let depth_ms = start.elapsed().as_secs_f64() * 1e3;
+            let depth = match &reconstructed {
+                Some(DepthOutcome::Depth(image)) => Some(image),
+                Some(DepthOutcome::Proxy) => None,
+                None => set.depth.as_ref().map(|d| &d.payload),
+            };
+            scene.scene = live.frame(depth, set.lamp.as_ref().map(|l| &l.payload));
+            if let Some(scene_lights) = &mut self.scene_lights {
+                scene_lights.publish_if_changed(live, lights);
+            }
+            if self.depth_stage.is_some() {
+                timings.push(("depth", depth_ms));
+            }
+            timings.push(("scene", start.elapsed().as_secs_f64() * 1e3 - depth_ms));
+        }
+        LiveFrame {
+            scene,
+            tracking,
+            depth: reconstructed,
+            timings,
+        }
+    }
+}
+
+/// The lighting estimate, seen from the virtual object: the light probe's (its median-cut
+/// lights and SH9, stamped with the probe's time) once it has given one, else the scene file's
+/// lights and environment map; the lamp where it is now in both cases. Published when it
+/// changes (a new probe bracket, the lamp moves or switches), not every frame.
+struct SceneLights {
+    /// Centre of the virtual object's bounds (the world origin without one).
+    reference_point: Vec3,
+    /// The scene file's environment map as SH (zero without one).
+    scene_sh9: Sh9Rgb,
+    /// The probe's estimate of the live scene (with a probe in the rig's calibration).
+    probe: Option<ProbeLighting>,
+    probe_estimate: Option<ProbeEstimate>,
+    /// What the last published estimate was made of.
+    published: Option<(Vec<Light>, Option<Timestamp>)>,
+}
+
+impl SceneLights {
+    fn new(scene: &Scene, probe: Option<ProbeLighting>) -> Self {
+        Self {
+            reference_point: scene
+                .virtual_bounds()
+                .map_or(Vec3::ZERO, |(lo, hi)| (lo + hi) * 0.5),
+            scene_sh9: scene
+                .environment
+                .as_ref()
+                .and_then(|env| project_sh9(env).ok())
+                .unwrap_or(Sh9Rgb::ZERO),
+            probe,
+            probe_estimate: None,
+            published: None,
+        }
+    }
+
+    /// Take a probe frame; returns the new estimate when it completes a bracket.
+    fn probe_frame(&mut self, frame: &Arc<Frame<ProbeImage>>) -> Option<&ProbeEstimate> {
+        match self.probe.as_mut()?.push(frame) {
+            Ok(Some(estimate)) => {
+                self.probe_estimate = Some(estimate);
+                self.probe_estimate.as_ref()
+            }
+            Ok(None) => None,
+            Err(error) => {
+                tracing::warn!(%error, "probe bracket not used");
+                None
+            }
+        }
+    }
+
+    /// Publish what `live` is lit by now, if it changed since the last time.
+    fn publish_if_changed(&mut self, live: &LiveScene, board: &LightsBoard) {
+        let (lights, sh9, stamp) = match &self.probe_estimate {
+            Some(probe) => {
+                let lamp = live
+                    .lights()
+                    .into_iter()
+                    .filter(|l| matches!(l, Light::Point { .. }));
+                let lights: Vec<Light> = probe.lights.iter().copied().chain(lamp).collect();
+                (lights, probe.sh9, Some(probe.stamp))
+            }
+            None => (live.lights(), self.scene_sh9, None),
+        };
+        let key = (lights, stamp);
+        if self.published.as_ref() == Some(&key) {
+            return;
+        }
+        let estimate =
+            LightingEstimate::from_lights(key.0.clone(), sh9, stamp, self.reference_point);
+        self.published = Some(key);
+        if board.publish(estimate) {
+            tracing::trace!("lighting estimate published");
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scene_lights_publish_only_changes() {
+        let board = LightsBoard::new();
+        let scene = Scene {
+            name: "t".into(),
+            meshes: vec![relight_core::scene::Mesh::cuboid(
+                "box",
+                Vec3::new(-0.1, 0.0, -0.1),
+                Vec3::new(0.1, 0.2, 0.1),
+                0,
+                true,
+            )],
+            materials: Vec::new(),
+            camera: relight_core::scene::SceneCamera {
+                world_from_camera: relight_core::Pose::IDENTITY,
+                yfov_rad: 1.0,
+                width: 8,
+                height: 6,
+            },
+            lights: Vec::new(),
+            environment: None,
+        };
+        let mut scene_lights = SceneLights::new(&scene, None);
+        assert_eq!(scene_lights.reference_point, Vec3::new(0.0, 0.1, 0.0));
+        let mut live = LiveScene::new(scene, RealGeometry::Scene, 0.5, None, 1);
+        let lamp = relight_core::LampState {
+            on: true,
+            position_in_world: Vec3::new(0.0, 1.1, 0.0),
+            intensity: Vec3::splat(2.0),
+        };
+        live.frame(None, Some(&lamp));
+        scene_lights.publish_if_changed(&live, &board);
+        scene_lights.publish_if_changed(&live, &board);
+        assert_eq!(board.published(), 1);
+        let estimate = board.latest().expect("published");
+        let main = estimate.main_light.expect("the lamp");
+        assert!((main.direction_in_world - Vec3::NEG_Y).length() < 1e-6);
+        assert!((main.intensity - 2.0).abs() < 1e-5);
+        live.frame(None, Some(&relight_core::LampState::default()));
+        scene_lights.publish_if_changed(&live, &board);
+        assert_eq!(board.published(), 2);
+        assert_eq!(board.latest().expect("published").main_light, None);
+    }
+}
