@@ -479,7 +479,7 @@ fn props_are_placed_in_view_in_the_shipped_desk_scene() {
             _ => None,
         })
         .unwrap();
-    assert_eq!(detected, 4, "the whole board is visible");
+    assert_eq!(detected, 9, "the whole 3 × 3 board is visible");
     let kinds: Vec<_> = frame.messages.iter().map(StreamMessage::kind).collect();
     assert_eq!(
         kinds.len(),

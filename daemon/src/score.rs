@@ -511,7 +511,8 @@ fn finite(v: f64) -> Value {
 /// Translation (mm) and rotation (°) between two camera poses.
 pub fn pose_difference(estimate: &Pose, truth: &Pose) -> (f64, f64) {
     let mm = f64::from((estimate.translation - truth.translation).length()) * 1e3;
-    let deg = f64::from(estimate.rotation.angle_between(truth.rotation).to_degrees());
+    let relative = estimate.rotation.as_dquat() * truth.rotation.as_dquat().inverse();
+    let deg = relight_backends::markers::pose::rotation_angle(relative).to_degrees();
     (mm, deg)
 }
 

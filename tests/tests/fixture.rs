@@ -26,7 +26,8 @@ fn demo_rig() -> SimRig {
     let settings = SimSettings {
         frames: 60,
         truth_every: 3,
-        trajectory: Some(CameraPath::Shake.trajectory(&scene)),
+        trajectory: Some(CameraPath::Walk.trajectory(&scene)),
+        marker_corner_sigma_px: 0.1,
         ..SimSettings::placed_in(&scene)
     };
     SimRig::new(&scene, settings).unwrap().metered()

@@ -220,7 +220,7 @@ fn orbit_in(scene: &Scene) -> Trajectory {
 impl SimSettings {
     /// Settings with the props placed where a lab would put them in `scene`: the probe looking
     /// up from the top of the virtual object's place (where the papers put it), the lamp
-    /// circling 0.5 m above that, and a 2 × 2 board of 12 cm tags on the first upward-facing real
+    /// circling 0.5 m above that, and a 3 × 3 board of 12 cm tags (45 cm, an A2 print) on the first upward-facing real
     /// surface the camera sees right of and below the image centre (none if there is none).
     pub fn placed_in(scene: &Scene) -> Self {
         let (lo, hi) = scene
@@ -259,7 +259,7 @@ impl SimSettings {
     }
 }
 
-/// A 2 × 2 tag board lying on the first upward-facing real surface seen at 70 % / 75 % of the
+/// A 3 × 3 tag board lying on the first upward-facing real surface seen at 70 % / 75 % of the
 /// image (right of and below the centre).
 fn board_in_view(scene: &Scene, settings: &SimSettings) -> Option<MarkerBoard> {
     let probe_rig = SimRig::new(
@@ -287,8 +287,8 @@ fn board_in_view(scene: &Scene, settings: &SimSettings) -> Option<MarkerBoard> {
         ));
         MarkerBoard {
             first_id: 0,
-            cols: 2,
-            rows: 2,
+            cols: 3,
+            rows: 3,
             tag_size_m: 0.12,
             gap_m: 0.03,
             world_from_board: Pose::new(rotation, pose.translation + dir * t),
