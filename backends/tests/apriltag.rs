@@ -903,6 +903,7 @@ fn floor_scene() -> Scene {
             intensity: Vec3::splat(4.0),
         }],
         environment: None,
+        environment_lights: Vec::new(),
     }
 }
 

@@ -279,6 +279,7 @@ fn scene() -> Scene {
             intensity: Vec3::splat(4.0),
         }],
         environment: None,
+        environment_lights: Vec::new(),
     }
 }
 

@@ -56,6 +56,7 @@ fn floor_scene() -> Scene {
             intensity: Vec3::splat(INTENSITY),
         }],
         environment: None,
+        environment_lights: Vec::new(),
     }
 }
 

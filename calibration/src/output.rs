@@ -60,6 +60,7 @@ pub struct CalibratedParts {
     pub lamp_marker_from_light: Option<Pose>,
     pub probe_response: Option<Vec<f32>>,
     pub probe_radiance_scale: Option<f32>,
+    pub probe_vignetting: Option<Vec<f32>>,
 }
 
 impl CalibratedParts {
@@ -96,6 +97,9 @@ impl CalibratedParts {
         }
         if let Some(scale) = self.probe_radiance_scale {
             base.probe_radiance_scale = scale;
+        }
+        if let Some(coefficients) = &self.probe_vignetting {
+            base.probe_vignetting.clone_from(coefficients);
         }
         base
     }

@@ -20,13 +20,15 @@
 //! reweighted least squares with Tukey's biweight on the relative residuals (scale: 1.4826 × their
 //! median absolute deviation).
 //!
-//! relight's [`RigCalibration`](relight_core::rig::RigCalibration) has no field for it yet; the
-//! coefficients `[a1, a2, a3]` are meant for a `probe_vignetting` list beside `probe_response`.
+//! The probe's coefficients `[a1, a2, a3]` go to the rig calibration's `probe_vignetting`, which
+//! the daemon's light probe divides out before it merges a bracket. The model itself
+//! ([`Vignetting`]) lives in relight-recon, which applies it.
 
 use glam::DVec2;
 use relight_core::camera::CameraModel;
 use relight_core::{Image, PixelFormat};
 use relight_recon::hdr::{HdrImage, Response};
+pub use relight_recon::vignetting::Vignetting;
 
 /// Rec. 709 luminance weights: the fit runs on the luminance of linear RGB.
 const LUMINANCE: [f64; 3] = [0.2126, 0.7152, 0.0722];
@@ -71,58 +73,6 @@ pub enum VignettingError {
     NotPositive { radius: f64 },
     #[error("camera model: {0}")]
     Camera(#[from] relight_core::camera::CameraError),
-}
-
-/// A lens's vignetting: `V(r) = 1 + a1 r² + a2 r⁴ + a3 r⁶` about `(cx, cy)`, `r` in units of
-/// `(fx, fy)` (module docs).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Vignetting {
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-    /// `[a1, a2, a3]`.
-    pub coefficients: [f64; 3],
-}
-
-impl Vignetting {
-    /// The vignetting of `model` with coefficients `[a1, a2, a3]` (missing ones are 0, as an
-    /// empty list means no vignetting).
-    pub fn new(model: &CameraModel, coefficients: &[f32]) -> Self {
-        let k = model.intrinsics();
-        let a = |i: usize| coefficients.get(i).map_or(0.0, |&v| f64::from(v));
-        Self {
-            fx: k.x_axis.x,
-            fy: k.y_axis.y,
-            cx: k.z_axis.x,
-            cy: k.z_axis.y,
-            coefficients: [a(0), a(1), a(2)],
-        }
-    }
-
-    /// Normalised radius of a pixel (module docs).
-    pub fn radius(&self, pixel: DVec2) -> f64 {
-        DVec2::new((pixel.x - self.cx) / self.fx, (pixel.y - self.cy) / self.fy).length()
-    }
-
-    /// `V(r)`.
-    pub fn factor(&self, radius: f64) -> f64 {
-        let r2 = radius * radius;
-        let [a1, a2, a3] = self.coefficients;
-        1.0 + r2 * (a1 + r2 * (a2 + r2 * a3))
-    }
-
-    /// `V` at pixel `(x, y)`; `None` where the polynomial is not positive (far outside the
-    /// fitted field), where dividing by it would be meaningless.
-    pub fn factor_at(&self, x: f64, y: f64) -> Option<f64> {
-        let v = self.factor(self.radius(DVec2::new(x, y)));
-        (v.is_finite() && v > 0.0).then_some(v)
-    }
-
-    /// `[a1, a2, a3]` as stored in a calibration file.
-    pub fn coefficients_f32(&self) -> Vec<f32> {
-        self.coefficients.iter().map(|&a| a as f32).collect()
-    }
 }
 
 /// Linear (pre-response) values of a uniform field, one per pixel; `None` where a pixel carries

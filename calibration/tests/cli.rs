@@ -539,7 +539,7 @@ fn a_rendered_target_prints_at_scale_and_is_detected_whole() {
 }
 
 #[test]
-fn vignetting_is_written_to_its_own_file() {
+fn vignetting_is_written_to_its_own_file_and_the_rig() {
     let session = Session::new();
     let lens = equidistant_probe(96, 185.0);
     let rig = session.path("rig.toml");
@@ -585,9 +585,18 @@ fn vignetting_is_written_to_its_own_file() {
     println!("coefficients {coefficients:?}");
     // 8-bit rounding of a level-200 field: half a level is 0.25%, so a1 is within 0.01 of −0.2.
     assert!((coefficients[0] + 0.2).abs() < 0.01, "{coefficients:?}");
-    // The rig file is not touched (it has no vignetting field).
+    // The rig file gains the probe's vignetting and keeps everything else.
+    let written = RigCalibration::from_toml(&std::fs::read_to_string(&rig).unwrap()).unwrap();
+    let in_rig: Vec<f64> = written.probe_vignetting.iter().map(|&a| f64::from(a)).collect();
+    assert_eq!(in_rig.len(), 3);
+    for (a, b) in in_rig.iter().zip(&coefficients) {
+        assert!((a - b).abs() <= 1e-6 * b.abs().max(1e-6), "{in_rig:?} vs {coefficients:?}");
+    }
     assert_eq!(
-        RigCalibration::from_toml(&std::fs::read_to_string(&rig).unwrap()).unwrap(),
+        RigCalibration {
+            probe_vignetting: Vec::new(),
+            ..written
+        },
         calibration
     );
 

@@ -43,6 +43,10 @@ pub struct RigCalibration {
     /// probe's absolute scale, which turns merged HDR values into radiance (1: relative units).
     #[serde(default = "unit_scale")]
     pub probe_radiance_scale: f32,
+    /// The probe's vignetting `[a1, a2, a3]` of `V(r) = 1 + a1 r² + a2 r⁴ + a3 r⁶` about its
+    /// model's principal point (`relight-calibrate vignetting`); empty: none measured.
+    #[serde(default)]
+    pub probe_vignetting: Vec<f32>,
 }
 
 /// A printed grid of square tags with consecutive ids, left to right from the top row; the board
@@ -88,6 +92,7 @@ impl Default for RigCalibration {
             lamp_marker_from_light: Pose::default(),
             probe_response: Vec::new(),
             probe_radiance_scale: 1.0,
+            probe_vignetting: Vec::new(),
         }
     }
 }

@@ -93,6 +93,9 @@ pub struct SceneConfig {
     pub lighting: LightSource,
     /// Filter depth (guided by colour) and merge it over time before triangulating it.
     pub depth_filter: bool,
+    /// Directional lights the probe's environment is cut into (median cut), each a shadow map
+    /// for the engines that take discrete lights.
+    pub probe_lights: usize,
 }
 
 impl Default for SceneConfig {
@@ -104,6 +107,7 @@ impl Default for SceneConfig {
             depth_stride: 2,
             lighting: LightSource::Scene,
             depth_filter: true,
+            probe_lights: 8,
         }
     }
 }
@@ -646,6 +650,7 @@ struct RawScene {
     depth_stride: Option<i64>,
     lighting: Option<String>,
     depth_filter: Option<bool>,
+    probe_lights: Option<i64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -1124,6 +1129,15 @@ impl Validator<'_> {
                     "scene.real_albedo",
                     format!("must be in [0, 1], got {albedo}"),
                 );
+            }
+        }
+        if let Some(n) = raw.probe_lights {
+            match usize::try_from(n) {
+                Ok(n) if (1..=32).contains(&n) => scene.probe_lights = n,
+                _ => self.error(
+                    "scene.probe_lights",
+                    format!("must be in 1..=32, got {n}"),
+                ),
             }
         }
         if let Some(stride) = raw.depth_stride {

@@ -16,7 +16,7 @@ use relight_core::rig::RigCalibration;
 use relight_core::scene::Scene;
 use relight_core::sh::Sh9Rgb;
 use relight_core::sync::FrameSet;
-use relight_core::{Frame, ProbeImage, Timestamp};
+use relight_core::{Frame, LampState, ProbeImage, Timestamp};
 use relight_engines::live_scene::{LightSource, LiveScene, RealGeometry};
 use relight_engines::{EngineRegistry, SceneFrame};
 use relight_recon::estimate::LightingEstimate;
@@ -75,7 +75,9 @@ impl LiveFrames {
                     .map_err(|e| anyhow::anyhow!("{}: [scene] dir: {e}", config.path.display()))?;
                 scene_pose = scene.camera.world_from_camera;
                 let probe = calibration.and_then(|rig| {
-                    ProbeLighting::new(rig, ProbeSettings::default())
+                    let mut settings = ProbeSettings::default();
+                    settings.lights.light_count = config.scene.probe_lights;
+                    ProbeLighting::new(rig, settings)
                         .inspect_err(|error| {
                             if rig.probe.is_some() {
                                 tracing::warn!(%error, "the light probe is not used");
@@ -83,6 +85,11 @@ impl LiveFrames {
                         })
                         .ok()
                 });
+                if probe.as_ref().is_some_and(|p| !p.is_absolute()) {
+                    tracing::warn!(
+                        "the rig calibration has no radiance scale for the probe: its light estimate is in relative units"
+                    );
+                }
                 if probe.is_none() && config.scene.lighting == LightSource::Probe {
                     tracing::warn!(
                         "[scene] lighting = \"probe\" but the rig has no usable probe calibration: only the lamp lights the scene"
@@ -137,13 +144,23 @@ impl LiveFrames {
     /// Take a probe frame (every one, not only those matched to a frame set: a bracket needs
     /// each of its exposures). Returns how long it took, milliseconds, when there is a scene to
     /// light.
+    /// A report of the tracked lamp (every one, as it arrives): its disc is masked out of the
+    /// probe's next estimates so the lamp counts once.
+    pub fn lamp_report(&mut self, frame: &Frame<LampState>) {
+        if let Some(probe) = self.scene_lights.as_mut().and_then(|s| s.probe.as_mut())
+            && frame.payload.on
+        {
+            probe.track_light(frame.stamp.host_ns, frame.payload.position_in_world);
+        }
+    }
+
     pub fn probe_frame(&mut self, frame: &Arc<Frame<ProbeImage>>) -> Option<f64> {
         let scene_lights = self.scene_lights.as_mut()?;
         let start = Instant::now();
         if let Some(estimate) = scene_lights.probe_frame(frame)
             && let Some(live) = self.live_scene.as_mut()
         {
-            live.set_probe_environment(&estimate.environment);
+            live.set_probe_estimate(&estimate.environment, &estimate.lights);
         }
         Some(start.elapsed().as_secs_f64() * 1e3)
     }
@@ -253,11 +270,13 @@ impl SceneLights {
     fn publish_if_changed(&mut self, live: &LiveScene, board: &LightsBoard) {
         let (lights, sh9, stamp) = match &self.probe_estimate {
             Some(probe) => {
-                let lamp = live
-                    .lights()
-                    .into_iter()
-                    .filter(|l| matches!(l, Light::Point { .. }));
-                let lights: Vec<Light> = probe.lights.iter().copied().chain(lamp).collect();
+                // The probe sees every other light; the lamp's disc is masked out of its map.
+                let lights: Vec<Light> = probe
+                    .lights
+                    .iter()
+                    .copied()
+                    .chain(live.lamp_light())
+                    .collect();
                 (lights, probe.sh9, Some(probe.stamp))
             }
             None => (live.lights(), self.scene_sh9, None),
@@ -266,8 +285,9 @@ impl SceneLights {
         if self.published.as_ref() == Some(&key) {
             return;
         }
-        let estimate =
+        let mut estimate =
             LightingEstimate::from_lights(key.0.clone(), sh9, stamp, self.reference_point);
+        estimate.relative_units = self.probe_estimate.as_ref().is_some_and(|p| !p.absolute);
         self.published = Some(key);
         if board.publish(estimate) {
             tracing::trace!("lighting estimate published");
@@ -300,11 +320,12 @@ mod tests {
             },
             lights: Vec::new(),
             environment: None,
+            environment_lights: Vec::new(),
         };
         let mut scene_lights = SceneLights::new(&scene, None);
         assert_eq!(scene_lights.reference_point, Vec3::new(0.0, 0.1, 0.0));
         let mut live = LiveScene::new(scene, RealGeometry::Scene, 0.5, None, 1);
-        let lamp = relight_core::LampState {
+        let lamp = LampState {
             on: true,
             position_in_world: Vec3::new(0.0, 1.1, 0.0),
             intensity: Vec3::splat(2.0),
@@ -317,7 +338,7 @@ mod tests {
         let main = estimate.main_light.expect("the lamp");
         assert!((main.direction_in_world - Vec3::NEG_Y).length() < 1e-6);
         assert!((main.intensity - 2.0).abs() < 1e-5);
-        live.frame(None, Some(&relight_core::LampState::default()));
+        live.frame(None, Some(&LampState::default()));
         scene_lights.publish_if_changed(&live, &board);
         assert_eq!(board.published(), 2);
         assert_eq!(board.latest().expect("published").main_light, None);

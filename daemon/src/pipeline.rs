@@ -404,8 +404,10 @@ impl RenderLoop<'_> {
                     }
                     self.arrivals.push_back((host_ns, Instant::now()));
                 }
-                if let StreamMessage::Probe(frame) = &msg {
-                    self.probe_frame(frame);
+                match &msg {
+                    StreamMessage::Probe(frame) => self.probe_frame(frame),
+                    StreamMessage::Lamp(frame) => self.live.lamp_report(frame),
+                    _ => {}
                 }
                 self.synchronizer.push(msg);
                 received = subscription.try_recv();

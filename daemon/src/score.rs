@@ -25,6 +25,7 @@ use glam::{DVec3, Vec3};
 use relight_core::camera::{CameraModel, optical_from_gl};
 use relight_core::recording::RecordingReader;
 use relight_core::recording::truth::{TruthKind, TruthMessage, TruthState};
+use relight_core::light::Light;
 use relight_core::scene::Scene;
 use relight_core::srgb::{linear_to_srgb, srgb_to_linear};
 use relight_core::sync::{FrameSet, Synchronizer};
@@ -32,7 +33,6 @@ use relight_core::{Image, PixelFormat, Pose, StreamKind};
 use relight_engines::live_scene::RealGeometry;
 use relight_engines::offline::{delta_pixels, reference};
 use relight_engines::{EngineRegistry, RelitFrame, SceneFrame};
-use relight_recon::estimate::LightingEstimate;
 use serde::Serialize;
 use serde_json::{Map, Value};
 
@@ -225,9 +225,6 @@ pub fn run(
         })
     });
     let virtual_corners: Vec<Vec3> = virtual_corners.into_iter().flatten().collect();
-    let reference_point = oracle_scene
-        .virtual_bounds()
-        .map_or(Vec3::ZERO, |(lo, hi)| (lo + hi) * 0.5);
     let real_albedo = config.scene.real_albedo;
     if config.scene.real != RealGeometry::Depth {
         tracing::warn!(
@@ -336,24 +333,11 @@ pub fn run(
             .and_then(|a| albedo_error(a, truth.depth.as_ref(), real_albedo));
         let (light_direction_error_deg, light_irradiance_ratio) = board
             .latest()
-            .and_then(|estimate| estimate.main_light)
-            .zip(
-                LightingEstimate::from_lights(
-                    state.lights.clone(),
-                    relight_core::sh::Sh9Rgb::ZERO,
-                    None,
-                    reference_point,
-                )
-                .main_light,
-            )
-            .map(|(est, truth)| {
-                let cos = est.direction_in_world.dot(truth.direction_in_world);
-                (
-                    Some(f64::from(cos.clamp(-1.0, 1.0).acos().to_degrees())),
-                    Some(f64::from(est.intensity / truth.intensity)),
-                )
+            .zip(state.world_from_probe)
+            .and_then(|(estimate, world_from_probe)| {
+                main_light_error(&estimate.lights, &state.lights, world_from_probe.translation)
             })
-            .unwrap_or((None, None));
+            .map_or((None, None), |(deg, ratio)| (Some(deg), Some(ratio)));
         let score = FrameScore {
             seq: set.stamp.host_ns,
             tracking: format!("{:?}", frame.tracking.state).to_lowercase(),
@@ -391,10 +375,14 @@ pub fn run(
     let mut data_clock_ns = 0u64;
     for message in messages {
         data_clock_ns = data_clock_ns.max(message.stamp().host_ns);
-        if let relight_core::StreamMessage::Probe(frame) = &message
-            && let Some(ms) = live.probe_frame(frame)
-        {
-            add_ms("probe", ms);
+        match &message {
+            relight_core::StreamMessage::Probe(frame) => {
+                if let Some(ms) = live.probe_frame(frame) {
+                    add_ms("probe", ms);
+                }
+            }
+            relight_core::StreamMessage::Lamp(frame) => live.lamp_report(frame),
+            _ => {}
         }
         synchronizer.push(message);
         while let Some(set) = synchronizer.pop_ready(data_clock_ns) {
@@ -507,6 +495,38 @@ impl ScoreReport {
 fn finite(v: f64) -> Value {
     if v.is_finite() { v.into() } else { Value::Null }
 }
+
+/// The light of `estimate` against that of `truth`, both as seen at `point` (the probe: a
+/// distant-light estimate is right where it was measured, and off elsewhere by the real lights'
+/// parallax, which is the light model's error, not the estimate's). The main light's direction
+/// is that of the irradiance vector `Σ E_i ω_i` (a median cut splits one bright light into
+/// several of equal energy, so "the strongest single light" would compare the pieces); the
+/// ratio is of the total irradiance `Σ E_i` (luminance). Direction error (°) and ratio.
+pub fn main_light_error(estimate: &[Light], truth: &[Light], point: Vec3) -> Option<(f64, f64)> {
+    let moments = |lights: &[Light]| {
+        lights
+            .iter()
+            .filter_map(|light| light.incident(point))
+            .filter(|incident| incident.irradiance.is_finite())
+            .fold((Vec3::ZERO, 0.0f32), |(vector, total), incident| {
+                let e = incident.irradiance.dot(LUMINANCE);
+                (vector + incident.direction_to_light * e, total + e)
+            })
+    };
+    let (estimate, truth) = (moments(estimate), moments(truth));
+    let (Some(e), Some(t)) = (estimate.0.try_normalize(), truth.0.try_normalize()) else {
+        return None;
+    };
+    (truth.1 > 0.0).then(|| {
+        (
+            f64::from(e.dot(t).clamp(-1.0, 1.0).acos().to_degrees()),
+            f64::from(estimate.1 / truth.1),
+        )
+    })
+}
+
+/// Rec. 709 luminance weights.
+const LUMINANCE: Vec3 = Vec3::new(0.2126, 0.7152, 0.0722);
 
 /// Translation (mm) and rotation (°) between two camera poses.
 pub fn pose_difference(estimate: &Pose, truth: &Pose) -> (f64, f64) {

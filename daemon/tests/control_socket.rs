@@ -11,8 +11,10 @@ use relight_core::StreamKind;
 use relight_daemon::control::{
     Client, ClientError, ControlError, ControlServer, ControlServerHandle, ControlTarget,
     DeviceState, DeviceStatus, EngineInfo, LightsBoard, PeerCred, RecordingStatus, ServerError,
-    ServerOptions, StageTiming, StatusReport, SyncStreamStatus, codes, peer_allowed,
+    ServerOptions, StageTiming, StatusReport, SyncStreamStatus, TrackingStatus, codes,
+    peer_allowed,
 };
+use relight_daemon::tracking::TrackingState;
 use serde_json::{Map, Value, json};
 
 const TIMEOUT: Duration = Duration::from_secs(10);
@@ -71,6 +73,15 @@ fn sample_status(engine: &str, recording: Option<PathBuf>) -> StatusReport {
         bus_drops: 2,
         render_errors: 0,
         recording: recording.map(|path| RecordingStatus { path, messages: 77 }),
+        tracking: Some(TrackingStatus {
+            source: "markers".into(),
+            state: TrackingState::Held,
+            pose_age_ms: Some(66.7),
+            reprojection_rms_px: Some(0.12),
+            tags_used: 9,
+            world_from_camera: Some(relight_core::Pose::IDENTITY),
+            untracked_frames: 4,
+        }),
     }
 }
 

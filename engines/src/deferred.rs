@@ -95,6 +95,9 @@ pub struct Deferred {
     /// Lights an engine adds to the scene's own (DIR's and IBL's environment lights).
     extra_lights: Vec<Light>,
     extra_role: ExtraLights,
+    /// Light with [`Scene::environment_lights`] (engines that do not sample the environment map
+    /// themselves).
+    environment_lights: bool,
     timer: Option<GpuTimer>,
 }
 
@@ -129,8 +132,18 @@ impl Deferred {
             faces_cpu: Vec::new(),
             extra_lights: Vec::new(),
             extra_role: ExtraLights::Full,
+            environment_lights: true,
             timer: GpuTimer::new(&ctx),
             ctx,
+        }
+    }
+
+    /// For an engine that lights with the scene's environment map itself (`dir`, `ibl`): the
+    /// scene's [`Scene::environment_lights`] are left out, or that light would count twice.
+    pub fn sampling_the_environment(ctx: Arc<GpuContext>) -> Self {
+        Self {
+            environment_lights: false,
+            ..Self::new(ctx)
         }
     }
 
@@ -181,12 +194,19 @@ impl Deferred {
         {
             self.frame = Some(FrameResources::new(&ctx, width, height));
         }
-        (self.lights_cpu, self.faces_cpu) = if self.extra_lights.is_empty() {
-            light_faces(&scene.lights, bounds, rsm_size)
+        let environment_lights: &[Light] = if self.environment_lights {
+            &scene.environment_lights
         } else {
+            &[]
+        };
+        (self.lights_cpu, self.faces_cpu) =
+            if self.extra_lights.is_empty() && environment_lights.is_empty() {
+                light_faces(&scene.lights, bounds, rsm_size)
+            } else {
             let all: Vec<Light> = scene
                 .lights
                 .iter()
+                .chain(environment_lights)
                 .chain(&self.extra_lights)
                 .copied()
                 .collect();

@@ -28,9 +28,9 @@ pub enum RealGeometry {
 pub enum LightSource {
     /// The scene file's lights and environment map (a known room).
     Scene,
-    /// The light probe's environment map, as estimated live; the scene file's lights and map are
-    /// left out (the probe sees them). Only the engines that take environment light (`ibl`,
-    /// `dir`) see it; the others are lit by the lamp alone.
+    /// The light probe's estimate: its environment map for the engines that sample one (`ibl`,
+    /// `dir`), its median-cut directional lights for the others; the scene file's lights and map
+    /// are left out (the probe sees them). The tracked lamp is added as a point light.
     Probe,
 }
 
@@ -103,10 +103,12 @@ impl LiveScene {
         self.fixed = None;
     }
 
-    /// The probe's newest environment map (used with [`LightSource::Probe`]).
-    pub fn set_probe_environment(&mut self, environment: &EnvironmentMap) {
+    /// The probe's newest environment map and its directional lights (used with
+    /// [`LightSource::Probe`]).
+    pub fn set_probe_estimate(&mut self, environment: &EnvironmentMap, lights: &[Light]) {
         if self.light_source == LightSource::Probe {
             self.base.environment = Some(environment.clone());
+            self.base.environment_lights = lights.to_vec();
             self.fixed = None;
         }
     }
@@ -122,7 +124,8 @@ impl LiveScene {
             .collect()
     }
 
-    fn lamp_light(&self) -> Option<Light> {
+    /// The tracked lamp as a point light, while it is on and where it was last reported.
+    pub fn lamp_light(&self) -> Option<Light> {
         self.lamp
             .filter(|l| l.on && l.position_in_world.is_finite())
             .map(|l| Light::Point {
@@ -326,6 +329,7 @@ mod tests {
             },
             lights: Vec::new(),
             environment: None,
+            environment_lights: Vec::new(),
         };
         let mut live = LiveScene::new(base, RealGeometry::Depth, 0.5, Some(camera()), 1);
         let lamp = LampState {

@@ -1053,6 +1053,7 @@ pub(crate) mod tests {
             },
             lights: Vec::new(),
             environment: None,
+            environment_lights: Vec::new(),
         }
     }
 

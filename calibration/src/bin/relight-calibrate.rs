@@ -307,7 +307,8 @@ struct VignettingArgs {
     /// The camera is linear (no response curve needed).
     #[arg(long)]
     linear: bool,
-    /// Where to write the coefficients (TOML). The rig file has no vignetting field yet.
+    /// Where to write the coefficients (TOML). The probe's also go into the rig file's
+    /// `probe_vignetting`.
     #[arg(long, value_name = "FILE")]
     out: PathBuf,
     /// Write summary.txt into this folder.
@@ -1016,6 +1017,15 @@ fn vignetting(args: &VignettingArgs, progress: &ProgressSink) -> Result<String> 
         vignetting_toml(args.camera, &args.rig, &fit.vignetting, fit.max_radius).as_bytes(),
     )?;
     summary.push_str(&format!("written: {}\n", args.out.display()));
+    if args.camera == CameraArg::Probe {
+        // The daemon divides the probe's fall-off out of every bracket it merges.
+        let parts = CalibratedParts {
+            probe_vignetting: Some(fit.vignetting.coefficients_f32()),
+            ..CalibratedParts::default()
+        };
+        write_calibration(&args.rig, &parts)?;
+        summary.push_str(&format!("written: {} (probe_vignetting)\n", args.rig.display()));
+    }
     Ok(summary)
 }
 

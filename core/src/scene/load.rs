@@ -330,6 +330,7 @@ impl Scene {
             camera,
             lights: desc.lights,
             environment,
+            environment_lights: Vec::new(),
         })
     }
 }

@@ -82,6 +82,11 @@ pub struct Scene {
     /// Point, spot and directional lights (an environment light is in `environment`).
     pub lights: Vec<Light>,
     pub environment: Option<EnvironmentMap>,
+    /// `environment` as a few directional lights (the light probe's median cut), for the engines
+    /// that light only with discrete lights. Engines that sample `environment` themselves
+    /// ignore these, so the environment's light is counted once either way. Empty for a scene
+    /// file.
+    pub environment_lights: Vec<Light>,
 }
 
 impl Mesh {

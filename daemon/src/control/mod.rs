@@ -20,5 +20,5 @@ pub use server::{
 };
 pub use types::{
     ControlError, ControlTarget, DeviceState, DeviceStatus, EngineInfo, RecordingStatus,
-    StageTiming, StatusReport, SyncStreamStatus, codes,
+    StageTiming, StatusReport, SyncStreamStatus, TrackingStatus, codes,
 };

@@ -62,6 +62,10 @@ pub struct LightingEstimate {
     /// The lights: one directional light per median-cut region of the probe's environment (or
     /// the scene file's lights without a probe), then the lamp.
     pub lights: Vec<Light>,
+    /// True when the probe's part is in relative units: the rig calibration has no radiance
+    /// scale for the probe, so its lights and SH9 are right in shape and colour, not in level.
+    #[serde(default)]
+    pub relative_units: bool,
 }
 
 impl LightingEstimate {
@@ -112,6 +116,7 @@ impl LightingEstimate {
             main_light,
             sh9,
             lights,
+            relative_units: false,
         }
     }
 }

@@ -22,3 +22,4 @@ pub mod median_cut;
 pub mod normals;
 pub mod probe;
 pub mod temporal;
+pub mod vignetting;

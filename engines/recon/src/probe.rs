@@ -19,9 +19,11 @@ use relight_core::light::Light;
 use relight_core::rig::RigCalibration;
 use relight_core::scene::EnvironmentMap;
 use relight_core::sh::Sh9Rgb;
+use glam::Vec3;
 use relight_core::{Frame, Pose, ProbeImage, Timestamp};
 
-use crate::envmap::{EnvMapError, EnvMapSettings, probe_to_environment};
+use crate::envmap::{EnvMapError, EnvMapSettings, probe_to_environment, texel_direction};
+use crate::vignetting::Vignetting;
 use crate::hdr::{HdrError, Response, merge};
 use crate::irradiance::project_sh9;
 use crate::median_cut::{MedianCutSettings, extract_lights};
@@ -48,6 +50,11 @@ pub struct ProbeSettings {
     pub radiance_scale: f32,
     /// Frames older than this (device clock, relative to the newest) leave the bracket.
     pub max_age_ns: u64,
+    /// Angular radius, degrees, masked out of the map around each tracked light
+    /// ([`ProbeLighting::set_tracked_lights`]): the bulb's disc, the map's resampling blur
+    /// (a texel of the default 128 × 64 map is 2.8°) and the light's motion between two of its
+    /// reports.
+    pub tracked_light_mask_deg: f32,
 }
 
 impl Default for ProbeSettings {
@@ -61,6 +68,7 @@ impl Default for ProbeSettings {
             lights: MedianCutSettings::default(),
             radiance_scale: 1.0,
             max_age_ns: 2_000_000_000,
+            tracked_light_mask_deg: 8.0,
         }
     }
 }
@@ -78,6 +86,8 @@ pub struct ProbeEstimate {
     pub lights: Vec<Light>,
     /// Exposures merged.
     pub exposures: usize,
+    /// Radiance in W/(m²·sr); `false`: relative units (no radiance scale in the calibration).
+    pub absolute: bool,
 }
 
 /// Turns probe frames into estimates (see the module docs).
@@ -91,7 +101,14 @@ pub struct ProbeLighting {
     bracket: Vec<(Arc<Frame<ProbeImage>>, bool)>,
     /// Exposures per cycle, once one has come round.
     cycle: Option<usize>,
+    vignetting: Option<Vignetting>,
+    /// Where the tracked lights were (host time, ns; world position) over the last brackets.
+    tracked: Vec<(u64, Vec3)>,
 }
+
+/// How far (host time) around a bracket's frames a tracked light's report still masks: a lamp
+/// reports a few times a second.
+const TRACKED_LIGHT_WINDOW_NS: u64 = 200_000_000;
 
 impl ProbeLighting {
     /// From the rig's calibration: its Kannala–Brandt probe, the probe's pose and inverse
@@ -106,6 +123,9 @@ impl ProbeLighting {
             Response::from_calibration(rig)?
         };
         settings.radiance_scale = rig.probe_radiance_scale;
+        let vignetting = (!rig.probe_vignetting.is_empty()).then(|| {
+            Vignetting::new(&CameraModel::KannalaBrandt(lens), &rig.probe_vignetting)
+        });
         Ok(Self {
             lens,
             world_from_probe: rig.world_from_probe,
@@ -113,7 +133,27 @@ impl ProbeLighting {
             settings,
             bracket: Vec::new(),
             cycle: None,
+            vignetting,
+            tracked: Vec::new(),
         })
+    }
+
+    /// Whether the estimate is in W/(m²·sr) (the rig calibration has the probe's radiance
+    /// scale) or in relative units.
+    pub fn is_absolute(&self) -> bool {
+        self.settings.radiance_scale != 1.0
+    }
+
+    /// A light the rig tracks itself (the pocket lamp) was at `position_in_world` at host time
+    /// `host_ns`. Its disc is masked out of the environment before the median cut and SH9, so
+    /// that it is counted once: as the tracked light, not also as a probe light.
+    pub fn track_light(&mut self, host_ns: u64, position_in_world: Vec3) {
+        if !position_in_world.is_finite() {
+            return;
+        }
+        let horizon = host_ns.saturating_sub(self.settings.max_age_ns + TRACKED_LIGHT_WINDOW_NS);
+        self.tracked.retain(|(t, _)| *t >= horizon);
+        self.tracked.push((host_ns, position_in_world));
     }
 
     /// Take one probe frame; returns an estimate when it completes a bracket.
@@ -159,22 +199,57 @@ impl ProbeLighting {
         self.estimate().map(Some)
     }
 
+    /// Black out the texels within [`ProbeSettings::tracked_light_mask_deg`] of each tracked
+    /// light reported around the bracket's time.
+    fn mask_tracked_lights(&self, environment: &mut EnvironmentMap) {
+        let times = self.bracket.iter().map(|(f, _)| f.stamp.host_ns);
+        let (Some(first), Some(last)) = (times.clone().min(), times.max()) else {
+            return;
+        };
+        let origin = self.world_from_probe.translation;
+        let directions: Vec<Vec3> = self
+            .tracked
+            .iter()
+            .filter(|(t, _)| {
+                *t + TRACKED_LIGHT_WINDOW_NS >= first && *t <= last + TRACKED_LIGHT_WINDOW_NS
+            })
+            .filter_map(|(_, p)| (*p - origin).try_normalize())
+            .collect();
+        if directions.is_empty() {
+            return;
+        }
+        let cos_mask = self.settings.tracked_light_mask_deg.to_radians().cos();
+        let (w, h) = (environment.width, environment.height);
+        for y in 0..h {
+            for x in 0..w {
+                let dir = texel_direction(w, h, x, y);
+                if directions.iter().any(|d| d.dot(dir) >= cos_mask) {
+                    environment.radiance[(y * w + x) as usize] = Vec3::ZERO;
+                }
+            }
+        }
+    }
+
     fn estimate(&self) -> Result<ProbeEstimate, ProbeError> {
         let frames: Vec<&ProbeImage> = self.bracket.iter().map(|(f, _)| &f.payload).collect();
         let mut hdr = merge(&frames, &self.response)?;
+        if let Some(vignetting) = &self.vignetting {
+            vignetting.correct(&mut hdr);
+        }
         let scale = self.settings.radiance_scale;
         if scale != 1.0 && scale.is_finite() && scale > 0.0 {
             for l in &mut hdr.radiance {
                 *l *= scale;
             }
         }
-        let environment = probe_to_environment(
+        let mut environment = probe_to_environment(
             &hdr,
             &self.lens,
             &self.world_from_probe,
             &self.settings.envmap,
         )?
         .map;
+        self.mask_tracked_lights(&mut environment);
         let lights = extract_lights(&environment, &self.settings.lights)?
             .iter()
             .map(|r| r.to_light())
@@ -188,6 +263,7 @@ impl ProbeLighting {
             .unwrap_or_default();
         Ok(ProbeEstimate {
             stamp,
+            absolute: self.is_absolute(),
             environment: Arc::new(environment),
             sh9,
             lights,

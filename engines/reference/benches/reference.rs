@@ -97,6 +97,7 @@ fn bench_scene(width: u32, height: u32) -> Scene {
             height: env_height,
             radiance,
         }),
+        environment_lights: Vec::new(),
     }
 }
 

@@ -449,6 +449,7 @@ mod tests {
                 intensity: Vec3::splat(20.0),
             }],
             environment: Some(environment),
+            environment_lights: Vec::new(),
         }
     }
 

@@ -36,6 +36,7 @@ fn scene(name: &str, camera: SceneCamera) -> Scene {
         camera,
         lights: Vec::new(),
         environment: None,
+        environment_lights: Vec::new(),
     }
 }
 

@@ -143,6 +143,7 @@ fn nasty_scene() -> Scene {
             },
         ],
         environment: Some(environment),
+        environment_lights: Vec::new(),
     }
 }
 

@@ -189,7 +189,7 @@ impl Dir {
             ism: pipeline("dir ism", shaders::DIR_ISM),
             gather: pipeline("dir gather", shaders::DIR_GATHER),
             uniform: uniform_buffer(&ctx.device, "dir", size_of::<DirUniform>()),
-            deferred: Deferred::new(ctx),
+            deferred: Deferred::sampling_the_environment(ctx),
             settings: DirSettings::default(),
             points: None,
             environment: None,

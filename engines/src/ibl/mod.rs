@@ -148,7 +148,7 @@ impl Ibl {
             shade: shaders::compute_pipeline(&ctx.device, "ibl shade", shaders::IBL_SHADE),
             uniform: uniform_buffer(&ctx.device, "ibl shade", size_of::<IblUniform>()),
             maps: ReflectionMaps::new(&ctx),
-            deferred: Deferred::new(ctx),
+            deferred: Deferred::sampling_the_environment(ctx),
             settings: IblSettings::default(),
             environment: None,
             convolutions: 0,
@@ -424,6 +424,7 @@ mod tests {
             },
             lights: Vec::new(),
             environment: None,
+            environment_lights: Vec::new(),
         };
         let levels = specular_levels(&scene, 8);
         assert_eq!(levels.len(), 8);
