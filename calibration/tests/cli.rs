@@ -587,10 +587,17 @@ fn vignetting_is_written_to_its_own_file_and_the_rig() {
     assert!((coefficients[0] + 0.2).abs() < 0.01, "{coefficients:?}");
     // The rig file gains the probe's vignetting and keeps everything else.
     let written = RigCalibration::from_toml(&std::fs::read_to_string(&rig).unwrap()).unwrap();
-    let in_rig: Vec<f64> = written.probe_vignetting.iter().map(|&a| f64::from(a)).collect();
+    let in_rig: Vec<f64> = written
+        .probe_vignetting
+        .iter()
+        .map(|&a| f64::from(a))
+        .collect();
     assert_eq!(in_rig.len(), 3);
     for (a, b) in in_rig.iter().zip(&coefficients) {
-        assert!((a - b).abs() <= 1e-6 * b.abs().max(1e-6), "{in_rig:?} vs {coefficients:?}");
+        assert!(
+            (a - b).abs() <= 1e-6 * b.abs().max(1e-6),
+            "{in_rig:?} vs {coefficients:?}"
+        );
     }
     assert_eq!(
         RigCalibration {

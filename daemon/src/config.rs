@@ -1134,10 +1134,7 @@ impl Validator<'_> {
         if let Some(n) = raw.probe_lights {
             match usize::try_from(n) {
                 Ok(n) if (1..=32).contains(&n) => scene.probe_lights = n,
-                _ => self.error(
-                    "scene.probe_lights",
-                    format!("must be in 1..=32, got {n}"),
-                ),
+                _ => self.error("scene.probe_lights", format!("must be in 1..=32, got {n}")),
             }
         }
         if let Some(stride) = raw.depth_stride {

@@ -23,9 +23,9 @@ use std::time::Instant;
 use anyhow::{Context as _, bail};
 use glam::{DVec3, Vec3};
 use relight_core::camera::{CameraModel, optical_from_gl};
+use relight_core::light::Light;
 use relight_core::recording::RecordingReader;
 use relight_core::recording::truth::{TruthKind, TruthMessage, TruthState};
-use relight_core::light::Light;
 use relight_core::scene::Scene;
 use relight_core::srgb::{linear_to_srgb, srgb_to_linear};
 use relight_core::sync::{FrameSet, Synchronizer};
@@ -76,6 +76,9 @@ pub struct FrameScore {
     pub delta_rel_l2: f64,
     pub delta_rel_l2_oracle: f64,
     pub composite_rel_l2_real_oracle: f64,
+    /// ‖Δ_true‖ / ‖true composite‖ over real pixels: how much of the picture Δ is, which bounds
+    /// how far a relative error of Δ can move the composite.
+    pub delta_share_real: f64,
 }
 
 /// Median and 95th percentile of one measure over the frames where it applies.
@@ -335,7 +338,11 @@ pub fn run(
             .latest()
             .zip(state.world_from_probe)
             .and_then(|(estimate, world_from_probe)| {
-                main_light_error(&estimate.lights, &state.lights, world_from_probe.translation)
+                main_light_error(
+                    &estimate.lights,
+                    &state.lights,
+                    world_from_probe.translation,
+                )
             })
             .map_or((None, None), |(deg, ratio)| (Some(deg), Some(ratio)));
         let score = FrameScore {
@@ -353,6 +360,7 @@ pub fn run(
             delta_rel_l2: relative_l2(&delta, &truth_images.delta, &real),
             delta_rel_l2_oracle: relative_l2(&oracle_delta, &truth_images.delta, &real),
             composite_rel_l2_real_oracle: relative_l2(&oracle_composite, &true_composite, &real),
+            delta_share_real: l2(&truth_images.delta, &real) / l2(&true_composite, &real),
         };
         if let Some(dir) = &settings.out {
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -593,6 +601,16 @@ fn albedo_error(albedo: &Image, depth: Option<&Image>, estimate: f32) -> Option<
         norm += f64::from(truth.length_squared());
     }
     (norm > 0.0).then(|| (err / norm).sqrt())
+}
+
+/// ‖a‖₂ over the pixels `mask` selects.
+fn l2(a: &[Vec3], mask: &[bool]) -> f64 {
+    a.iter()
+        .zip(mask)
+        .filter(|(_, m)| **m)
+        .map(|(x, _)| f64::from(x.length_squared()))
+        .sum::<f64>()
+        .sqrt()
 }
 
 /// ‖a − b‖₂ / ‖b‖₂ over the pixels `mask` selects; NaN on mismatched sizes or an empty mask.

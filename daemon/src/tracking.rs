@@ -294,3 +294,133 @@ impl MarkerTracking {
         (finite && rms <= max_rms_px).then_some((world_from_camera, rms, fit.tags_used.len()))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use glam::{Quat, Vec2, Vec3};
+    use relight_backends::markers::board::corners_in_board;
+    use relight_core::MarkerDetection;
+    use relight_core::camera::{Pinhole, optical_from_gl};
+    use relight_core::rig::BoardLayout;
+
+    use super::*;
+
+    fn rig() -> RigCalibration {
+        RigCalibration {
+            color: Some(CameraModel::Pinhole(Pinhole {
+                width: 320,
+                height: 240,
+                fx: 260.0,
+                fy: 260.0,
+                cx: 159.5,
+                cy: 119.5,
+                k1: 0.0,
+                k2: 0.0,
+                p1: 0.0,
+                p2: 0.0,
+                k3: 0.0,
+            })),
+            world_from_board: Pose::new(Quat::from_rotation_y(0.3), Vec3::new(0.2, 0.0, -0.1)),
+            board: Some(BoardLayout {
+                family: "tag36h11".into(),
+                first_id: 0,
+                cols: 2,
+                rows: 2,
+                tag_size_m: 0.1,
+                gap_m: 0.02,
+            }),
+            ..RigCalibration::default()
+        }
+    }
+
+    /// A camera 1 m above the board, looking down at it.
+    fn world_from_camera(rig: &RigCalibration) -> Pose {
+        let centre = rig.world_from_board.translation;
+        Pose::look_at(centre + Vec3::new(0.1, 1.0, 0.3), centre, Vec3::Y)
+    }
+
+    /// The board's tags as a perfect detector sees them from `world_from_camera`.
+    fn seen(rig: &RigCalibration, world_from_camera: &Pose) -> MarkerSet {
+        let board = Board::from_layout(rig.board.as_ref().unwrap()).unwrap();
+        let Some(CameraModel::Pinhole(camera)) = rig.color else {
+            unreachable!()
+        };
+        let camera_from_board = world_from_camera.inverse() * rig.world_from_board;
+        let detections = board
+            .tags()
+            .iter()
+            .map(|tag| MarkerDetection {
+                family: "tag36h11".into(),
+                marker_id: tag.marker_id,
+                corners_px: corners_in_board(tag).map(|p| {
+                    let in_camera = camera_from_board.transform_point(p.as_vec3());
+                    camera
+                        .project(optical_from_gl(in_camera.as_dvec3()))
+                        .unwrap()
+                        .as_vec2()
+                }),
+                camera_from_marker: Pose::IDENTITY,
+                reprojection_rms_px: 0.0,
+            })
+            .collect();
+        MarkerSet { detections }
+    }
+
+    #[test]
+    fn the_board_gives_the_world_pose_and_other_tags_and_nan_never_reach_it() {
+        let rig = rig();
+        let truth = world_from_camera(&rig);
+        let mut tracker =
+            Tracker::new(&TrackingConfig::default(), Some(&rig), Pose::IDENTITY).expect("markers");
+        assert_eq!(tracker.source(), TrackingSource::Markers);
+        let mut markers = seen(&rig, &truth);
+        // A tag of another family with a board id, an id not on the board, a NaN corner.
+        let mut foreign = markers.detections[0].clone();
+        foreign.family = "aruco_4x4_50".into();
+        foreign.corners_px[0] += Vec2::new(40.0, 0.0);
+        let mut stranger = markers.detections[1].clone();
+        stranger.marker_id = 99;
+        let mut broken = markers.detections[2].clone();
+        broken.corners_px[1] = Vec2::NAN;
+        markers.detections.extend([foreign, stranger]);
+        markers.detections[2] = broken;
+        let report = tracker.update(1_000, Some(&markers));
+        assert_eq!(report.state, TrackingState::Tracked);
+        assert_eq!(report.tags_used, 3, "the NaN tag is left out");
+        let pose = report.world_from_camera.expect("tracked");
+        assert!(
+            (pose.translation - truth.translation).length() < 1e-4,
+            "{pose:?}"
+        );
+        assert!(pose.rotation.angle_between(truth.rotation) < 1e-3);
+        assert!(report.reprojection_rms_px.unwrap() < 1e-2);
+    }
+
+    #[test]
+    fn a_board_never_seen_is_untracked_and_the_scene_source_is_fixed() {
+        let rig = rig();
+        let mut tracker =
+            Tracker::new(&TrackingConfig::default(), Some(&rig), Pose::IDENTITY).unwrap();
+        for i in 0..40 {
+            let report = tracker.update(i * 33_000_000, Some(&MarkerSet::default()));
+            assert_eq!(report.state, TrackingState::Untracked);
+            assert!(!report.is_usable());
+        }
+        let config = TrackingConfig {
+            source: Some(TrackingSource::Scene),
+            ..TrackingConfig::default()
+        };
+        let scene_pose = Pose::from_translation(Vec3::Y);
+        let mut fixed = Tracker::new(&config, Some(&rig), scene_pose).unwrap();
+        let report = fixed.update(0, None);
+        assert_eq!(report.state, TrackingState::Fixed);
+        assert_eq!(report.world_from_camera, Some(scene_pose));
+        // Markers without a board to track: a clear error, not a silent tripod.
+        let config = TrackingConfig {
+            source: Some(TrackingSource::Markers),
+            ..TrackingConfig::default()
+        };
+        let err = Tracker::new(&config, None, Pose::IDENTITY).unwrap_err();
+        assert!(err.to_string().contains("board"), "{err}");
+    }
+}

@@ -131,3 +131,108 @@ fn a_hidden_board_leaves_the_camera_untracked_and_draws_no_delta() {
         }
     }
 }
+
+fn probe_lit() -> relight_daemon::config::Config {
+    let mut config = score::default_config();
+    config.scene.lighting = relight_engines::live_scene::LightSource::Probe;
+    config
+}
+
+fn score_with(
+    recording: &Path,
+    scene: &Path,
+    engine: &str,
+    config: relight_daemon::config::Config,
+) -> ScoreReport {
+    score::run(
+        &ScoreSettings {
+            recording: recording.to_owned(),
+            scene: scene.to_owned(),
+            engine: engine.into(),
+            params: serde_json::Map::new(),
+            reference_spp: 4,
+            out: None,
+            config,
+        },
+        |_, _| {},
+    )
+    .unwrap()
+}
+
+/// A probe frame every third frame cycles through three exposures; the cycle is known once its
+/// first exposure comes round again, so the first estimate comes at frame 9. Before it, the estimate is
+/// the tracked lamp alone (short of the truth by the scene's own light); after it, the probe's
+/// median-cut lights (with the lamp's disc masked out of its map) plus the tracked lamp carry
+/// the true total irradiance at the probe within 5 %. Unmasked, the lamp counted twice gave 3.7×.
+#[test]
+fn the_lamp_is_counted_once_in_the_probe_estimate() {
+    let (dir, scene) = desk();
+    let tmp = tempfile::tempdir().unwrap();
+    let recording = tmp.path().join("probe.mcap");
+    write_recording(&rig(&scene, CameraPath::Static, 13), &recording, |_| {}).unwrap();
+    let report = score_with(&recording, &dir, "passthrough", probe_lit());
+    for (i, frame) in report.per_frame.iter().enumerate() {
+        let ratio = frame.light_irradiance_ratio.expect("lit");
+        if i < 9 {
+            assert!(ratio < 0.9, "frame {i}: the lamp alone gives {ratio}");
+        } else {
+            assert!(
+                (ratio - 1.0).abs() < 0.05,
+                "frame {i}: total irradiance × {ratio}"
+            );
+            // 5 % of the energy misplaced turns the irradiance vector by at most asin(0.05) =
+            // 2.9°; the map's 2.8° texels place the sun-sized disc within one more texel.
+            let deg = frame.light_direction_error_deg.unwrap();
+            assert!(deg < 5.7, "frame {i}: {deg}°");
+        }
+    }
+}
+
+/// `differential` lit by the probe's estimate against `differential` lit by the true lights, on
+/// the desk under a sun (a distant light, which the probe's directional lights model exactly),
+/// 35° above the horizon: away from the lamp's circle at 58°, since the lamp's mask hides
+/// whatever lies behind the lamp.
+/// Δ is linear in the light, so an estimate whose irradiance is off by a ratio `r` and whose
+/// direction is off by `θ` moves Δ by at most `|1 − r| + 2 sin(θ / 2)` of itself (the shadow's
+/// shift, `h θ` for the 30 cm box, is far below a pixel), and the composite by that times Δ's
+/// share of it. 0.01 more covers the 4-spp truth's noise in the difference.
+#[test]
+fn differential_lit_by_the_probe_matches_differential_lit_by_the_truth() {
+    let (desk_dir, _) = desk();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("desk_sun");
+    std::fs::create_dir(&dir).unwrap();
+    for file in ["scene.gltf", "scene.bin"] {
+        std::fs::copy(desk_dir.join(file), dir.join(file)).unwrap();
+    }
+    std::fs::write(
+        dir.join("scene.toml"),
+        "gltf = \"scene.gltf\"\nvirtual = [\"box\"]\n\n[camera]\nwidth = 160\nheight = 120\n\n\
+         [[lights]]\ntype = \"directional\"\ndirection_in_world = [0.8192, -0.5736, 0.0]\nirradiance = [3, 3, 3]\n",
+    )
+    .unwrap();
+    let scene = Scene::load(&dir).unwrap();
+    let recording = tmp.path().join("sun.mcap");
+    write_recording(&rig(&scene, CameraPath::Static, 12), &recording, |_| {}).unwrap();
+    let truth_lit = score_with(&recording, &dir, "differential", score::default_config());
+    let probe_lit = score_with(&recording, &dir, "differential", probe_lit());
+    for (i, (t, p)) in truth_lit
+        .per_frame
+        .iter()
+        .zip(&probe_lit.per_frame)
+        .enumerate()
+        .skip(9)
+    {
+        let r = p.light_irradiance_ratio.unwrap();
+        let theta = p.light_direction_error_deg.unwrap().to_radians();
+        let bound = t.delta_share_real * ((1.0 - r).abs() + 2.0 * (theta / 2.0).sin()) + 0.01;
+        let difference = (p.composite_rel_l2_real - t.composite_rel_l2_real).abs();
+        println!(
+            "frame {i}: r {r:.3}, θ {:.2}°, composite {:.4} vs {:.4}, bound {bound:.4}",
+            theta.to_degrees(),
+            p.composite_rel_l2_real,
+            t.composite_rel_l2_real
+        );
+        assert!(difference <= bound, "frame {i}: {difference} > {bound}");
+    }
+}

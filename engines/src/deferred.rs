@@ -203,23 +203,23 @@ impl Deferred {
             if self.extra_lights.is_empty() && environment_lights.is_empty() {
                 light_faces(&scene.lights, bounds, rsm_size)
             } else {
-            let all: Vec<Light> = scene
-                .lights
-                .iter()
-                .chain(environment_lights)
-                .chain(&self.extra_lights)
-                .copied()
-                .collect();
-            let (mut lights, faces) = light_faces(&all, bounds, rsm_size);
-            if self.extra_role == ExtraLights::ShadowOnly {
-                let extras = self.extra_lights.iter().filter(|l| is_shadowed(l)).count();
-                let first = lights.len().saturating_sub(extras);
-                for light in &mut lights[first..] {
-                    light.faces[2] = LIGHT_SHADOW_ONLY;
+                let all: Vec<Light> = scene
+                    .lights
+                    .iter()
+                    .chain(environment_lights)
+                    .chain(&self.extra_lights)
+                    .copied()
+                    .collect();
+                let (mut lights, faces) = light_faces(&all, bounds, rsm_size);
+                if self.extra_role == ExtraLights::ShadowOnly {
+                    let extras = self.extra_lights.iter().filter(|l| is_shadowed(l)).count();
+                    let first = lights.len().saturating_sub(extras);
+                    for light in &mut lights[first..] {
+                        light.faces[2] = LIGHT_SHADOW_ONLY;
+                    }
                 }
-            }
-            (lights, faces)
-        };
+                (lights, faces)
+            };
         let layers = (self.faces_cpu.len() as u32).max(1);
         ctx.require(
             "max_texture_array_layers",

@@ -1024,7 +1024,10 @@ fn vignetting(args: &VignettingArgs, progress: &ProgressSink) -> Result<String> 
             ..CalibratedParts::default()
         };
         write_calibration(&args.rig, &parts)?;
-        summary.push_str(&format!("written: {} (probe_vignetting)\n", args.rig.display()));
+        summary.push_str(&format!(
+            "written: {} (probe_vignetting)\n",
+            args.rig.display()
+        ));
     }
     Ok(summary)
 }

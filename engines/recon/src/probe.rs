@@ -14,19 +14,19 @@
 
 use std::sync::Arc;
 
+use glam::Vec3;
 use relight_core::camera::{CameraModel, KannalaBrandt};
 use relight_core::light::Light;
 use relight_core::rig::RigCalibration;
 use relight_core::scene::EnvironmentMap;
 use relight_core::sh::Sh9Rgb;
-use glam::Vec3;
 use relight_core::{Frame, Pose, ProbeImage, Timestamp};
 
 use crate::envmap::{EnvMapError, EnvMapSettings, probe_to_environment, texel_direction};
-use crate::vignetting::Vignetting;
 use crate::hdr::{HdrError, Response, merge};
 use crate::irradiance::project_sh9;
 use crate::median_cut::{MedianCutSettings, extract_lights};
+use crate::vignetting::Vignetting;
 
 /// Why the probe cannot be used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -123,9 +123,8 @@ impl ProbeLighting {
             Response::from_calibration(rig)?
         };
         settings.radiance_scale = rig.probe_radiance_scale;
-        let vignetting = (!rig.probe_vignetting.is_empty()).then(|| {
-            Vignetting::new(&CameraModel::KannalaBrandt(lens), &rig.probe_vignetting)
-        });
+        let vignetting = (!rig.probe_vignetting.is_empty())
+            .then(|| Vignetting::new(&CameraModel::KannalaBrandt(lens), &rig.probe_vignetting));
         Ok(Self {
             lens,
             world_from_probe: rig.world_from_probe,
@@ -199,26 +198,62 @@ impl ProbeLighting {
         self.estimate().map(Some)
     }
 
-    /// Black out the texels within [`ProbeSettings::tracked_light_mask_deg`] of each tracked
-    /// light reported around the bracket's time.
+    /// Black out the texels within [`ProbeSettings::tracked_light_mask_deg`] of where each
+    /// tracked light was while the bracket was exposed: the reports from the last one before
+    /// the bracket's first frame to the first one after its last, and the path between
+    /// consecutive reports (a lamp carried through the bracket smears its disc along it).
     fn mask_tracked_lights(&self, environment: &mut EnvironmentMap) {
         let times = self.bracket.iter().map(|(f, _)| f.stamp.host_ns);
         let (Some(first), Some(last)) = (times.clone().min(), times.max()) else {
             return;
         };
-        let origin = self.world_from_probe.translation;
-        let directions: Vec<Vec3> = self
-            .tracked
+        let mut reports: Vec<(u64, Vec3)> = self.tracked.clone();
+        reports.sort_by_key(|(t, _)| *t);
+        let start = reports.iter().rposition(|(t, _)| *t <= first).unwrap_or(0);
+        let end = reports
             .iter()
-            .filter(|(t, _)| {
-                *t + TRACKED_LIGHT_WINDOW_NS >= first && *t <= last + TRACKED_LIGHT_WINDOW_NS
-            })
-            .filter_map(|(_, p)| (*p - origin).try_normalize())
-            .collect();
-        if directions.is_empty() {
+            .position(|(t, _)| *t >= last)
+            .unwrap_or(reports.len().saturating_sub(1));
+        let Some(window) = reports.get(start..=end) else {
+            return;
+        };
+        let mut window = window.to_vec();
+        // The report that follows the bracket's last frame may not have come yet: carry the
+        // light on at its last velocity (a lamp reports a few times a second).
+        if let [.., (t0, p0), (t1, p1)] = window[..]
+            && t1 < last
+            && t1 > t0
+            && last - t1 <= 2 * (t1 - t0)
+        {
+            let k = (last - t1) as f32 / (t1 - t0) as f32;
+            window.push((last, p1 + (p1 - p0) * k));
+        }
+        if window
+            .iter()
+            .all(|(t, _)| t.abs_diff(first).min(t.abs_diff(last)) > TRACKED_LIGHT_WINDOW_NS)
+            && !window.iter().any(|(t, _)| (first..=last).contains(t))
+        {
             return;
         }
-        let cos_mask = self.settings.tracked_light_mask_deg.to_radians().cos();
+        let origin = self.world_from_probe.translation;
+        let mask_rad = self.settings.tracked_light_mask_deg.to_radians();
+        let mut directions: Vec<Vec3> = Vec::new();
+        for pair in window.windows(2) {
+            let (a, b) = (pair[0].1 - origin, pair[1].1 - origin);
+            let (Some(a), Some(b)) = (a.try_normalize(), b.try_normalize()) else {
+                continue;
+            };
+            let steps = (a.angle_between(b) / (0.5 * mask_rad)).ceil().max(1.0) as usize;
+            directions.extend(
+                (0..=steps).filter_map(|k| a.lerp(b, k as f32 / steps as f32).try_normalize()),
+            );
+        }
+        directions.extend(
+            window
+                .iter()
+                .filter_map(|(_, p)| (*p - origin).try_normalize()),
+        );
+        let cos_mask = mask_rad.cos();
         let (w, h) = (environment.width, environment.height);
         for y in 0..h {
             for x in 0..w {

@@ -110,7 +110,10 @@ mod tests {
         };
         v.correct(&mut hdr);
         for l in &hdr.radiance {
-            assert!((*l - glam::Vec3::splat(2.0)).abs().max_element() < 1e-6, "{l}");
+            assert!(
+                (*l - glam::Vec3::splat(2.0)).abs().max_element() < 1e-6,
+                "{l}"
+            );
         }
     }
 }
