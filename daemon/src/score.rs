@@ -21,7 +21,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context as _, bail};
-use glam::{DVec3, Vec3};
+use glam::Vec3;
 use relight_core::camera::{CameraModel, optical_from_gl};
 use relight_core::light::Light;
 use relight_core::recording::RecordingReader;
@@ -403,7 +403,6 @@ pub fn run(
     for set in synchronizer.flush() {
         score_set(set, &mut live, &mut add_ms)?;
     }
-    drop(score_set);
     let measures = MEASURES
         .iter()
         .map(|name| (*name, summarise(&per_frame, name)))
@@ -557,7 +556,7 @@ pub fn reprojection_px(
     }
     let project = |world_from_camera: &Pose, p: Vec3| {
         let in_camera = world_from_camera.inverse().transform_point(p);
-        camera.project(optical_from_gl(DVec3::from(in_camera.as_dvec3())))
+        camera.project(optical_from_gl(in_camera.as_dvec3()))
     };
     let mut sum = 0.0;
     for p in points_in_world {
@@ -594,7 +593,7 @@ fn albedo_error(albedo: &Image, depth: Option<&Image>, estimate: f32) -> Option<
     let (mut err, mut norm) = (0.0f64, 0.0f64);
     for (i, truth) in delta_pixels(albedo).into_iter().enumerate() {
         let (x, y) = (i as u32 % albedo.width(), i as u32 / albedo.width());
-        if depth.is_some_and(|d| d.depth_m(x, y).is_none_or(|z| !(z > 0.0))) {
+        if depth.is_some_and(|d| d.depth_m(x, y).is_none_or(|z| z.is_nan() || z <= 0.0)) {
             continue;
         }
         err += f64::from((Vec3::splat(estimate) - truth).length_squared());

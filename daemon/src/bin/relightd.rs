@@ -163,6 +163,9 @@ enum Command {
         /// built-in defaults).
         #[arg(long = "live-config")]
         live_config: Option<PathBuf>,
+        /// Print the summary only, not the table per frame.
+        #[arg(long)]
+        summary: bool,
     },
     /// Validate a configuration file and print it as understood.
     CheckConfig,
@@ -318,6 +321,7 @@ fn run(cli: Cli) -> Result<()> {
             out,
             json,
             live_config,
+            summary,
         } => {
             let config = match live_config {
                 Some(path) => Config::load(&path)?,
@@ -343,7 +347,11 @@ fn run(cli: Cli) -> Result<()> {
                 bar.set_position(done as u64);
             })?;
             bar.finish_and_clear();
-            print!("{}", report.table());
+            let table = report.table();
+            match (summary, table.find("\n\n")) {
+                (true, Some(end)) => print!("{}", &table[end + 2..]),
+                _ => print!("{table}"),
+            }
             if let Some(path) = json {
                 std::fs::write(&path, serde_json::to_string_pretty(&report.to_json())?)
                     .with_context(|| format!("writing {}", path.display()))?;
