@@ -872,6 +872,7 @@ impl ControlTarget for PipelineControl {
         for (name, changed) in [
             ("daemon", new.daemon != old.daemon),
             ("source", new.source != old.source),
+            ("tracking", new.tracking != old.tracking),
             (
                 "recorder.queue_frames",
                 new.recorder.queue_frames != old.recorder.queue_frames,
