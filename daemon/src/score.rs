@@ -62,7 +62,9 @@ pub struct ScoreSettings {
 /// The measures of one truth frame. `None` where a measure does not apply (untracked: no pose).
 #[derive(Debug, Clone, Serialize)]
 pub struct FrameScore {
+    /// Frame set number in the replay (0 = first).
     pub seq: u64,
+    /// `fixed`, `tracked`, `held` or `untracked`.
     pub tracking: String,
     pub pose_error_mm: Option<f64>,
     pub pose_error_deg: Option<f64>,
@@ -346,8 +348,8 @@ pub fn run(
             })
             .map_or((None, None), |(deg, ratio)| (Some(deg), Some(ratio)));
         let score = FrameScore {
-            seq: set.stamp.host_ns,
-            tracking: format!("{:?}", frame.tracking.state).to_lowercase(),
+            seq,
+            tracking: frame.tracking.state.name().to_owned(),
             pose_error_mm: pose_error.map(|(mm, _)| mm),
             pose_error_deg: pose_error.map(|(_, deg)| deg),
             object_reprojection_px: reprojection,

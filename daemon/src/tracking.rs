@@ -86,6 +86,18 @@ pub enum TrackingState {
     Untracked,
 }
 
+impl TrackingState {
+    /// The state as status and `relightd score` name it.
+    pub fn name(self) -> &'static str {
+        match self {
+            TrackingState::Fixed => "fixed",
+            TrackingState::Tracked => "tracked",
+            TrackingState::Held => "held",
+            TrackingState::Untracked => "untracked",
+        }
+    }
+}
+
 /// One frame's registration.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct TrackingReport {

@@ -334,14 +334,11 @@ fn render_status(status: &StatusReport) -> String {
         recording,
     );
     if let Some(t) = &status.tracking {
-        let state = serde_json::to_value(t.state)
-            .ok()
-            .and_then(|v| v.as_str().map(str::to_owned))
-            .unwrap_or_default();
         let optional =
             |v: Option<f64>, unit: &str| v.map_or("-".to_owned(), |v| format!("{v:.2} {unit}"));
         out.push_str(&format!(
-            "tracking    {state} ({}): pose age {}, reprojection RMS {}, {} tags; {} frame sets untracked\n",
+            "tracking    {} ({}): pose age {}, reprojection RMS {}, {} tags; {} frame sets untracked\n",
+            t.state.name(),
             t.source,
             optional(t.pose_age_ms, "ms"),
             optional(t.reprojection_rms_px, "px"),
