@@ -138,6 +138,11 @@ const CONVERGENCE_TOLERANCE: f64 = 1e-12;
 const MAX_ITERATIONS: usize = 100;
 
 impl Pinhole {
+    /// Vertical field of view through the image's full height, radians (distortion ignored).
+    pub fn yfov_rad(&self) -> f64 {
+        2.0 * (f64::from(self.height) / 2.0 / self.fy).atan()
+    }
+
     /// Intrinsic matrix `K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`.
     pub fn intrinsics(&self) -> DMat3 {
         intrinsics(self.fx, self.fy, self.cx, self.cy)

@@ -26,12 +26,12 @@ use relight_core::camera::{CameraModel, optical_from_gl};
 use relight_core::light::Light;
 use relight_core::recording::RecordingReader;
 use relight_core::recording::truth::{TruthKind, TruthMessage, TruthState};
-use relight_core::scene::Scene;
-use relight_core::srgb::{linear_to_srgb, srgb_to_linear};
+use relight_core::scene::{Scene, box_corners};
+use relight_core::srgb::srgb_to_linear;
 use relight_core::sync::{FrameSet, Synchronizer};
 use relight_core::{Image, PixelFormat, Pose, StreamKind};
 use relight_engines::live_scene::RealGeometry;
-use relight_engines::offline::{delta_pixels, reference};
+use relight_engines::offline::{delta_pixels, reference, srgb_image};
 use relight_engines::{EngineRegistry, RelitFrame, SceneFrame};
 use serde::Serialize;
 use serde_json::{Map, Value};
@@ -218,18 +218,11 @@ pub fn run(
     let mut oracle_scene = Scene::load(&settings.scene)?;
     oracle_scene.camera.width = camera.width;
     oracle_scene.camera.height = camera.height;
-    oracle_scene.camera.yfov_rad =
-        (2.0 * (f64::from(camera.height) / 2.0 / camera.fy).atan()) as f32;
-    let virtual_corners = oracle_scene.virtual_bounds().map(|(lo, hi)| {
-        (0..8).map(move |k| {
-            Vec3::new(
-                if k & 1 == 0 { lo.x } else { hi.x },
-                if k & 2 == 0 { lo.y } else { hi.y },
-                if k & 4 == 0 { lo.z } else { hi.z },
-            )
-        })
-    });
-    let virtual_corners: Vec<Vec3> = virtual_corners.into_iter().flatten().collect();
+    oracle_scene.camera.yfov_rad = camera.yfov_rad() as f32;
+    let virtual_corners: Vec<Vec3> = oracle_scene
+        .virtual_bounds()
+        .map(box_corners)
+        .map_or_else(Vec::new, Vec::from);
     let real_albedo = config.scene.real_albedo;
     if config.scene.real != RealGeometry::Depth {
         tracing::warn!(
@@ -254,7 +247,6 @@ pub fn run(
     };
     let (mut frames, mut tracked) = (0usize, 0usize);
     let mut per_frame = Vec::new();
-    let mut sets: Vec<FrameSet> = Vec::new();
     let mut score_set = |set: FrameSet,
                          live: &mut LiveFrames,
                          add_ms: &mut dyn FnMut(&str, f64)|
@@ -374,7 +366,7 @@ pub fn run(
             )?;
             write_png(
                 &dir.join(format!("{n:04}_truth.png")),
-                &rgb8(&true_composite, camera.width, camera.height),
+                &srgb_image(camera.width, camera.height, &true_composite),
             )?;
         }
         per_frame.push(score);
@@ -396,9 +388,6 @@ pub fn run(
         }
         synchronizer.push(message);
         while let Some(set) = synchronizer.pop_ready(data_clock_ns) {
-            sets.push(set);
-        }
-        for set in sets.drain(..) {
             score_set(set, &mut live, &mut add_ms)?;
         }
     }
@@ -614,7 +603,9 @@ fn l2(a: &[Vec3], mask: &[bool]) -> f64 {
         .sqrt()
 }
 
-/// ‖a − b‖₂ / ‖b‖₂ over the pixels `mask` selects; NaN on mismatched sizes or an empty mask.
+/// ‖a − b‖₂ / ‖b‖₂ over the pixels `mask` selects; NaN on mismatched sizes, an empty mask or a
+/// zero `b` there (the bench's `offline::delta_error` floors the norm instead; a frame whose
+/// true Δ is zero must drop out of the summaries here, not dominate them).
 pub fn relative_l2(a: &[Vec3], b: &[Vec3], mask: &[bool]) -> f64 {
     if a.len() != b.len() || b.len() != mask.len() {
         return f64::NAN;
@@ -650,18 +641,6 @@ fn rgb_linear(image: &Image) -> Vec<Vec3> {
             .collect(),
         None => Vec::new(),
     }
-}
-
-fn rgb8(linear: &[Vec3], width: u32, height: u32) -> Image {
-    let mut image = Image::new(width, height, PixelFormat::Rgb8);
-    if let Some(px) = image.as_u8_mut() {
-        for (out, l) in px.chunks_exact_mut(3).zip(linear) {
-            for (c, v) in out.iter_mut().zip(l.to_array()) {
-                *c = linear_to_srgb(v);
-            }
-        }
-    }
-    image
 }
 
 /// Δ as linear RGB; zeros when the engine drew none (untracked, or a failed frame).

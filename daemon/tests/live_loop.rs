@@ -8,6 +8,7 @@ use relight_backends::sim::rig::{CameraPath, SimRig, SimSettings, write_recordin
 use relight_core::StreamKind;
 use relight_core::recording::{RecordingMeta, RecordingWriter};
 use relight_core::scene::Scene;
+use relight_daemon::config::Config;
 use relight_daemon::score::{self, ScoreReport, ScoreSettings};
 
 fn desk() -> (PathBuf, Scene) {
@@ -32,16 +33,23 @@ fn rig(scene: &Scene, path: CameraPath, frames: u32) -> SimRig {
     SimRig::new(scene, settings).unwrap().metered()
 }
 
-fn score(recording: &Path, scene: &Path, engine: &str) -> ScoreReport {
+/// `relightd score`'s run of `recording`, its truth rendered at `reference_spp`.
+fn score(
+    recording: &Path,
+    scene: &Path,
+    engine: &str,
+    config: Config,
+    reference_spp: u32,
+) -> ScoreReport {
     score::run(
         &ScoreSettings {
             recording: recording.to_owned(),
             scene: scene.to_owned(),
             engine: engine.into(),
             params: serde_json::Map::new(),
-            reference_spp: 1,
+            reference_spp,
             out: None,
-            config: score::default_config(),
+            config,
         },
         |_, _| {},
     )
@@ -59,7 +67,7 @@ fn an_orbit_keeps_the_object_within_a_pixel_of_its_true_projection() {
     let recording = tmp.path().join("orbit.mcap");
     // 2 s at the orbit's 18°/s: from the middle of its swing to 36° around the object.
     write_recording(&rig(&scene, CameraPath::Orbit, 20), &recording, |_| {}).unwrap();
-    let report = score(&recording, &dir, "passthrough");
+    let report = score(&recording, &dir, "passthrough", score::default_config(), 1);
     assert_eq!(report.frames, 20);
     assert_eq!(report.tracked_frames, 20, "the board is in view all along");
     for frame in &report.per_frame {
@@ -100,7 +108,7 @@ fn a_hidden_board_leaves_the_camera_untracked_and_draws_no_delta() {
     }
     writer.finish().unwrap();
 
-    let report = score(&recording, &dir, "differential");
+    let report = score(&recording, &dir, "differential", score::default_config(), 1);
     let states: Vec<&str> = report
         .per_frame
         .iter()
@@ -132,31 +140,10 @@ fn a_hidden_board_leaves_the_camera_untracked_and_draws_no_delta() {
     }
 }
 
-fn probe_lit() -> relight_daemon::config::Config {
+fn probe_lit() -> Config {
     let mut config = score::default_config();
     config.scene.lighting = relight_engines::live_scene::LightSource::Probe;
     config
-}
-
-fn score_with(
-    recording: &Path,
-    scene: &Path,
-    engine: &str,
-    config: relight_daemon::config::Config,
-) -> ScoreReport {
-    score::run(
-        &ScoreSettings {
-            recording: recording.to_owned(),
-            scene: scene.to_owned(),
-            engine: engine.into(),
-            params: serde_json::Map::new(),
-            reference_spp: 4,
-            out: None,
-            config,
-        },
-        |_, _| {},
-    )
-    .unwrap()
 }
 
 /// A probe frame every third frame cycles through three exposures; the cycle is known once its
@@ -170,7 +157,7 @@ fn the_lamp_is_counted_once_in_the_probe_estimate() {
     let tmp = tempfile::tempdir().unwrap();
     let recording = tmp.path().join("probe.mcap");
     write_recording(&rig(&scene, CameraPath::Static, 13), &recording, |_| {}).unwrap();
-    let report = score_with(&recording, &dir, "passthrough", probe_lit());
+    let report = score(&recording, &dir, "passthrough", probe_lit(), 4);
     for (i, frame) in report.per_frame.iter().enumerate() {
         let ratio = frame.light_irradiance_ratio.expect("lit");
         if i < 9 {
@@ -214,8 +201,8 @@ fn differential_lit_by_the_probe_matches_differential_lit_by_the_truth() {
     let scene = Scene::load(&dir).unwrap();
     let recording = tmp.path().join("sun.mcap");
     write_recording(&rig(&scene, CameraPath::Static, 12), &recording, |_| {}).unwrap();
-    let truth_lit = score_with(&recording, &dir, "differential", score::default_config());
-    let probe_lit = score_with(&recording, &dir, "differential", probe_lit());
+    let truth_lit = score(&recording, &dir, "differential", score::default_config(), 4);
+    let probe_lit = score(&recording, &dir, "differential", probe_lit(), 4);
     for (i, (t, p)) in truth_lit
         .per_frame
         .iter()

@@ -5,7 +5,7 @@
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3};
 use relight_core::light::Light;
-use relight_core::scene::{Scene, SceneCamera};
+use relight_core::scene::{Scene, SceneCamera, box_corners};
 use wgpu::util::DeviceExt;
 
 use crate::gpu::GpuContext;
@@ -202,7 +202,7 @@ pub fn camera_uniform(
 ) -> GpuCamera {
     let pose = camera.world_from_camera;
     let eye = pose.translation;
-    let far = corners(bounds)
+    let far = box_corners(bounds)
         .iter()
         .map(|c| c.distance(eye))
         .fold(1.0f32, f32::max)
@@ -222,16 +222,6 @@ pub fn camera_uniform(
     }
 }
 
-fn corners((lo, hi): (Vec3, Vec3)) -> [Vec3; 8] {
-    std::array::from_fn(|i| {
-        Vec3::new(
-            if i & 1 == 0 { lo.x } else { hi.x },
-            if i & 2 == 0 { lo.y } else { hi.y },
-            if i & 4 == 0 { lo.z } else { hi.z },
-        )
-    })
-}
-
 /// Whether the passes shade and shadow `light` (point, spot, directional): environment lights
 /// and invalid ones are left out.
 pub fn is_shadowed(light: &Light) -> bool {
@@ -248,7 +238,7 @@ pub fn light_faces(
     let mut gpu_lights = Vec::new();
     let mut faces = Vec::new();
     let reach = |from: Vec3| {
-        corners(bounds)
+        box_corners(bounds)
             .iter()
             .map(|c| c.distance(from))
             .fold(0.0f32, f32::max)

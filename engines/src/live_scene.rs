@@ -67,8 +67,7 @@ impl LiveScene {
     ) -> Self {
         if let Some(camera) = depth_camera {
             // The colour camera's field of view (registered depth shares it).
-            base.camera.yfov_rad =
-                (2.0 * (f64::from(camera.height) / 2.0 / camera.fy).atan()) as f32;
+            base.camera.yfov_rad = camera.yfov_rad() as f32;
         }
         let real_material = base.materials.len();
         base.materials.push(Material {

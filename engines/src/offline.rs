@@ -33,9 +33,14 @@ pub fn reference(
 /// The camera image of an offline scene: the reference's L^μ, sRGB-encoded and clipped, as a
 /// camera without tone curve would record it.
 pub fn background(reference: &ReferenceImages) -> Image {
-    let mut image = Image::new(reference.width, reference.height, PixelFormat::Rgb8);
+    srgb_image(reference.width, reference.height, &reference.l_mu)
+}
+
+/// Linear RGB pixels (row-major) as an 8-bit sRGB image, clipped.
+pub fn srgb_image(width: u32, height: u32, linear: &[Vec3]) -> Image {
+    let mut image = Image::new(width, height, PixelFormat::Rgb8);
     if let Some(px) = image.as_u8_mut() {
-        for (rgb, l) in px.chunks_exact_mut(3).zip(&reference.l_mu) {
+        for (rgb, l) in px.chunks_exact_mut(3).zip(linear) {
             for (c, v) in rgb.iter_mut().zip(l.to_array()) {
                 *c = linear_to_srgb(v);
             }

@@ -148,6 +148,17 @@ impl Scene {
     }
 }
 
+/// The eight corners of the box `(lo, hi)`; bit 0 of the index picks x, bit 1 y, bit 2 z.
+pub fn box_corners((lo, hi): (Vec3, Vec3)) -> [Vec3; 8] {
+    std::array::from_fn(|i| {
+        Vec3::new(
+            if i & 1 == 0 { lo.x } else { hi.x },
+            if i & 2 == 0 { lo.y } else { hi.y },
+            if i & 4 == 0 { lo.z } else { hi.z },
+        )
+    })
+}
+
 fn bounds<'a>(meshes: impl Iterator<Item = &'a Mesh>) -> Option<(Vec3, Vec3)> {
     meshes
         .flat_map(|m| m.positions_in_world.iter().copied())

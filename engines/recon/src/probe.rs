@@ -228,11 +228,9 @@ impl ProbeLighting {
             let k = (last - t1) as f32 / (t1 - t0) as f32;
             window.push((last, p1 + (p1 - p0) * k));
         }
-        if window
-            .iter()
-            .all(|(t, _)| t.abs_diff(first).min(t.abs_diff(last)) > TRACKED_LIGHT_WINDOW_NS)
-            && !window.iter().any(|(t, _)| (first..=last).contains(t))
-        {
+        let near_the_bracket =
+            |t: u64| t + TRACKED_LIGHT_WINDOW_NS >= first && t <= last + TRACKED_LIGHT_WINDOW_NS;
+        if !window.iter().any(|(t, _)| near_the_bracket(*t)) {
             return;
         }
         let origin = self.world_from_probe.translation;
