@@ -6,6 +6,8 @@ const KIND_POINT: u32 = 0u;
 const KIND_SPOT: u32 = 1u;
 const KIND_DIRECTIONAL: u32 = 2u;
 const FLAG_VIRTUAL: u32 = 1u;
+// The vertex carries a measured albedo (engines/src/gpu_scene.rs `pack_measured_albedo`).
+const FLAG_MEASURED_ALBEDO: u32 = 2u;
 // Distance written where a shadow map saw nothing.
 const FAR: f32 = 3.0e38;
 
@@ -50,6 +52,22 @@ struct VertexIn {
     @location(1) normal: vec3<f32>,
     @location(2) material: u32,
     @location(3) flags: u32,
+}
+
+// A vertex's measured albedo (rgb) and weight (w: 1 where measured, else 0), for the vertex
+// stage to interpolate: the fragment's albedo is then rgb + (1 − w) · the material's, which
+// blends correctly across a triangle whose corners differ. The albedo is stored as its square
+// root in the top three bytes of the flags (8 bits each), for precision on dark surfaces.
+fn measured_albedo(flags: u32) -> vec4<f32> {
+    if (flags & FLAG_MEASURED_ALBEDO) == 0u {
+        return vec4<f32>(0.0);
+    }
+    let root = unpack4x8unorm(flags).yzw;
+    return vec4<f32>(root * root, 1.0);
+}
+
+fn surface_albedo(measured: vec4<f32>, material: vec3<f32>) -> vec3<f32> {
+    return measured.rgb + (1.0 - measured.w) * material;
 }
 
 // Unit shading normal from the interpolated vertex normal, or the facet's when the mesh has

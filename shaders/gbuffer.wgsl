@@ -11,6 +11,7 @@ struct VertexOut {
     @location(1) normal: vec3<f32>,
     @location(2) @interpolate(flat) material: u32,
     @location(3) @interpolate(flat) flags: u32,
+    @location(5) measured: vec4<f32>,
 }
 
 struct GBufferOut {
@@ -27,6 +28,7 @@ fn vs_main(v: VertexIn) -> VertexOut {
     out.normal = v.normal;
     out.material = v.material;
     out.flags = v.flags;
+    out.measured = measured_albedo(v.flags);
     return out;
 }
 
@@ -41,6 +43,6 @@ fn fs_main(in: VertexOut) -> GBufferOut {
     var out: GBufferOut;
     out.position = vec4<f32>(in.world, f32(in.material + 1u));
     out.normal = vec4<f32>(n, f32(in.flags & FLAG_VIRTUAL));
-    out.albedo = vec4<f32>(m.albedo.rgb, 1.0);
+    out.albedo = vec4<f32>(surface_albedo(in.measured, m.albedo.rgb), 1.0);
     return out;
 }

@@ -14,6 +14,7 @@ struct VertexOut {
     @location(1) normal: vec3<f32>,
     @location(2) @interpolate(flat) material: u32,
     @location(3) @interpolate(flat) flags: u32,
+    @location(5) measured: vec4<f32>,
     @location(4) @interpolate(flat) face: u32,
 }
 
@@ -32,6 +33,7 @@ fn vs_main(v: VertexIn, @builtin(instance_index) face: u32) -> VertexOut {
     out.normal = v.normal;
     out.material = v.material;
     out.flags = v.flags;
+    out.measured = measured_albedo(v.flags);
     out.face = face;
     return out;
 }
@@ -47,6 +49,6 @@ fn fs_main(in: VertexOut) -> RsmOut {
     var out: RsmOut;
     out.position = vec4<f32>(in.world, light_distance(l, in.world));
     out.normal = vec4<f32>(n, f32(in.flags & FLAG_VIRTUAL));
-    out.albedo = vec4<f32>(materials[in.material].albedo.rgb, 1.0);
+    out.albedo = vec4<f32>(surface_albedo(in.measured, materials[in.material].albedo.rgb), 1.0);
     return out;
 }

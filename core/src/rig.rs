@@ -47,6 +47,15 @@ pub struct RigCalibration {
     /// model's principal point (`relight-calibrate vignetting`); empty: none measured.
     #[serde(default)]
     pub probe_vignetting: Vec<f32>,
+    /// The colour camera's inverse response, 256 entries mapping 8-bit value → relative linear
+    /// exposure (sRGB decoding for a camera that writes sRGB); empty: not measured, and the real
+    /// surfaces' albedo cannot be measured either.
+    #[serde(default)]
+    pub color_response: Vec<f32>,
+    /// Radiance, W/(m²·sr), per unit of the colour camera's inverse response at the exposure it
+    /// is locked to for the session (1: relative units).
+    #[serde(default = "unit_scale")]
+    pub color_radiance_scale: f32,
 }
 
 /// A printed grid of square tags with consecutive ids, left to right from the top row; the board
@@ -93,6 +102,8 @@ impl Default for RigCalibration {
             probe_response: Vec::new(),
             probe_radiance_scale: 1.0,
             probe_vignetting: Vec::new(),
+            color_response: Vec::new(),
+            color_radiance_scale: 1.0,
         }
     }
 }

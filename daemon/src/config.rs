@@ -85,8 +85,13 @@ pub struct SceneConfig {
     pub dir: Option<PathBuf>,
     /// Real geometry: triangulated from depth, or the scene file's real meshes.
     pub real: RealGeometry,
-    /// Diffuse albedo of the depth-derived surface.
+    /// Diffuse albedo of the depth-derived surface where nothing is measured (yet).
     pub real_albedo: f32,
+    /// Measure the depth-derived surface's albedo from the colour camera (DLPV eq. 1), when the
+    /// rig calibration has the colour camera's response; else `real_albedo` everywhere.
+    pub measure_albedo: bool,
+    /// Measure on every Nth frame (the frames between carry the last estimate).
+    pub albedo_every: u32,
     /// Use every Nth depth pixel per axis for the surface.
     pub depth_stride: u32,
     /// Where the real scene's light comes from: the scene file, or the light probe.
@@ -104,6 +109,8 @@ impl Default for SceneConfig {
             dir: None,
             real: RealGeometry::Depth,
             real_albedo: 0.6,
+            measure_albedo: true,
+            albedo_every: 1,
             depth_stride: 2,
             lighting: LightSource::Scene,
             depth_filter: true,
@@ -647,6 +654,8 @@ struct RawScene {
     dir: Option<String>,
     real: Option<String>,
     real_albedo: Option<f64>,
+    albedo: Option<String>,
+    albedo_every: Option<i64>,
     depth_stride: Option<i64>,
     lighting: Option<String>,
     depth_filter: Option<bool>,
@@ -1129,6 +1138,20 @@ impl Validator<'_> {
                     "scene.real_albedo",
                     format!("must be in [0, 1], got {albedo}"),
                 );
+            }
+        }
+        match raw.albedo.as_deref() {
+            None | Some("measured") => {}
+            Some("fixed") => scene.measure_albedo = false,
+            Some(other) => self.error(
+                "scene.albedo",
+                format!("must be \"measured\" or \"fixed\", got \"{other}\""),
+            ),
+        }
+        if let Some(n) = raw.albedo_every {
+            match u32::try_from(n) {
+                Ok(n) if (1..=300).contains(&n) => scene.albedo_every = n,
+                _ => self.error("scene.albedo_every", format!("must be in 1..=300, got {n}")),
             }
         }
         if let Some(n) = raw.probe_lights {

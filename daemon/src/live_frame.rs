@@ -18,7 +18,9 @@ use relight_core::sh::Sh9Rgb;
 use relight_core::sync::FrameSet;
 use relight_core::{Frame, LampState, ProbeImage, Timestamp};
 use relight_engines::live_scene::{LightSource, LiveScene, RealGeometry};
+use relight_engines::surface_albedo::SurfaceAlbedo;
 use relight_engines::{EngineRegistry, SceneFrame};
+use relight_recon::albedo::{AlbedoSettings, ColorDecoding};
 use relight_recon::estimate::LightingEstimate;
 use relight_recon::irradiance::project_sh9;
 use relight_recon::probe::{ProbeEstimate, ProbeLighting, ProbeSettings};
@@ -127,6 +129,21 @@ impl LiveFrames {
                     config.scene.depth_stride,
                 );
                 live.set_light_source(config.scene.lighting);
+                if config.scene.real == RealGeometry::Depth && config.scene.measure_albedo {
+                    match calibration.map(surface_albedo_decoding) {
+                        Some(Ok(decoding)) => live.measure_albedo(SurfaceAlbedo::new(
+                            AlbedoSettings::default(),
+                            decoding,
+                            Vec3::splat(config.scene.real_albedo),
+                            config.scene.albedo_every,
+                        )),
+                        Some(Err(error)) => tracing::warn!(
+                            %error,
+                            "the real surface's albedo is not measured: it is [scene] real_albedo"
+                        ),
+                        None => {}
+                    }
+                }
                 Some(live)
             }
             None => None,
@@ -200,7 +217,11 @@ impl LiveFrames {
                 Some(DepthOutcome::Proxy) => None,
                 None => set.depth.as_ref().map(|d| &d.payload),
             };
-            scene.scene = live.frame(depth, set.lamp.as_ref().map(|l| &l.payload));
+            scene.scene = live.frame(
+                depth,
+                set.color.as_ref().map(|c| &c.payload),
+                set.lamp.as_ref().map(|l| &l.payload),
+            );
             if let Some(scene_lights) = &mut self.scene_lights {
                 scene_lights.publish_if_changed(live, lights);
             }
@@ -216,6 +237,17 @@ impl LiveFrames {
             timings,
         }
     }
+}
+
+/// The colour camera's decoding for albedo measurement, from the rig calibration.
+fn surface_albedo_decoding(rig: &RigCalibration) -> anyhow::Result<ColorDecoding> {
+    if rig.color_response.is_empty() {
+        anyhow::bail!("the rig calibration has no color_response for the colour camera");
+    }
+    Ok(SurfaceAlbedo::decoding(
+        &rig.color_response,
+        rig.color_radiance_scale,
+    )?)
 }
 
 /// The lighting estimate, seen from the virtual object: the light probe's (its median-cut
@@ -330,7 +362,7 @@ mod tests {
             position_in_world: Vec3::new(0.0, 1.1, 0.0),
             intensity: Vec3::splat(2.0),
         };
-        live.frame(None, Some(&lamp));
+        live.frame(None, None, Some(&lamp));
         scene_lights.publish_if_changed(&live, &board);
         scene_lights.publish_if_changed(&live, &board);
         assert_eq!(board.published(), 1);
@@ -338,7 +370,7 @@ mod tests {
         let main = estimate.main_light.expect("the lamp");
         assert!((main.direction_in_world - Vec3::NEG_Y).length() < 1e-6);
         assert!((main.intensity - 2.0).abs() < 1e-5);
-        live.frame(None, Some(&LampState::default()));
+        live.frame(None, None, Some(&LampState::default()));
         scene_lights.publish_if_changed(&live, &board);
         assert_eq!(board.published(), 2);
         assert_eq!(board.latest().expect("published").main_light, None);

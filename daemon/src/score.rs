@@ -223,7 +223,6 @@ pub fn run(
         .virtual_bounds()
         .map(box_corners)
         .map_or_else(Vec::new, Vec::from);
-    let real_albedo = config.scene.real_albedo;
     if config.scene.real != RealGeometry::Depth {
         tracing::warn!(
             "[scene] real = \"scene\": the live surface is the scene file's, not measured"
@@ -324,10 +323,12 @@ pub fn run(
             _ => None,
         }
         .map(|m| m * 1e3);
-        let albedo_rel_error = truth
-            .albedo
-            .as_ref()
-            .and_then(|a| albedo_error(a, truth.depth.as_ref(), real_albedo));
+        let albedo_rel_error = match (&truth.albedo, &frame.scene.scene, pose) {
+            (Some(albedo), Some(scene), Some(pose)) => {
+                albedo_error(scene, &camera, &pose, albedo, truth.depth.as_ref())
+            }
+            _ => None,
+        };
         let (light_direction_error_deg, light_irradiance_ratio) = board
             .latest()
             .zip(state.world_from_probe)
@@ -578,17 +579,49 @@ pub fn depth_rmse_m(estimate: &Image, truth: &Image) -> Option<f64> {
     (n > 0).then(|| (sum / n as f64).sqrt())
 }
 
-/// ‖a_est − a_true‖ / ‖a_true‖ over the pixels with a real surface, `estimate` the albedo the
-/// live surface carries (one value today). The truth's albedo is Rgba16F, read as Δ is.
-fn albedo_error(albedo: &Image, depth: Option<&Image>, estimate: f32) -> Option<f64> {
+/// ‖a_est − a_true‖ / ‖a_true‖ over the real surfaces' vertices that land on a pixel with a
+/// true surface: each vertex's albedo as the engines get it (measured, else its material's),
+/// against the true albedo where the estimated pose projects it. The truth's albedo is Rgba16F,
+/// read as Δ is.
+fn albedo_error(
+    scene: &Scene,
+    camera: &relight_core::camera::Pinhole,
+    world_from_camera: &Pose,
+    albedo: &Image,
+    depth: Option<&Image>,
+) -> Option<f64> {
+    let truth = delta_pixels(albedo);
+    let camera_from_world = world_from_camera.inverse();
     let (mut err, mut norm) = (0.0f64, 0.0f64);
-    for (i, truth) in delta_pixels(albedo).into_iter().enumerate() {
-        let (x, y) = (i as u32 % albedo.width(), i as u32 / albedo.width());
-        if depth.is_some_and(|d| d.depth_m(x, y).is_none_or(|z| z.is_nan() || z <= 0.0)) {
-            continue;
+    for mesh in scene.meshes.iter().filter(|m| !m.is_virtual) {
+        let material = scene
+            .materials
+            .get(mesh.material)
+            .map_or(Vec3::ZERO, |m| m.albedo);
+        for (v, p) in mesh.positions_in_world.iter().enumerate() {
+            let in_camera = camera_from_world.transform_point(*p);
+            let Some(pixel) = camera.project(optical_from_gl(in_camera.as_dvec3())) else {
+                continue;
+            };
+            let (x, y) = (pixel.x.round(), pixel.y.round());
+            if x < 0.0
+                || y < 0.0
+                || x >= f64::from(albedo.width())
+                || y >= f64::from(albedo.height())
+            {
+                continue;
+            }
+            let (x, y) = (x as u32, y as u32);
+            if depth.is_some_and(|d| d.depth_m(x, y).is_none_or(|z| z.is_nan() || z <= 0.0)) {
+                continue;
+            }
+            let Some(true_albedo) = truth.get((y * albedo.width() + x) as usize) else {
+                continue;
+            };
+            let estimate = mesh.measured_albedo(v as u32).unwrap_or(material);
+            err += f64::from((estimate - *true_albedo).length_squared());
+            norm += f64::from(true_albedo.length_squared());
         }
-        err += f64::from((Vec3::splat(estimate) - truth).length_squared());
-        norm += f64::from(truth.length_squared());
     }
     (norm > 0.0).then(|| (err / norm).sqrt())
 }

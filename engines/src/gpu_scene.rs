@@ -60,6 +60,15 @@ pub struct GpuFace {
 }
 
 const FLAG_VIRTUAL: u32 = 1;
+const FLAG_MEASURED_ALBEDO: u32 = 2;
+
+/// A vertex's measured albedo in its flags, as `shaders/common.wgsl` `measured_albedo` reads it:
+/// the flag, and √albedo per channel in bytes 1–3 (8 bits: a step of at most 1.6 % of an albedo
+/// of 0.05, where a linear byte would step 8 %).
+pub fn pack_measured_albedo(albedo: Vec3) -> u32 {
+    let byte = |c: f32| (c.clamp(0.0, 1.0).sqrt() * 255.0).round() as u32;
+    FLAG_MEASURED_ALBEDO | byte(albedo.x) << 8 | byte(albedo.y) << 16 | byte(albedo.z) << 24
+}
 
 /// A spot light wider than this (half angle) gets a cube of shadow maps like a point light.
 const MAX_SPOT_HALF_ANGLE_RAD: f32 = 80.0 * std::f32::consts::PI / 180.0;
@@ -81,7 +90,8 @@ pub struct GpuScene {
 impl GpuScene {
     /// Upload `scene`. Triangles with missing or non-finite vertices are skipped; missing or
     /// zero normals become zero (the passes then use the facet normal); material indices out of
-    /// range fall back to a default grey.
+    /// range fall back to a default grey. A vertex's measured albedo, where the mesh has one,
+    /// takes the place of its material's diffuse albedo.
     pub fn new(ctx: &GpuContext, scene: &Scene) -> Self {
         let mut materials: Vec<GpuMaterial> = scene
             .materials
@@ -116,25 +126,26 @@ impl GpuScene {
                 } else {
                     fallback
                 };
+                let virtual_flag = if mesh.is_virtual { FLAG_VIRTUAL } else { 0 };
                 for tri in &mesh.triangles {
                     let corners = tri.map(|i| {
                         let p = mesh.positions_in_world.get(i as usize).copied();
                         let n = mesh.normals_in_world.get(i as usize).copied();
-                        (p, n)
+                        (p, n, mesh.measured_albedo(i))
                     });
                     if corners
                         .iter()
-                        .any(|(p, _)| !p.is_some_and(|p| p.is_finite()))
+                        .any(|(p, _, _)| !p.is_some_and(|p| p.is_finite()))
                     {
                         continue;
                     }
-                    for (p, n) in corners {
+                    for (p, n, albedo) in corners {
                         let n = n.filter(|n| n.is_finite()).unwrap_or(Vec3::ZERO);
                         vertices.push(GpuVertex {
                             position: p.unwrap_or(Vec3::ZERO).to_array(),
                             normal: n.normalize_or_zero().to_array(),
                             material,
-                            flags: if mesh.is_virtual { FLAG_VIRTUAL } else { 0 },
+                            flags: virtual_flag | albedo.map_or(0, pack_measured_albedo),
                         });
                     }
                 }

@@ -21,6 +21,7 @@ pub mod params;
 pub mod recon_gpu;
 pub mod registry;
 pub mod shaders;
+pub mod surface_albedo;
 pub mod timer;
 mod volume;
 

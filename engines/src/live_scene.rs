@@ -3,8 +3,9 @@
 //! a scene file, and the pocket lamp where it is now.
 //!
 //! The camera pose is the scene file's until the daemon's tracker registers the camera
-//! ([`LiveScene::set_world_from_camera`]), frame by frame. The depth-derived surface has one
-//! diffuse albedo until albedo estimation (DLPV eq. 1) provides per-pixel values.
+//! ([`LiveScene::set_world_from_camera`]), frame by frame. The depth-derived surface has the
+//! configured diffuse albedo, or, with [`LiveScene::measure_albedo`], what DLPV's eq. 1 measures
+//! from the colour camera under the frame's lights, per vertex ([`crate::surface_albedo`]).
 
 use std::sync::Arc;
 
@@ -13,6 +14,9 @@ use relight_core::camera::Pinhole;
 use relight_core::light::Light;
 use relight_core::scene::{EnvironmentMap, Material, Mesh, Scene};
 use relight_core::{Image, LampState, Pose};
+use relight_recon::irradiance::project_sh9;
+
+use crate::surface_albedo::{AlbedoReport, DepthGrid, SurfaceAlbedo};
 
 /// Where the real geometry comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -53,6 +57,10 @@ pub struct LiveScene {
     /// The lamp's last reported state: its serial line reports less often than the cameras run,
     /// so most frame sets carry no lamp message and the lamp must not blink off in between.
     lamp: Option<LampState>,
+    /// Measures the depth surface's albedo, when the colour camera's response is known.
+    albedo: Option<SurfaceAlbedo>,
+    /// The scene file's environment map as an SH light (what albedo estimation is told of it).
+    environment_sh: Option<Light>,
 }
 
 impl LiveScene {
@@ -89,7 +97,40 @@ impl LiveScene {
             stride: stride.max(1),
             fixed: None,
             lamp: None,
+            albedo: None,
+            environment_sh: None,
         }
+    }
+
+    /// Measure the depth surface's albedo from now on (with [`RealGeometry::Depth`]).
+    pub fn measure_albedo(&mut self, albedo: SurfaceAlbedo) {
+        self.albedo = Some(albedo);
+    }
+
+    /// What the albedo measurement did on the last frame, when it runs.
+    pub fn albedo_report(&self) -> Option<AlbedoReport> {
+        self.albedo.as_ref().map(SurfaceAlbedo::report)
+    }
+
+    /// Every light of the next frame as an estimator sees it: discrete lights (the probe's
+    /// median-cut lights stand for its map), the lamp, and a scene file's map as SH.
+    fn lights_for_albedo(&mut self) -> Vec<Light> {
+        let mut lights = self.lights();
+        match self.light_source {
+            LightSource::Probe => lights.extend(self.base.environment_lights.iter().copied()),
+            LightSource::Scene => {
+                if self.environment_sh.is_none()
+                    && let Some(env) = &self.base.environment
+                {
+                    self.environment_sh = project_sh9(env).ok().map(|sh| Light::Environment {
+                        sh,
+                        intensity_scale: 1.0,
+                    });
+                }
+                lights.extend(self.environment_sh);
+            }
+        }
+        lights
     }
 
     /// Take the real scene's light from `source` from now on.
@@ -149,9 +190,15 @@ impl LiveScene {
 
     /// The scene for one frame set. With [`RealGeometry::Depth`] and no usable depth (`None`,
     /// nothing triangulated, or no depth calibration) the scene file's real meshes stand in as a
-    /// proxy of the room; `None` when it has none. `lamp` is the set's lamp message,
-    /// if it has one; without one the lamp keeps its last reported state.
-    pub fn frame(&mut self, depth: Option<&Image>, lamp: Option<&LampState>) -> Option<Arc<Scene>> {
+    /// proxy of the room; `None` when it has none. `color` is the set's colour image (what albedo
+    /// is measured from). `lamp` is the set's lamp message, if it has one; without one the lamp
+    /// keeps its last reported state.
+    pub fn frame(
+        &mut self,
+        depth: Option<&Image>,
+        color: Option<&Image>,
+        lamp: Option<&LampState>,
+    ) -> Option<Arc<Scene>> {
         if let Some(lamp) = lamp {
             self.lamp = Some(*lamp);
         }
@@ -166,20 +213,42 @@ impl LiveScene {
         let mut scene = self.base.clone();
         scene.lights.extend(lamp_light);
         if self.real == RealGeometry::Depth {
-            let mesh = depth
-                .zip(self.depth_camera.as_ref())
+            let world_from_camera = scene.camera.world_from_camera;
+            let surface = depth
+                .zip(self.depth_camera)
                 .map(|(depth, camera)| {
-                    depth_mesh(
+                    let (mesh, grid) = depth_surface(
                         depth,
-                        camera,
-                        &scene.camera.world_from_camera,
+                        &camera,
+                        &world_from_camera,
                         self.real_material,
                         self.stride,
-                    )
+                    );
+                    (mesh, grid, camera)
                 })
-                .filter(|mesh| !mesh.triangles.is_empty());
-            match mesh {
-                Some(mesh) => scene.meshes.insert(0, mesh),
+                .filter(|(mesh, _, _)| !mesh.triangles.is_empty());
+            match surface {
+                Some((mut mesh, grid, camera)) => {
+                    if self.albedo.is_some() {
+                        // Before the probe's first estimate the lights are not known yet: the
+                        // last estimate is carried, nothing new is measured.
+                        let lights_known = self.light_source == LightSource::Scene
+                            || !self.base.environment_lights.is_empty();
+                        let color = color.filter(|_| lights_known);
+                        let lights = self.lights_for_albedo();
+                        if let Some(albedo) = &mut self.albedo {
+                            albedo.apply(
+                                &mut mesh,
+                                &grid,
+                                &camera,
+                                &world_from_camera,
+                                color,
+                                &lights,
+                            );
+                        }
+                    }
+                    scene.meshes.insert(0, mesh);
+                }
                 None if !self.proxy.is_empty() => {
                     scene.meshes.splice(0..0, self.proxy.iter().cloned());
                 }
@@ -201,6 +270,17 @@ pub fn depth_mesh(
     material: usize,
     stride: u32,
 ) -> Mesh {
+    depth_surface(depth, camera, world_from_camera, material, stride).0
+}
+
+/// [`depth_mesh`], and the grid of depth samples its vertices come from.
+pub fn depth_surface(
+    depth: &Image,
+    camera: &Pinhole,
+    world_from_camera: &Pose,
+    material: usize,
+    stride: u32,
+) -> (Mesh, DepthGrid) {
     let stride = stride.max(1);
     let (w, h) = (
         depth.width().div_ceil(stride),
@@ -267,14 +347,25 @@ pub fn depth_mesh(
             unit
         };
     }
-    Mesh {
+    let mesh = Mesh {
         name: "depth surface".into(),
         positions_in_world: positions,
         normals_in_world: normals,
         triangles,
         material,
         is_virtual: false,
-    }
+        vertex_albedo: Vec::new(),
+    };
+    let grid = DepthGrid {
+        width: w,
+        height: h,
+        stride,
+        vertex_of_cell: index
+            .iter()
+            .map(|i| (*i != u32::MAX).then_some(*i))
+            .collect(),
+    };
+    (mesh, grid)
 }
 
 #[cfg(test)]
@@ -336,24 +427,35 @@ mod tests {
             position_in_world: Vec3::Y,
             intensity: Vec3::ONE,
         };
-        assert!(live.frame(Some(&depth), None).unwrap().lights.is_empty());
+        assert!(
+            live.frame(Some(&depth), None, None)
+                .unwrap()
+                .lights
+                .is_empty()
+        );
         assert_eq!(
-            live.frame(Some(&depth), Some(&lamp)).unwrap().lights.len(),
+            live.frame(Some(&depth), None, Some(&lamp))
+                .unwrap()
+                .lights
+                .len(),
             1
         );
         assert_eq!(
-            live.frame(Some(&depth), None).unwrap().lights.len(),
+            live.frame(Some(&depth), None, None).unwrap().lights.len(),
             1,
             "held"
         );
         let off = LampState { on: false, ..lamp };
         assert!(
-            live.frame(Some(&depth), Some(&off))
+            live.frame(Some(&depth), None, Some(&off))
                 .unwrap()
                 .lights
                 .is_empty()
         );
-        assert!(live.frame(None, None).is_none(), "no depth, no surface");
+        assert!(
+            live.frame(None, None, None).is_none(),
+            "no depth, no surface"
+        );
     }
 
     #[test]

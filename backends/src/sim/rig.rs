@@ -455,7 +455,8 @@ impl SimRig {
     }
 
     /// The rig's calibration (what a lab would have measured): one registered camera for
-    /// colour and depth, the probe's lens and pose, and the probe's true inverse response.
+    /// colour and depth, the probe's lens and pose, and both cameras' true inverse response and
+    /// radiance scale.
     pub fn calibration(&self) -> RigCalibration {
         let probe = self.settings.probe.as_ref();
         RigCalibration {
@@ -474,6 +475,8 @@ impl SimRig {
                 .as_ref()
                 .map_or(Pose::IDENTITY, |b| b.world_from_board),
             board: self.settings.board.as_ref().map(MarkerBoard::layout),
+            color_response: self.settings.response.inverse_table(),
+            color_radiance_scale: 1.0 / self.settings.exposure,
             ..RigCalibration::default()
         }
     }

@@ -248,6 +248,7 @@ impl Scene {
                             .virtual_nodes
                             .iter()
                             .any(|v| *v == name || *v == mesh_name),
+                        vertex_albedo: Vec::new(),
                     });
                 }
             }

@@ -50,6 +50,10 @@ pub struct Mesh {
     pub material: usize,
     /// True for the inserted virtual object(s) O; false for the reconstructed real scene.
     pub is_virtual: bool,
+    /// Diffuse albedo per vertex (linear RGB, same length as positions), in place of the
+    /// material's: what albedo estimation measured on a depth-derived surface. Empty: the
+    /// material's albedo everywhere.
+    pub vertex_albedo: Vec<Vec3>,
 }
 
 /// The camera whose image is relit, glTF convention (looks down −Z, +Y up).
@@ -111,6 +115,7 @@ impl Mesh {
             triangles: Vec::new(),
             material,
             is_virtual,
+            vertex_albedo: Vec::new(),
         };
         for (quad, normal) in faces {
             let base = mesh.positions_in_world.len() as u32;
@@ -120,6 +125,17 @@ impl Mesh {
                 .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
         }
         mesh
+    }
+}
+
+impl Mesh {
+    /// The measured albedo of `vertex`, if the mesh carries one for it and it is finite
+    /// (clamped to [0, 1]); `None`: the material's.
+    pub fn measured_albedo(&self, vertex: u32) -> Option<Vec3> {
+        self.vertex_albedo
+            .get(vertex as usize)
+            .filter(|a| a.is_finite())
+            .map(|a| a.clamp(Vec3::ZERO, Vec3::ONE))
     }
 }
 

@@ -13,9 +13,12 @@
 //! DLPV's eq. 1 writes the same ratio with the π absorbed into the light's units.
 //!
 //! The ratio only holds where the lights are the light: the pixel's indirect light (bounces
-//! off the rest of the real scene) is not in E, so pixels where the direct light is weak or
-//! blocked are skipped, as are pixels whose colour is not diffuse reflection (see
-//! [`PixelClass`]). A pixel that is skipped keeps its estimate from earlier frames.
+//! off the rest of the real scene) is not in E unless the caller supplies it
+//! ([`AlbedoInput::indirect_irradiance`], e.g. [`crate::bounce`]), and what it misses is read as
+//! albedo. So pixels where the direct light is weak or blocked are skipped, as are pixels whose
+//! colour is not diffuse reflection (see [`PixelClass`]); the indirect term only enters the
+//! ratio, never the classification. A pixel that is skipped keeps its estimate from earlier
+//! frames.
 //!
 //! Temporal smoothing is a per-pixel running mean that follows the surface: like the depth
 //! merge ([`crate::temporal`]), each pixel's point is warped into the previous view and the
@@ -222,6 +225,8 @@ pub struct AlbedoInput<'a> {
     pub world_from_camera: Pose,
     /// The reconstructed lights, world frame.
     pub lights: &'a [Light],
+    /// Indirect irradiance per pixel, W/m² (row-major; empty: none known), added to E.
+    pub indirect_irradiance: &'a [Vec3],
 }
 
 /// What became of one pixel this frame.
@@ -304,6 +309,7 @@ pub fn lambertian_albedo(radiance: Vec3, irradiance: Vec3) -> Option<Vec3> {
 struct Lighting {
     visible: Vec3,
     unoccluded: Vec3,
+    indirect: Vec3,
     mirror_hits_light: bool,
 }
 
@@ -411,9 +417,17 @@ impl AlbedoEstimator {
         let to_eye = (eye - point_in_world).normalize_or_zero();
         let mirror = 2.0 * normal_in_world.dot(to_eye) * normal_in_world - to_eye;
         let cone_cos = self.settings.highlight_cone_rad.cos();
+        let indirect = input
+            .indirect_irradiance
+            .get(pixel_index)
+            .copied()
+            .filter(|e| e.is_finite())
+            .unwrap_or(Vec3::ZERO)
+            .max(Vec3::ZERO);
         let mut lighting = Lighting {
             visible: Vec3::ZERO,
             unoccluded: Vec3::ZERO,
+            indirect,
             mirror_hits_light: false,
         };
         for (light_index, light) in input.lights.iter().enumerate() {
@@ -600,7 +614,7 @@ impl AlbedoEstimator {
             return (PixelClass::Highlight, None);
         }
         let radiance = self.decoding.radiance(*codes);
-        match lambertian_albedo(radiance, lighting.visible) {
+        match lambertian_albedo(radiance, lighting.visible + lighting.indirect) {
             Some(k_d) if k_d.max_element() <= settings.max_albedo => {
                 (PixelClass::Estimated, Some(k_d))
             }

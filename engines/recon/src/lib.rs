@@ -3,7 +3,8 @@
 //! - Geometry: [`depth`] (invalid depth never becomes geometry; guided filter with the colour
 //!   image as guide, He et al.), [`temporal`] (warp of the previous filtered depth into the
 //!   current view and merge, Knecht et al. Sec. 4.2), [`normals`] from the position map.
-//! - Materials: [`albedo`], diffuse albedo of real pixels by DLPV eq. 1.
+//! - Materials: [`albedo`], diffuse albedo of real pixels by DLPV eq. 1, with the room's own
+//!   bounce light as the colour camera sees it ([`bounce`]).
 //! - Light: [`hdr`] (Robertson response recovery and HDR merge of brackets), [`envmap`]
 //!   (fish-eye → equirectangular map through the Kannala–Brandt model), [`median_cut`] (median
 //!   cut and variance-minimising median cut), [`irradiance`] (SH9 of a map), and the published
@@ -13,6 +14,7 @@
 //! its test oracle.
 
 pub mod albedo;
+pub mod bounce;
 pub mod depth;
 pub mod envmap;
 pub mod estimate;

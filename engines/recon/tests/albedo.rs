@@ -96,6 +96,7 @@ fn run(
             camera: &camera,
             world_from_camera: data.world_from_camera,
             lights: &data.lights,
+            indirect_irradiance: &[],
         };
         let frame = estimator.estimate(&input, visibility).unwrap();
         if i == 0 {

@@ -89,6 +89,7 @@ fn eq1_gives_pi_radiance_over_irradiance() {
         camera: &camera(),
         world_from_camera: Pose::IDENTITY,
         lights: &lights,
+        indirect_irradiance: &[],
     };
     let frame = estimator().estimate(&input, fully_visible).unwrap();
     let radiance = Vec3::from_array(codes.map(srgb_to_linear)) / EXPOSURE;
@@ -137,6 +138,7 @@ fn every_skip_rule_has_its_pixel() {
         camera: &camera(),
         world_from_camera: Pose::IDENTITY,
         lights: &lights,
+        indirect_irradiance: &[],
     };
     // The caller's shadow mask: pixel `shadowed` is in the oblique light's shadow.
     let mask = |q: &ShadowQuery| {
@@ -181,6 +183,7 @@ fn the_temporal_mean_averages_agreeing_frames_and_restarts_on_change() {
             camera: &camera(),
             world_from_camera: pose,
             lights: &lights,
+            indirect_irradiance: &[],
         };
         estimator.estimate(&input, fully_visible).unwrap()
     };
@@ -217,6 +220,7 @@ fn skipped_pixels_keep_their_history() {
         camera: &camera(),
         world_from_camera: Pose::IDENTITY,
         lights: &lit,
+        indirect_irradiance: &[],
     };
     let first = estimator.estimate(&input, fully_visible).unwrap();
     // Everything in shadow next frame: nothing new is estimated, the old values stay.
@@ -239,6 +243,7 @@ fn no_geometry_and_bad_inputs_do_not_panic() {
         camera: &camera(),
         world_from_camera: Pose::IDENTITY,
         lights: &lights,
+        indirect_irradiance: &[],
     };
     let frame = estimator().estimate(&input, fully_visible).unwrap();
     assert_eq!(frame.census.no_surface, (W * H) as usize);

@@ -14,7 +14,7 @@ use bvh::bounding_hierarchy::BHShape;
 use bvh::bvh::Bvh;
 use glam::Vec3;
 use nalgebra::{Point3, Vector3};
-use relight_core::scene::Scene;
+use relight_core::scene::{Mesh, Scene};
 
 /// One world-space triangle.
 #[derive(Debug, Clone)]
@@ -26,6 +26,9 @@ pub struct Triangle {
     /// Unit geometric normal (zero-area triangles are left out of the geometry).
     pub geometric_normal: Vec3,
     pub material: usize,
+    /// The corners' measured albedo ([`relight_core::scene::Mesh::vertex_albedo`]), in place
+    /// of the material's.
+    pub albedo: Option<[Vec3; 3]>,
     pub is_virtual: bool,
     /// Position in [`Geometry::triangles`].
     pub index: usize,
@@ -76,12 +79,17 @@ impl Geometry {
     /// All meshes, or the real ones only. Real triangles come first, in mesh order, so a
     /// triangle index means the same triangle in both geometries.
     pub fn new(scene: &Scene, include_virtual: bool) -> Self {
+        Self::of_meshes(&scene.meshes, include_virtual)
+    }
+
+    /// [`Geometry::new`] of a scene made of `meshes`.
+    pub fn of_meshes(meshes: &[Mesh], include_virtual: bool) -> Self {
         let mut triangles = Vec::new();
         for want_virtual in [false, true] {
             if want_virtual && !include_virtual {
                 break;
             }
-            for mesh in scene.meshes.iter().filter(|m| m.is_virtual == want_virtual) {
+            for mesh in meshes.iter().filter(|m| m.is_virtual == want_virtual) {
                 let vertex = |i: u32| mesh.positions_in_world.get(i as usize).copied();
                 let normal = |i: u32| {
                     mesh.normals_in_world
@@ -111,6 +119,11 @@ impl Geometry {
                         normals: [normal(tri[0]), normal(tri[1]), normal(tri[2])],
                         geometric_normal,
                         material: mesh.material,
+                        albedo: tri
+                            .iter()
+                            .map(|v| mesh.measured_albedo(*v))
+                            .collect::<Option<Vec<_>>>()
+                            .and_then(|a| <[Vec3; 3]>::try_from(a).ok()),
                         is_virtual: mesh.is_virtual,
                         index: triangles.len(),
                         node_index: 0,

@@ -12,11 +12,13 @@ fn luminance(c: Vec3) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 }
 
-/// A material at one shading point: normal facing the viewer, view direction `wo` (towards
-/// the viewer).
+/// A material at one shading point: its diffuse albedo there (the material's, or what a
+/// measured surface carries at that point), normal facing the viewer, view direction `wo`
+/// (towards the viewer).
 #[derive(Debug, Clone, Copy)]
 pub struct Bsdf<'m> {
     pub material: &'m Material,
+    pub albedo: Vec3,
     pub normal: Vec3,
     pub wo: Vec3,
     /// Probability of sampling the glossy lobe.
@@ -24,8 +26,8 @@ pub struct Bsdf<'m> {
 }
 
 impl<'m> Bsdf<'m> {
-    pub fn new(material: &'m Material, normal: Vec3, wo: Vec3) -> Self {
-        let kd = luminance(material.albedo).max(0.0);
+    pub fn new(material: &'m Material, albedo: Vec3, normal: Vec3, wo: Vec3) -> Self {
+        let kd = luminance(albedo).max(0.0);
         let ks = if material.shininess > 0.0 {
             luminance(material.specular).max(0.0)
         } else {
@@ -34,6 +36,7 @@ impl<'m> Bsdf<'m> {
         let specular_weight = if kd + ks > 0.0 { ks / (kd + ks) } else { 0.0 };
         Self {
             material,
+            albedo,
             normal,
             wo,
             specular_weight,
@@ -42,7 +45,7 @@ impl<'m> Bsdf<'m> {
 
     /// True when the surface reflects nothing (paths end here).
     pub fn is_black(&self) -> bool {
-        self.material.albedo.max_element() <= 0.0
+        self.albedo.max_element() <= 0.0
             && (self.material.specular.max_element() <= 0.0 || self.material.shininess <= 0.0)
     }
 
@@ -61,7 +64,7 @@ impl<'m> Bsdf<'m> {
         if wi.dot(self.normal) <= 0.0 {
             return Vec3::ZERO;
         }
-        let mut f = self.material.albedo * FRAC_1_PI;
+        let mut f = self.albedo * FRAC_1_PI;
         if self.material.shininess > 0.0 {
             f += self.material.specular * self.phong(wi);
         }
@@ -113,7 +116,7 @@ mod tests {
                 ..Material::default()
             };
             let wo = Vec3::new(0.0, 1.0, 0.0);
-            let bsdf = Bsdf::new(&material, n, wo);
+            let bsdf = Bsdf::new(&material, material.albedo, n, wo);
             let mut rng = SampleRng::new(4, 5, 6);
             let (mut sum, count) = (0.0f64, 200_000);
             for _ in 0..count {

@@ -122,7 +122,10 @@ pub fn radiance(
             ns = -ns;
         }
         radiance += throughput * material.emission;
-        let bsdf = Bsdf::new(material, ns, wo);
+        let albedo = tri
+            .albedo
+            .map_or(material.albedo, |[a, b, c]| a * w + b * hit.u + c * hit.v);
+        let bsdf = Bsdf::new(material, albedo, ns, wo);
         if bsdf.is_black() {
             break;
         }

@@ -30,6 +30,7 @@ pub fn quad(
         triangles: vec![[0, 1, 2], [0, 2, 3]],
         material,
         is_virtual,
+        vertex_albedo: Vec::new(),
     }
 }
 
@@ -80,6 +81,7 @@ pub fn cuboid(
         triangles: Vec::with_capacity(12),
         material,
         is_virtual,
+        vertex_albedo: Vec::new(),
     };
     for (normal, base, u, v) in faces {
         let first = mesh.positions_in_world.len() as u32;
@@ -148,6 +150,7 @@ pub fn uv_sphere(
         triangles,
         material,
         is_virtual,
+        vertex_albedo: Vec::new(),
     }
 }
 

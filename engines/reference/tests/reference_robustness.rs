@@ -38,6 +38,7 @@ fn nasty_scene() -> Scene {
         triangles: vec![[0, 1, 2], [3, 4, 5], [0, 3, 6], [0, 1, 99]],
         material: 1,
         is_virtual: true,
+        vertex_albedo: Vec::new(),
     };
     let mut zero_normals = quad(
         "zero-normals",

@@ -94,6 +94,7 @@ mod tests {
             triangles: vec![[0, 1, 2], [0, 2, 3]],
             material: 0,
             is_virtual,
+            vertex_albedo: Vec::new(),
         }
     }
 
