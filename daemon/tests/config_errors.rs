@@ -227,6 +227,20 @@ every_n = 5
 }
 
 #[test]
+fn albedo_measurement_is_configured_in_the_scene_section() {
+    let config = parse("").unwrap();
+    assert!(config.scene.measure_albedo, "measured by default");
+    assert_eq!(config.scene.albedo_every, 1);
+    let config = parse("[scene]\nalbedo = \"fixed\"\nalbedo_every = 4\n").unwrap();
+    assert!(!config.scene.measure_albedo);
+    assert_eq!(config.scene.albedo_every, 4);
+    let d = only_error("[scene]\nalbedo = \"guessed\"\n");
+    assert_at(&d, 2, "scene.albedo", "\"measured\" or \"fixed\"");
+    let d = only_error("[scene]\nalbedo_every = 0\n");
+    assert_at(&d, 2, "scene.albedo_every", "1..=300");
+}
+
+#[test]
 fn reference_defaults_to_first_listed_stream_when_depth_is_not_synced() {
     let config = parse("[sync]\nstreams = [\"color\", \"lamp\"]\n").expect("valid");
     assert_eq!(config.sync.reference, StreamKind::Color);

@@ -350,3 +350,37 @@ pub fn light_faces(
     }
     (gpu_lights, faces)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What `shaders/common.wgsl` `measured_albedo` reads back: bytes 1–3 as unorm, squared.
+    fn unpack(flags: u32) -> Vec3 {
+        let byte = |shift: u32| ((flags >> shift) & 0xff) as f32 / 255.0;
+        Vec3::new(byte(8), byte(16), byte(24)).powf(2.0)
+    }
+
+    #[test]
+    fn measured_albedo_packs_into_the_flags_within_its_step() {
+        for albedo in [
+            Vec3::new(0.05, 0.5, 1.0),
+            Vec3::new(0.7, 0.1, 0.08),
+            Vec3::ZERO,
+        ] {
+            let flags = pack_measured_albedo(albedo);
+            assert_eq!(
+                flags & (FLAG_VIRTUAL | FLAG_MEASURED_ALBEDO),
+                FLAG_MEASURED_ALBEDO
+            );
+            let back = unpack(flags);
+            // Half a step of √a is 1/510, so a moves by at most 2√a/510 + (1/510)².
+            let bound = albedo.map(|a| 2.0 * a.sqrt() / 510.0 + 1.0 / (510.0 * 510.0));
+            assert!(
+                (back - albedo).abs().cmple(bound).all(),
+                "{albedo} → {back}"
+            );
+        }
+        assert_eq!(unpack(pack_measured_albedo(Vec3::splat(7.0))), Vec3::ONE);
+    }
+}

@@ -11,7 +11,8 @@
 //!
 //! dE(p) = L_j · cos θ_p · cos θ_j · A_j / r²,
 //!
-//! with A_j the patch's area (its pixel footprint at its depth, over the cosine to the view ray).
+//! with A_j the patch's area: the solid angle its pixel subtends, cos³α / (f_x f_y) for a ray α
+//! off the optical axis, times r_eye² over the cosine between its normal and the view ray.
 //! Surfaces the camera does not see (behind it, the ceiling) are missing, so the bounce is a
 //! lower bound; visibility between patches is not tested (a room's surfaces mostly see each
 //! other).
@@ -58,7 +59,16 @@ pub fn bounce_irradiance(input: &BounceInput, step: u32) -> Vec<Vec3> {
         return out;
     }
     let cell = |x: usize, y: usize| y * w + x;
-    let footprint = 1.0 / (input.camera.fx * input.camera.fy) as f32 * (step * step) as f32;
+    let camera = input.camera;
+    let cells_per_patch = (step * step) as f32;
+    let pixel_solid_angle = |x: usize, y: usize| {
+        let ray = Vec3::new(
+            ((x as f64 - camera.cx) / camera.fx) as f32,
+            ((y as f64 - camera.cy) / camera.fy) as f32,
+            1.0,
+        );
+        ray.length().powi(-3) / (camera.fx * camera.fy) as f32
+    };
     // Emitters: (point, normal, L, A).
     let mut emitters = Vec::new();
     for y in (0..h).step_by(step) {
@@ -74,7 +84,7 @@ pub fn bounce_irradiance(input: &BounceInput, step: u32) -> Vec<Vec3> {
             let to_eye = input.eye_in_world - p;
             let distance = to_eye.length();
             let view_cos = normal.dot(to_eye / distance).max(MIN_VIEW_COSINE);
-            let area = distance * distance * footprint / view_cos;
+            let area = distance * distance * pixel_solid_angle(x, y) * cells_per_patch / view_cos;
             if area.is_finite() && radiance.is_finite() {
                 emitters.push((p, normal, radiance, area));
             }
@@ -122,4 +132,66 @@ pub fn bounce_irradiance(input: &BounceInput, step: u32) -> Vec<Vec3> {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A point under a uniformly glowing ceiling (radiance 1) that its camera sees through a
+    /// 90° square field of view: the irradiance is the point-to-rectangle form factor's,
+    /// π · 4 F(1, 1) with F(A, B) = 1/(2π) [A/√(1+A²) atan(B/√(1+A²)) + B/√(1+B²) atan(A/√(1+B²))]
+    /// for each quarter of the square: 1.7408. 60 × 60 patches and SH9 (exact to within a few
+    /// per cent for light within 45° of the normal) stay within 2 % (0.8 % measured).
+    #[test]
+    fn a_glowing_ceiling_gives_the_form_factors_irradiance() {
+        let n = 60u32;
+        let camera = Pinhole {
+            width: n,
+            height: n,
+            fx: 30.0,
+            fy: 30.0,
+            cx: 29.5,
+            cy: 29.5,
+            k1: 0.0,
+            k2: 0.0,
+            p1: 0.0,
+            p2: 0.0,
+            k3: 0.0,
+        };
+        let (h, cells) = (1.0f32, (n * n) as usize);
+        let mut points = Vec::with_capacity(cells);
+        for y in 0..n {
+            for x in 0..n {
+                let sx = ((f64::from(x) - camera.cx) / camera.fx) as f32;
+                let sy = ((f64::from(y) - camera.cy) / camera.fy) as f32;
+                points.push(Some(Vec3::new(sx * h, h, sy * h)));
+            }
+        }
+        let mut normals = vec![Some(Vec3::NEG_Y); cells];
+        let mut radiance = vec![Some(Vec3::ONE); cells];
+        // Cell 0 is the receiver: at the eye, facing the ceiling, emitting nothing.
+        points[0] = Some(Vec3::ZERO);
+        normals[0] = Some(Vec3::Y);
+        radiance[0] = None;
+        let e = bounce_irradiance(
+            &BounceInput {
+                camera: &camera,
+                eye_in_world: Vec3::ZERO,
+                points_in_world: &points,
+                normals_in_world: &normals,
+                radiance: &radiance,
+            },
+            1,
+        );
+        let f = |a: f32, b: f32| {
+            let (sa, sb) = ((1.0 + a * a).sqrt(), (1.0 + b * b).sqrt());
+            (a / sa * (b / sa).atan() + b / sb * (a / sb).atan()) / (2.0 * std::f32::consts::PI)
+        };
+        let expected = std::f32::consts::PI * 4.0 * f(1.0, 1.0);
+        assert!((expected - 1.7408).abs() < 1e-3, "{expected}");
+        let relative = (e[0].x - expected).abs() / expected;
+        assert!(relative < 0.02, "E = {} for {expected}", e[0].x);
+        assert!((e[0].x - e[0].y).abs() < 1e-5 && (e[0].x - e[0].z).abs() < 1e-5);
+    }
 }

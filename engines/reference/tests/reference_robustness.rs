@@ -226,3 +226,71 @@ fn empty_and_black_scenes_render_black() {
     .unwrap();
     assert_all_finite(&images);
 }
+
+/// A measured surface's per-vertex albedo takes the place of its material's, interpolated across
+/// each triangle: a quad facing the camera and a head-on distant light of irradiance E reflects
+/// L = a · E / π with no bounce (one surface), exactly at every pixel. Corners of one colour
+/// give that colour; a non-finite corner leaves its triangles with the material's albedo.
+#[test]
+fn measured_vertex_albedo_replaces_the_material() {
+    let red = Vec3::new(0.8, 0.2, 0.1);
+    let mut wall = quad(
+        "wall",
+        Vec3::new(0.0, 0.0, -2.0),
+        Vec3::new(3.0, 0.0, 0.0),
+        Vec3::new(0.0, 3.0, 0.0),
+        0,
+        false,
+    );
+    wall.vertex_albedo = vec![red; wall.positions_in_world.len()];
+    let irradiance = 2.0;
+    let mut scene = Scene {
+        name: "measured wall".into(),
+        meshes: vec![wall],
+        materials: vec![material(0.5, 0.0, 0.0)],
+        camera: SceneCamera {
+            world_from_camera: Pose::IDENTITY,
+            yfov_rad: 0.5,
+            width: 8,
+            height: 6,
+        },
+        lights: vec![Light::Directional {
+            direction_in_world: Vec3::NEG_Z,
+            irradiance: Vec3::splat(irradiance),
+        }],
+        environment: None,
+        environment_lights: Vec::new(),
+    };
+    let settings = ReferenceSettings {
+        spp: 2,
+        max_bounces: 0,
+        // Pixel centres: each pixel sees one triangle.
+        pixel_jitter: false,
+        ..ReferenceSettings::default()
+    };
+    let images = render_reference(&scene, settings).unwrap();
+    let expected = red * irradiance / std::f32::consts::PI;
+    for l in &images.l_mu {
+        assert!(
+            (*l - expected).abs().max_element() < 1e-5,
+            "{l} for {expected}"
+        );
+    }
+    scene.meshes[0].vertex_albedo[1] = Vec3::NAN;
+    let images = render_reference(&scene, settings).unwrap();
+    let material = 0.5 * irradiance / std::f32::consts::PI;
+    let (grey, measured) = images
+        .l_mu
+        .iter()
+        .partition::<Vec<Vec3>, _>(|l| (l.x - material).abs() < 1e-5);
+    assert!(
+        !grey.is_empty() && !measured.is_empty(),
+        "{:?}",
+        images.l_mu
+    );
+    assert!(
+        measured
+            .iter()
+            .all(|l| (*l - expected).abs().max_element() < 1e-5)
+    );
+}
