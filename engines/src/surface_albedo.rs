@@ -77,7 +77,7 @@ impl DepthGrid {
 /// The last estimate, in the view it was made from.
 #[derive(Debug, Clone)]
 struct View {
-    world_from_camera: Pose,
+    camera_from_world: Pose,
     camera: Pinhole,
     /// Distance along the view axis per cell, 0 where there was no surface.
     depth_m: Vec<f32>,
@@ -189,41 +189,49 @@ impl SurfaceAlbedo {
     ) -> Result<AlbedoCensus, AlbedoError> {
         let grid_camera = grid.camera(camera);
         let camera_from_world = world_from_camera.inverse();
-        let cells = grid.vertex_of_cell.len();
-        let mut points = Vec::with_capacity(cells);
-        let mut normals = Vec::with_capacity(cells);
-        for vertex in &grid.vertex_of_cell {
-            let vertex = vertex.map(|v| v as usize);
-            let point = vertex.and_then(|v| mesh.positions_in_world.get(v));
-            let normal = vertex
-                .and_then(|v| mesh.normals_in_world.get(v))
-                .filter(|n| n.length_squared() > 0.5);
-            points.push(point.map(|p| camera_from_world.transform_point(*p)));
-            normals.push(normal.map(|n| camera_from_world.transform_vector(*n)));
-        }
+        let vertex_of = |cell: &Option<u32>| cell.map(|v| v as usize);
+        let points_in_world: Vec<Option<Vec3>> = grid
+            .vertex_of_cell
+            .iter()
+            .map(|cell| vertex_of(cell).and_then(|v| mesh.positions_in_world.get(v).copied()))
+            .collect();
+        let normals_in_world: Vec<Option<Vec3>> = grid
+            .vertex_of_cell
+            .iter()
+            .map(|cell| {
+                vertex_of(cell)
+                    .and_then(|v| mesh.normals_in_world.get(v).copied())
+                    .filter(|n| n.length_squared() > 0.5)
+            })
+            .collect();
         let positions = PositionMap {
             width: grid.width,
             height: grid.height,
-            points_in_camera: points,
+            points_in_camera: points_in_world
+                .iter()
+                .map(|p| p.map(|p| camera_from_world.transform_point(p)))
+                .collect(),
         };
         let normals = NormalMap {
             width: grid.width,
             height: grid.height,
-            normals_in_camera: normals,
+            normals_in_camera: normals_in_world
+                .iter()
+                .map(|n| n.map(|n| camera_from_world.transform_vector(n)))
+                .collect(),
         };
         let grid_color = sample_color(color, grid, camera)?;
         let indirect = self.bounce(
             &grid_color,
             &grid_camera,
-            world_from_camera,
-            &positions,
-            &normals,
+            world_from_camera.translation,
+            &points_in_world,
+            &normals_in_world,
         );
         let occluders = Geometry::of_meshes(
             &[coarse_occluders(mesh, grid, world_from_camera.translation)],
             false,
         );
-
         let input = AlbedoInput {
             color: &grid_color,
             positions: &positions,
@@ -246,7 +254,7 @@ impl SurfaceAlbedo {
             if blocked { 0.0 } else { 1.0 }
         })?;
         self.last = Some(View {
-            world_from_camera: *world_from_camera,
+            camera_from_world,
             camera: grid_camera,
             depth_m: positions
                 .points_in_camera
@@ -257,17 +265,15 @@ impl SurfaceAlbedo {
         });
         Ok(frame.census)
     }
-}
 
-impl SurfaceAlbedo {
     /// The bounce light on every cell from the cells' measured radiance.
     fn bounce(
         &self,
         grid_color: &Image,
         grid_camera: &Pinhole,
-        world_from_camera: &Pose,
-        positions: &PositionMap,
-        normals: &NormalMap,
+        eye_in_world: Vec3,
+        points_in_world: &[Option<Vec3>],
+        normals_in_world: &[Option<Vec3>],
     ) -> Vec<Vec3> {
         let saturated = self.estimator.settings().saturated_code;
         let radiance: Vec<Option<Vec3>> = grid_color
@@ -279,24 +285,14 @@ impl SurfaceAlbedo {
                 (codes.iter().all(|c| *c < saturated)).then(|| self.decoding.radiance(codes))
             })
             .collect();
-        let points_in_world: Vec<Option<Vec3>> = positions
-            .points_in_camera
-            .iter()
-            .map(|p| p.map(|p| world_from_camera.transform_point(p)))
-            .collect();
-        let normals_in_world: Vec<Option<Vec3>> = normals
-            .normals_in_camera
-            .iter()
-            .map(|n| n.map(|n| world_from_camera.transform_vector(n)))
-            .collect();
         let cells = radiance.len();
         let step = ((cells as f64 / BOUNCE_PATCHES as f64).sqrt().ceil() as u32).max(1);
         bounce_irradiance(
             &BounceInput {
                 camera: grid_camera,
-                eye_in_world: world_from_camera.translation,
-                points_in_world: &points_in_world,
-                normals_in_world: &normals_in_world,
+                eye_in_world,
+                points_in_world,
+                normals_in_world,
                 radiance: &radiance,
             },
             step,
@@ -307,10 +303,7 @@ impl SurfaceAlbedo {
 impl View {
     /// The estimate of the cell `point_in_world` lands on, if that cell saw the same surface.
     fn lookup(&self, point_in_world: Vec3, tolerance: f32) -> Option<Vec3> {
-        let p = self
-            .world_from_camera
-            .inverse()
-            .transform_point(point_in_world);
+        let p = self.camera_from_world.transform_point(point_in_world);
         let z = -p.z;
         if z.is_nan() || z <= 0.0 {
             return None;
