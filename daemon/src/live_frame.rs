@@ -18,7 +18,7 @@ use relight_core::sh::Sh9Rgb;
 use relight_core::sync::FrameSet;
 use relight_core::{Frame, LampState, ProbeImage, Timestamp};
 use relight_engines::live_scene::{LightSource, LiveScene, RealGeometry};
-use relight_engines::surface_albedo::SurfaceAlbedo;
+use relight_engines::surface_albedo::{AlbedoReport, SurfaceAlbedo};
 use relight_engines::{EngineRegistry, SceneFrame};
 use relight_recon::albedo::{AlbedoSettings, ColorDecoding};
 use relight_recon::estimate::LightingEstimate;
@@ -40,6 +40,8 @@ pub struct LiveFrame {
     pub depth: Option<DepthOutcome>,
     /// Stage timings, milliseconds, in data-flow order.
     pub timings: Vec<(&'static str, f64)>,
+    /// What the albedo measurement did on this frame, when it runs.
+    pub albedo: Option<AlbedoReport>,
 }
 
 /// The per-frame state of the live path: tracker, depth reconstruction, live scene, lights.
@@ -235,6 +237,7 @@ impl LiveFrames {
             tracking,
             depth: reconstructed,
             timings,
+            albedo: self.live_scene.as_ref().and_then(LiveScene::albedo_report),
         }
     }
 }

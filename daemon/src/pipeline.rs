@@ -31,14 +31,15 @@ use serde_json::{Map, Value, json};
 use crate::config::{self, Config, SourceConfig};
 use crate::control::lights::LightsBoard;
 use crate::control::types::{
-    ControlError, ControlTarget, DeviceStatus, EngineInfo, RecordingStatus, StageTiming,
-    StatusReport, SyncStreamStatus, TrackingStatus,
+    AlbedoStatus, ControlError, ControlTarget, DeviceStatus, EngineInfo, RecordingStatus,
+    StageTiming, StatusReport, SyncStreamStatus, TrackingStatus,
 };
 use crate::live_frame::LiveFrames;
 use crate::sinks::png_out::write_png;
 use crate::sinks::recorder::Recorder;
 use crate::timing::StageStats;
 use crate::tracking::TrackingReport;
+use relight_engines::surface_albedo::AlbedoReport;
 
 /// How long a control request waits for the render thread to serve a snapshot.
 const SNAPSHOT_TIMEOUT: Duration = Duration::from_secs(3);
@@ -85,6 +86,7 @@ struct Shared {
     render_errors: AtomicU64,
     /// The last frame's registration, and how many frames were shown without Δ (untracked).
     tracking: Mutex<Option<TrackingReport>>,
+    albedo: Mutex<Option<AlbedoReport>>,
     untracked_frames: AtomicU64,
     snapshots: (Sender<SnapshotRequest>, Receiver<SnapshotRequest>),
     devices: Vec<Arc<BackendStatus>>,
@@ -253,6 +255,7 @@ impl Pipeline {
             sync_streams: Mutex::new(Vec::new()),
             render_errors: AtomicU64::new(0),
             tracking: Mutex::new(None),
+            albedo: Mutex::new(None),
             untracked_frames: AtomicU64::new(0),
             snapshots: bounded(8),
             devices: runners.iter().map(|r| r.status().clone()).collect(),
@@ -550,6 +553,7 @@ impl RenderLoop<'_> {
             self.record_stage(name, *ms);
         }
         *lock(&shared.tracking) = Some(frame.tracking);
+        *lock(&shared.albedo) = frame.albedo;
         let engine = if frame.tracking.is_usable() {
             &mut self.engine
         } else {
@@ -688,6 +692,15 @@ fn status_report(shared: &Shared) -> StatusReport {
             tags_used: t.tags_used,
             world_from_camera: t.world_from_camera,
             untracked_frames: shared.untracked_frames.load(Ordering::Relaxed),
+        }),
+        albedo: lock(&shared.albedo).map(|a| {
+            let c = a.census;
+            AlbedoStatus {
+                estimated: a.estimated,
+                measured_vertices: a.measured_vertices,
+                vertices: a.vertices,
+                skipped_cells: c.saturated + c.unlit + c.shadowed + c.highlight + c.above_one,
+            }
         }),
     }
 }

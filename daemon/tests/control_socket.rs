@@ -9,9 +9,9 @@ use std::time::Duration;
 
 use relight_core::StreamKind;
 use relight_daemon::control::{
-    Client, ClientError, ControlError, ControlServer, ControlServerHandle, ControlTarget,
-    DeviceState, DeviceStatus, EngineInfo, LightsBoard, PeerCred, RecordingStatus, ServerError,
-    ServerOptions, StageTiming, StatusReport, SyncStreamStatus, TrackingStatus, codes,
+    AlbedoStatus, Client, ClientError, ControlError, ControlServer, ControlServerHandle,
+    ControlTarget, DeviceState, DeviceStatus, EngineInfo, LightsBoard, PeerCred, RecordingStatus,
+    ServerError, ServerOptions, StageTiming, StatusReport, SyncStreamStatus, TrackingStatus, codes,
     peer_allowed,
 };
 use relight_daemon::tracking::TrackingState;
@@ -81,6 +81,12 @@ fn sample_status(engine: &str, recording: Option<PathBuf>) -> StatusReport {
             tags_used: 9,
             world_from_camera: Some(relight_core::Pose::IDENTITY),
             untracked_frames: 4,
+        }),
+        albedo: Some(AlbedoStatus {
+            estimated: true,
+            measured_vertices: 3667,
+            vertices: 4494,
+            skipped_cells: 827,
         }),
     }
 }

@@ -95,3 +95,33 @@ fn step_without_a_stepped_source_is_an_error() {
     );
     pipeline.shutdown();
 }
+
+/// With a scene, status reports the live surface's albedo measurement: the bundled recording's
+/// calibration has the colour camera's response, so eq. 1 runs on the first frame.
+#[test]
+fn status_reports_the_albedo_measurement() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = stepped_config(dir.path());
+    config.scene.dir =
+        Some(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/desk_box"));
+    let mut pipeline = Pipeline::start(config, PipelineOptions::default()).unwrap();
+    let reply = call(
+        &pipeline,
+        r#"{"jsonrpc":"2.0","id":1,"method":"replay.step","params":{"frames":8}}"#,
+    );
+    assert_eq!(reply["result"]["frames"], 8, "{reply}");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let albedo = loop {
+        if let Some(albedo) = pipeline.status().albedo {
+            break albedo;
+        }
+        assert!(Instant::now() < deadline, "no albedo status");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(albedo.estimated, "{albedo:?}");
+    assert!(
+        albedo.measured_vertices > 0 && albedo.measured_vertices <= albedo.vertices,
+        "{albedo:?}"
+    );
+    pipeline.shutdown();
+}

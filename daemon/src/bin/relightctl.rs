@@ -346,6 +346,15 @@ fn render_status(status: &StatusReport) -> String {
             t.untracked_frames,
         ));
     }
+    if let Some(a) = &status.albedo {
+        out.push_str(&format!(
+            "albedo      {}: {} of {} surface vertices measured, {} cells skipped\n",
+            if a.estimated { "measured" } else { "carried" },
+            a.measured_vertices,
+            a.vertices,
+            a.skipped_cells,
+        ));
+    }
     if !status.devices.is_empty() {
         out.push('\n');
         out.push_str(&table(

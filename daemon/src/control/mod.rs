@@ -19,6 +19,6 @@ pub use server::{
     ControlServer, ControlServerHandle, PeerCred, ServerError, ServerOptions, peer_allowed,
 };
 pub use types::{
-    ControlError, ControlTarget, DeviceState, DeviceStatus, EngineInfo, RecordingStatus,
-    StageTiming, StatusReport, SyncStreamStatus, TrackingStatus, codes,
+    AlbedoStatus, ControlError, ControlTarget, DeviceState, DeviceStatus, EngineInfo,
+    RecordingStatus, StageTiming, StatusReport, SyncStreamStatus, TrackingStatus, codes,
 };

@@ -167,6 +167,24 @@ pub struct StatusReport {
     /// The camera's registration at the last frame set (none before the first).
     #[serde(default)]
     pub tracking: Option<TrackingStatus>,
+    /// The live surface's albedo measurement at the last frame set (none when it does not run:
+    /// `[scene] albedo = "fixed"`, no colour response, no depth surface).
+    #[serde(default)]
+    pub albedo: Option<AlbedoStatus>,
+}
+
+/// What the live surface's albedo measurement (DLPV eq. 1) did on the last frame set.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AlbedoStatus {
+    /// Whether eq. 1 ran on that frame (else the last estimate was carried, `albedo_every`).
+    pub estimated: bool,
+    /// Surface vertices with an estimate of their own, and all of them (the rest take their
+    /// neighbours' or `real_albedo`).
+    pub measured_vertices: usize,
+    pub vertices: usize,
+    /// Grid cells eq. 1 skipped this frame: in shadow, under a highlight, clipped, too dimly
+    /// lit, or above 1 (light the estimate misses).
+    pub skipped_cells: usize,
 }
 
 /// Where the camera is, as the tracker last said (`[tracking]`).
