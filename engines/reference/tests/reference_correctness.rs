@@ -170,6 +170,64 @@ fn diffuse_plane_under_point_light_matches_inverse_square_cosine_law() {
     assert!(worst < 0.01, "worst relative error {worst}");
 }
 
+/// A measured surface's per-vertex albedo takes the place of its material's, interpolated across
+/// each triangle: a quad facing the camera and a head-on distant light of irradiance E reflects
+/// L = a · E / π with no bounce (one surface), exactly at every pixel. Corners of one colour
+/// give that colour; a non-finite corner leaves its triangles with the material's albedo.
+#[test]
+fn measured_vertex_albedo_replaces_the_material() {
+    let (red, grey, irradiance) = (Vec3::new(0.8, 0.2, 0.1), 0.5, 2.0);
+    let mut scene = scene("measured wall", camera(Vec3::ZERO, Vec3::NEG_Z, 8, 6));
+    scene.materials.push(diffuse(Vec3::splat(grey)));
+    let mut wall = quad(
+        "wall",
+        Vec3::new(0.0, 0.0, -2.0),
+        Vec3::new(3.0, 0.0, 0.0),
+        Vec3::new(0.0, 3.0, 0.0),
+        0,
+        false,
+    );
+    wall.vertex_albedo = vec![red; wall.positions_in_world.len()];
+    scene.meshes.push(wall);
+    scene.lights.push(Light::Directional {
+        direction_in_world: Vec3::NEG_Z,
+        irradiance: Vec3::splat(irradiance),
+    });
+    let settings = ReferenceSettings {
+        spp: 2,
+        max_bounces: 0,
+        // Pixel centres: each pixel sees one triangle.
+        pixel_jitter: false,
+        ..ReferenceSettings::default()
+    };
+    let images = render_reference(&scene, settings).unwrap();
+    let expected = red * irradiance * FRAC_1_PI;
+    for l in &images.l_mu {
+        assert!(
+            (*l - expected).abs().max_element() < 1e-5,
+            "{l} for {expected}"
+        );
+    }
+    // Vertex 1 is in the first triangle only.
+    scene.meshes[0].vertex_albedo[1] = Vec3::NAN;
+    let images = render_reference(&scene, settings).unwrap();
+    let material = grey * irradiance * FRAC_1_PI;
+    let (material_lit, measured): (Vec<Vec3>, Vec<Vec3>) = images
+        .l_mu
+        .iter()
+        .partition(|l| (l.x - material).abs() < 1e-5);
+    assert!(
+        !material_lit.is_empty() && !measured.is_empty(),
+        "{:?}",
+        images.l_mu
+    );
+    assert!(
+        measured
+            .iter()
+            .all(|l| (*l - expected).abs().max_element() < 1e-5)
+    );
+}
+
 /// An environment map with a 1e4:1 window, and the exact irradiance it gives a surface facing
 /// +Y (the map is piecewise constant per texel; each texel is integrated on a fine grid).
 fn window_environment() -> (EnvironmentMap, Vec3) {
