@@ -59,7 +59,8 @@ pub struct LiveScene {
     lamp: Option<LampState>,
     /// Measures the depth surface's albedo, when the colour camera's response is known.
     albedo: Option<SurfaceAlbedo>,
-    /// The scene file's environment map as an SH light (what albedo estimation is told of it).
+    /// The scene file's environment map as an SH light (what albedo estimation is told of it),
+    /// projected when measurement starts.
     environment_sh: Option<Light>,
 }
 
@@ -104,6 +105,15 @@ impl LiveScene {
 
     /// Measure the depth surface's albedo from now on (with [`RealGeometry::Depth`]).
     pub fn measure_albedo(&mut self, albedo: SurfaceAlbedo) {
+        self.environment_sh = self
+            .base
+            .environment
+            .as_ref()
+            .and_then(|env| project_sh9(env).ok())
+            .map(|sh| Light::Environment {
+                sh,
+                intensity_scale: 1.0,
+            });
         self.albedo = Some(albedo);
     }
 
@@ -113,24 +123,16 @@ impl LiveScene {
     }
 
     /// Every light of the next frame as an estimator sees it: discrete lights (the probe's
-    /// median-cut lights stand for its map), the lamp, and a scene file's map as SH.
-    fn lights_for_albedo(&mut self) -> Vec<Light> {
+    /// median-cut lights stand for its map), the lamp, and a scene file's map as SH. `None`
+    /// before the probe's first estimate: the lights are not known yet.
+    fn lights_for_albedo(&self) -> Option<Vec<Light>> {
         let mut lights = self.lights();
         match self.light_source {
+            LightSource::Probe if self.base.environment_lights.is_empty() => return None,
             LightSource::Probe => lights.extend(self.base.environment_lights.iter().copied()),
-            LightSource::Scene => {
-                if self.environment_sh.is_none()
-                    && let Some(env) = &self.base.environment
-                {
-                    self.environment_sh = project_sh9(env).ok().map(|sh| Light::Environment {
-                        sh,
-                        intensity_scale: 1.0,
-                    });
-                }
-                lights.extend(self.environment_sh);
-            }
+            LightSource::Scene => lights.extend(self.environment_sh),
         }
-        lights
+        Some(lights)
     }
 
     /// Take the real scene's light from `source` from now on.
@@ -229,23 +231,21 @@ impl LiveScene {
                 .filter(|(mesh, _, _)| !mesh.triangles.is_empty());
             match surface {
                 Some((mut mesh, grid, camera)) => {
-                    if self.albedo.is_some() {
-                        // Before the probe's first estimate the lights are not known yet: the
-                        // last estimate is carried, nothing new is measured.
-                        let lights_known = self.light_source == LightSource::Scene
-                            || !self.base.environment_lights.is_empty();
-                        let color = color.filter(|_| lights_known);
-                        let lights = self.lights_for_albedo();
-                        if let Some(albedo) = &mut self.albedo {
-                            albedo.apply(
-                                &mut mesh,
-                                &grid,
-                                &camera,
-                                &world_from_camera,
-                                color,
-                                &lights,
-                            );
-                        }
+                    let lights = self
+                        .albedo
+                        .is_some()
+                        .then(|| self.lights_for_albedo())
+                        .flatten();
+                    if let Some(albedo) = &mut self.albedo {
+                        // Without known lights the last estimate is carried, nothing measured.
+                        albedo.apply(
+                            &mut mesh,
+                            &grid,
+                            &camera,
+                            &world_from_camera,
+                            color.filter(|_| lights.is_some()),
+                            lights.as_deref().unwrap_or_default(),
+                        );
                     }
                     scene.meshes.insert(0, mesh);
                 }

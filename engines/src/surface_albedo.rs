@@ -21,7 +21,7 @@
 //! default albedo.
 
 use glam::Vec3;
-use relight_core::camera::Pinhole;
+use relight_core::camera::{Pinhole, optical_from_gl};
 use relight_core::light::Light;
 use relight_core::scene::Mesh;
 use relight_core::{Image, PixelFormat, Pose};
@@ -55,7 +55,8 @@ pub struct DepthGrid {
 
 impl DepthGrid {
     /// The pinhole that sees the grid's cells as its pixels: `camera` scaled by 1 / `stride`
-    /// (cell x is depth pixel `x · stride`), without distortion, as the mesh is triangulated.
+    /// (cell x is depth pixel `x · stride`: subsampling, not [`Pinhole::resized`]'s area
+    /// resampling), without distortion, as the mesh is triangulated.
     pub fn camera(&self, camera: &Pinhole) -> Pinhole {
         let s = f64::from(self.stride);
         Pinhole {
@@ -100,7 +101,6 @@ pub struct AlbedoReport {
 #[derive(Debug)]
 pub struct SurfaceAlbedo {
     estimator: AlbedoEstimator,
-    decoding: ColorDecoding,
     default: Vec3,
     every: u32,
     frames: u64,
@@ -118,8 +118,7 @@ impl SurfaceAlbedo {
         every: u32,
     ) -> Self {
         Self {
-            estimator: AlbedoEstimator::new(settings, decoding.clone()),
-            decoding,
+            estimator: AlbedoEstimator::new(settings, decoding),
             default,
             every: every.max(1),
             frames: 0,
@@ -276,13 +275,14 @@ impl SurfaceAlbedo {
         normals_in_world: &[Option<Vec3>],
     ) -> Vec<Vec3> {
         let saturated = self.estimator.settings().saturated_code;
+        let decoding = self.estimator.decoding();
         let radiance: Vec<Option<Vec3>> = grid_color
             .as_u8()
             .unwrap_or_default()
             .chunks_exact(3)
             .map(|c| {
                 let codes = [c[0], c[1], c[2]];
-                (codes.iter().all(|c| *c < saturated)).then(|| self.decoding.radiance(codes))
+                (codes.iter().all(|c| *c < saturated)).then(|| decoding.radiance(codes))
             })
             .collect();
         let cells = radiance.len();
@@ -304,19 +304,15 @@ impl View {
     /// The estimate of the cell `point_in_world` lands on, if that cell saw the same surface.
     fn lookup(&self, point_in_world: Vec3, tolerance: f32) -> Option<Vec3> {
         let p = self.camera_from_world.transform_point(point_in_world);
-        let z = -p.z;
-        if z.is_nan() || z <= 0.0 {
-            return None;
-        }
         let c = &self.camera;
-        let u = c.fx * f64::from(p.x / z) + c.cx;
-        let v = c.fy * f64::from(-p.y / z) + c.cy;
-        let (x, y) = (u.round(), v.round());
+        let pixel = c.project(optical_from_gl(p.as_dvec3()))?;
+        let (x, y) = (pixel.x.round(), pixel.y.round());
         if x < 0.0 || y < 0.0 || x >= f64::from(c.width) || y >= f64::from(c.height) {
             return None;
         }
         let cell = y as usize * c.width as usize + x as usize;
         let seen = *self.depth_m.get(cell)?;
+        let z = -p.z;
         let same_surface = seen > 0.0 && (seen - z).abs() <= tolerance * z;
         same_surface.then(|| self.albedo[cell]).flatten()
     }

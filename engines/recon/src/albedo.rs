@@ -361,6 +361,10 @@ impl AlbedoEstimator {
         &self.settings
     }
 
+    pub fn decoding(&self) -> &ColorDecoding {
+        &self.decoding
+    }
+
     /// Forget every pixel's history.
     pub fn reset(&mut self) {
         self.history = None;
