@@ -29,4 +29,4 @@ pub mod v4l2;
 pub use device::{
     Device, DeviceContext, DeviceError, DeviceRunner, DeviceState, DeviceStatus, RunEnd, Stepper,
 };
-pub use replay::{Replay, ReplayConfig, ReplayMode};
+pub use replay::{Backpressure, Replay, ReplayConfig, ReplayMode};

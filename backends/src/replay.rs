@@ -6,10 +6,14 @@
 //! exactly as with live hardware. Device timestamps are kept as recorded. On each loop the
 //! sequence numbers continue instead of restarting, so consumers do not mistake a loop for a
 //! burst of drops.
+//!
+//! A fast replay with [`Backpressure`] is lossless: it runs ahead of its consumer by a bounded
+//! number of reference frames, and waits for it beyond that, instead of letting drop-oldest
+//! queues discard what the consumer could not take yet.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::sync::Arc;
+use std::sync::{Arc, Condvar, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 use relight_core::frame::host_now_ns;
@@ -23,7 +27,7 @@ use crate::device::{Device, DeviceContext, DeviceError, RunEnd};
 pub enum ReplayMode {
     /// Keep the recorded spacing, divided by `speed` (2.0 plays twice as fast).
     Realtime { speed: f64 },
-    /// As fast as the consumers take it.
+    /// As fast as possible; with [`Replay::with_backpressure`], as fast as the consumer takes it.
     Fast,
     /// Only when [`crate::DeviceRunner::step`] asks, that many messages at a time.
     Stepped,
@@ -36,12 +40,71 @@ pub struct ReplayConfig {
     pub looping: bool,
 }
 
+/// Flow control between a fast replay and its one consumer, counted in messages of one stream
+/// (the synchroniser's reference): the replay publishes one only while fewer than `window` are
+/// outstanding, and the consumer says how many it has finished with.
+#[derive(Debug)]
+pub struct Backpressure {
+    stream: StreamKind,
+    window: u64,
+    /// Published so far, and finished with by the consumer.
+    counts: Mutex<(u64, u64)>,
+    done: Condvar,
+}
+
+impl Backpressure {
+    pub fn new(stream: StreamKind, window: u64) -> Arc<Self> {
+        Arc::new(Self {
+            stream,
+            window: window.max(1),
+            counts: Mutex::new((0, 0)),
+            done: Condvar::new(),
+        })
+    }
+
+    /// The producer's side: wait for room for one more message, returning false once `stop()`
+    /// holds (checked every 50 ms).
+    fn acquire(&self, stop: impl Fn() -> bool) -> bool {
+        let mut counts = self.counts.lock().unwrap_or_else(PoisonError::into_inner);
+        while counts.0 - counts.1.min(counts.0) >= self.window {
+            if stop() {
+                return false;
+            }
+            counts = self
+                .done
+                .wait_timeout(counts, Duration::from_millis(50))
+                .unwrap_or_else(PoisonError::into_inner)
+                .0;
+        }
+        counts.0 += 1;
+        true
+    }
+
+    /// The consumer's side: it has finished with `finished` messages in all (rendered them, or
+    /// thrown them away). Never decreases the count.
+    pub fn finished(&self, finished: u64) {
+        let mut counts = self.counts.lock().unwrap_or_else(PoisonError::into_inner);
+        if finished > counts.1 {
+            counts.1 = finished;
+            drop(counts);
+            self.done.notify_all();
+        }
+    }
+
+    /// Messages published and not yet finished with.
+    pub fn outstanding(&self) -> u64 {
+        let counts = self.counts.lock().unwrap_or_else(PoisonError::into_inner);
+        counts.0.saturating_sub(counts.1)
+    }
+}
+
 /// The replay device. Publishes every stream found in the recording.
 #[derive(Debug)]
 pub struct Replay {
     config: ReplayConfig,
     reader: Option<RecordingReader>,
     streams: Vec<StreamKind>,
+    backpressure: Option<Arc<Backpressure>>,
 }
 
 impl Replay {
@@ -60,6 +123,7 @@ impl Replay {
             config,
             reader: None,
             streams: Vec::new(),
+            backpressure: None,
         };
         replay.open()?;
         replay.streams = replay.scan_streams();
@@ -81,6 +145,12 @@ impl Replay {
 
     pub fn reader(&self) -> Option<&RecordingReader> {
         self.reader.as_ref()
+    }
+
+    /// In fast mode, publish no further ahead of the consumer than `backpressure` allows.
+    pub fn with_backpressure(mut self, backpressure: Arc<Backpressure>) -> Self {
+        self.backpressure = Some(backpressure);
+        self
     }
 }
 
@@ -204,7 +274,15 @@ impl Device for Replay {
                         }
                         restamp.apply(&mut msg, (offset_ns as f64 / speed) as u64);
                     }
-                    ReplayMode::Fast => restamp.apply(&mut msg, offset_ns),
+                    ReplayMode::Fast => {
+                        if let Some(gate) = &self.backpressure
+                            && msg.kind() == gate.stream
+                            && !gate.acquire(|| ctx.should_stop())
+                        {
+                            return Ok(RunEnd::StopRequested);
+                        }
+                        restamp.apply(&mut msg, offset_ns);
+                    }
                     ReplayMode::Stepped => {
                         while steps_left == 0 {
                             match ctx.wait_step() {
@@ -349,6 +427,38 @@ mod tests {
                 .windows(2)
                 .all(|w| w[1].stamp.host_ns > w[0].stamp.host_ns)
         );
+        assert_eq!(sub.dropped(), 0);
+    }
+
+    #[test]
+    fn backpressure_holds_a_fast_replay_to_its_consumer() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, source) = write_recording(dir.path(), 6);
+        let bus = Arc::new(Bus::new());
+        // A queue far too small to hold the recording: only the gate keeps it lossless.
+        let sub = bus.depth.subscribe(2);
+        let gate = Backpressure::new(StreamKind::Depth, 2);
+        let config = ReplayConfig {
+            path,
+            mode: ReplayMode::Fast,
+            looping: false,
+        };
+        let replay = Replay::new(config).unwrap().with_backpressure(gate.clone());
+        let mut runner =
+            DeviceRunner::spawn("replay", Box::new(replay), bus, Backoff::default()).unwrap();
+        let mut got = Vec::new();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while got.len() < 6 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(30));
+            assert!(gate.outstanding() <= 2, "ran ahead of the consumer");
+            while let Some(frame) = sub.try_recv() {
+                got.push(frame.seq);
+            }
+            gate.finished(got.len() as u64);
+        }
+        runner.stop();
+        let depth = source.iter().filter(|m| m.kind() == StreamKind::Depth);
+        assert_eq!(got, depth.map(StreamMessage::seq).collect::<Vec<_>>());
         assert_eq!(sub.dropped(), 0);
     }
 

@@ -354,6 +354,11 @@ impl Synchronizer {
         sets
     }
 
+    /// Reference frames waiting for their set to be decided.
+    pub fn pending(&self) -> usize {
+        self.pending.len()
+    }
+
     /// Reference frames waiting plus other messages buffered.
     pub fn buffered(&self) -> usize {
         self.pending.len() + self.buffers.iter().map(VecDeque::len).sum::<usize>()

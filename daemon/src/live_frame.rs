@@ -6,8 +6,11 @@
 //! The render thread and `relightd score` both build frames through [`LiveFrames`], so what is
 //! scored is what runs live.
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::thread::JoinHandle;
 use std::time::Instant;
+
+use crossbeam_channel::{Sender, TrySendError, bounded};
 
 use glam::Vec3;
 use relight_core::camera::CameraModel;
@@ -99,7 +102,7 @@ impl LiveFrames {
                         "[scene] lighting = \"probe\" but the rig has no usable probe calibration: only the lamp lights the scene"
                     );
                 }
-                scene_lights = Some(SceneLights::new(&scene, probe));
+                scene_lights = Some(SceneLights::new(&scene, probe.map(ProbeRunner::Inline)));
                 let depth_camera =
                     calibration.and_then(|c| match c.depth.as_ref().or(c.color.as_ref()) {
                         Some(CameraModel::Pinhole(p)) => Some(*p),
@@ -160,9 +163,19 @@ impl LiveFrames {
         })
     }
 
-    /// Take a probe frame (every one, not only those matched to a frame set: a bracket needs
-    /// each of its exposures). Returns how long it took, milliseconds, when there is a scene to
-    /// light.
+    /// Turn probe frames into estimates on a thread of their own from now on (the daemon), so
+    /// that merging a bracket never delays a frame. Without this they are merged inline, in
+    /// frame order (`relightd score`, whose estimates must not depend on thread timing).
+    pub fn probe_on_own_thread(&mut self) -> std::io::Result<()> {
+        if let Some(lights) = self.scene_lights.as_mut()
+            && let Some(ProbeRunner::Inline(_)) = &lights.probe
+            && let Some(ProbeRunner::Inline(probe)) = lights.probe.take()
+        {
+            lights.probe = Some(ProbeRunner::Thread(ProbeThread::spawn(probe)?));
+        }
+        Ok(())
+    }
+
     /// A report of the tracked lamp (every one, as it arrives): its disc is masked out of the
     /// probe's next estimates so the lamp counts once.
     pub fn lamp_report(&mut self, frame: &Frame<LampState>) {
@@ -173,25 +186,40 @@ impl LiveFrames {
         }
     }
 
+    /// Take a probe frame (every one, not only those matched to a frame set: a bracket needs
+    /// each of its exposures). Inline, returns how long it took, milliseconds, when there is a
+    /// scene to light; on the probe's own thread it only queues the frame.
     pub fn probe_frame(&mut self, frame: &Arc<Frame<ProbeImage>>) -> Option<f64> {
         let scene_lights = self.scene_lights.as_mut()?;
         let start = Instant::now();
-        if let Some(estimate) = scene_lights.probe_frame(frame)
-            && let Some(live) = self.live_scene.as_mut()
+        let merged = scene_lights.probe_frame(frame);
+        self.apply_probe_estimate();
+        merged.then(|| start.elapsed().as_secs_f64() * 1e3)
+    }
+
+    /// Light the live scene with the probe's newest estimate, when it has a new one. Returns
+    /// how long the probe's thread took to make it, milliseconds.
+    fn apply_probe_estimate(&mut self) -> Option<f64> {
+        let scene_lights = self.scene_lights.as_mut()?;
+        let ms = scene_lights.take_new_estimate()?;
+        if let (Some(estimate), Some(live)) =
+            (&scene_lights.probe_estimate, self.live_scene.as_mut())
         {
             live.set_probe_estimate(&estimate.environment, &estimate.lights);
         }
-        Some(start.elapsed().as_secs_f64() * 1e3)
+        Some(ms)
     }
 
     /// The scene frame of `set` (number `seq`). Untracked, it carries the camera image alone
     /// (nothing is reconstructed with a pose that is not known).
     pub fn frame(&mut self, set: &FrameSet, seq: u64, lights: &LightsBoard) -> LiveFrame {
+        let probe_ms = self.apply_probe_estimate();
         let start = Instant::now();
         let tracking = self
             .tracker
             .update(set.stamp.host_ns, set.markers.as_ref().map(|m| &m.payload));
         let mut timings = vec![("tracking", start.elapsed().as_secs_f64() * 1e3)];
+        timings.extend(probe_ms.map(|ms| ("probe", ms)));
         let mut scene = SceneFrame {
             stamp: set.stamp,
             seq,
@@ -242,6 +270,117 @@ impl LiveFrames {
     }
 }
 
+/// Push one probe frame; the estimate when it completes a bracket.
+fn merge_probe_frame(
+    probe: &mut ProbeLighting,
+    frame: &Arc<Frame<ProbeImage>>,
+) -> Option<ProbeEstimate> {
+    probe
+        .push(frame)
+        .inspect_err(|error| tracing::warn!(%error, "probe bracket not used"))
+        .ok()
+        .flatten()
+}
+
+/// Where probe frames become estimates.
+enum ProbeRunner {
+    Inline(ProbeLighting),
+    Thread(ProbeThread),
+}
+
+impl ProbeRunner {
+    fn track_light(&mut self, host_ns: u64, position_in_world: Vec3) {
+        match self {
+            Self::Inline(probe) => probe.track_light(host_ns, position_in_world),
+            Self::Thread(thread) => thread.send(ProbeInput::Light(host_ns, position_in_world)),
+        }
+    }
+}
+
+enum ProbeInput {
+    Frame(Arc<Frame<ProbeImage>>),
+    Light(u64, Vec3),
+}
+
+/// Probe frames and lamp reports queued for the probe's thread before new ones are dropped:
+/// several brackets' worth, so that only a thread that has fallen far behind loses frames.
+const PROBE_QUEUE: usize = 32;
+
+/// [`ProbeLighting`] on its own thread. Its newest estimate waits in a one-slot mailbox (a newer
+/// one replaces it) for the next frame to take.
+struct ProbeThread {
+    input: Option<Sender<ProbeInput>>,
+    latest: Arc<Mutex<Option<(ProbeEstimate, f64)>>>,
+    dropped: u64,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl ProbeThread {
+    fn spawn(mut probe: ProbeLighting) -> std::io::Result<Self> {
+        let (input, inputs) = bounded(PROBE_QUEUE);
+        let latest = Arc::new(Mutex::new(None));
+        let thread = {
+            let latest = Arc::clone(&latest);
+            std::thread::Builder::new()
+                .name("probe".into())
+                .spawn(move || {
+                    for item in inputs {
+                        match item {
+                            ProbeInput::Light(host_ns, position) => {
+                                probe.track_light(host_ns, position);
+                            }
+                            ProbeInput::Frame(frame) => {
+                                let start = Instant::now();
+                                if let Some(estimate) = merge_probe_frame(&mut probe, &frame) {
+                                    let ms = start.elapsed().as_secs_f64() * 1e3;
+                                    *latest.lock().unwrap_or_else(PoisonError::into_inner) =
+                                        Some((estimate, ms));
+                                }
+                            }
+                        }
+                    }
+                })?
+        };
+        Ok(Self {
+            input: Some(input),
+            latest,
+            dropped: 0,
+            thread: Some(thread),
+        })
+    }
+
+    fn send(&mut self, item: ProbeInput) {
+        let Some(input) = &self.input else { return };
+        if let Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) = input.try_send(item) {
+            self.dropped += 1;
+            if self.dropped.is_power_of_two() {
+                tracing::warn!(
+                    dropped = self.dropped,
+                    "the probe's thread is behind; probe input dropped"
+                );
+            }
+        }
+    }
+
+    fn take_latest(&self) -> Option<(ProbeEstimate, f64)> {
+        self.latest
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take()
+    }
+}
+
+impl Drop for ProbeThread {
+    fn drop(&mut self) {
+        self.input = None;
+        if let Some(thread) = self.thread.take()
+            && thread.join().is_err()
+        {
+            tracing::error!("probe thread panicked");
+        }
+    }
+}
+
 /// The colour camera's decoding for albedo measurement, from the rig calibration.
 fn surface_albedo_decoding(rig: &RigCalibration) -> anyhow::Result<ColorDecoding> {
     if rig.color_response.is_empty() {
@@ -263,14 +402,16 @@ struct SceneLights {
     /// The scene file's environment map as SH (zero without one).
     scene_sh9: Sh9Rgb,
     /// The probe's estimate of the live scene (with a probe in the rig's calibration).
-    probe: Option<ProbeLighting>,
+    probe: Option<ProbeRunner>,
     probe_estimate: Option<ProbeEstimate>,
+    /// How long the estimate in `probe_estimate` took, until the frames' side has taken it.
+    new_estimate_ms: Option<f64>,
     /// What the last published estimate was made of.
     published: Option<(Vec<Light>, Option<Timestamp>)>,
 }
 
 impl SceneLights {
-    fn new(scene: &Scene, probe: Option<ProbeLighting>) -> Self {
+    fn new(scene: &Scene, probe: Option<ProbeRunner>) -> Self {
         Self {
             reference_point: scene
                 .virtual_bounds()
@@ -282,23 +423,40 @@ impl SceneLights {
                 .unwrap_or(Sh9Rgb::ZERO),
             probe,
             probe_estimate: None,
+            new_estimate_ms: None,
             published: None,
         }
     }
 
-    /// Take a probe frame; returns the new estimate when it completes a bracket.
-    fn probe_frame(&mut self, frame: &Arc<Frame<ProbeImage>>) -> Option<&ProbeEstimate> {
-        match self.probe.as_mut()?.push(frame) {
-            Ok(Some(estimate)) => {
-                self.probe_estimate = Some(estimate);
-                self.probe_estimate.as_ref()
+    /// Take a probe frame; true when it was merged here, inline (the time it took is the
+    /// probe's), false when it went to the probe's thread or there is no probe.
+    fn probe_frame(&mut self, frame: &Arc<Frame<ProbeImage>>) -> bool {
+        match self.probe.as_mut() {
+            Some(ProbeRunner::Inline(probe)) => {
+                let start = Instant::now();
+                if let Some(estimate) = merge_probe_frame(probe, frame) {
+                    self.probe_estimate = Some(estimate);
+                    self.new_estimate_ms = Some(start.elapsed().as_secs_f64() * 1e3);
+                }
+                true
             }
-            Ok(None) => None,
-            Err(error) => {
-                tracing::warn!(%error, "probe bracket not used");
-                None
+            Some(ProbeRunner::Thread(thread)) => {
+                thread.send(ProbeInput::Frame(Arc::clone(frame)));
+                false
             }
+            None => false,
         }
+    }
+
+    /// The time the newest estimate took, once, when there is one the frames have not used.
+    fn take_new_estimate(&mut self) -> Option<f64> {
+        if let Some(ProbeRunner::Thread(thread)) = &self.probe
+            && let Some((estimate, ms)) = thread.take_latest()
+        {
+            self.probe_estimate = Some(estimate);
+            self.new_estimate_ms = Some(ms);
+        }
+        self.new_estimate_ms.take()
     }
 
     /// Publish what `live` is lit by now, if it changed since the last time.

@@ -1,11 +1,18 @@
 //! The running daemon: devices → bus → synchroniser → engine → sinks, and the control surface
 //! that steers it.
 //!
-//! Threads: one per device (its [`DeviceRunner`]), one render thread (synchronise, render,
-//! write outputs and snapshots), the recorder, and the control server's. Commands from the
+//! Threads: one per device (its [`DeviceRunner`]), one render thread (synchronise, register,
+//! reconstruct, render), the light probe's ([`LiveFrames::probe_on_own_thread`]), the image
+//! writer (outputs and snapshots), the recorder, and the control server's. Commands from the
 //! control socket reach the render thread through shared slots that it reads at frame
 //! boundaries — an engine is built on the control thread and only swapped in by the render
-//! thread, so a slow build never stalls a frame.
+//! thread, so a slow build never stalls a frame. The render thread never touches a file.
+//!
+//! Latency policy: with live sources (devices, the simulator, a realtime replay) the render
+//! thread renders the newest complete frame set and skips the older ones, counting them
+//! ([`FramesSkipped`]), so a slow engine shows the camera late by its own render time, not by a
+//! growing queue. Fast and stepped replays are lossless instead: every frame set is rendered,
+//! and a fast replay waits for the render thread ([`Backpressure`]).
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
@@ -18,8 +25,10 @@ use anyhow::Context as _;
 use crossbeam_channel::{Receiver, Sender, bounded};
 use relight_backends::device::{Backoff, DeviceStatus as BackendStatus, Stepper};
 use relight_backends::sim::device::{SimDevice, SimSourceConfig};
-use relight_backends::{Device as _, DeviceRunner, DeviceState, Replay, ReplayConfig, ReplayMode};
-use relight_core::bus::Bus;
+use relight_backends::{
+    Backpressure, Device as _, DeviceRunner, DeviceState, Replay, ReplayConfig, ReplayMode,
+};
+use relight_core::bus::{Bus, Subscription};
 use relight_core::frame::host_now_ns;
 use relight_core::recording::RecordingMeta;
 use relight_core::sync::{FrameSet, SyncConfig as CoreSyncConfig, Synchronizer};
@@ -31,12 +40,12 @@ use serde_json::{Map, Value, json};
 use crate::config::{self, Config, SourceConfig};
 use crate::control::lights::LightsBoard;
 use crate::control::types::{
-    AlbedoStatus, ControlError, ControlTarget, DeviceStatus, EngineInfo, RecordingStatus,
-    StageTiming, StatusReport, SyncStreamStatus, TrackingStatus,
+    AlbedoStatus, ControlError, ControlTarget, DeviceStatus, EngineInfo, FramesSkipped,
+    Percentiles, RecordingStatus, StageTiming, StatusReport, SyncStreamStatus, TrackingStatus,
 };
 use crate::live_frame::LiveFrames;
-use crate::sinks::png_out::write_png;
-use crate::sinks::recorder::Recorder;
+use crate::sinks::recorder::{Recorder, RecorderError};
+use crate::sinks::writer::{ImageWriter, Write};
 use crate::timing::StageStats;
 use crate::tracking::TrackingReport;
 use relight_engines::surface_albedo::AlbedoReport;
@@ -45,6 +54,19 @@ use relight_engines::surface_albedo::AlbedoReport;
 const SNAPSHOT_TIMEOUT: Duration = Duration::from_secs(3);
 /// Frames of timing history behind the percentiles in status reports.
 const TIMING_WINDOW: usize = 512;
+/// Messages the render thread's bus queue holds: several seconds of every stream.
+const RENDER_QUEUE: usize = 1024;
+/// Reference frames a fast replay may run ahead of the render thread. More than the
+/// synchroniser's `max_wait` spans at 30 Hz, so a set can always be decided on the data alone,
+/// and well under its buffer bound.
+const FAST_REPLAY_WINDOW: u64 = 16;
+/// How long the render loop may go without a heartbeat before the watchdog is withheld: this
+/// many times the slowest recent frame, and never less than the watchdog's own half-interval.
+const STALL_FRAMES: u64 = 4;
+/// The allowance before the first frame of an engine is timed (pipelines compile lazily).
+const FIRST_FRAME_STALL_MS: u64 = 120_000;
+/// Window behind `render_fps`.
+const FPS_WINDOW: Duration = Duration::from_secs(2);
 
 /// Options that are not in the configuration file (command-line only).
 #[derive(Debug, Clone, Default)]
@@ -80,7 +102,14 @@ struct Shared {
     pending: Mutex<Option<Pending>>,
     pending_sync: Mutex<Option<CoreSyncConfig>>,
     stages: Mutex<Vec<StageStats>>,
+    latency: Mutex<StageStats>,
+    /// When the recent composites were ready (the last `FPS_WINDOW`).
+    rendered_at: Mutex<VecDeque<Instant>>,
     frame_sets: AtomicU64,
+    frames_rendered: AtomicU64,
+    skipped_superseded: AtomicU64,
+    skipped_sync: AtomicU64,
+    skipped_queue: AtomicU64,
     sync_missing: AtomicU64,
     sync_streams: Mutex<Vec<SyncStreamStatus>>,
     render_errors: AtomicU64,
@@ -95,8 +124,12 @@ struct Shared {
     recorder: Recorder,
     /// The lighting estimate published on the control socket (`lights.*`).
     lights: Arc<LightsBoard>,
-    /// Milliseconds since `started` at the render loop's last iteration (the watchdog's view).
+    /// Writes outputs and snapshots off the render thread.
+    writer: ImageWriter,
+    /// Milliseconds since `started` at the render loop's last heartbeat (between iterations
+    /// and between a frame's stages), and how long it may go without one (the watchdog's view).
     heartbeat_ms: AtomicU64,
+    stall_limit_ms: AtomicU64,
     stop: AtomicBool,
     finished: AtomicBool,
 }
@@ -162,6 +195,9 @@ impl Pipeline {
             .build(&config.engine.name, &params_map(&config.engine.params))
             .with_context(|| format!("{}: [engine]", config.path.display()))?;
         let bus = Arc::new(Bus::new());
+        // Before any source runs, so the render thread sees their first messages.
+        let subscription = bus.all.subscribe_named("render", RENDER_QUEUE);
+        let mut backpressure = None;
 
         let mut meta = RecordingMeta {
             calibration: None,
@@ -184,6 +220,14 @@ impl Pipeline {
                     looping: replay.loop_playback,
                 })
                 .with_context(|| format!("{}: [replay]", config.path.display()))?;
+                let device = match replay.mode {
+                    config::ReplayMode::Fast => {
+                        let gate = Backpressure::new(config.sync.reference, FAST_REPLAY_WINDOW);
+                        backpressure = Some(gate.clone());
+                        device.with_backpressure(gate)
+                    }
+                    _ => device,
+                };
                 meta.calibration = device.reader().and_then(|r| r.meta().calibration.clone());
                 expect_only_recorded_streams(&mut sync, &device.streams(), &replay.path);
                 runners.push(DeviceRunner::spawn(
@@ -227,13 +271,18 @@ impl Pipeline {
         }
         let synchronizer = Synchronizer::new(sync)
             .with_context(|| format!("{}: [sync]", config.path.display()))?;
-        let live = LiveFrames::new(&config, meta.calibration.as_ref(), &registry)?;
+        let mut live = LiveFrames::new(&config, meta.calibration.as_ref(), &registry)?;
+        live.probe_on_own_thread()?;
         let passthrough = registry.build("passthrough", &Map::new())?.engine;
         let recorder = Recorder::spawn(&bus, config.recorder.queue_frames, meta)?;
         let autostart = config
             .recorder
             .autostart
             .then(|| config.recorder.dir.clone());
+        let lossless = matches!(
+            &config.source,
+            SourceConfig::Replay(r) if r.mode != config::ReplayMode::Realtime
+        );
         let steppers = match &config.source {
             SourceConfig::Replay(r) if r.mode == config::ReplayMode::Stepped => {
                 runners.iter().map(DeviceRunner::stepper).collect()
@@ -250,7 +299,13 @@ impl Pipeline {
             pending: Mutex::new(None),
             pending_sync: Mutex::new(None),
             stages: Mutex::new(Vec::new()),
+            latency: Mutex::new(StageStats::new("latency", TIMING_WINDOW)),
+            rendered_at: Mutex::new(VecDeque::new()),
             frame_sets: AtomicU64::new(0),
+            frames_rendered: AtomicU64::new(0),
+            skipped_superseded: AtomicU64::new(0),
+            skipped_sync: AtomicU64::new(0),
+            skipped_queue: AtomicU64::new(0),
             sync_missing: AtomicU64::new(0),
             sync_streams: Mutex::new(Vec::new()),
             render_errors: AtomicU64::new(0),
@@ -262,7 +317,9 @@ impl Pipeline {
             steppers,
             recorder,
             lights: Arc::new(LightsBoard::new()),
+            writer: ImageWriter::spawn()?,
             heartbeat_ms: AtomicU64::new(0),
+            stall_limit_ms: AtomicU64::new(FIRST_FRAME_STALL_MS),
             stop: AtomicBool::new(false),
             finished: AtomicBool::new(false),
         });
@@ -271,17 +328,17 @@ impl Pipeline {
             shared
                 .recorder
                 .start(path)
-                .map_err(anyhow::Error::msg)
+                .map_err(anyhow::Error::new)
                 .context("[recorder] autostart")?;
         }
         let render = {
             let shared = shared.clone();
-            let subscription = shared.bus.all.subscribe_named("sync", 1024);
             std::thread::Builder::new()
                 .name("render".into())
                 .spawn(move || {
                     RenderLoop {
                         shared: &shared,
+                        subscription,
                         synchronizer,
                         engine: built.engine,
                         passthrough,
@@ -289,10 +346,15 @@ impl Pipeline {
                         relit: RelitFrame::default(),
                         arrivals: VecDeque::new(),
                         exit_at_end: options.exit_at_end,
+                        lossless,
+                        backpressure,
+                        data_clock_ns: 0,
+                        references_received: 0,
+                        newest: None,
                         sync_stats_at: 0,
                         sync_stats_time: Instant::now(),
                     }
-                    .run(&subscription)
+                    .run()
                 })?
         };
         Ok(Self {
@@ -321,12 +383,17 @@ impl Pipeline {
         self.shared.finished.load(Ordering::Acquire)
     }
 
-    /// Whether the render loop iterated within `within` (for the systemd watchdog).
+    /// Whether the render loop is alive (for the systemd watchdog): its last heartbeat is no
+    /// older than `within`, or than [`STALL_FRAMES`] times its slowest recent frame (the first
+    /// frame of an engine gets [`FIRST_FRAME_STALL_MS`]), so a slow adapter is not mistaken
+    /// for a hung one.
     pub fn is_healthy(&self, within: Duration) -> bool {
         let now_ms = self.shared.started.elapsed().as_millis() as u64;
         let beat = self.shared.heartbeat_ms.load(Ordering::Acquire);
+        let limit_ms =
+            (within.as_millis() as u64).max(self.shared.stall_limit_ms.load(Ordering::Acquire));
         !self.render.as_ref().is_none_or(JoinHandle::is_finished)
-            && now_ms.saturating_sub(beat) <= within.as_millis() as u64
+            && now_ms.saturating_sub(beat) <= limit_ms
     }
 
     pub fn status(&self) -> StatusReport {
@@ -364,6 +431,8 @@ fn recording_path(dir: &Path) -> PathBuf {
 
 struct RenderLoop<'a> {
     shared: &'a Shared,
+    /// Every message of every stream, subscribed before the sources started.
+    subscription: Subscription<StreamMessage>,
     synchronizer: Synchronizer,
     engine: Box<dyn Engine>,
     /// Shows the camera image while the camera is untracked (no Δ rather than a wrong one).
@@ -371,56 +440,42 @@ struct RenderLoop<'a> {
     /// Registers the camera and builds each frame's scene for the GPU engines.
     live: LiveFrames,
     relit: RelitFrame,
-    /// Wall-clock arrival of recent reference frames, to time how long sets wait in the sync.
+    /// Wall-clock arrival of recent reference frames, to time how long sets wait to render.
     arrivals: VecDeque<(u64, Instant)>,
     exit_at_end: bool,
+    /// Render every frame set (fast and stepped replays) instead of the newest one.
+    lossless: bool,
+    /// A fast replay's flow control: told how many reference frames are done with.
+    backpressure: Option<Arc<Backpressure>>,
+    /// The newest host stamp seen: the synchroniser's clock in lossless replays, whose stamps
+    /// are the recording's and run ahead of (or behind) the wall clock.
+    data_clock_ns: u64,
+    references_received: u64,
+    /// The newest decided set not rendered yet (live sources).
+    newest: Option<FrameSet>,
     /// Frame sets and time at the last copy of the sync counters into `Shared`.
     sync_stats_at: u64,
     sync_stats_time: Instant,
 }
 
 impl RenderLoop<'_> {
-    fn run(mut self, subscription: &relight_core::bus::Subscription<StreamMessage>) {
+    fn run(mut self) {
         let shared = self.shared;
-        // The synchroniser's clock: the wall clock, or the data when a replay runs ahead of it.
-        // A stepped replay runs on the data alone, or every pause would emit incomplete sets.
-        let mut data_clock_ns = 0u64;
-        let stepped = !shared.steppers.is_empty();
         while !shared.stop.load(Ordering::Acquire) {
-            shared.heartbeat_ms.store(
-                shared.started.elapsed().as_millis() as u64,
-                Ordering::Release,
-            );
+            self.heartbeat();
             if let Some(sync) = lock(&shared.pending_sync).take() {
                 match Synchronizer::new(sync) {
                     Ok(s) => self.synchronizer = s,
                     Err(error) => tracing::warn!(%error, "sync settings not applied"),
                 }
             }
-            let mut received = subscription.recv_timeout(Duration::from_millis(10));
+            let mut received = self.subscription.recv_timeout(Duration::from_millis(10));
             while let Some(msg) = received {
-                let host_ns = msg.stamp().host_ns;
-                data_clock_ns = data_clock_ns.max(host_ns);
-                if msg.kind() == self.synchronizer.config().reference {
-                    if self.arrivals.len() == 64 {
-                        self.arrivals.pop_front();
-                    }
-                    self.arrivals.push_back((host_ns, Instant::now()));
-                }
-                match &msg {
-                    StreamMessage::Probe(frame) => self.probe_frame(frame),
-                    StreamMessage::Lamp(frame) => self.live.lamp_report(frame),
-                    _ => {}
-                }
-                self.synchronizer.push(msg);
-                received = subscription.try_recv();
+                self.receive(msg);
+                received = self.subscription.try_recv();
             }
-            let now_ns = if stepped {
-                data_clock_ns
-            } else {
-                host_now_ns().max(data_clock_ns)
-            };
-            while let Some(set) = self.synchronizer.pop_ready(now_ns) {
+            self.take_ready();
+            if let Some(set) = self.newest.take() {
                 self.process(set);
             }
             self.publish_sync_stats();
@@ -428,9 +483,14 @@ impl RenderLoop<'_> {
                 .devices
                 .iter()
                 .all(|d| d.state() == DeviceState::Stopped);
-            if sources_ended && subscription.is_empty() && !shared.finished.load(Ordering::Acquire)
+            if sources_ended
+                && self.subscription.is_empty()
+                && !shared.finished.load(Ordering::Acquire)
             {
                 for set in self.synchronizer.flush() {
+                    self.offer(set);
+                }
+                if let Some(set) = self.newest.take() {
                     self.process(set);
                 }
                 self.sync_stats_time = Instant::now() - Duration::from_secs(1);
@@ -450,9 +510,78 @@ impl RenderLoop<'_> {
         }
     }
 
+    fn heartbeat(&self) {
+        self.shared.heartbeat_ms.store(
+            self.shared.started.elapsed().as_millis() as u64,
+            Ordering::Release,
+        );
+    }
+
+    /// One message off the bus: the probe and the lamp take theirs at once (a bracket needs
+    /// every exposure), then the synchroniser, and whatever set that decides.
+    fn receive(&mut self, msg: StreamMessage) {
+        let host_ns = msg.stamp().host_ns;
+        self.data_clock_ns = self.data_clock_ns.max(host_ns);
+        if msg.kind() == self.synchronizer.config().reference {
+            self.references_received += 1;
+            if self.arrivals.len() == 64 {
+                self.arrivals.pop_front();
+            }
+            self.arrivals.push_back((host_ns, Instant::now()));
+        }
+        match &msg {
+            StreamMessage::Probe(frame) => self.probe_frame(frame),
+            StreamMessage::Lamp(frame) => self.live.lamp_report(frame),
+            _ => {}
+        }
+        self.synchronizer.push(msg);
+        self.take_ready();
+    }
+
+    /// Every set the synchroniser has decided by now.
+    fn take_ready(&mut self) {
+        let now_ns = if self.lossless {
+            self.data_clock_ns
+        } else {
+            host_now_ns().max(self.data_clock_ns)
+        };
+        while let Some(set) = self.synchronizer.pop_ready(now_ns) {
+            self.offer(set);
+        }
+        self.release_backpressure();
+    }
+
+    /// A decided set: rendered now in a lossless replay, else kept as the newest, replacing
+    /// (skipping) an older one not rendered yet.
+    fn offer(&mut self, set: FrameSet) {
+        if self.lossless {
+            self.process(set);
+            self.release_backpressure();
+        } else if self.newest.replace(set).is_some() {
+            self.shared
+                .skipped_superseded
+                .fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Tell a fast replay how many reference frames are done with: read, and no longer
+    /// waiting in the synchroniser (rendered or discarded), plus what the queue dropped.
+    fn release_backpressure(&self) {
+        if let Some(gate) = &self.backpressure {
+            gate.finished(
+                (self.references_received + self.subscription.dropped())
+                    .saturating_sub(self.synchronizer.pending() as u64),
+            );
+        }
+    }
+
     /// Copy the synchroniser's counters for status reports, a few times a second.
     fn publish_sync_stats(&mut self) {
-        let sets = self.shared.frame_sets.load(Ordering::Relaxed);
+        let shared = self.shared;
+        shared
+            .skipped_queue
+            .store(self.subscription.dropped(), Ordering::Relaxed);
+        let sets = shared.frame_sets.load(Ordering::Relaxed);
         if sets == self.sync_stats_at {
             return;
         }
@@ -463,13 +592,17 @@ impl RenderLoop<'_> {
         }
         self.sync_stats_at = sets;
         self.sync_stats_time = Instant::now();
-        let expected = &self.synchronizer.config().expected;
-        *lock(&self.shared.sync_streams) = self
-            .synchronizer
-            .stats()
+        let config = self.synchronizer.config();
+        let stats = self.synchronizer.stats();
+        if let Some(reference) = stats.stream(config.reference) {
+            shared
+                .skipped_sync
+                .store(reference.late + reference.dropped, Ordering::Relaxed);
+        }
+        *lock(&shared.sync_streams) = stats
             .streams
             .iter()
-            .filter(|s| expected.contains(&s.kind))
+            .filter(|s| config.expected.contains(&s.kind))
             .map(|s| SyncStreamStatus {
                 stream: s.kind,
                 matched: s.matched,
@@ -506,12 +639,21 @@ impl RenderLoop<'_> {
                 *lock(&self.shared.engine_params) = params;
                 tracing::info!(engine = %name, "engine switched");
                 *lock(&self.shared.engine_name) = name;
+                self.allow_first_frame();
             }
             Pending::Params(params) => {
                 self.engine.set_params(&params);
                 *lock(&self.shared.engine_params) = params;
             }
         }
+    }
+
+    /// A new engine's first frame compiles its pipelines: give the watchdog the first-frame
+    /// allowance until it is timed.
+    fn allow_first_frame(&self) {
+        self.shared
+            .stall_limit_ms
+            .fetch_max(FIRST_FRAME_STALL_MS, Ordering::AcqRel);
     }
 
     /// After a GPU device loss: build the same engine with the same parameters on a new
@@ -524,6 +666,7 @@ impl RenderLoop<'_> {
             Ok(built) => {
                 tracing::warn!(engine = %name, "GPU device lost; engine rebuilt on a new device");
                 self.engine = built.engine;
+                self.allow_first_frame();
             }
             Err(error) => tracing::error!(engine = %name, %error, "rebuilding the engine failed"),
         }
@@ -537,18 +680,23 @@ impl RenderLoop<'_> {
 
     fn process(&mut self, set: FrameSet) {
         let shared = self.shared;
+        let started = Instant::now();
         self.apply_pending();
-        let sync_ms = self
+        let arrived = self
             .arrivals
             .iter()
             .find(|(host_ns, _)| *host_ns == set.stamp.host_ns)
-            .map_or(0.0, |(_, t)| t.elapsed().as_secs_f64() * 1e3);
-        self.record_stage("sync", sync_ms);
+            .map(|(_, t)| *t);
+        self.record_stage(
+            "queue",
+            arrived.map_or(0.0, |t| t.elapsed().as_secs_f64() * 1e3),
+        );
         if !set.missing.is_empty() {
             shared.sync_missing.fetch_add(1, Ordering::Relaxed);
         }
         let seq = shared.frame_sets.fetch_add(1, Ordering::Relaxed);
         let frame = self.live.frame(&set, seq, &shared.lights);
+        self.heartbeat();
         for (name, ms) in &frame.timings {
             self.record_stage(name, *ms);
         }
@@ -562,6 +710,7 @@ impl RenderLoop<'_> {
         };
         let start = Instant::now();
         let rendered = engine.render(&frame.scene, &mut self.relit);
+        self.heartbeat();
         self.record_stage("render", start.elapsed().as_secs_f64() * 1e3);
         match rendered {
             Ok(()) => {
@@ -588,8 +737,39 @@ impl RenderLoop<'_> {
         }
         let start = Instant::now();
         self.write_output(seq);
-        self.record_stage("output", start.elapsed().as_secs_f64() * 1e3);
         self.serve_snapshots(true);
+        self.record_stage("output", start.elapsed().as_secs_f64() * 1e3);
+        self.composite_ready(&set, arrived, started);
+    }
+
+    /// Count the composite, time its latency, and derive the watchdog's limit from the frame
+    /// times seen.
+    fn composite_ready(&self, set: &FrameSet, arrived: Option<Instant>, started: Instant) {
+        let shared = self.shared;
+        let now = Instant::now();
+        let latency_ms = match (self.lossless, arrived) {
+            (true, Some(arrived)) => now.duration_since(arrived).as_secs_f64() * 1e3,
+            _ => host_now_ns().saturating_sub(set.stamp.host_ns) as f64 * 1e-6,
+        };
+        lock(&shared.latency).record(latency_ms);
+        shared.frames_rendered.fetch_add(1, Ordering::Relaxed);
+        let mut rendered_at = lock(&shared.rendered_at);
+        rendered_at.push_back(now);
+        while rendered_at
+            .front()
+            .is_some_and(|t| now.duration_since(*t) > FPS_WINDOW)
+        {
+            rendered_at.pop_front();
+        }
+        drop(rendered_at);
+        let frame_ms = started.elapsed().as_millis() as u64;
+        let slowest_ms = lock(&shared.stages)
+            .iter()
+            .find(|s| s.name == "render")
+            .map_or(0.0, |s| s.quantile_ms(1.0)) as u64;
+        shared
+            .stall_limit_ms
+            .store(STALL_FRAMES * frame_ms.max(slowest_ms), Ordering::Release);
     }
 
     fn write_output(&self, seq: u64) {
@@ -598,34 +778,29 @@ impl RenderLoop<'_> {
         if !seq.is_multiple_of(u64::from(output.every_n.max(1))) {
             return;
         }
-        let path = dir.join(format!("composite_{seq:06}.png"));
-        if let Err(error) = std::fs::create_dir_all(&dir)
-            .map_err(|e| e.to_string())
-            .and_then(|()| write_png(&path, &self.relit.composite).map_err(|e| e.to_string()))
-        {
-            tracing::warn!(%error, "output frame not written");
-        }
+        self.shared.writer.offer(Write {
+            dir,
+            file_name: format!("composite_{seq:06}.png"),
+            image: self.relit.composite.clone(),
+            reply: None,
+        });
     }
 
-    /// Answer snapshot requests with the last rendered frame. Called after each frame, and
-    /// when idle (`fresh = false`) once sources have ended, so a finished replay can still be
-    /// snapshotted.
+    /// Hand snapshot requests the last rendered frame, for the writer to write. Called after
+    /// each frame, and when idle (`fresh = false`) once sources have ended, so a finished replay
+    /// can still be snapshotted.
     fn serve_snapshots(&self, fresh: bool) {
         if !fresh && self.relit.composite.pixel_count() == 0 {
             return;
         }
         while let Ok(request) = self.shared.snapshots.1.try_recv() {
-            let _ = request.reply.send(self.write_snapshot(&request.dir));
+            self.shared.writer.offer(Write {
+                dir: request.dir,
+                file_name: format!("snapshot_{:06}_composite.png", self.relit.seq),
+                image: self.relit.composite.clone(),
+                reply: Some(request.reply),
+            });
         }
-    }
-
-    fn write_snapshot(&self, dir: &Path) -> Result<Vec<PathBuf>, String> {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
-        let stem = format!("snapshot_{:06}", self.relit.seq);
-        let path = dir.join(format!("{stem}_composite.png"));
-        write_png(&path, &self.relit.composite).map_err(|e| e.to_string())?;
-        Ok(vec![path])
     }
 }
 
@@ -669,12 +844,52 @@ fn status_report(shared: &Shared) -> StatusReport {
             p99_ms: s.quantile_ms(0.99),
         })
         .collect();
+    let reference = lock(&shared.config).sync.reference;
+    let reference_frames = shared
+        .devices
+        .iter()
+        .map(|d| d.stream_frames(reference))
+        .sum();
+    let superseded = shared.skipped_superseded.load(Ordering::Relaxed);
+    let sync_discarded = shared.skipped_sync.load(Ordering::Relaxed);
+    let queue_dropped = shared.skipped_queue.load(Ordering::Relaxed);
+    let render_fps = {
+        let rendered_at = lock(&shared.rendered_at);
+        let window = shared.started.elapsed().min(FPS_WINDOW).as_secs_f64();
+        let recent = rendered_at
+            .iter()
+            .filter(|t| t.elapsed() <= FPS_WINDOW)
+            .count();
+        if window > 0.0 {
+            recent as f64 / window
+        } else {
+            0.0
+        }
+    };
     StatusReport {
         uptime_s: shared.started.elapsed().as_secs_f64(),
         engine: lock(&shared.engine_name).clone(),
         devices,
         stages,
         frame_sets: shared.frame_sets.load(Ordering::Relaxed),
+        reference_frames,
+        frames_rendered: shared.frames_rendered.load(Ordering::Relaxed),
+        frames_skipped: FramesSkipped {
+            total: superseded + sync_discarded + queue_dropped,
+            superseded,
+            sync_discarded,
+            queue_dropped,
+        },
+        latency_ms: {
+            let latency = lock(&shared.latency);
+            Percentiles {
+                p50: latency.quantile_ms(0.5),
+                p99: latency.quantile_ms(0.99),
+            }
+        },
+        render_fps,
+        outputs_dropped: shared.writer.dropped(),
+        outputs_failed: shared.writer.failed(),
         sync_missing: shared.sync_missing.load(Ordering::Relaxed),
         bus_drops: shared.bus.total_dropped(),
         render_errors: shared.render_errors.load(Ordering::Relaxed),
@@ -702,6 +917,13 @@ fn status_report(shared: &Shared) -> StatusReport {
                 skipped_cells: c.saturated + c.unlit + c.shadowed + c.highlight + c.above_one,
             }
         }),
+    }
+}
+
+fn recorder_error(error: RecorderError) -> ControlError {
+    match error {
+        RecorderError::Busy(message) => ControlError::busy(message),
+        RecorderError::Failed(message) => ControlError::failed(message),
     }
 }
 
@@ -815,14 +1037,14 @@ impl ControlTarget for PipelineControl {
                 recording_path(&dir)
             }
         };
-        self.shared.recorder.start(path).map_err(ControlError::busy)
+        self.shared.recorder.start(path).map_err(recorder_error)
     }
 
     fn record_stop(&self) -> Result<Value, ControlError> {
         self.shared
             .recorder
             .stop_recording()
-            .map_err(ControlError::failed)
+            .map_err(recorder_error)
     }
 
     fn snapshot(&self, path: Option<PathBuf>) -> Result<Vec<PathBuf>, ControlError> {

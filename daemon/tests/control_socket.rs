@@ -10,9 +10,9 @@ use std::time::Duration;
 use relight_core::StreamKind;
 use relight_daemon::control::{
     AlbedoStatus, Client, ClientError, ControlError, ControlServer, ControlServerHandle,
-    ControlTarget, DeviceState, DeviceStatus, EngineInfo, LightsBoard, PeerCred, RecordingStatus,
-    ServerError, ServerOptions, StageTiming, StatusReport, SyncStreamStatus, TrackingStatus, codes,
-    peer_allowed,
+    ControlTarget, DeviceState, DeviceStatus, EngineInfo, FramesSkipped, LightsBoard, PeerCred,
+    Percentiles, RecordingStatus, ServerError, ServerOptions, StageTiming, StatusReport,
+    SyncStreamStatus, TrackingStatus, codes, peer_allowed,
 };
 use relight_daemon::tracking::TrackingState;
 use serde_json::{Map, Value, json};
@@ -62,6 +62,21 @@ fn sample_status(engine: &str, recording: Option<PathBuf>) -> StatusReport {
             p99_ms: 7.5,
         }],
         frame_sets: 1190,
+        reference_frames: 1200,
+        frames_rendered: 1190,
+        frames_skipped: FramesSkipped {
+            total: 10,
+            superseded: 10,
+            sync_discarded: 0,
+            queue_dropped: 0,
+        },
+        latency_ms: Percentiles {
+            p50: 41.0,
+            p99: 67.5,
+        },
+        render_fps: 29.5,
+        outputs_dropped: 0,
+        outputs_failed: 0,
         sync_missing: 10,
         sync_streams: vec![SyncStreamStatus {
             stream: StreamKind::Depth,

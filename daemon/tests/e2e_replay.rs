@@ -128,7 +128,7 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
         .map(|s| s["name"].as_str().unwrap())
         .collect();
     assert!(
-        stages.contains(&"sync") && stages.contains(&"render"),
+        stages.contains(&"queue") && stages.contains(&"render"),
         "{stages:?}"
     );
     let sync = status["sync_streams"].as_array().unwrap();

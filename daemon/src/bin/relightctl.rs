@@ -323,14 +323,25 @@ fn render_status(status: &StatusReport) -> String {
         Some(r) => format!("{} ({} messages)", r.path.display(), r.messages),
         None => "off".to_owned(),
     };
+    let skipped = &status.frames_skipped;
     let mut out = format!(
-        "engine      {} ({} frame sets not rendered)\nuptime      {}\nframe sets  {} ({} incomplete)\nbus drops   {}\nrecording   {}\n",
+        "engine      {} ({} frame sets not rendered)\nuptime      {}\nframe sets  {} rendered of {} ({} incomplete), {:.1} fps\nlatency     p50 {:.1} ms, p99 {:.1} ms (capture to composite)\nskipped     {} (superseded {}, discarded by the synchroniser {}, queue drops {})\nbus drops   {}\noutputs     {} dropped, {} failed\nrecording   {}\n",
         status.engine,
         status.render_errors,
         format_uptime(status.uptime_s),
-        status.frame_sets,
+        status.frames_rendered,
+        status.reference_frames,
         status.sync_missing,
+        status.render_fps,
+        status.latency_ms.p50,
+        status.latency_ms.p99,
+        skipped.total,
+        skipped.superseded,
+        skipped.sync_discarded,
+        skipped.queue_dropped,
         status.bus_drops,
+        status.outputs_dropped,
+        status.outputs_failed,
         recording,
     );
     if let Some(t) = &status.tracking {

@@ -736,14 +736,26 @@ fn parse_params(params: &[String]) -> Result<serde_json::Map<String, serde_json:
 }
 
 fn print_summary(status: &StatusReport, elapsed: Duration) {
+    let skipped = &status.frames_skipped;
     println!(
-        "{} frame sets in {:.2} s ({} with a missing stream), engine {} ({} not rendered), bus drops {}",
-        status.frame_sets,
+        "rendered {} of {} frame sets in {:.2} s ({} with a missing stream), engine {} ({} not rendered)",
+        status.frames_rendered,
+        status.reference_frames,
         elapsed.as_secs_f64(),
         status.sync_missing,
         status.engine,
         status.render_errors,
-        status.bus_drops
+    );
+    println!(
+        "skipped {} (superseded {}, discarded by the synchroniser {}, queue drops {}); latency p50 {:.1} ms p99 {:.1} ms; outputs dropped {} failed {}",
+        skipped.total,
+        skipped.superseded,
+        skipped.sync_discarded,
+        skipped.queue_dropped,
+        status.latency_ms.p50,
+        status.latency_ms.p99,
+        status.outputs_dropped,
+        status.outputs_failed,
     );
     println!(
         "{:<22} {:>7} {:>9} {:>9} {:>9}",

@@ -20,5 +20,6 @@ pub use server::{
 };
 pub use types::{
     AlbedoStatus, ControlError, ControlTarget, DeviceState, DeviceStatus, EngineInfo,
-    RecordingStatus, StageTiming, StatusReport, SyncStreamStatus, TrackingStatus, codes,
+    FramesSkipped, Percentiles, RecordingStatus, StageTiming, StatusReport, SyncStreamStatus,
+    TrackingStatus, codes,
 };

@@ -151,8 +151,32 @@ pub struct StatusReport {
     pub devices: Vec<DeviceStatus>,
     /// Pipeline stages in data-flow order.
     pub stages: Vec<StageTiming>,
-    /// Frame sets emitted by the synchroniser.
+    /// Frame sets taken to render (each one rendered, or counted in `render_errors`).
     pub frame_sets: u64,
+    /// Messages of the synchroniser's reference stream the sources produced: every one is a
+    /// frame set rendered, skipped (`frames_skipped`) or still on its way.
+    #[serde(default)]
+    pub reference_frames: u64,
+    /// Composites rendered.
+    #[serde(default)]
+    pub frames_rendered: u64,
+    /// Frame sets not rendered, by reason (see [`FramesSkipped`]).
+    #[serde(default)]
+    pub frames_skipped: FramesSkipped,
+    /// Capture to composite: from the reference frame's host stamp (its arrival at the render
+    /// thread in fast and stepped replays, whose stamps are the recording's clock) until the
+    /// composite is ready, over the recent frames.
+    #[serde(default)]
+    pub latency_ms: Percentiles,
+    /// Composites per second over the last two seconds.
+    #[serde(default)]
+    pub render_fps: f64,
+    /// Output PNGs and snapshots dropped because the writer thread was behind, or whose write
+    /// failed.
+    #[serde(default)]
+    pub outputs_dropped: u64,
+    #[serde(default)]
+    pub outputs_failed: u64,
     /// Frame sets emitted with a stream missing (after `sync.max_wait_ms`).
     pub sync_missing: u64,
     /// Frames dropped by bus queues (drop-oldest).
@@ -204,6 +228,27 @@ pub struct TrackingStatus {
     pub world_from_camera: Option<relight_core::Pose>,
     /// Frame sets shown without Δ because the camera was untracked.
     pub untracked_frames: u64,
+}
+
+/// Frame sets (reference frames) that were not rendered, by reason. With live sources the
+/// render thread renders the newest complete set and skips older ones; fast and stepped
+/// replays skip nothing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct FramesSkipped {
+    pub total: u64,
+    /// A newer set was ready when this one's turn came (the engine is slower than the camera).
+    pub superseded: u64,
+    /// Reference frames the synchroniser discarded: late, out of order or over its buffer.
+    pub sync_discarded: u64,
+    /// Messages (of any stream) the render thread's bus queue dropped before it read them.
+    pub queue_dropped: u64,
+}
+
+/// Median and 99th percentile, milliseconds.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct Percentiles {
+    pub p50: f64,
+    pub p99: f64,
 }
 
 /// The synchroniser's counters for one stream.

@@ -1,6 +1,5 @@
 //! PNG output of images: 8-bit RGB/mono as they are, depth in millimetres as 16-bit grey.
 
-use std::fs::File;
 use std::io::BufWriter;
 use std::path::Path;
 
@@ -22,7 +21,8 @@ pub enum PngError {
     Unsupported { path: String, format: PixelFormat },
 }
 
-/// Write `image` to `path`. Depth in metres is converted to millimetres (invalid → 0).
+/// Write `image` to `path`, a regular file ([`super::safe_file`]). Depth in metres is converted
+/// to millimetres (invalid → 0).
 pub fn write_png(path: &Path, image: &Image) -> Result<(), PngError> {
     let name = path.display().to_string();
     let (color, depth, data): (_, _, Vec<u8>) = match image.format() {
@@ -67,7 +67,7 @@ pub fn write_png(path: &Path, image: &Image) -> Result<(), PngError> {
             return Err(PngError::Unsupported { path: name, format });
         }
     };
-    let file = File::create(path).map_err(|source| PngError::Create {
+    let file = super::safe_file::create_regular(path).map_err(|source| PngError::Create {
         path: name.clone(),
         source,
     })?;
@@ -101,6 +101,7 @@ pub fn tonemap_reinhard(width: u32, height: u32, radiance: &[glam::Vec3]) -> Ima
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::fs::File;
 
     #[test]
     fn depth_png_reads_back_in_millimetres() {

@@ -1,26 +1,46 @@
 //! The MCAP recorder: a thread with its own bus subscription (every message of every stream,
 //! bounded queue, drop-oldest so a slow disk never stalls capture) that writes while recording.
+//!
+//! The file is opened on that thread, as a regular file only ([`super::safe_file`]: a FIFO or a
+//! link is refused at once). A request waits for the thread at most [`ANSWER_TIMEOUT`]: a
+//! recorder stuck on its disk answers "busy" instead of holding the control connection.
 
+use std::fs::File;
+use std::io::BufWriter;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use crossbeam_channel::{Receiver, Sender, bounded};
+use crossbeam_channel::{Receiver, Sender, TrySendError, bounded};
 use relight_core::StreamMessage;
 use relight_core::bus::{Bus, Subscription};
 use relight_core::recording::{RecordingMeta, RecordingWriter};
 use serde_json::{Value, json};
 
+/// How long a request waits for the recorder thread's answer.
+pub const ANSWER_TIMEOUT: Duration = Duration::from_secs(3);
+
 enum Command {
     Start {
         path: PathBuf,
-        reply: Sender<Result<PathBuf, String>>,
+        reply: Sender<Result<PathBuf, RecorderError>>,
     },
     Stop {
-        reply: Sender<Result<Value, String>>,
+        reply: Sender<Result<Value, RecorderError>>,
     },
+}
+
+/// Why a recorder request did not do what it asked.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum RecorderError {
+    /// Another request is in the way (already recording, or the thread is stuck on its disk):
+    /// try again later.
+    #[error("{0}")]
+    Busy(String),
+    #[error("{0}")]
+    Failed(String),
 }
 
 /// What the status report shows of the recorder.
@@ -91,23 +111,34 @@ impl Recorder {
         &self.status
     }
 
-    pub fn start(&self, path: PathBuf) -> Result<PathBuf, String> {
+    pub fn start(&self, path: PathBuf) -> Result<PathBuf, RecorderError> {
         let (reply, answer) = bounded(1);
         self.send(Command::Start { path, reply }, &answer)
     }
 
-    pub fn stop_recording(&self) -> Result<Value, String> {
+    pub fn stop_recording(&self) -> Result<Value, RecorderError> {
         let (reply, answer) = bounded(1);
         self.send(Command::Stop { reply }, &answer)
     }
 
-    fn send<T>(&self, command: Command, answer: &Receiver<Result<T, String>>) -> Result<T, String> {
-        self.commands
-            .send(command)
-            .map_err(|_| "the recorder thread has ended".to_owned())?;
-        answer
-            .recv_timeout(Duration::from_secs(10))
-            .map_err(|_| "the recorder did not answer within 10 s".to_owned())?
+    fn send<T>(
+        &self,
+        command: Command,
+        answer: &Receiver<Result<T, RecorderError>>,
+    ) -> Result<T, RecorderError> {
+        let stuck = || {
+            RecorderError::Busy(format!(
+                "the recorder has not answered for {} s (its disk may be stuck); try again later",
+                ANSWER_TIMEOUT.as_secs()
+            ))
+        };
+        self.commands.try_send(command).map_err(|e| match e {
+            TrySendError::Full(_) => stuck(),
+            TrySendError::Disconnected(_) => {
+                RecorderError::Failed("the recorder thread has ended".to_owned())
+            }
+        })?;
+        answer.recv_timeout(ANSWER_TIMEOUT).map_err(|_| stuck())?
     }
 }
 
@@ -129,7 +160,7 @@ impl Drop for Recorder {
 
 struct Active {
     path: PathBuf,
-    writer: RecordingWriter<std::io::BufWriter<std::fs::File>>,
+    writer: RecordingWriter<BufWriter<File>>,
     drops_at_start: u64,
 }
 
@@ -146,9 +177,11 @@ fn run(
             match command {
                 Command::Start { path, reply } => {
                     let result = if active.is_some() {
-                        Err("already recording; stop first".to_owned())
+                        Err(RecorderError::Busy(
+                            "already recording; stop first".to_owned(),
+                        ))
                     } else {
-                        RecordingWriter::create(&path, meta)
+                        create(&path, meta)
                             .map(|writer| {
                                 // Discard what queued up before the start.
                                 while subscription.try_recv().is_some() {}
@@ -164,13 +197,15 @@ fn run(
                                 });
                                 path
                             })
-                            .map_err(|e| format!("cannot start recording: {e}"))
+                            .map_err(|e| {
+                                RecorderError::Failed(format!("cannot start recording: {e}"))
+                            })
                     };
                     let _ = reply.send(result);
                 }
                 Command::Stop { reply } => {
                     let result = match active.take() {
-                        None => Err("not recording".to_owned()),
+                        None => Err(RecorderError::Failed("not recording".to_owned())),
                         Some(rec) => finish(rec, subscription, status),
                     };
                     let _ = reply.send(result);
@@ -200,18 +235,27 @@ fn run(
     }
 }
 
+/// A new recording at `path`, a regular file.
+fn create(
+    path: &std::path::Path,
+    meta: &RecordingMeta,
+) -> Result<RecordingWriter<BufWriter<File>>, String> {
+    let file = super::safe_file::create_regular(path).map_err(|e| e.to_string())?;
+    RecordingWriter::new(BufWriter::with_capacity(1 << 20, file), meta).map_err(|e| e.to_string())
+}
+
 fn finish(
     rec: Active,
     subscription: &Subscription<StreamMessage>,
     status: &RecorderStatus,
-) -> Result<Value, String> {
+) -> Result<Value, RecorderError> {
     status.active.store(false, Ordering::Release);
     let messages = rec.writer.messages_written();
     let dropped = subscription.dropped() - rec.drops_at_start;
     let summary = rec
         .writer
         .finish()
-        .map_err(|e| format!("cannot finish {}: {e}", rec.path.display()))?;
+        .map_err(|e| RecorderError::Failed(format!("cannot finish {}: {e}", rec.path.display())))?;
     tracing::info!(path = %rec.path.display(), messages, dropped, "recording finished");
     let per_stream: serde_json::Map<String, Value> = summary
         .messages

@@ -1,0 +1,149 @@
+//! The output writer: a thread that encodes and writes composite PNGs and snapshots, so the
+//! render thread never waits on a disk, a full file system or a path that blocks. Its queue is
+//! bounded; a frame offered while it is full is dropped and counted, never waited for.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::thread::JoinHandle;
+
+use crossbeam_channel::{Sender, TrySendError, bounded};
+use relight_core::Image;
+
+use super::png_out::write_png;
+
+/// Writes queued before new ones are dropped.
+pub const QUEUE_WRITES: usize = 4;
+
+/// One image to write under `dir` as `file_name`; `reply`, when given, hears where it went.
+#[derive(Debug)]
+pub struct Write {
+    pub dir: PathBuf,
+    pub file_name: String,
+    pub image: Image,
+    pub reply: Option<Sender<Result<Vec<PathBuf>, String>>>,
+}
+
+/// Handle to the writer thread; dropping it writes what is queued and joins.
+#[derive(Debug)]
+pub struct ImageWriter {
+    queue: Option<Sender<Write>>,
+    dropped: Arc<AtomicU64>,
+    failed: Arc<AtomicU64>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl ImageWriter {
+    pub fn spawn() -> std::io::Result<Self> {
+        let (queue, jobs) = bounded::<Write>(QUEUE_WRITES);
+        let failed = Arc::new(AtomicU64::new(0));
+        let thread = {
+            let failed = failed.clone();
+            std::thread::Builder::new()
+                .name("image-writer".into())
+                .spawn(move || {
+                    for job in jobs {
+                        let result = write(&job);
+                        if let Err(error) = &result {
+                            let n = failed.fetch_add(1, Ordering::Relaxed);
+                            if n.is_power_of_two() || n == 0 {
+                                tracing::warn!(%error, failed = n + 1, "image not written");
+                            }
+                        }
+                        if let Some(reply) = job.reply {
+                            let _ = reply.send(result);
+                        }
+                    }
+                })?
+        };
+        Ok(Self {
+            queue: Some(queue),
+            dropped: Arc::new(AtomicU64::new(0)),
+            failed,
+            thread: Some(thread),
+        })
+    }
+
+    /// Queue `job` without waiting. A full queue drops it (counted) and answers its reply with
+    /// an error saying so.
+    pub fn offer(&self, job: Write) {
+        let Some(queue) = &self.queue else { return };
+        match queue.try_send(job) {
+            Ok(()) => {}
+            Err(TrySendError::Full(job) | TrySendError::Disconnected(job)) => {
+                self.dropped.fetch_add(1, Ordering::Relaxed);
+                if let Some(reply) = job.reply {
+                    let _ = reply.send(Err(format!(
+                        "the image writer is behind ({QUEUE_WRITES} writes queued); not written"
+                    )));
+                }
+            }
+        }
+    }
+
+    /// Images dropped because the queue was full.
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+
+    /// Images whose write failed.
+    pub fn failed(&self) -> u64 {
+        self.failed.load(Ordering::Relaxed)
+    }
+}
+
+impl Drop for ImageWriter {
+    fn drop(&mut self) {
+        self.queue = None;
+        if let Some(thread) = self.thread.take()
+            && thread.join().is_err()
+        {
+            tracing::error!("image writer thread panicked");
+        }
+    }
+}
+
+fn write(job: &Write) -> Result<Vec<PathBuf>, String> {
+    std::fs::create_dir_all(&job.dir)
+        .map_err(|e| format!("cannot create {}: {e}", job.dir.display()))?;
+    let path = job.dir.join(&job.file_name);
+    write_png(&path, &job.image).map_err(|e| e.to_string())?;
+    Ok(vec![path])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use relight_core::PixelFormat;
+
+    #[test]
+    fn writes_in_order_and_reports_a_refused_path() {
+        let dir = tempfile::tempdir().unwrap();
+        let writer = ImageWriter::spawn().unwrap();
+        let fifo = dir.path().join("f.png");
+        rustix::fs::mknodat(
+            rustix::fs::CWD,
+            &fifo,
+            rustix::fs::FileType::Fifo,
+            rustix::fs::Mode::from_raw_mode(0o644),
+            0,
+        )
+        .unwrap();
+        let (reply, answers) = bounded(2);
+        for name in ["f.png", "ok.png"] {
+            writer.offer(Write {
+                dir: dir.path().to_path_buf(),
+                file_name: name.into(),
+                image: Image::new(2, 2, PixelFormat::Rgb8),
+                reply: Some(reply.clone()),
+            });
+        }
+        let fifo_answer = answers.recv().unwrap();
+        assert!(fifo_answer.unwrap_err().contains("FIFO"));
+        assert_eq!(
+            answers.recv().unwrap().unwrap(),
+            vec![dir.path().join("ok.png")]
+        );
+        assert_eq!((writer.failed(), writer.dropped()), (1, 0));
+    }
+}
