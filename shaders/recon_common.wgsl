@@ -37,8 +37,9 @@ struct Recon {
     code_values: array<vec4<f32>, 64>,
 }
 
-// Binding 0 of every recon pass.
-@group(0) @binding(0) var<uniform> recon: Recon;
+// Binding 0 of every recon pass. Read-only storage rather than uniform: lavapipe specialises
+// shaders on the UBO values their branches read, one cached variant per frame's pose.
+@group(0) @binding(0) var<storage, read> recon: Recon;
 
 const OUTCOME_MERGED: u32 = 0u;
 const OUTCOME_REJECTED: u32 = 1u;

@@ -8,5 +8,6 @@ pub mod live_frame;
 pub mod pipeline;
 pub mod score;
 pub mod sinks;
+pub mod soak;
 pub mod timing;
 pub mod tracking;

@@ -55,7 +55,7 @@ use crate::engine::PassTiming;
 use crate::gpu::{GpuContext, GpuError};
 use crate::shaders;
 use crate::timer::GpuTimer;
-use crate::volume::{timed_pass, uniform_buffer};
+use crate::volume::timed_pass;
 
 /// Why a frame could not be reconstructed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -221,7 +221,15 @@ impl DepthPass {
             select: shaders::compute_pipeline(device, "recon select", shaders::RECON_SELECT),
             normals: shaders::compute_pipeline(device, "recon normals", shaders::RECON_NORMALS),
         };
-        let uniform = uniform_buffer(device, "recon", size_of::<ReconUniform>());
+        // A storage buffer, not a uniform one: lavapipe (Mesa) compiles a shader variant for
+        // every new set of UBO values its branches read and keeps them all, which grew the
+        // daemon by 0.5 MB per frame as the camera moved.
+        let uniform = storage(
+            &ctx,
+            "recon settings",
+            size_of::<ReconUniform>() as u64,
+            wgpu::BufferUsages::empty(),
+        );
         let kernel = storage(
             &ctx,
             "recon kernel",

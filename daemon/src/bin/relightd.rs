@@ -167,6 +167,35 @@ enum Command {
         #[arg(long)]
         summary: bool,
     },
+    /// Replay a recording in a loop (fast, lossless) for a given time, optionally switching
+    /// engines, and print the process's RSS, open descriptors and threads at intervals, with
+    /// the growth after the warm-up at the end.
+    Soak {
+        recording: PathBuf,
+        #[arg(long)]
+        scene: Option<PathBuf>,
+        /// Engines to run; with --switch-every, each in turn (repeatable or comma-separated).
+        #[arg(long = "engine", value_delimiter = ',', default_value = "differential")]
+        engines: Vec<String>,
+        #[arg(long, default_value_t = 60.0)]
+        seconds: f64,
+        /// Switch to the next engine every this many seconds.
+        #[arg(long)]
+        switch_every: Option<f64>,
+        /// Seconds between samples.
+        #[arg(long, default_value_t = 10.0)]
+        sample_every: f64,
+        /// Growth is measured from the first sample after this many seconds.
+        #[arg(long, default_value_t = 60.0)]
+        warmup: f64,
+        /// Write every sample and the summary here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        /// Take `[scene]`, `[tracking]`, `[sync]` and the rest from this configuration file (its
+        /// source and engine are replaced; default: the built-in defaults).
+        #[arg(long = "live-config")]
+        live_config: Option<PathBuf>,
+    },
     /// Validate a configuration file and print it as understood.
     CheckConfig,
     /// Time every engine × setting × scene and measure its Δ error against the reference path
@@ -355,6 +384,68 @@ fn run(cli: Cli) -> Result<()> {
             if let Some(path) = json {
                 std::fs::write(&path, serde_json::to_string_pretty(&report.to_json())?)
                     .with_context(|| format!("writing {}", path.display()))?;
+                println!("wrote {}", path.display());
+            }
+            Ok(())
+        }
+        Command::Soak {
+            recording,
+            scene,
+            engines,
+            seconds,
+            switch_every,
+            sample_every,
+            warmup,
+            json,
+            live_config,
+        } => {
+            let positive = |name: &str, v: f64| {
+                if v.is_finite() && v > 0.0 {
+                    Ok(Duration::from_secs_f64(v))
+                } else {
+                    Err(anyhow::anyhow!("--{name} must be a positive number of seconds"))
+                }
+            };
+            let settings = relight_daemon::soak::SoakSettings {
+                recording,
+                scene,
+                engines,
+                duration: positive("seconds", seconds)?,
+                switch_every: switch_every
+                    .map(|s| positive("switch-every", s))
+                    .transpose()?,
+                sample_every: positive("sample-every", sample_every)?,
+                warmup: Duration::from_secs_f64(warmup.max(0.0)),
+                config: match live_config {
+                    Some(path) => Config::load(&path)?,
+                    None => Config {
+                        path: PathBuf::from("(relightd soak)"),
+                        ..Config::default()
+                    },
+                },
+            };
+            println!(
+                "{:>8} {:>9} {:>5} {:>7} {:>9} {:>8}  engine",
+                "t s", "RSS MB", "fds", "threads", "frames", "switches"
+            );
+            let report = relight_daemon::soak::run(&settings, |s| {
+                println!(
+                    "{:>8.1} {:>9.1} {:>5} {:>7} {:>9} {:>8}  {}",
+                    s.t_s,
+                    s.resources.rss_mb,
+                    s.resources.fds,
+                    s.resources.threads,
+                    s.frames_rendered,
+                    s.engine_switches,
+                    s.engine
+                );
+            })?;
+            println!(
+                "after {:.0} s of warm-up: RSS {:+.2} %, fds {:+}, threads {:+}",
+                report.warmup_s, report.rss_growth_pct, report.fds_growth, report.threads_growth
+            );
+            if let Some(path) = json {
+                relight_daemon::soak::write_json(&report, &path)?;
                 println!("wrote {}", path.display());
             }
             Ok(())
