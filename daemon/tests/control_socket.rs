@@ -1166,3 +1166,129 @@ fn relightctl_lights_get_and_watch() {
     let _ = watch.kill();
     let _ = watch.wait();
 }
+
+/// Sixteen peers that each keep a request line open by trickling a byte at a time fill every
+/// slot; the request deadline cuts each one off, so the owner's `status` gets through.
+#[test]
+fn trickling_clients_do_not_lock_out_the_owner() {
+    let deadline = Duration::from_millis(400);
+    let fx = Fixture::new(ServerOptions {
+        request_deadline: deadline,
+        ..ServerOptions::default()
+    });
+    let connected = Arc::new(Barrier::new(17));
+    let tricklers: Vec<_> = (0..16)
+        .map(|_| {
+            let socket = fx.socket.clone();
+            let connected = Arc::clone(&connected);
+            std::thread::spawn(move || {
+                let mut stream = UnixStream::connect(&socket).expect("connect");
+                std::io::Write::write_all(&mut stream, b"{").expect("first byte");
+                connected.wait();
+                // One byte every 50 ms until the server answers (and hangs up).
+                let read_answer = |stream: &mut UnixStream| {
+                    let mut buf = [0u8; 512];
+                    match std::io::Read::read(stream, &mut buf) {
+                        Ok(n) if n > 0 => Some(String::from_utf8_lossy(&buf[..n]).into_owned()),
+                        _ => None,
+                    }
+                };
+                stream.set_nonblocking(true).expect("non-blocking");
+                let started = std::time::Instant::now();
+                while started.elapsed() < TIMEOUT {
+                    std::thread::sleep(Duration::from_millis(50));
+                    if let Some(answer) = read_answer(&mut stream) {
+                        return answer;
+                    }
+                    if std::io::Write::write_all(&mut stream, b" ").is_err() {
+                        stream.set_nonblocking(false).expect("blocking");
+                        let _ = stream.set_read_timeout(Some(Duration::from_secs(1)));
+                        return read_answer(&mut stream).unwrap_or_default();
+                    }
+                }
+                String::new()
+            })
+        })
+        .collect();
+    connected.wait();
+    // While all sixteen trickle, a seventeenth connection is refused.
+    let refused = Client::connect(&fx.socket, TIMEOUT).and_then(|mut c| c.call("status", None));
+    assert_eq!(rpc_error(refused).code, codes::TOO_MANY_CONNECTIONS);
+    let started = std::time::Instant::now();
+    let status = loop {
+        match Client::connect(&fx.socket, TIMEOUT).and_then(|mut c| c.call("status", None)) {
+            Ok(status) => break status,
+            Err(_) if started.elapsed() < TIMEOUT => std::thread::sleep(Duration::from_millis(20)),
+            Err(error) => panic!("the owner is still locked out: {error:?}"),
+        }
+    };
+    assert_eq!(status["engine"], "passthrough");
+    assert!(started.elapsed() < TIMEOUT);
+    for trickler in tricklers {
+        let told = trickler.join().expect("trickler");
+        assert!(told.contains("not finished within"), "{told}");
+    }
+}
+
+/// Subscribers have their own cap and do not take request slots.
+#[test]
+fn subscribers_are_capped_apart_from_request_connections() {
+    let fx = Fixture::new(ServerOptions {
+        max_connections: 4,
+        max_subscribers: 3,
+        ..ServerOptions::default()
+    });
+    let mut subscribers: Vec<Client> = (0..3)
+        .map(|_| {
+            let mut c = fx.client();
+            c.call("lights.subscribe", None).expect("subscribe");
+            c
+        })
+        .collect();
+    let mut fourth = fx.client();
+    let error = rpc_error(fourth.call("lights.subscribe", None));
+    assert_eq!(error.code, codes::BUSY);
+    assert!(error.message.contains("at most 3"), "{error:?}");
+    // Three subscribers and one request connection open: three more request connections fit.
+    let mut others: Vec<Client> = (0..3).map(|_| fx.client()).collect();
+    for c in &mut others {
+        assert_usable(c);
+    }
+    // A subscriber that leaves frees its subscription for another.
+    subscribers.pop();
+    let started = std::time::Instant::now();
+    while fourth.call("lights.subscribe", None).is_err() {
+        assert!(started.elapsed() < TIMEOUT, "subscription slot not freed");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn an_oversized_batch_reply_is_an_error_naming_the_limit() {
+    let fx = Fixture::new(ServerOptions {
+        max_reply_bytes: 4096,
+        ..ServerOptions::default()
+    });
+    let mut c = fx.client();
+    let batch: Vec<Value> = (0..200)
+        .map(|id| json!({ "jsonrpc": "2.0", "method": "engine.list", "id": id }))
+        .collect();
+    let reply = exchange(&mut c, serde_json::to_string(&batch).unwrap().as_bytes());
+    assert_eq!(reply["error"]["code"], codes::INVALID_REQUEST);
+    assert_eq!(reply["error"]["data"]["max_reply_bytes"], 4096);
+    let answered = reply["error"]["data"]["answered"].as_u64().expect("answered");
+    assert!((1..200).contains(&answered), "{reply}");
+    assert!(
+        reply["error"]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("4096-byte limit")),
+        "{reply}"
+    );
+    // A batch under the limit is answered in full, and the connection stays usable.
+    let small: Vec<Value> = (0..3)
+        .map(|id| json!({ "jsonrpc": "2.0", "method": "rpc.ping", "id": id }))
+        .collect();
+    let reply = exchange(&mut c, serde_json::to_string(&small).unwrap().as_bytes());
+    assert_eq!(reply.as_array().map(Vec::len), Some(3));
+    assert_usable(&mut c);
+}

@@ -132,6 +132,17 @@ pub fn handle_line_in(
     target: &dyn ControlTarget,
     session: &mut dyn Session,
 ) -> Option<String> {
+    handle_line_capped(line, target, session, usize::MAX)
+}
+
+/// [`handle_line_in`] with a batch's reply capped at `max_reply_bytes`: a batch whose replies
+/// grow past it stops there and is answered with one error naming the limit.
+pub fn handle_line_capped(
+    line: &[u8],
+    target: &dyn ControlTarget,
+    session: &mut dyn Session,
+    max_reply_bytes: usize,
+) -> Option<String> {
     let text = match std::str::from_utf8(line) {
         Ok(text) => text,
         Err(err) => {
@@ -147,7 +158,7 @@ pub fn handle_line_in(
         return None;
     }
     let response = match serde_json::from_str::<Value>(text) {
-        Ok(value) => handle_value_in(value, target, session)?,
+        Ok(value) => handle_value_capped(value, target, session, max_reply_bytes)?,
         Err(err) => error_response(
             Value::Null,
             &ControlError::parse_error(format!("parse error: {err}")),
@@ -167,20 +178,64 @@ pub fn handle_value_in(
     target: &dyn ControlTarget,
     session: &mut dyn Session,
 ) -> Option<Value> {
+    handle_value_capped(value, target, session, usize::MAX)
+}
+
+fn handle_value_capped(
+    value: Value,
+    target: &dyn ControlTarget,
+    session: &mut dyn Session,
+    max_reply_bytes: usize,
+) -> Option<Value> {
     match value {
         Value::Array(batch) if batch.is_empty() => Some(error_response(
             Value::Null,
             &ControlError::invalid_request("invalid request: empty batch"),
         )),
         Value::Array(batch) => {
-            let responses: Vec<Value> = batch
-                .into_iter()
-                .filter_map(|request| handle_request(request, target, session))
-                .collect();
+            let requests = batch.len();
+            let mut responses = Vec::new();
+            let mut reply_bytes = 2;
+            for (answered, request) in batch.into_iter().enumerate() {
+                let Some(response) = handle_request(request, target, session) else {
+                    continue;
+                };
+                reply_bytes += encoded_len(&response) + 1;
+                if reply_bytes > max_reply_bytes {
+                    let error = ControlError::invalid_request(format!(
+                        "batch reply over the {max_reply_bytes}-byte limit after {answered} of \
+                         {requests} requests; the rest were not run (send fewer per batch)"
+                    ))
+                    .with_data(json!({
+                        "max_reply_bytes": max_reply_bytes,
+                        "answered": answered,
+                        "requests": requests,
+                    }));
+                    return Some(error_response(Value::Null, &error));
+                }
+                responses.push(response);
+            }
             (!responses.is_empty()).then_some(Value::Array(responses))
         }
         request => handle_request(request, target, session),
     }
+}
+
+/// Bytes of `value` as JSON, counted without building the text.
+fn encoded_len(value: &Value) -> usize {
+    struct Count(usize);
+    impl std::io::Write for Count {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            self.0 += buf.len();
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+    let mut count = Count(0);
+    let _ = serde_json::to_writer(&mut count, value);
+    count.0
 }
 
 /// A successful response object.

@@ -11,16 +11,25 @@
 //! Access control has two layers: the socket file's mode and group (so that `connect` itself fails
 //! for strangers), and the peer's credentials (`SO_PEERCRED`), checked on every connection so
 //! that a wrong file mode cannot open the daemon to everyone.
+//!
+//! Fairness ([`admission`]): no client can lock the others out. A request line must be complete
+//! within [`ServerOptions::request_deadline`] of its first byte (a peer trickling one byte at a
+//! time is cut off, whatever its pace); one uid holds at most
+//! [`ServerOptions::max_connections_per_uid`] request connections; subscribers are counted
+//! apart from request connections, under [`ServerOptions::max_subscribers`]; the last
+//! connection slot is kept for root and the daemon's own user, so `status` and `rpc.ping`
+//! always get through to them; and a batch's reply is capped at
+//! [`ServerOptions::max_reply_bytes`].
 
 use std::collections::HashMap;
 use std::io::{self, Read, Write};
 use std::os::unix::fs::{FileTypeExt, MetadataExt, PermissionsExt};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
@@ -34,6 +43,14 @@ pub const DEFAULT_MAX_CONNECTIONS: usize = 16;
 pub const DEFAULT_IDLE_TIMEOUT: Duration = Duration::from_secs(60);
 /// A peer that does not read its responses (or notifications) for this long is dropped.
 pub const DEFAULT_WRITE_TIMEOUT: Duration = Duration::from_secs(10);
+/// A request line must be complete this long after its first byte.
+pub const DEFAULT_REQUEST_DEADLINE: Duration = Duration::from_secs(10);
+/// Request connections one uid (other than root and the daemon's) may hold at once.
+pub const DEFAULT_MAX_CONNECTIONS_PER_UID: usize = 4;
+/// Connections subscribed to the lighting estimate at once.
+pub const DEFAULT_MAX_SUBSCRIBERS: usize = 8;
+/// Largest reply to one batch, bytes.
+pub const DEFAULT_MAX_REPLY_BYTES: usize = 1 << 20;
 /// Bytes read from the socket at a time.
 const READ_CHUNK_BYTES: usize = 8192;
 
@@ -51,6 +68,14 @@ pub struct ServerOptions {
     pub idle_timeout: Duration,
     /// A peer that does not read what it is sent for this long is disconnected.
     pub write_timeout: Duration,
+    /// A request line not complete this long after its first byte closes the connection.
+    pub request_deadline: Duration,
+    /// Request connections one uid may hold (root and the daemon's own user are exempt).
+    pub max_connections_per_uid: usize,
+    /// Connections subscribed to `lights.update`, counted apart from `max_connections`.
+    pub max_subscribers: usize,
+    /// A batch whose reply would be larger gets an error naming the limit instead.
+    pub max_reply_bytes: usize,
 }
 
 impl Default for ServerOptions {
@@ -62,6 +87,10 @@ impl Default for ServerOptions {
             max_connections: DEFAULT_MAX_CONNECTIONS,
             idle_timeout: DEFAULT_IDLE_TIMEOUT,
             write_timeout: DEFAULT_WRITE_TIMEOUT,
+            request_deadline: DEFAULT_REQUEST_DEADLINE,
+            max_connections_per_uid: DEFAULT_MAX_CONNECTIONS_PER_UID,
+            max_subscribers: DEFAULT_MAX_SUBSCRIBERS,
+            max_reply_bytes: DEFAULT_MAX_REPLY_BYTES,
         }
     }
 }
@@ -101,6 +130,42 @@ pub fn peer_allowed(
     cred.uid == 0
         || cred.uid == daemon_uid
         || allowed_gid.is_some_and(|gid| cred.gid == gid || supplementary_groups.contains(&gid))
+}
+
+/// Whether a peer is root or the daemon's own user: exempt from the per-uid cap, and the only
+/// ones who may take the last connection slot.
+fn privileged(uid: u32, daemon_uid: u32) -> bool {
+    uid == 0 || uid == daemon_uid
+}
+
+/// Whether a new request connection may be served, given the request connections open now
+/// (`open`, subscribers not counted) and how many of them its uid holds (`open_by_uid`); the
+/// refusal says which limit it hit.
+pub fn admission(
+    options: &ServerOptions,
+    privileged: bool,
+    open: usize,
+    open_by_uid: usize,
+) -> Result<(), String> {
+    let max = options.max_connections;
+    if open >= max {
+        return Err(format!("too many connections (at most {max})"));
+    }
+    if privileged {
+        return Ok(());
+    }
+    if open + 1 >= max {
+        return Err(format!(
+            "too many connections (at most {max}; the last is kept for root and the daemon's user)"
+        ));
+    }
+    if open_by_uid >= options.max_connections_per_uid {
+        return Err(format!(
+            "too many connections from this user (at most {})",
+            options.max_connections_per_uid
+        ));
+    }
+    Ok(())
 }
 
 /// The supplementary groups listed on the `Groups:` line of a `/proc/<pid>/status` file.
@@ -145,11 +210,25 @@ struct Shared {
     next_connection: AtomicU64,
     /// Open connections by id.
     connections: Mutex<HashMap<u64, Connection>>,
+    /// Connections subscribed to the lighting estimate now.
+    subscribers: AtomicUsize,
 }
 
-/// An open connection: a clone of its stream (shut down to unblock its thread at shutdown) and
-/// the thread serving it.
-type Connection = (UnixStream, JoinHandle<()>);
+/// An open connection: a clone of its stream (shut down to unblock its thread at shutdown), the
+/// thread serving it, its peer's uid, and whether it is subscribed (then it does not count as a
+/// request connection).
+struct Connection {
+    stream: UnixStream,
+    thread: JoinHandle<()>,
+    uid: u32,
+    subscribed: Arc<AtomicBool>,
+}
+
+impl Connection {
+    fn is_request(&self) -> bool {
+        !self.thread.is_finished() && !self.subscribed.load(Ordering::Acquire)
+    }
+}
 
 impl std::fmt::Debug for Shared {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -217,6 +296,7 @@ impl ControlServer {
                 stopping: AtomicBool::new(false),
                 next_connection: AtomicU64::new(0),
                 connections: Mutex::new(HashMap::new()),
+                subscribers: AtomicUsize::new(0),
             }),
         })
     }
@@ -260,7 +340,7 @@ impl ControlServerHandle {
     pub fn active_connections(&self) -> usize {
         lock(&self.shared.connections)
             .values()
-            .filter(|(_, thread)| !thread.is_finished())
+            .filter(|c| !c.thread.is_finished())
             .count()
     }
 
@@ -285,9 +365,9 @@ impl ControlServerHandle {
             tracing::error!("control accept thread panicked");
         }
         let connections: Vec<_> = lock(&self.shared.connections).drain().collect();
-        for (_, (stream, thread)) in connections {
-            let _ = stream.shutdown(std::net::Shutdown::Both);
-            if thread.join().is_err() {
+        for (_, connection) in connections {
+            let _ = connection.stream.shutdown(std::net::Shutdown::Both);
+            if connection.thread.join().is_err() {
                 tracing::error!("control connection thread panicked");
             }
         }
@@ -397,22 +477,24 @@ fn admit(mut stream: UnixStream, shared: &Arc<Shared>) {
     }
 
     let mut connections = lock(&shared.connections);
-    connections.retain(|_, (_, thread)| !thread.is_finished());
-    if connections.len() >= shared.options.max_connections {
+    connections.retain(|_, c| !c.thread.is_finished());
+    let open = connections.values().filter(|c| c.is_request()).count();
+    let open_by_uid = connections
+        .values()
+        .filter(|c| c.is_request() && c.uid == cred.uid)
+        .count();
+    if let Err(reason) = admission(
+        &shared.options,
+        privileged(cred.uid, shared.daemon_uid),
+        open,
+        open_by_uid,
+    ) {
         drop(connections);
-        tracing::warn!(
-            uid = cred.uid,
-            max = shared.options.max_connections,
-            "control connection refused: too many connections"
+        tracing::warn!(uid = cred.uid, open, "control connection refused: {reason}");
+        refuse(
+            &mut stream,
+            &ControlError::new(codes::TOO_MANY_CONNECTIONS, reason),
         );
-        let error = ControlError::new(
-            codes::TOO_MANY_CONNECTIONS,
-            format!(
-                "too many connections (at most {})",
-                shared.options.max_connections
-            ),
-        );
-        refuse(&mut stream, &error);
         return;
     }
     let Ok(registered) = stream.try_clone() else {
@@ -422,15 +504,25 @@ fn admit(mut stream: UnixStream, shared: &Arc<Shared>) {
     let connection_id = shared.next_connection.fetch_add(1, Ordering::Relaxed);
     tracing::debug!(connection_id, uid = cred.uid, pid = ?cred.pid, "control connection");
     let worker_shared = Arc::clone(shared);
+    let subscribed = Arc::new(AtomicBool::new(false));
+    let worker_subscribed = Arc::clone(&subscribed);
     let spawned = std::thread::Builder::new()
         .name(format!("relightd-ctl-{connection_id}"))
         .spawn(move || {
-            serve_connection(stream, &worker_shared, connection_id);
+            serve_connection(stream, &worker_shared, connection_id, worker_subscribed);
             lock(&worker_shared.connections).remove(&connection_id);
         });
     match spawned {
         Ok(thread) => {
-            connections.insert(connection_id, (registered, thread));
+            connections.insert(
+                connection_id,
+                Connection {
+                    stream: registered,
+                    thread,
+                    uid: cred.uid,
+                    subscribed,
+                },
+            );
         }
         Err(err) => tracing::warn!(%err, "control connection refused: cannot spawn a thread"),
     }
@@ -443,10 +535,12 @@ fn refuse(stream: &mut UnixStream, error: &ControlError) {
     let _ = stream.shutdown(std::net::Shutdown::Both);
 }
 
-fn serve_connection(stream: UnixStream, shared: &Shared, connection_id: u64) {
-    if let Err(err) = stream.set_read_timeout(Some(shared.options.idle_timeout)) {
-        tracing::warn!(connection_id, %err, "cannot set control read timeout");
-    }
+fn serve_connection(
+    stream: UnixStream,
+    shared: &Shared,
+    connection_id: u64,
+    subscribed: Arc<AtomicBool>,
+) {
     let writer = match stream.try_clone() {
         Ok(writer) => Arc::new(Mutex::new(writer)),
         Err(err) => {
@@ -458,17 +552,26 @@ fn serve_connection(stream: UnixStream, shared: &Shared, connection_id: u64) {
         connection_id,
         writer: Arc::clone(&writer),
         lights: LightsPush::Off,
+        subscribed,
+        subscribers: &shared.subscribers,
+        max_subscribers: shared.options.max_subscribers,
     };
     let max_bytes = shared.options.max_request_bytes;
-    let mut reader = LineReader::new(stream, max_bytes);
+    let mut reader = LineReader::new(stream, max_bytes).with_timeouts(
+        shared.options.idle_timeout,
+        shared.options.request_deadline,
+    );
     loop {
         if shared.stopping.load(Ordering::SeqCst) {
             break;
         }
         let response = match reader.next_line() {
-            Ok(ReadLine::Line(line)) => {
-                rpc::handle_line_in(&line, shared.target.as_ref(), &mut session)
-            }
+            Ok(ReadLine::Line(line)) => rpc::handle_line_capped(
+                &line,
+                shared.target.as_ref(),
+                &mut session,
+                shared.options.max_reply_bytes,
+            ),
             Ok(ReadLine::TooLong(bytes)) => {
                 tracing::debug!(connection_id, bytes, "control request too large");
                 let error = ControlError::invalid_request(format!(
@@ -477,6 +580,17 @@ fn serve_connection(stream: UnixStream, shared: &Shared, connection_id: u64) {
                 Some(rpc::error_response(Value::Null, &error).to_string())
             }
             Ok(ReadLine::Eof) => break,
+            Ok(ReadLine::Overdue(bytes)) => {
+                tracing::debug!(connection_id, bytes, "control request not finished in time");
+                let error = ControlError::invalid_request(format!(
+                    "request line not finished within {} s of its first byte ({bytes} bytes received); closing",
+                    shared.options.request_deadline.as_secs_f64()
+                ));
+                let mut line = rpc::error_response(Value::Null, &error).to_string();
+                line.push('\n');
+                let _ = lock(&writer).write_all(line.as_bytes());
+                break;
+            }
             Err(err)
                 if matches!(
                     err.kind(),
@@ -509,11 +623,16 @@ fn serve_connection(stream: UnixStream, shared: &Shared, connection_id: u64) {
 }
 
 /// A connection's state for the methods that outlive a request.
-struct ConnectionSession {
+struct ConnectionSession<'a> {
     connection_id: u64,
     /// Shared by responses and notifications, so that lines never interleave.
     writer: Arc<Mutex<UnixStream>>,
     lights: LightsPush,
+    /// Seen by admission: a subscribed connection is not a request connection.
+    subscribed: Arc<AtomicBool>,
+    /// Subscribed connections of the whole server, and their cap.
+    subscribers: &'a AtomicUsize,
+    max_subscribers: usize,
 }
 
 /// The `lights.update` notifications of one connection.
@@ -528,7 +647,7 @@ enum LightsPush {
     },
 }
 
-impl ConnectionSession {
+impl ConnectionSession<'_> {
     /// Starts the notification thread of a subscription made by the request just answered.
     fn start_pushing(&mut self) {
         let subscription = match std::mem::replace(&mut self.lights, LightsPush::Off) {
@@ -563,7 +682,7 @@ impl ConnectionSession {
     }
 }
 
-impl rpc::Session for ConnectionSession {
+impl rpc::Session for ConnectionSession<'_> {
     fn lights_subscribed(&self) -> bool {
         match &self.lights {
             LightsPush::Off => false,
@@ -574,12 +693,30 @@ impl rpc::Session for ConnectionSession {
 
     fn subscribe_lights(&mut self, subscription: LightsSubscription) -> Result<(), ControlError> {
         self.unsubscribe_lights();
+        let max = self.max_subscribers;
+        if self
+            .subscribers
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                (n < max).then_some(n + 1)
+            })
+            .is_err()
+        {
+            subscription.close();
+            return Err(ControlError::busy(format!(
+                "too many lights subscribers (at most {max})"
+            )));
+        }
+        self.subscribed.store(true, Ordering::Release);
         tracing::debug!(connection_id = self.connection_id, "lights subscribed");
         self.lights = LightsPush::Armed(subscription);
         Ok(())
     }
 
     fn unsubscribe_lights(&mut self) {
+        if !matches!(self.lights, LightsPush::Off) {
+            self.subscribed.store(false, Ordering::Release);
+            self.subscribers.fetch_sub(1, Ordering::AcqRel);
+        }
         match std::mem::replace(&mut self.lights, LightsPush::Off) {
             LightsPush::Off => {}
             LightsPush::Armed(subscription) => subscription.close(),
@@ -600,7 +737,7 @@ impl rpc::Session for ConnectionSession {
     }
 }
 
-impl Drop for ConnectionSession {
+impl Drop for ConnectionSession<'_> {
     fn drop(&mut self) {
         self.unsubscribe_lights();
     }
@@ -648,7 +785,21 @@ pub(crate) enum ReadLine {
     Line(Vec<u8>),
     /// A line longer than the cap; it was skipped, not stored. Holds its length in bytes.
     TooLong(usize),
+    /// A line not finished within the request deadline of its first byte; holds the bytes
+    /// received. The stream is left mid-line: close it.
+    Overdue(usize),
     Eof,
+}
+
+/// A byte stream whose reads can be given a timeout: the socket, or (in tests) memory.
+pub(crate) trait TimedRead: Read {
+    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()>;
+}
+
+impl TimedRead for UnixStream {
+    fn set_read_timeout(&mut self, timeout: Duration) -> io::Result<()> {
+        UnixStream::set_read_timeout(self, Some(timeout))
+    }
 }
 
 /// Splits a byte stream into newline-terminated lines of at most `max_bytes`, skipping longer ones
@@ -663,9 +814,14 @@ pub(crate) struct LineReader<R> {
     max_bytes: usize,
     /// Bytes of the current over-long line seen so far, while skipping it.
     skipped: Option<usize>,
+    /// Between lines a read waits up to `idle`; once a line has begun, only until its deadline.
+    idle: Duration,
+    request_deadline: Duration,
+    /// When the first byte of the current line arrived.
+    line_started: Option<Instant>,
 }
 
-impl<R: Read> LineReader<R> {
+impl<R: TimedRead> LineReader<R> {
     pub(crate) fn new(inner: R, max_bytes: usize) -> Self {
         Self {
             inner,
@@ -675,15 +831,52 @@ impl<R: Read> LineReader<R> {
             line: Vec::new(),
             max_bytes,
             skipped: None,
+            idle: DEFAULT_IDLE_TIMEOUT,
+            request_deadline: DEFAULT_REQUEST_DEADLINE,
+            line_started: None,
         }
     }
 
+    pub(crate) fn with_timeouts(mut self, idle: Duration, request_deadline: Duration) -> Self {
+        self.idle = idle;
+        self.request_deadline = request_deadline;
+        self
+    }
+
+    /// Bytes of the current, unfinished line.
+    fn partial_bytes(&self) -> usize {
+        self.skipped.unwrap_or(self.line.len())
+    }
+
+    /// The next line. A read that times out between lines is an error of kind `WouldBlock` or
+    /// `TimedOut` (the caller decides whether that is idling); a line that misses its deadline
+    /// is [`ReadLine::Overdue`], however its bytes trickle in.
     pub(crate) fn next_line(&mut self) -> io::Result<ReadLine> {
         loop {
             if self.chunk_pos == self.chunk_len {
+                let timeout = match self.line_started {
+                    None => self.idle,
+                    Some(started) => {
+                        let left = self.request_deadline.saturating_sub(started.elapsed());
+                        if left.is_zero() {
+                            return Ok(ReadLine::Overdue(self.partial_bytes()));
+                        }
+                        left
+                    }
+                };
+                self.inner.set_read_timeout(timeout)?;
                 let n = match self.inner.read(&mut self.chunk) {
                     Ok(n) => n,
                     Err(err) if err.kind() == io::ErrorKind::Interrupted => continue,
+                    Err(err)
+                        if self.line_started.is_some()
+                            && matches!(
+                                err.kind(),
+                                io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                            ) =>
+                    {
+                        continue;
+                    }
                     Err(err) => return Err(err),
                 };
                 if n == 0 {
@@ -697,6 +890,7 @@ impl<R: Read> LineReader<R> {
                 }
                 self.chunk_pos = 0;
                 self.chunk_len = n;
+                self.line_started.get_or_insert_with(Instant::now);
             }
             let available = &self.chunk[self.chunk_pos..self.chunk_len];
             let newline = available.iter().position(|&b| b == b'\n');
@@ -710,6 +904,7 @@ impl<R: Read> LineReader<R> {
                 self.line.extend_from_slice(part);
             }
             if newline.is_some() {
+                self.line_started = (self.chunk_pos < self.chunk_len).then(Instant::now);
                 return Ok(match self.skipped.take() {
                     Some(bytes) => ReadLine::TooLong(bytes),
                     None => ReadLine::Line(std::mem::take(&mut self.line)),
@@ -737,6 +932,67 @@ mod tests {
             self.data = tail;
             Ok(n)
         }
+    }
+
+    impl TimedRead for Trickle<'_> {
+        fn set_read_timeout(&mut self, _: Duration) -> io::Result<()> {
+            Ok(())
+        }
+    }
+
+    /// A peer that sends one byte per read, `pause` apart, and never a newline.
+    struct Drip {
+        pause: Duration,
+    }
+
+    impl Read for Drip {
+        fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+            std::thread::sleep(self.pause);
+            buf[0] = b'x';
+            Ok(1)
+        }
+    }
+
+    impl TimedRead for Drip {
+        fn set_read_timeout(&mut self, _: Duration) -> io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_trickled_line_is_overdue_at_its_deadline() {
+        let deadline = Duration::from_millis(200);
+        let mut reader = LineReader::new(
+            Drip {
+                pause: Duration::from_millis(20),
+            },
+            1 << 20,
+        )
+        .with_timeouts(Duration::from_secs(60), deadline);
+        let started = Instant::now();
+        match reader.next_line() {
+            Ok(ReadLine::Overdue(bytes)) => assert!(bytes >= 5, "{bytes}"),
+            other => panic!("{other:?}"),
+        }
+        assert!(started.elapsed() >= deadline);
+    }
+
+    #[test]
+    fn admission_caps_each_uid_and_keeps_the_last_slot_for_the_owner() {
+        let options = ServerOptions {
+            max_connections: 4,
+            max_connections_per_uid: 2,
+            ..ServerOptions::default()
+        };
+        assert!(admission(&options, false, 0, 0).is_ok());
+        assert!(admission(&options, false, 1, 1).is_ok());
+        let per_uid = admission(&options, false, 2, 2).unwrap_err();
+        assert!(per_uid.contains("from this user"), "{per_uid}");
+        assert!(admission(&options, false, 2, 0).is_ok());
+        let reserved = admission(&options, false, 3, 0).unwrap_err();
+        assert!(reserved.contains("kept for root"), "{reserved}");
+        assert!(admission(&options, true, 3, 3).is_ok());
+        assert!(admission(&options, true, 4, 0).is_err());
     }
 
     fn lines(data: &[u8], step: usize, max_bytes: usize) -> Vec<ReadLine> {
