@@ -73,6 +73,9 @@ const FPS_WINDOW: Duration = Duration::from_secs(2);
 pub struct PipelineOptions {
     /// Stop the render thread once every source has ended and the last frame set is out.
     pub exit_at_end: bool,
+    /// Sleep this long in every render, standing in for a slow engine (tests of the latency
+    /// policy and the watchdog).
+    pub render_delay: Option<Duration>,
 }
 
 /// A change the render thread applies at the next frame boundary.
@@ -346,6 +349,7 @@ impl Pipeline {
                         relit: RelitFrame::default(),
                         arrivals: VecDeque::new(),
                         exit_at_end: options.exit_at_end,
+                        render_delay: options.render_delay,
                         lossless,
                         backpressure,
                         data_clock_ns: 0,
@@ -443,6 +447,7 @@ struct RenderLoop<'a> {
     /// Wall-clock arrival of recent reference frames, to time how long sets wait to render.
     arrivals: VecDeque<(u64, Instant)>,
     exit_at_end: bool,
+    render_delay: Option<Duration>,
     /// Render every frame set (fast and stepped replays) instead of the newest one.
     lossless: bool,
     /// A fast replay's flow control: told how many reference frames are done with.
@@ -504,9 +509,7 @@ impl RenderLoop<'_> {
                     break;
                 }
             }
-            if sources_ended {
-                self.serve_snapshots(false);
-            }
+            self.serve_snapshots(false);
         }
     }
 
@@ -518,7 +521,7 @@ impl RenderLoop<'_> {
     }
 
     /// One message off the bus: the probe and the lamp take theirs at once (a bracket needs
-    /// every exposure), then the synchroniser, and whatever set that decides.
+    /// every exposure), then the synchroniser.
     fn receive(&mut self, msg: StreamMessage) {
         let host_ns = msg.stamp().host_ns;
         self.data_clock_ns = self.data_clock_ns.max(host_ns);
@@ -535,7 +538,13 @@ impl RenderLoop<'_> {
             _ => {}
         }
         self.synchronizer.push(msg);
-        self.take_ready();
+        // A live backlog is read whole first: on the wall clock its old reference frames are
+        // already past max_wait, and would be decided before their partners, queued right
+        // behind them, were read. A lossless replay runs on the data clock and can decide as
+        // it reads (which also frees its back-pressure sooner).
+        if self.lossless {
+            self.take_ready();
+        }
     }
 
     /// Every set the synchroniser has decided by now.
@@ -709,6 +718,9 @@ impl RenderLoop<'_> {
             &mut self.passthrough
         };
         let start = Instant::now();
+        if let Some(delay) = self.render_delay {
+            std::thread::sleep(delay);
+        }
         let rendered = engine.render(&frame.scene, &mut self.relit);
         self.heartbeat();
         self.record_stage("render", start.elapsed().as_secs_f64() * 1e3);
@@ -787,8 +799,8 @@ impl RenderLoop<'_> {
     }
 
     /// Hand snapshot requests the last rendered frame, for the writer to write. Called after
-    /// each frame, and when idle (`fresh = false`) once sources have ended, so a finished replay
-    /// can still be snapshotted.
+    /// each frame, and on every idle turn of the loop (`fresh = false`, once a frame exists), so
+    /// a paused or finished replay can still be snapshotted.
     fn serve_snapshots(&self, fresh: bool) {
         if !fresh && self.relit.composite.pixel_count() == 0 {
             return;

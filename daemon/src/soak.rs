@@ -80,6 +80,11 @@ pub struct SoakReport {
     pub samples: Vec<SoakSample>,
     /// RSS growth from the first sample after the warm-up to the last, percent.
     pub rss_growth_pct: f64,
+    /// Growth of the peak RSS: the highest sample of the last fifth of the run after the
+    /// warm-up against the highest of its first fifth, percent. With engines switching, the
+    /// endpoints may catch different engines (whose working sets differ by 100 MB); the peak of
+    /// a window that holds every engine does not depend on which.
+    pub rss_peak_growth_pct: f64,
     pub fds_growth: i64,
     pub threads_growth: i64,
 }
@@ -161,6 +166,20 @@ fn report(settings: &SoakSettings, samples: Vec<SoakSample>) -> SoakReport {
         ),
         _ => (0.0, 0, 0),
     };
+    let after: Vec<f64> = samples
+        .iter()
+        .filter(|s| s.t_s >= warmup_s)
+        .map(|s| s.resources.rss_mb)
+        .collect();
+    let window = after.len().div_ceil(5).max(1);
+    let peak = |v: &[f64]| v.iter().copied().fold(f64::NAN, f64::max);
+    let rss_peak_growth_pct = match (after.get(..window), after.len().checked_sub(window)) {
+        (Some(first), Some(last_start)) => {
+            let (first, last) = (peak(first), peak(&after[last_start..]));
+            100.0 * (last - first) / first.max(1e-9)
+        }
+        _ => 0.0,
+    };
     SoakReport {
         recording: settings.recording.clone(),
         engines: settings.engines.clone(),
@@ -168,6 +187,7 @@ fn report(settings: &SoakSettings, samples: Vec<SoakSample>) -> SoakReport {
         warmup_s,
         samples,
         rss_growth_pct,
+        rss_peak_growth_pct,
         fds_growth,
         threads_growth,
     }

@@ -1276,7 +1276,9 @@ fn an_oversized_batch_reply_is_an_error_naming_the_limit() {
     let reply = exchange(&mut c, serde_json::to_string(&batch).unwrap().as_bytes());
     assert_eq!(reply["error"]["code"], codes::INVALID_REQUEST);
     assert_eq!(reply["error"]["data"]["max_reply_bytes"], 4096);
-    let answered = reply["error"]["data"]["answered"].as_u64().expect("answered");
+    let answered = reply["error"]["data"]["answered"]
+        .as_u64()
+        .expect("answered");
     assert!((1..200).contains(&answered), "{reply}");
     assert!(
         reply["error"]["message"]

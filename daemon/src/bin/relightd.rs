@@ -403,7 +403,9 @@ fn run(cli: Cli) -> Result<()> {
                 if v.is_finite() && v > 0.0 {
                     Ok(Duration::from_secs_f64(v))
                 } else {
-                    Err(anyhow::anyhow!("--{name} must be a positive number of seconds"))
+                    Err(anyhow::anyhow!(
+                        "--{name} must be a positive number of seconds"
+                    ))
                 }
             };
             let settings = relight_daemon::soak::SoakSettings {
@@ -441,8 +443,12 @@ fn run(cli: Cli) -> Result<()> {
                 );
             })?;
             println!(
-                "after {:.0} s of warm-up: RSS {:+.2} %, fds {:+}, threads {:+}",
-                report.warmup_s, report.rss_growth_pct, report.fds_growth, report.threads_growth
+                "after {:.0} s of warm-up: RSS {:+.2} % (peak of the last fifth vs the first {:+.2} %), fds {:+}, threads {:+}",
+                report.warmup_s,
+                report.rss_growth_pct,
+                report.rss_peak_growth_pct,
+                report.fds_growth,
+                report.threads_growth
             );
             if let Some(path) = json {
                 relight_daemon::soak::write_json(&report, &path)?;
@@ -492,6 +498,7 @@ fn run(cli: Cli) -> Result<()> {
             let serve_socket = config.daemon.socket != Path::new(config::DEFAULT_SOCKET_PATH);
             let options = PipelineOptions {
                 exit_at_end: !looping,
+                ..PipelineOptions::default()
             };
             serve(config, options, serve_socket)
         }
@@ -651,7 +658,11 @@ fn record(config: Config, out: &Path, seconds: Option<Duration>) -> Result<()> {
     for signal in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
         signal_hook::flag::register(signal, term.clone()).context("installing signal handlers")?;
     }
-    let mut pipeline = Pipeline::start(config, PipelineOptions { exit_at_end: true })?;
+    let options = PipelineOptions {
+        exit_at_end: true,
+        ..PipelineOptions::default()
+    };
+    let mut pipeline = Pipeline::start(config, options)?;
     let control = pipeline.control();
     control
         .record_start(Some(out.to_path_buf()))

@@ -557,10 +557,8 @@ fn serve_connection(
         max_subscribers: shared.options.max_subscribers,
     };
     let max_bytes = shared.options.max_request_bytes;
-    let mut reader = LineReader::new(stream, max_bytes).with_timeouts(
-        shared.options.idle_timeout,
-        shared.options.request_deadline,
-    );
+    let mut reader = LineReader::new(stream, max_bytes)
+        .with_timeouts(shared.options.idle_timeout, shared.options.request_deadline);
     loop {
         if shared.stopping.load(Ordering::SeqCst) {
             break;
