@@ -102,7 +102,10 @@ impl LiveFrames {
                         "[scene] lighting = \"probe\" but the rig has no usable probe calibration: only the lamp lights the scene"
                     );
                 }
-                scene_lights = Some(SceneLights::new(&scene, probe.map(ProbeRunner::Inline)));
+                scene_lights = Some(SceneLights::new(
+                    &scene,
+                    probe.map(|p| ProbeRunner::Inline(Box::new(p))),
+                ));
                 let depth_camera =
                     calibration.and_then(|c| match c.depth.as_ref().or(c.color.as_ref()) {
                         Some(CameraModel::Pinhole(p)) => Some(*p),
@@ -171,7 +174,7 @@ impl LiveFrames {
             && let Some(ProbeRunner::Inline(_)) = &lights.probe
             && let Some(ProbeRunner::Inline(probe)) = lights.probe.take()
         {
-            lights.probe = Some(ProbeRunner::Thread(ProbeThread::spawn(probe)?));
+            lights.probe = Some(ProbeRunner::Thread(ProbeThread::spawn(*probe)?));
         }
         Ok(())
     }
@@ -284,7 +287,7 @@ fn merge_probe_frame(
 
 /// Where probe frames become estimates.
 enum ProbeRunner {
-    Inline(ProbeLighting),
+    Inline(Box<ProbeLighting>),
     Thread(ProbeThread),
 }
 
