@@ -1,7 +1,7 @@
 //! Resident memory stays flat over a looped replay with a scene (its own test binary, so that no
 //! other test's allocations share the process). The tolerance comes from the run's own
 //! warm-up: RSS may move after it by no more than three times the largest step between two
-//! samples of the warm-up's second half (or 2 %), and the measured stretch is twelve samples
+//! samples of the warm-up's second half (or 3 %), and the measured stretch is twelve samples
 //! long, so a steady leak, whose every step is as large as the warm-up's, cannot hide in it.
 
 use std::path::PathBuf;
@@ -37,7 +37,7 @@ fn rss_is_flat_over_a_looped_replay_with_a_scene() {
         .map(|w| (w[1] - w[0]).abs())
         .fold(0.0, f64::max);
     let base = rss[warmup];
-    let tolerance_mb = (3.0 * noise_mb).max(0.02 * base);
+    let tolerance_mb = (3.0 * noise_mb).max(0.03 * base);
     let last = *rss.last().expect("samples");
     let frames = report.samples.last().map_or(0, |s| s.frames_rendered);
     assert!(frames > 20, "too few frames to judge: {frames}");
