@@ -11,3 +11,4 @@ pub mod sinks;
 pub mod soak;
 pub mod timing;
 pub mod tracking;
+pub mod worker;

@@ -7,10 +7,7 @@
 //! scored is what runs live.
 
 use std::sync::{Arc, Mutex, PoisonError};
-use std::thread::JoinHandle;
 use std::time::Instant;
-
-use crossbeam_channel::{Sender, TrySendError, bounded};
 
 use glam::Vec3;
 use relight_core::camera::CameraModel;
@@ -32,6 +29,7 @@ use crate::config::Config;
 use crate::control::lights::LightsBoard;
 use crate::depth_stage::{DepthOutcome, DepthStage};
 use crate::tracking::{Tracker, TrackingReport};
+use crate::worker::Worker;
 
 /// A frame set turned into what an engine renders.
 #[derive(Debug)]
@@ -312,49 +310,37 @@ const PROBE_QUEUE: usize = 32;
 /// [`ProbeLighting`] on its own thread. Its newest estimate waits in a one-slot mailbox (a newer
 /// one replaces it) for the next frame to take.
 struct ProbeThread {
-    input: Option<Sender<ProbeInput>>,
+    worker: Worker<ProbeInput>,
     latest: Arc<Mutex<Option<(ProbeEstimate, f64)>>>,
     dropped: u64,
-    thread: Option<JoinHandle<()>>,
 }
 
 impl ProbeThread {
     fn spawn(mut probe: ProbeLighting) -> std::io::Result<Self> {
-        let (input, inputs) = bounded(PROBE_QUEUE);
         let latest = Arc::new(Mutex::new(None));
-        let thread = {
+        let worker = {
             let latest = Arc::clone(&latest);
-            std::thread::Builder::new()
-                .name("probe".into())
-                .spawn(move || {
-                    for item in inputs {
-                        match item {
-                            ProbeInput::Light(host_ns, position) => {
-                                probe.track_light(host_ns, position);
-                            }
-                            ProbeInput::Frame(frame) => {
-                                let start = Instant::now();
-                                if let Some(estimate) = merge_probe_frame(&mut probe, &frame) {
-                                    let ms = start.elapsed().as_secs_f64() * 1e3;
-                                    *latest.lock().unwrap_or_else(PoisonError::into_inner) =
-                                        Some((estimate, ms));
-                                }
-                            }
-                        }
+            Worker::spawn("probe", PROBE_QUEUE, move |item| match item {
+                ProbeInput::Light(host_ns, position) => probe.track_light(host_ns, position),
+                ProbeInput::Frame(frame) => {
+                    let start = Instant::now();
+                    if let Some(estimate) = merge_probe_frame(&mut probe, &frame) {
+                        let ms = start.elapsed().as_secs_f64() * 1e3;
+                        *latest.lock().unwrap_or_else(PoisonError::into_inner) =
+                            Some((estimate, ms));
                     }
-                })?
+                }
+            })?
         };
         Ok(Self {
-            input: Some(input),
+            worker,
             latest,
             dropped: 0,
-            thread: Some(thread),
         })
     }
 
     fn send(&mut self, item: ProbeInput) {
-        let Some(input) = &self.input else { return };
-        if let Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) = input.try_send(item) {
+        if self.worker.offer(item).is_err() {
             self.dropped += 1;
             if self.dropped.is_power_of_two() {
                 tracing::warn!(
@@ -370,17 +356,6 @@ impl ProbeThread {
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .take()
-    }
-}
-
-impl Drop for ProbeThread {
-    fn drop(&mut self) {
-        self.input = None;
-        if let Some(thread) = self.thread.take()
-            && thread.join().is_err()
-        {
-            tracing::error!("probe thread panicked");
-        }
     }
 }
 

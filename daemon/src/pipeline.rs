@@ -778,7 +778,7 @@ impl RenderLoop<'_> {
         let slowest_ms = lock(&shared.stages)
             .iter()
             .find(|s| s.name == "render")
-            .map_or(0.0, |s| s.quantile_ms(1.0)) as u64;
+            .map_or(0.0, StageStats::max_ms) as u64;
         shared
             .stall_limit_ms
             .store(STALL_FRAMES * frame_ms.max(slowest_ms), Ordering::Release);

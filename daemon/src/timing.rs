@@ -53,6 +53,11 @@ impl StageStats {
         }
     }
 
+    /// The largest value of the recent window (0 before the first), without sorting it.
+    pub fn max_ms(&self) -> f64 {
+        self.recent.iter().copied().fold(0.0, f64::max)
+    }
+
     /// The `q`-quantile (0..=1) of the recent window, nearest-rank.
     pub fn quantile_ms(&self, q: f64) -> f64 {
         if self.recent.is_empty() {
@@ -82,6 +87,7 @@ mod tests {
             stats.record(2.0);
         }
         assert_eq!(stats.quantile_ms(0.99), 2.0);
+        assert_eq!(stats.max_ms(), stats.quantile_ms(1.0));
         assert_eq!(stats.frames(), 200);
         stats.record(f64::NAN);
         assert_eq!(stats.frames(), 200);

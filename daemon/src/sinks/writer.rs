@@ -5,12 +5,12 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::thread::JoinHandle;
 
-use crossbeam_channel::{Sender, TrySendError, bounded};
+use crossbeam_channel::Sender;
 use relight_core::Image;
 
 use super::png_out::write_png;
+use crate::worker::Worker;
 
 /// Writes queued before new ones are dropped.
 pub const QUEUE_WRITES: usize = 4;
@@ -27,56 +27,45 @@ pub struct Write {
 /// Handle to the writer thread; dropping it writes what is queued and joins.
 #[derive(Debug)]
 pub struct ImageWriter {
-    queue: Option<Sender<Write>>,
-    dropped: Arc<AtomicU64>,
+    worker: Worker<Write>,
+    dropped: AtomicU64,
     failed: Arc<AtomicU64>,
-    thread: Option<JoinHandle<()>>,
 }
 
 impl ImageWriter {
     pub fn spawn() -> std::io::Result<Self> {
-        let (queue, jobs) = bounded::<Write>(QUEUE_WRITES);
         let failed = Arc::new(AtomicU64::new(0));
-        let thread = {
+        let worker = {
             let failed = failed.clone();
-            std::thread::Builder::new()
-                .name("image-writer".into())
-                .spawn(move || {
-                    for job in jobs {
-                        let result = write(&job);
-                        if let Err(error) = &result {
-                            let n = failed.fetch_add(1, Ordering::Relaxed);
-                            if n.is_power_of_two() || n == 0 {
-                                tracing::warn!(%error, failed = n + 1, "image not written");
-                            }
-                        }
-                        if let Some(reply) = job.reply {
-                            let _ = reply.send(result);
-                        }
+            Worker::spawn("image-writer", QUEUE_WRITES, move |job: Write| {
+                let result = write(&job);
+                if let Err(error) = &result {
+                    let n = failed.fetch_add(1, Ordering::Relaxed);
+                    if n.is_power_of_two() || n == 0 {
+                        tracing::warn!(%error, failed = n + 1, "image not written");
                     }
-                })?
+                }
+                if let Some(reply) = job.reply {
+                    let _ = reply.send(result);
+                }
+            })?
         };
         Ok(Self {
-            queue: Some(queue),
-            dropped: Arc::new(AtomicU64::new(0)),
+            worker,
+            dropped: AtomicU64::new(0),
             failed,
-            thread: Some(thread),
         })
     }
 
     /// Queue `job` without waiting. A full queue drops it (counted) and answers its reply with
     /// an error saying so.
     pub fn offer(&self, job: Write) {
-        let Some(queue) = &self.queue else { return };
-        match queue.try_send(job) {
-            Ok(()) => {}
-            Err(TrySendError::Full(job) | TrySendError::Disconnected(job)) => {
-                self.dropped.fetch_add(1, Ordering::Relaxed);
-                if let Some(reply) = job.reply {
-                    let _ = reply.send(Err(format!(
-                        "the image writer is behind ({QUEUE_WRITES} writes queued); not written"
-                    )));
-                }
+        if let Err(job) = self.worker.offer(job) {
+            self.dropped.fetch_add(1, Ordering::Relaxed);
+            if let Some(reply) = job.reply {
+                let _ = reply.send(Err(format!(
+                    "the image writer is behind ({QUEUE_WRITES} writes queued); not written"
+                )));
             }
         }
     }
@@ -92,17 +81,6 @@ impl ImageWriter {
     }
 }
 
-impl Drop for ImageWriter {
-    fn drop(&mut self) {
-        self.queue = None;
-        if let Some(thread) = self.thread.take()
-            && thread.join().is_err()
-        {
-            tracing::error!("image writer thread panicked");
-        }
-    }
-}
-
 fn write(job: &Write) -> Result<Vec<PathBuf>, String> {
     std::fs::create_dir_all(&job.dir)
         .map_err(|e| format!("cannot create {}: {e}", job.dir.display()))?;
@@ -114,6 +92,7 @@ fn write(job: &Write) -> Result<Vec<PathBuf>, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crossbeam_channel::bounded;
     use relight_core::PixelFormat;
 
     #[test]
