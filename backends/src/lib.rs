@@ -19,7 +19,6 @@ pub mod markers;
 pub mod openni2;
 pub mod pixel_convert;
 pub mod replay;
-pub mod sim;
 pub mod sources;
 #[cfg(feature = "ueye")]
 pub mod ueye;

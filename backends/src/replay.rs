@@ -187,36 +187,11 @@ impl Restamp {
         self.last_host_ns = self.last_host_ns.max(host_ns);
         let entry = self.seq.entry(msg.kind()).or_insert((0, 0));
         let seq_offset = entry.0;
-        let mut new_seq = 0;
-        with_frame_header(msg, |seq, stamp| {
-            *seq += seq_offset;
-            stamp.host_ns = host_ns;
-            new_seq = *seq;
-        });
-        entry.1 = entry.1.max(new_seq);
-    }
-}
-
-/// Edit a message's sequence number and stamp in place (the reader hands out unique Arcs, so
-/// this does not copy; a shared one is copied once).
-pub(crate) fn with_frame_header(msg: &mut StreamMessage, f: impl FnOnce(&mut u64, &mut Timestamp)) {
-    match msg {
-        StreamMessage::Depth(a) | StreamMessage::Color(a) => {
-            let frame = Arc::make_mut(a);
-            f(&mut frame.seq, &mut frame.stamp)
-        }
-        StreamMessage::Probe(a) => {
-            let frame = Arc::make_mut(a);
-            f(&mut frame.seq, &mut frame.stamp)
-        }
-        StreamMessage::Markers(a) => {
-            let frame = Arc::make_mut(a);
-            f(&mut frame.seq, &mut frame.stamp)
-        }
-        StreamMessage::Lamp(a) => {
-            let frame = Arc::make_mut(a);
-            f(&mut frame.seq, &mut frame.stamp)
-        }
+        // The reader hands out unique Arcs, so this does not copy the payload.
+        let (seq, stamp) = msg.header_mut();
+        *seq += seq_offset;
+        stamp.host_ns = host_ns;
+        entry.1 = entry.1.max(*seq);
     }
 }
 
@@ -321,26 +296,36 @@ impl Device for Replay {
 mod tests {
     use super::*;
     use crate::device::{Backoff, DeviceRunner, DeviceState};
-    use crate::sim::rig::tests::tiny_scene;
-    use crate::sim::rig::{SimRig, SimSettings, equidistant_probe};
     use relight_core::bus::Bus;
+    use relight_core::recording::{RecordingMeta, RecordingWriter};
+    use relight_core::{Frame, Image, PixelFormat};
 
+    /// `frames` depth and colour frames at 30 Hz, each image filled with its frame number so
+    /// payloads differ: the messages and the recording that holds them.
     fn write_recording(dir: &std::path::Path, frames: u32) -> (PathBuf, Vec<StreamMessage>) {
-        let scene = tiny_scene();
-        let mut settings = SimSettings {
-            width: 16,
-            height: 12,
-            color_spp: 1,
-            frames,
-            ..SimSettings::placed_in(&scene)
-        };
-        if let Some(probe) = &mut settings.probe {
-            probe.lens = equidistant_probe(8, 185.0);
-        }
-        let rig = SimRig::new(&scene, settings).unwrap();
         let path = dir.join("rec.mcap");
-        crate::sim::rig::write_recording(&rig, &path, |_| {}).unwrap();
-        (path, rig.frames().flat_map(|f| f.messages).collect())
+        let meta = RecordingMeta {
+            calibration: None,
+            source: "replay test".into(),
+        };
+        let mut writer = RecordingWriter::create(&path, &meta).unwrap();
+        let mut messages = Vec::new();
+        for i in 0..u64::from(frames) {
+            let stamp = Timestamp::new(i * 33_333_333, 1_000_000_000 + i * 33_333_333);
+            let mut depth = Image::new(4, 3, PixelFormat::DepthU16Mm);
+            depth.as_u16_mut().unwrap().fill(1000 + i as u16);
+            let mut color = Image::new(4, 3, PixelFormat::Rgb8);
+            color.as_u8_mut().unwrap().fill(i as u8);
+            for msg in [
+                StreamMessage::Depth(Arc::new(Frame::new(i, stamp, depth))),
+                StreamMessage::Color(Arc::new(Frame::new(i, stamp, color))),
+            ] {
+                writer.write(&msg).unwrap();
+                messages.push(msg);
+            }
+        }
+        writer.finish().unwrap();
+        (path, messages)
     }
 
     fn run_to_end(

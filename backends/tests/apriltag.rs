@@ -1,7 +1,8 @@
 //! The AprilTag backend through the real libapriltag, on images rendered with known truth:
 //! corner order and pixel convention, pose accuracy per distance × blur (both families, tilted
-//! tags, noise), boards with occlusion, a fish-eye camera, the simulator's own frames, bad input,
-//! and the marker device on the bus with its One-Euro filter.
+//! tags, noise), boards with occlusion, a fish-eye camera, bad input, and the marker device on
+//! the bus with its One-Euro filter. The simulator's own frames are checked against this detector
+//! in `relight-sim` (`sim/tests/apriltag.rs`).
 //!
 //! Tolerances come from the corner accuracy: a corner budget σ_c per blur level is asserted on
 //! the detected corners, and pose errors must stay within 3 σ of what that corner noise gives
@@ -21,7 +22,7 @@ use relight_backends::markers::apriltag::{
     AprilTagConfig, AprilTagTracker, Family, Observations, Rejection, apriltag_device,
     family_bitmap, family_layout,
 };
-use relight_backends::markers::board::BoardConfig;
+use relight_backends::markers::board::{Board, BoardConfig};
 use relight_backends::markers::one_euro::OneEuroConfig;
 use relight_backends::markers::pose::{
     DPose, PoseFit, PoseSettings, estimate_square_pose, square_corners_in_marker,
@@ -29,15 +30,11 @@ use relight_backends::markers::pose::{
 use relight_backends::markers::render::{
     Occluder, PlanarTexture, RenderSettings, Surface, TagBitmap, project_points, render,
 };
-use relight_backends::sim::markers::MarkerBoard;
-use relight_backends::sim::rig::{SimRig, SimSettings};
 use relight_backends::sources::MarkerTracker;
 use relight_core::bus::Bus;
 use relight_core::camera::{CameraModel, KannalaBrandt, Pinhole};
-use relight_core::light::Light;
-use relight_core::scene::{Material, Scene, SceneCamera};
+use relight_core::rig::BoardLayout;
 use relight_core::{Frame, Image, MarkerSet, PixelFormat, Pose, StreamMessage, Timestamp};
-use relight_reference::shapes::quad;
 
 const TAG_SIZE_M: f64 = 0.12;
 const WHITE: f32 = 0.9;
@@ -123,7 +120,7 @@ fn predicted(fit: &PoseFit, sigma_px: f64) -> (f64, f64) {
 }
 
 #[test]
-fn family_tables_match_the_simulator_and_the_library() {
+fn family_tables_match_the_printed_codes_and_the_library() {
     for id in 0..32 {
         assert_eq!(
             family_bitmap(Family::Tag36h11, id),
@@ -372,39 +369,50 @@ fn pose_error_per_distance_and_blur_stays_within_the_corner_budget() {
     );
 }
 
-/// The simulator's demo board (2 × 2 tag36h11, 12 cm tags, 3 cm gaps), placed in the world by
-/// the caller.
-fn demo_board() -> MarkerBoard {
-    MarkerBoard {
+/// The demo board (2 × 2 tag36h11, 12 cm tags, 3 cm gaps) as the detector lays it out (the
+/// simulator's truth follows the same layout: `relight-sim`'s marker tests), placed in the world.
+struct PlacedBoard {
+    board: Board,
+    world_from_board: Pose,
+}
+
+fn demo_board(world_from_board: Pose) -> PlacedBoard {
+    let board = Board::from_layout(&BoardLayout {
+        family: "tag36h11".into(),
         first_id: 0,
         cols: 2,
         rows: 2,
-        tag_size_m: TAG_SIZE_M as f32,
+        tag_size_m: TAG_SIZE_M,
         gap_m: 0.03,
-        world_from_board: Pose::IDENTITY,
-        white_albedo: WHITE,
-        black_albedo: BLACK,
+    })
+    .unwrap();
+    PlacedBoard {
+        board,
+        world_from_board,
     }
 }
 
-/// Surfaces of the board's tags (from the simulator's truth layout) and their true
-/// `camera_from_marker` by the simulator's formula, `camera_from_world · world_from_marker`.
-fn board_scene(board: &MarkerBoard, world_from_camera: &Pose) -> (Vec<Surface>, Vec<(u32, DPose)>) {
-    let camera_from_world = world_from_camera.inverse();
-    board
+/// Surfaces of the board's tags and their true `camera_from_marker`,
+/// `camera_from_world · world_from_board · board_from_marker`.
+fn board_scene(
+    placed: &PlacedBoard,
+    world_from_camera: &Pose,
+) -> (Vec<Surface>, Vec<(u32, DPose)>) {
+    let camera_from_board = world_from_camera.inverse() * placed.world_from_board;
+    placed
+        .board
         .tags()
         .iter()
-        .map(|truth| {
-            let camera_from_marker =
-                DPose::from_pose(&(camera_from_world * truth.world_from_marker));
+        .map(|tag| {
+            let camera_from_marker = DPose::from_pose(&(camera_from_board * tag.board_from_marker));
             (
                 tag_surface(
                     Family::Tag36h11,
-                    truth.marker_id,
-                    f64::from(truth.size_m),
+                    tag.marker_id,
+                    tag.size_m,
                     camera_from_marker,
                 ),
-                (truth.marker_id, camera_from_marker),
+                (tag.marker_id, camera_from_marker),
             )
         })
         .unzip()
@@ -427,11 +435,11 @@ fn board_tracker() -> AprilTagTracker {
 }
 
 /// The board seen 1.3 m away, 45° off its normal, from a camera placed in the world.
-fn board_view() -> (MarkerBoard, Pose) {
-    let board = MarkerBoard {
-        world_from_board: Pose::new(Quat::from_rotation_x(-0.4), Vec3::new(0.1, 0.2, -0.3)),
-        ..demo_board()
-    };
+fn board_view() -> (PlacedBoard, Pose) {
+    let board = demo_board(Pose::new(
+        Quat::from_rotation_x(-0.4),
+        Vec3::new(0.1, 0.2, -0.3),
+    ));
     let target = board.world_from_board.translation;
     let eye = target
         + board
@@ -867,140 +875,6 @@ fn bad_images_and_configs_are_typed_errors() {
     );
     assert!(serde_json::from_str::<AprilTagConfig>(r#"{"families": ["tag25h9"]}"#).is_err());
     assert!(serde_json::from_str::<AprilTagConfig>(r#"{"decimate": 2}"#).is_err());
-}
-
-/// A diffuse floor under a point light, for the simulator.
-fn floor_scene() -> Scene {
-    Scene {
-        name: "floor".into(),
-        meshes: vec![quad(
-            "floor",
-            Vec3::ZERO,
-            Vec3::X * 4.0,
-            -Vec3::Z * 4.0,
-            0,
-            false,
-        )],
-        materials: vec![Material {
-            name: "floor".into(),
-            albedo: Vec3::splat(0.6),
-            specular: Vec3::ZERO,
-            shininess: 0.0,
-            emission: Vec3::ZERO,
-        }],
-        camera: SceneCamera {
-            world_from_camera: Pose::look_at(
-                Vec3::new(0.0, 0.8, 0.4),
-                Vec3::new(0.0, 0.0, -0.2),
-                Vec3::Y,
-            ),
-            yfov_rad: 0.7,
-            width: 320,
-            height: 240,
-        },
-        lights: vec![Light::Point {
-            position_in_world: Vec3::new(0.0, 2.0, 0.5),
-            intensity: Vec3::splat(4.0),
-        }],
-        environment: None,
-        environment_lights: Vec::new(),
-    }
-}
-
-#[test]
-fn detections_match_the_simulators_truth_on_its_own_frames() {
-    let scene = floor_scene();
-    let board = MarkerBoard {
-        first_id: 4,
-        cols: 2,
-        rows: 2,
-        tag_size_m: 0.15,
-        gap_m: 0.04,
-        world_from_board: Pose::new(
-            Quat::from_rotation_x(-std::f32::consts::FRAC_PI_2) * Quat::from_rotation_z(0.3),
-            Vec3::new(0.05, 0.0, -0.2),
-        ),
-        white_albedo: 0.8,
-        black_albedo: 0.04,
-    };
-    let rig = SimRig::new(
-        &scene,
-        SimSettings {
-            width: 320,
-            height: 240,
-            frames: 1,
-            color_spp: 4,
-            board: Some(board),
-            ..SimSettings::default()
-        },
-    )
-    .unwrap()
-    .metered();
-    let frame = rig.frame(0);
-    let colour = frame.messages.iter().find_map(|m| match m {
-        StreamMessage::Color(f) => Some(f.payload.clone()),
-        _ => None,
-    });
-    let truth = frame.messages.iter().find_map(|m| match m {
-        StreamMessage::Markers(f) => Some(f.payload.clone()),
-        _ => None,
-    });
-    let (Some(colour), Some(truth)) = (colour, truth) else {
-        panic!("the rig renders colour and markers");
-    };
-    assert_eq!(truth.detections.len(), 4);
-    let camera = CameraModel::Pinhole(*rig.camera());
-    let mut tracker = AprilTagTracker::new(&AprilTagConfig {
-        size_m: 0.15,
-        quad_decimate: 1.0,
-        ..AprilTagConfig::default()
-    })
-    .unwrap();
-    let mut found = MarkerSet::default();
-    tracker.detect(&colour, &camera, &mut found).unwrap();
-    assert_eq!(
-        found.detections.len(),
-        4,
-        "{:?}",
-        tracker.observe(&colour, &camera).unwrap().rejected
-    );
-    let f = focal_px(&camera);
-    for expected in &truth.detections {
-        let detected = found
-            .detections
-            .iter()
-            .find(|d| d.marker_id == expected.marker_id)
-            .unwrap();
-        assert_eq!(detected.family, expected.family);
-        // The sim path-traces 4 spp with 4 × 4 supersampled print: a looser corner budget.
-        for (a, b) in detected.corners_px.iter().zip(&expected.corners_px) {
-            assert!(
-                (*a - *b).length() < 0.6,
-                "tag {}: {a} vs {b}",
-                expected.marker_id
-            );
-        }
-        let distance = f64::from(expected.camera_from_marker.translation.length());
-        let closed_form = distance * distance * 0.6 / (f * 0.15);
-        let error = (detected.camera_from_marker.translation
-            - expected.camera_from_marker.translation)
-            .length();
-        assert!(
-            f64::from(error) < 3.0 * closed_form,
-            "tag {}: {error} m",
-            expected.marker_id
-        );
-        let angle = detected
-            .camera_from_marker
-            .rotation
-            .angle_between(expected.camera_from_marker.rotation);
-        assert!(
-            angle.to_degrees() < 5.0,
-            "tag {}: {}°",
-            expected.marker_id,
-            angle.to_degrees()
-        );
-    }
 }
 
 #[test]

@@ -15,7 +15,7 @@ use relight_backends::markers::pose::{
 use relight_backends::markers::render::{
     Occluder, PlanarTexture, RenderSettings, Surface, TagBitmap, project_points, render,
 };
-use relight_backends::sim::markers::tag36h11_cells;
+use relight_backends::markers::tag36h11::tag36h11_cells;
 use relight_backends::sources::MarkerTracker;
 use relight_core::camera::{CameraModel, Pinhole};
 use relight_core::{Image, MarkerDetection, MarkerSet, PixelFormat};

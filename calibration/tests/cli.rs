@@ -7,9 +7,6 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use glam::{DQuat, DVec3, Quat, Vec3};
-use relight_backends::sim::probe::render_probe;
-use relight_backends::sim::response::CameraResponse;
-use relight_backends::sim::rig::equidistant_probe;
 use relight_calibrate::detect::Detector;
 use relight_calibrate::input::{mat_from_image, read_image};
 use relight_calibrate::report::write_png;
@@ -22,6 +19,9 @@ use relight_core::camera::{CameraModel, KannalaBrandt, Pinhole};
 use relight_core::recording::{RecordingMeta, RecordingWriter};
 use relight_core::rig::RigCalibration;
 use relight_core::{Frame, Image, PixelFormat, Pose, ProbeImage, StreamMessage, Timestamp};
+use relight_sim::probe::render_probe;
+use relight_sim::response::CameraResponse;
+use relight_sim::rig::equidistant_probe;
 
 const BINARY: &str = env!("CARGO_BIN_EXE_relight-calibrate");
 

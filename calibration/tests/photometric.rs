@@ -4,9 +4,6 @@
 //! from synthetic flat fields with known fall-off.
 
 use glam::{DVec2, Quat, Vec3};
-use relight_backends::sim::probe::{ProbeLens, render_probe};
-use relight_backends::sim::response::CameraResponse;
-use relight_backends::sim::rig::equidistant_probe;
 use relight_calibrate::photometric::{
     PhotometricError, PixelRect, ResponseSettings, calibrate_response, radiance_scale,
 };
@@ -16,6 +13,9 @@ use relight_calibrate::vignetting::{
 use relight_core::camera::CameraModel;
 use relight_core::{Image, PixelFormat, Pose, ProbeImage};
 use relight_recon::hdr::{HdrError, RecoverySettings, Response, merge, recover_response};
+use relight_sim::probe::{ProbeLens, render_probe};
+use relight_sim::response::CameraResponse;
+use relight_sim::rig::equidistant_probe;
 
 /// A smooth, coloured world spanning four decades (1e-3 … 10): every code occurs.
 fn wide_range_world(d: Vec3) -> Vec3 {

@@ -137,6 +137,30 @@ impl StreamMessage {
         }
     }
 
+    /// The frame's sequence number and timestamps, for a source that renumbers or restamps what
+    /// it publishes (a replay's host time, a looped replay's numbering). The payload is copied
+    /// only if the message is shared.
+    pub fn header_mut(&mut self) -> (&mut u64, &mut crate::Timestamp) {
+        match self {
+            StreamMessage::Depth(a) | StreamMessage::Color(a) => {
+                let frame = Arc::make_mut(a);
+                (&mut frame.seq, &mut frame.stamp)
+            }
+            StreamMessage::Probe(a) => {
+                let frame = Arc::make_mut(a);
+                (&mut frame.seq, &mut frame.stamp)
+            }
+            StreamMessage::Markers(a) => {
+                let frame = Arc::make_mut(a);
+                (&mut frame.seq, &mut frame.stamp)
+            }
+            StreamMessage::Lamp(a) => {
+                let frame = Arc::make_mut(a);
+                (&mut frame.seq, &mut frame.stamp)
+            }
+        }
+    }
+
     /// Same stream and same payload, whatever the sequence numbers and timestamps (a replay
     /// restamps host time; a looped one renumbers).
     pub fn payload_eq(&self, other: &StreamMessage) -> bool {

@@ -187,7 +187,7 @@ impl ReplayMode {
 }
 
 /// `[sim]`: the simulated rig as a live source. Its settings are validated by
-/// `relight_backends::sim::device::SimSourceConfig`.
+/// `relight_sim::device::SimSourceConfig`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SimConfig {
     /// The `[sim]` table as a JSON object.

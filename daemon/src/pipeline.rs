@@ -24,7 +24,6 @@ use std::time::{Duration, Instant};
 use anyhow::Context as _;
 use crossbeam_channel::{Receiver, Sender, bounded};
 use relight_backends::device::{Backoff, DeviceStatus as BackendStatus, Stepper};
-use relight_backends::sim::device::{SimDevice, SimSourceConfig};
 use relight_backends::{
     Backpressure, Device as _, DeviceRunner, DeviceState, Replay, ReplayConfig, ReplayMode,
 };
@@ -35,6 +34,7 @@ use relight_core::sync::{FrameSet, SyncConfig as CoreSyncConfig, Synchronizer};
 use relight_core::{Frame, ProbeImage, StreamKind, StreamMessage};
 use relight_engines::gpu::GpuError;
 use relight_engines::{Engine, EngineError, EngineRegistry, RelitFrame};
+use relight_sim::device::{SimDevice, SimSourceConfig};
 use serde_json::{Map, Value, json};
 
 use crate::config::{self, Config, SourceConfig};

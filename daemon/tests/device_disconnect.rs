@@ -258,9 +258,9 @@ mod ueye {
 #[cfg(feature = "freenect")]
 mod freenect {
     use super::*;
-    use relight_backends::freenect::dump::write_fakenect_dump;
-    use relight_backends::sim::rig::{SimRig, SimSettings};
     use relight_core::scene::Scene;
+    use relight_sim::fakenect::write_fakenect_dump;
+    use relight_sim::rig::{SimRig, SimSettings};
 
     /// fakenect ships a `libfreenect.so.0.5` in its own directory; on LD_LIBRARY_PATH it
     /// replaces the real library in the relightd child.

@@ -4,12 +4,12 @@
 
 use std::path::{Path, PathBuf};
 
-use relight_backends::sim::rig::{CameraPath, SimRig, SimSettings, write_recording};
 use relight_core::StreamKind;
 use relight_core::recording::{RecordingMeta, RecordingWriter};
 use relight_core::scene::Scene;
 use relight_daemon::config::Config;
 use relight_daemon::score::{self, ScoreReport, ScoreSettings};
+use relight_sim::rig::{CameraPath, SimRig, SimSettings, write_recording};
 
 fn desk() -> (PathBuf, Scene) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/desk_box");

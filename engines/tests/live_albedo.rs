@@ -5,7 +5,6 @@
 mod support;
 
 use glam::Vec3;
-use relight_backends::sim::rig::{SimRig, SimSettings};
 use relight_core::StreamMessage;
 use relight_core::camera::{CameraModel, Pinhole, optical_from_gl};
 use relight_core::recording::truth::{TruthKind, TruthMessage};
@@ -14,6 +13,7 @@ use relight_engines::live_scene::{LiveScene, RealGeometry};
 use relight_engines::offline::delta_pixels;
 use relight_engines::surface_albedo::SurfaceAlbedo;
 use relight_recon::albedo::AlbedoSettings;
+use relight_sim::rig::{SimRig, SimSettings};
 use support::{delta_of, engine, frame, load_scene};
 
 const RED: Vec3 = Vec3::new(0.7, 0.1, 0.08);

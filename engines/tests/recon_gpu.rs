@@ -39,8 +39,6 @@ use std::sync::Arc;
 
 use std::time::Instant;
 
-use relight_backends::sim::rig::{CameraPath, SimRig, SimSettings};
-use relight_backends::sim::trajectory::Trajectory;
 use relight_core::camera::Pinhole;
 use relight_core::scene::Scene;
 use relight_core::{Image, PixelFormat, Pose, StreamMessage};
@@ -51,6 +49,8 @@ use relight_recon::depth::{
 };
 use relight_recon::normals::{NormalMap, normals, positions};
 use relight_recon::temporal::{ResetReason, TemporalMerge};
+use relight_sim::rig::{CameraPath, SimRig, SimSettings};
+use relight_sim::trajectory::Trajectory;
 
 /// Filtered depth may differ by this times z² (metres); see the module docs.
 const DEPTH_TOLERANCE_PER_M: f32 = 1e-5;

@@ -7,13 +7,13 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use relight_backends::device::Backoff;
-use relight_backends::sim::rig::{CameraPath, SimRig, SimSettings};
 use relight_backends::{DeviceRunner, Replay, ReplayConfig, ReplayMode};
 use relight_core::StreamKind;
 use relight_core::bus::Bus;
 use relight_core::recording::RecordingReader;
 use relight_core::recording::truth::TruthKind;
 use relight_core::scene::Scene;
+use relight_sim::rig::{CameraPath, SimRig, SimSettings};
 
 fn fixture() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/demo.mcap")

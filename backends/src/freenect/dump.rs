@@ -1,6 +1,6 @@
-//! Writing fakenect dumps: depth and colour (from the simulator or anywhere else) in the
-//! directory format fakenect plays, so that the freenect backend — and the daemon above it —
-//! can be run through the real libfreenect API without a Kinect.
+//! Writing fakenect dumps: depth and colour (from the simulator's `relight_sim::fakenect` or
+//! anywhere else) in the directory format fakenect plays, so that the freenect backend — and the
+//! daemon above it — can be run through the real libfreenect API without a Kinect.
 //!
 //! The format is what fakenect's `record` tool writes (`fakenect/record.c`):
 //! - `INDEX.txt`: one file name per line, in playback order;
@@ -26,7 +26,6 @@ use relight_core::{Image, PixelFormat, StreamMessage, Timestamp};
 
 use super::clock::KINECT_CLOCK_HZ;
 use super::disparity;
-use crate::sim::rig::{SimError, SimRig};
 
 /// Frame size of every fakenect stream.
 pub const DUMP_WIDTH: u32 = 640;
@@ -56,8 +55,6 @@ pub enum DumpError {
         actual: PixelFormat,
         expected: &'static str,
     },
-    #[error(transparent)]
-    Sim(#[from] SimError),
 }
 
 /// What a finished dump holds.
@@ -229,19 +226,6 @@ impl DumpWriter {
         self.summary.entries.push(name.to_string());
         Ok(())
     }
-}
-
-/// Simulate every frame of `rig` into a fakenect dump in `dir`: its depth and colour, with the
-/// simulator's clocks (host time → `<time>`, device time → the 60 MHz `<timestamp>`). Other
-/// streams of the rig (probe, markers, lamp) are not part of a Kinect dump.
-pub fn write_fakenect_dump(dir: &Path, rig: &SimRig) -> Result<DumpSummary, DumpError> {
-    let mut writer = DumpWriter::create(dir)?;
-    for frame in rig.frames() {
-        for msg in &frame.messages {
-            writer.write_message(msg)?;
-        }
-    }
-    writer.finish()
 }
 
 /// The Kinect's 32-bit frame counter at `device_ns`.

@@ -5,7 +5,7 @@
 //! alone. A board spreads the same corner noise over a wider baseline, and keeps its pose when
 //! some of its tags are occluded or out of view.
 //!
-//! The board frame is the one of the simulator's [`MarkerBoard`]: origin at the board's centre,
+//! The board frame is the one of the simulator's printed board: origin at the board's centre,
 //! tags in its x–y plane (+x right, +y up as printed), +z out of the print. Its detection is a
 //! [`MarkerDetection`] whose `family` is the board's name, whose `corners_px` are the board's
 //! outline (the rectangle around its tags in the board plane, lower-left first, counter-clockwise)
@@ -21,7 +21,7 @@ use super::pose::{
     DPose, PoseError, PoseFit, PoseSettings, estimate_planar_pose, estimate_square_pose,
     refine_pose, square_corners_in_marker,
 };
-use crate::sim::markers::{MarkerBoard, TAG36H11};
+use super::tag36h11::TAG36H11;
 
 /// One tag of a board.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -212,11 +212,6 @@ impl Board {
         }
     }
 
-    /// The simulator's demo board (same layout and board frame as its truth), named `board`.
-    pub fn from_sim(board: &MarkerBoard) -> Result<Self, BoardError> {
-        Self::from_layout(&board.layout())
-    }
-
     /// The grid a rig's calibration describes, named `board`.
     pub fn from_layout(layout: &BoardLayout) -> Result<Self, BoardError> {
         Self::from_config(&BoardConfig::Grid {
@@ -230,7 +225,7 @@ impl Board {
         })
     }
 
-    /// A printed grid laid out exactly as [`MarkerBoard::tags`] does.
+    /// A printed grid: rows from the top, IDs left to right, centred on the board's origin.
     fn grid(
         name: &str,
         family: &str,
@@ -451,17 +446,17 @@ mod tests {
         })
     }
 
-    fn sim_board() -> MarkerBoard {
-        MarkerBoard {
+    /// A 3 × 2 grid from ID 4, as the simulator's demo board is laid out.
+    fn grid_board() -> Board {
+        Board::from_layout(&BoardLayout {
+            family: TAG36H11.into(),
             first_id: 4,
             cols: 3,
             rows: 2,
             tag_size_m: 0.08,
             gap_m: 0.02,
-            world_from_board: Pose::IDENTITY,
-            white_albedo: 0.8,
-            black_albedo: 0.05,
-        }
+        })
+        .unwrap()
     }
 
     fn observe(board: &Board, camera_from_board: &DPose) -> Vec<(u32, [DVec2; 4])> {
@@ -481,24 +476,15 @@ mod tests {
     }
 
     #[test]
-    fn sim_board_layout_matches_the_simulator_truth() {
-        let sim = MarkerBoard {
-            world_from_board: Pose::new(Quat::from_rotation_y(0.3), Vec3::new(0.2, -0.1, -1.5)),
-            ..sim_board()
-        };
-        let board = Board::from_sim(&sim).unwrap();
-        let world_from_board = sim.world_from_board;
-        for truth in sim.tags() {
-            let tag = board.tag(truth.marker_id).unwrap();
-            let world_from_marker = world_from_board * tag.board_from_marker;
-            assert!(
-                (world_from_marker.translation - truth.world_from_marker.translation).length()
-                    < 1e-6
-            );
-            assert_eq!(tag.size_m, f64::from(truth.size_m));
-        }
+    fn grid_layout_numbers_tags_and_outlines_them() {
+        let board = grid_board();
         assert_eq!(board.tags().len(), 6);
         assert_eq!(board.marker_id(), 4);
+        let first = board.tag(4).unwrap().board_from_marker.translation;
+        assert!(
+            (first - Vec3::new(-0.1, 0.05, 0.0)).length() < 1e-6,
+            "{first}"
+        );
         let outline = board.outline_in_board();
         assert!((outline[2].x - (0.15 - 0.01)).abs() < 1e-6, "{outline:?}");
         assert!((outline[0].y + (0.10 - 0.01)).abs() < 1e-6);
@@ -506,7 +492,7 @@ mod tests {
 
     #[test]
     fn joint_pose_from_a_subset_of_tags_is_exact() {
-        let board = Board::from_sim(&sim_board()).unwrap();
+        let board = grid_board();
         let truth = DPose::new(
             DQuat::from_rotation_x(-0.9) * DQuat::from_rotation_z(0.2),
             DVec3::new(0.05, -0.1, -1.1),
@@ -525,7 +511,7 @@ mod tests {
 
     #[test]
     fn a_displaced_tag_is_rejected() {
-        let board = Board::from_sim(&sim_board()).unwrap();
+        let board = grid_board();
         let truth = DPose::new(DQuat::from_rotation_x(-0.6), DVec3::new(0.0, 0.0, -1.0));
         let mut seen = observe(&board, &truth);
         for corner in &mut seen[2].1 {
@@ -652,11 +638,7 @@ mod tests {
         };
         assert!(Board::from_config(&zero).is_err());
         assert_eq!(
-            Board::from_sim(&sim_board()).unwrap().estimate(
-                &[],
-                &camera(),
-                &PoseSettings::default()
-            ),
+            grid_board().estimate(&[], &camera(), &PoseSettings::default()),
             Err(BoardError::NoTags)
         );
     }

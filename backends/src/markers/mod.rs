@@ -36,6 +36,7 @@ pub mod device;
 pub mod one_euro;
 pub mod pose;
 pub mod render;
+pub mod tag36h11;
 
 use serde::{Deserialize, Serialize};
 

@@ -20,7 +20,7 @@ use relight_core::srgb::linear_to_srgb;
 use relight_core::{Image, PixelFormat};
 
 use super::pose::{CAMERA_FROM_OPTICAL, DPose};
-use crate::sim::markers::{TAG_TOTAL_CELLS, tag36h11_cells};
+use super::tag36h11::{TAG_TOTAL_CELLS, tag36h11_cells};
 
 /// A square fiducial's cell pattern as printed: row-major, row 0 at the top, `true` = white.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -279,7 +279,7 @@ impl DepthMap {
 /// parts: Gaussian noise σ_z(z) = a + b·(z − z0)² (Nguyen, Izadi & Lovell 2012, measured
 /// head-on) and the quantisation of d, whose depth step is z²·step / (f·b) (Khoshelham &
 /// Elberink 2012). [`Self::sigma_m`] combines them: σ² = σ_z² + step²/12. The defaults are the
-/// model the simulator draws from (`relight_backends::sim::kinect::KinectModel`), with the focal
+/// model the simulator draws from (`relight_sim::kinect::KinectModel`), with the focal
 /// length of the depth camera *at the resolution used*, since the disparity is measured in its
 /// pixels.
 #[derive(Debug, Clone, Copy, PartialEq)]

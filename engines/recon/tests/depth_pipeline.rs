@@ -8,12 +8,12 @@
 mod depth_common;
 
 use depth_common::*;
-use relight_backends::sim::rig::CameraPath;
-use relight_backends::sim::trajectory::Trajectory;
 use relight_core::scene::Scene;
 use relight_recon::depth::{DepthMap, DepthRange, guided_filter};
 use relight_recon::normals::{NormalMap, NormalSettings, normals, positions};
 use relight_recon::temporal::{ResetReason, TemporalMerge, TemporalSettings};
+use relight_sim::rig::CameraPath;
+use relight_sim::trajectory::Trajectory;
 
 /// The spot_bleed scene with its box made real: a depth edge with a colour edge, projector
 /// shadows beside it and a cast shadow.
@@ -47,7 +47,7 @@ fn angular_errors(normals: &NormalMap, data: &SimData) -> (f32, f32, usize) {
 fn normals_of(
     depth: &DepthMap,
     data: &SimData,
-    rig: &relight_backends::sim::rig::SimRig,
+    rig: &relight_sim::rig::SimRig,
 ) -> (f32, f32, usize) {
     let map = normals(
         &positions(depth, rig.camera()).unwrap(),

@@ -6,8 +6,6 @@ mod light_support;
 
 use glam::{Quat, Vec3};
 use light_support::*;
-use relight_backends::sim::probe::ProbeLens;
-use relight_backends::sim::rig::equidistant_probe;
 use relight_core::Pose;
 use relight_core::camera::KannalaBrandt;
 use relight_core::scene::EnvironmentMap;
@@ -15,6 +13,8 @@ use relight_recon::envmap::{
     EnvMapError, EnvMapSettings, map_energy, probe_energy, probe_to_environment, texel_direction,
     texel_solid_angle,
 };
+use relight_sim::probe::ProbeLens;
+use relight_sim::rig::equidistant_probe;
 
 /// A smooth coloured sky: brighter towards +Y and towards +X.
 fn smooth_world(d: Vec3) -> Vec3 {

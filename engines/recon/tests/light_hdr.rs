@@ -6,11 +6,11 @@ mod light_support;
 
 use glam::Vec3;
 use light_support::*;
-use relight_backends::sim::response::CameraResponse;
-use relight_backends::sim::rig::equidistant_probe;
 use relight_core::rig::RigCalibration;
 use relight_core::{Image, PixelFormat, ProbeImage};
 use relight_recon::hdr::{HdrError, RecoverySettings, Response, merge, recover_response};
+use relight_sim::response::CameraResponse;
+use relight_sim::rig::equidistant_probe;
 
 /// A smooth, coloured world spanning four decades (1e-3 … 10): every code occurs.
 fn wide_range_world(d: Vec3) -> Vec3 {

@@ -8,9 +8,6 @@ mod light_support;
 
 use glam::Vec3;
 use light_support::*;
-use relight_backends::sim::probe::{ProbeLens, environment_radiance};
-use relight_backends::sim::response::CameraResponse;
-use relight_backends::sim::rig::{SimRig, SimSettings, equidistant_probe};
 use relight_core::camera::{CameraModel, KannalaBrandt};
 use relight_core::scene::{EnvironmentMap, Scene};
 use relight_core::{Pose, ProbeImage, StreamMessage};
@@ -18,6 +15,9 @@ use relight_recon::envmap::{EnvMapSettings, ProbeEnvironment, map_energy, probe_
 use relight_recon::hdr::{HdrImage, RecoverySettings, Response, merge, recover_response};
 use relight_recon::irradiance::{SH9_IRRADIANCE_ERROR_BOUND, irradiance_brute_force, project_sh9};
 use relight_recon::median_cut::{CutMethod, MedianCutSettings, RegionLight, extract_lights};
+use relight_sim::probe::{ProbeLens, environment_radiance};
+use relight_sim::response::CameraResponse;
+use relight_sim::rig::{SimRig, SimSettings, equidistant_probe};
 
 /// The rig over `scene`, with a tiny colour camera (only the probe matters here) and the lamp
 /// (if any) frozen in place, so that the bracket's exposures see the same lights.

@@ -5,10 +5,10 @@
 use std::sync::Arc;
 
 use glam::Vec3;
-use relight_backends::sim::rig::{SimRig, SimSettings};
 use relight_core::scene::Scene;
 use relight_core::{Frame, ProbeImage, StreamMessage};
 use relight_recon::probe::{ProbeLighting, ProbeSettings};
+use relight_sim::rig::{SimRig, SimSettings};
 
 fn scene() -> Scene {
     Scene::load(

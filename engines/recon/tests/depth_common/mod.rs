@@ -5,8 +5,6 @@
 use std::path::Path;
 
 use glam::Vec3;
-use relight_backends::sim::rig::{SimRig, SimSettings};
-use relight_backends::sim::trajectory::Trajectory;
 use relight_core::camera::Pinhole;
 use relight_core::light::Light;
 use relight_core::recording::truth::{TruthKind, TruthMessage};
@@ -14,6 +12,8 @@ use relight_core::scene::Scene;
 use relight_core::{Image, Pose, StreamMessage};
 use relight_recon::depth::{DepthMap, GuidedFilterSettings, is_valid_depth};
 use relight_recon::temporal::TemporalSettings;
+use relight_sim::rig::{SimRig, SimSettings};
+use relight_sim::trajectory::Trajectory;
 
 pub fn load_scene(name: &str) -> Scene {
     Scene::load(

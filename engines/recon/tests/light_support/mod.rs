@@ -5,13 +5,13 @@
 use std::path::Path;
 
 use glam::{DVec2, Vec3};
-use relight_backends::sim::probe::{ProbeLens, render_probe};
-use relight_backends::sim::response::CameraResponse;
 use relight_core::camera::gl_from_optical;
 use relight_core::scene::{EnvironmentMap, Scene};
 use relight_core::{Pose, ProbeImage};
 use relight_recon::envmap::texel_direction;
 use relight_recon::hdr::HdrImage;
+use relight_sim::probe::{ProbeLens, render_probe};
+use relight_sim::response::CameraResponse;
 
 pub fn load_scene(name: &str) -> Scene {
     Scene::load(

@@ -46,13 +46,13 @@ use relight_core::{
 use relight_reference::accel::Geometry;
 use relight_reference::{ReferenceError, ReferenceRenderer, ReferenceSettings};
 
-use super::kinect::{KinectModel, TrueSurface};
-use super::markers::{MarkerBoard, corners_in_marker};
-use super::probe::{ProbeLens, environment_radiance, render_probe};
-use super::response::CameraResponse;
-use super::trajectory::Trajectory;
-use crate::lamp_protocol::LampReport;
-use crate::markers::pose::{PoseSettings, estimate_square_pose};
+use crate::kinect::{KinectModel, TrueSurface};
+use crate::markers::{MarkerBoard, corners_in_marker};
+use crate::probe::{ProbeLens, environment_radiance, render_probe};
+use crate::response::CameraResponse;
+use crate::trajectory::Trajectory;
+use relight_backends::lamp_protocol::LampReport;
+use relight_backends::markers::pose::{PoseSettings, estimate_square_pose};
 
 /// The fish-eye probe of the rig.
 #[derive(Debug, Clone, PartialEq)]

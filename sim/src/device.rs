@@ -13,9 +13,8 @@ use relight_core::rig::RigCalibration;
 use relight_core::scene::Scene;
 use serde::Deserialize;
 
-use super::rig::{CameraPath, SimRig, SimSettings};
-use crate::device::{Device, DeviceContext, DeviceError, RunEnd};
-use crate::replay::with_frame_header;
+use crate::rig::{CameraPath, SimRig, SimSettings};
+use relight_backends::device::{Device, DeviceContext, DeviceError, RunEnd};
 
 /// The `[sim]` table.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -160,7 +159,7 @@ impl Device for SimDevice {
                 if ctx.should_stop() {
                     return Ok(RunEnd::StopRequested);
                 }
-                with_frame_header(&mut msg, |_, stamp| stamp.host_ns = host_now_ns());
+                msg.header_mut().1.host_ns = host_now_ns();
                 ctx.publish(msg);
             }
         }
@@ -175,7 +174,7 @@ mod tests {
     use relight_core::bus::Bus;
 
     use super::*;
-    use crate::device::{Backoff, DeviceRunner};
+    use relight_backends::device::{Backoff, DeviceRunner};
 
     fn desk() -> PathBuf {
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/desk_box")

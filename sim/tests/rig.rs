@@ -10,10 +10,6 @@ use std::time::{Duration, Instant};
 use glam::{DVec2, Quat, Vec3};
 use relight_backends::device::Backoff;
 use relight_backends::lamp_protocol::parse_line;
-use relight_backends::sim::markers::MarkerBoard;
-use relight_backends::sim::rig::{
-    SimLamp, SimProbe, SimRig, SimSettings, equidistant_probe, write_recording,
-};
 use relight_backends::{DeviceRunner, Replay, ReplayConfig, ReplayMode};
 use relight_core::bus::Bus;
 use relight_core::camera::optical_from_gl;
@@ -23,6 +19,10 @@ use relight_core::recording::truth::{TruthKind, TruthMessage};
 use relight_core::scene::{Material, Scene, SceneCamera};
 use relight_core::{Image, Pose, StreamMessage};
 use relight_reference::shapes::{quad, uv_sphere};
+use relight_sim::markers::MarkerBoard;
+use relight_sim::rig::{
+    SimLamp, SimProbe, SimRig, SimSettings, equidistant_probe, write_recording,
+};
 
 const ALBEDO: f32 = 0.6;
 const LIGHT: Vec3 = Vec3::new(0.0, 2.0, 0.5);
@@ -165,7 +165,7 @@ fn kinect_depth_stays_within_its_noise_model_of_the_truth() {
     let TruthMessage::Image(TruthKind::Depth, truth) = &frame.truth[0] else {
         panic!("true depth comes first");
     };
-    let model = relight_backends::sim::kinect::KinectModel {
+    let model = relight_sim::kinect::KinectModel {
         focal_px: rig.camera().fx as f32,
         ..rig.settings().kinect
     };

@@ -7,7 +7,7 @@ use relight_core::camera::{KannalaBrandt, gl_from_optical};
 use relight_core::scene::EnvironmentMap;
 use relight_core::{Image, PixelFormat, Pose, ProbeImage};
 
-use super::response::CameraResponse;
+use crate::response::CameraResponse;
 
 /// Radiance of `env` in world direction `dir` (unit), bilinear. Longitude φ = atan2(x, −z)
 /// from −Z towards +X, v = 0 straight up (the convention of [`EnvironmentMap`]).

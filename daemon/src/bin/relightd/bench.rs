@@ -1,0 +1,89 @@
+//! `relightd bench`: every engine × setting × scene timed and scored against the reference
+//! (`relight_daemon::bench`), or the `ibl` map convolution alone.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use relight_daemon::bench::{self, BenchSettings};
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Scene directories (default: every scene under tests/scenes).
+    #[arg(long = "scene")]
+    scenes: Vec<PathBuf>,
+    #[arg(long, default_value_t = 160)]
+    width: u32,
+    #[arg(long, default_value_t = 120)]
+    height: u32,
+    /// Reference samples per pixel.
+    #[arg(long, default_value_t = 256)]
+    reference_spp: u32,
+    /// Timed frames per case (after two warm-up frames); the median is reported.
+    #[arg(long, default_value_t = 5)]
+    frames: u32,
+    /// Add the papers' parameter sweeps (DLPV volume × steps and RSM sizes, DVCT volume × step, DIR VPL count and ISM size, IBL map size).
+    #[arg(long)]
+    sweep: bool,
+    /// Only these engines.
+    #[arg(long = "engine")]
+    engines: Vec<String>,
+    /// Instead of the engine table: time the `ibl` map convolution (diffuse + 8 specular
+    /// maps in one pass) at these output sizes, e.g. `--ibl-maps 128,256,512`.
+    #[arg(long, value_delimiter = ',')]
+    ibl_maps: Vec<u32>,
+    #[arg(long, default_value = "target/bench")]
+    out: PathBuf,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    if !args.ibl_maps.is_empty() {
+        println!("size     input texels  maps  median ms");
+        for row in bench::ibl_map_timings(&args.ibl_maps, 8, args.frames)? {
+            println!(
+                "{:>4}²  {:>13}  {:>4}  {:>9.1}",
+                row.size,
+                row.input_texels,
+                row.levels + 1,
+                row.median_ms
+            );
+        }
+        return Ok(());
+    }
+    let scenes = if args.scenes.is_empty() {
+        let mut found: Vec<PathBuf> = std::fs::read_dir("tests/scenes")
+            .context("no --scene given and no tests/scenes here")?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.join("scene.toml").exists())
+            .collect();
+        found.sort();
+        found
+    } else {
+        args.scenes
+    };
+    let cases = bench::default_cases(args.sweep)
+        .into_iter()
+        .filter(|c| args.engines.is_empty() || args.engines.contains(&c.engine))
+        .collect();
+    let settings = BenchSettings {
+        scenes,
+        width: args.width,
+        height: args.height,
+        reference_spp: args.reference_spp,
+        frames: args.frames,
+        cases,
+    };
+    let adapter = relight_engines::gpu::GpuContext::new()
+        .map(|c| format!("{} ({:?})", c.info.name, c.info.backend))
+        .unwrap_or_else(|e| format!("no GPU: {e}"));
+    eprintln!("bench on {adapter}");
+    let rows = bench::run(&settings, |row| {
+        eprintln!(
+            "{:<14} {:<52} {:>9.2} ms  rel L2 {:.4}",
+            row.scene, row.setting, row.median_ms, row.relative_l2
+        );
+    })?;
+    print!("{}", bench::table(&rows));
+    bench::write_outputs(&rows, &args.out, &adapter)?;
+    println!("wrote {}/bench.{{csv,json,svg}}", args.out.display());
+    Ok(())
+}

@@ -1,0 +1,167 @@
+//! `relightd render`: an offline scene (scene.toml + glTF) with the reference path tracer, or
+//! with an engine judged against it.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use relight_core::scene::Scene;
+use relight_daemon::sinks::exr_out::write_exr;
+use relight_daemon::sinks::png_out::{tonemap_reinhard, write_png};
+use relight_engines::offline;
+use relight_reference::{ReferenceSettings, render_reference};
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    #[arg(long)]
+    scene: PathBuf,
+    #[arg(long, default_value = "reference")]
+    engine: String,
+    /// Reference samples per pixel (for another engine: of the reference it is judged
+    /// against, whose L^μ is also its camera image).
+    #[arg(long, default_value_t = 64)]
+    spp: u32,
+    #[arg(long)]
+    out: PathBuf,
+    /// Override the scene camera's image size.
+    #[arg(long, requires = "height")]
+    width: Option<u32>,
+    #[arg(long, requires = "width")]
+    height: Option<u32>,
+    /// Bounces after the first hit.
+    #[arg(long, default_value_t = 8)]
+    bounces: u32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Engine parameters (`name=value`, repeatable), as `relightctl engine params set`.
+    #[arg(long = "param")]
+    params: Vec<String>,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let size = args.width.zip(args.height);
+    if args.engine != "reference" {
+        return render_engine(
+            &args.scene,
+            &args.engine,
+            &args.params,
+            size,
+            args.spp,
+            &args.out,
+        );
+    }
+    let settings = ReferenceSettings {
+        spp: args.spp,
+        max_bounces: args.bounces,
+        seed: args.seed,
+        size,
+        ..ReferenceSettings::default()
+    };
+    render_with_reference(&args.scene, settings, &args.out)
+}
+
+fn render_with_reference(scene_dir: &Path, settings: ReferenceSettings, out: &Path) -> Result<()> {
+    let scene = Scene::load(scene_dir)?;
+    let started = Instant::now();
+    let images = render_reference(&scene, settings)?;
+    let seconds = started.elapsed().as_secs_f64();
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let (w, h) = (images.width, images.height);
+    for (name, pixels) in [
+        ("l_rho", &images.l_rho),
+        ("l_mu", &images.l_mu),
+        ("delta", &images.delta),
+        ("delta_std_error", &images.delta_std_error),
+    ] {
+        write_exr(&out.join(format!("{name}.exr")), w, h, pixels)?;
+    }
+    // Offline, the background is L^μ itself, so background + Δ on real pixels and L^ρ on
+    // virtual pixels are both L^ρ.
+    write_png(
+        &out.join("composite.png"),
+        &tonemap_reinhard(w, h, &images.l_rho),
+    )?;
+    let real = images.virtual_mask.iter().filter(|v| !**v).count().max(1);
+    let mean_std_error = images
+        .delta_std_error
+        .iter()
+        .zip(&images.virtual_mask)
+        .filter(|(_, v)| !**v)
+        .map(|(e, _)| f64::from(e.max_element()))
+        .sum::<f64>()
+        / real as f64;
+    let summary = serde_json::json!({
+        "scene": scene.name,
+        "engine": "reference",
+        "width": w,
+        "height": h,
+        "spp": images.spp,
+        "max_bounces": settings.max_bounces,
+        "seconds": seconds,
+        "mean_delta_std_error_real_pixels": mean_std_error,
+    });
+    std::fs::write(
+        out.join("summary.json"),
+        serde_json::to_string_pretty(&summary)?,
+    )?;
+    println!(
+        "{}: {w}×{h}, {} spp in {seconds:.2} s; mean std error of Δ on real pixels {mean_std_error:.2e}; wrote {}",
+        scene.name,
+        images.spp,
+        out.display()
+    );
+    Ok(())
+}
+
+/// Render an offline scene with a relighting engine: Δ as EXR, the composite as PNG, and a
+/// summary with the frame time and the error of Δ against the reference at `spp`.
+fn render_engine(
+    scene_dir: &Path,
+    engine: &str,
+    params: &[String],
+    size: Option<(u32, u32)>,
+    spp: u32,
+    out: &Path,
+) -> Result<()> {
+    let scene = Arc::new(Scene::load(scene_dir)?);
+    let (w, h) = size.unwrap_or((scene.camera.width, scene.camera.height));
+    let mut built = relight_engines::EngineRegistry::new()
+        .build(engine, &crate::params::parse_params(params)?)?;
+    let reference = offline::reference(&scene, w, h, spp)?;
+    let frame = offline::scene_frame(scene.clone(), offline::background(&reference));
+    let mut relit = relight_engines::RelitFrame::default();
+    built.engine.render(&frame, &mut relit)?;
+    let started = Instant::now();
+    built.engine.render(&frame, &mut relit)?;
+    let ms = started.elapsed().as_secs_f64() * 1e3;
+    let delta = offline::delta_pixels(&relit.delta);
+    let (relative_l2, max_abs) =
+        offline::delta_error(&delta, &reference.delta, &reference.virtual_mask);
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    write_exr(&out.join("delta.exr"), w, h, &delta)?;
+    write_exr(&out.join("delta_reference.exr"), w, h, &reference.delta)?;
+    write_png(&out.join("composite.png"), &relit.composite)?;
+    let summary = serde_json::json!({
+        "scene": scene.name,
+        "engine": engine,
+        "params": built.params,
+        "width": w,
+        "height": h,
+        "frame_ms": ms,
+        "passes": relit.timings.iter().map(|t| serde_json::json!({"pass": t.pass, "ms": t.ms})).collect::<Vec<_>>(),
+        "reference_spp": spp,
+        "delta_relative_l2": relative_l2,
+        "delta_max_abs": max_abs,
+    });
+    std::fs::write(
+        out.join("summary.json"),
+        serde_json::to_string_pretty(&summary)?,
+    )?;
+    println!(
+        "{}: {engine} {w}×{h} in {ms:.1} ms; Δ vs reference ({spp} spp): relative L2 {relative_l2:.4}, max abs {max_abs:.4}; wrote {}",
+        scene.name,
+        out.display()
+    );
+    Ok(())
+}

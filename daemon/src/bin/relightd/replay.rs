@@ -1,0 +1,75 @@
+//! `relightd replay`: a recording through the pipeline without a configuration file (the demo).
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::ValueEnum;
+use relight_daemon::config::{self, Config, OutputConfig, ReplayConfig, SourceConfig};
+use relight_daemon::pipeline::PipelineOptions;
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum Mode {
+    Realtime,
+    Fast,
+    Stepped,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    recording: PathBuf,
+    #[arg(long, value_enum, default_value = "realtime")]
+    mode: Mode,
+    /// Playback speed for `realtime` mode.
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    /// Start over at the end (runs until stopped).
+    #[arg(long = "loop")]
+    looping: bool,
+    #[arg(long, default_value = "passthrough")]
+    engine: String,
+    /// Write composite PNGs here.
+    #[arg(long)]
+    output: Option<PathBuf>,
+    /// Write every Nth frame to --output.
+    #[arg(long, default_value_t = 1)]
+    every_n: u32,
+    /// Serve the control socket here while replaying.
+    #[arg(long)]
+    socket: Option<PathBuf>,
+    /// Scene directory for the GPU engines: virtual object(s), lights, camera pose (the
+    /// real surface comes from the recording's depth).
+    #[arg(long)]
+    scene: Option<PathBuf>,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let mut config = Config {
+        path: PathBuf::from("(command line)"),
+        source: SourceConfig::Replay(ReplayConfig {
+            path: args.recording,
+            mode: match args.mode {
+                Mode::Realtime => config::ReplayMode::Realtime,
+                Mode::Fast => config::ReplayMode::Fast,
+                Mode::Stepped => config::ReplayMode::Stepped,
+            },
+            loop_playback: args.looping,
+            speed: args.speed,
+        }),
+        output: OutputConfig {
+            dir: args.output,
+            every_n: args.every_n,
+        },
+        ..Config::default()
+    };
+    config.engine.name = args.engine;
+    config.scene.dir = args.scene;
+    if let Some(socket) = args.socket {
+        config.daemon.socket = socket;
+    }
+    let serve_socket = crate::serve::is_explicit_socket(&config.daemon.socket);
+    let options = PipelineOptions {
+        exit_at_end: !args.looping,
+        ..PipelineOptions::default()
+    };
+    crate::serve::run(config, options, serve_socket)
+}

@@ -1,0 +1,74 @@
+//! `relightd score`: a simulated recording through the whole live path, scored against its
+//! truth (`relight_daemon::score`).
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use relight_daemon::config::Config;
+use relight_daemon::score::{ScoreSettings, default_config};
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    recording: PathBuf,
+    #[arg(long)]
+    scene: PathBuf,
+    #[arg(long, default_value = "differential")]
+    engine: String,
+    /// Engine parameters (`name=value`, repeatable).
+    #[arg(long = "param")]
+    params: Vec<String>,
+    /// Samples per pixel of the truth's reference renders.
+    #[arg(long, default_value_t = 32)]
+    reference_spp: u32,
+    /// Write each scored frame's live, oracle and true composites here.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Write the summary (median and p95 per measure) and the per-frame scores here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Take `[scene]`, `[tracking]` and `[sync]` from this configuration file (default: the
+    /// built-in defaults).
+    #[arg(long = "live-config")]
+    live_config: Option<PathBuf>,
+    /// Print the summary only, not the table per frame.
+    #[arg(long)]
+    summary: bool,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let config = match &args.live_config {
+        Some(path) => Config::load(path)?,
+        None => default_config(),
+    };
+    let settings = ScoreSettings {
+        recording: args.recording,
+        scene: args.scene,
+        engine: args.engine,
+        params: crate::params::parse_params(&args.params)?,
+        reference_spp: args.reference_spp,
+        out: args.out,
+        config,
+    };
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template(
+            "scoring {bar:30} {pos}/{len} truth frames ({elapsed})",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let report = relight_daemon::score::run(&settings, |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    let table = report.table();
+    match (args.summary, table.find("\n\n")) {
+        (true, Some(end)) => print!("{}", &table[end + 2..]),
+        _ => print!("{table}"),
+    }
+    if let Some(path) = args.json {
+        std::fs::write(&path, serde_json::to_string_pretty(&report.to_json())?)
+            .with_context(|| format!("writing {}", path.display()))?;
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}
