@@ -22,7 +22,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::tracking::{TrackingConfig, TrackingSource};
+use crate::pipeline::tracking::{TrackingConfig, TrackingSource};
 use relight_core::StreamKind;
 use relight_engines::live_scene::{LightSource, RealGeometry};
 use serde::Deserialize;

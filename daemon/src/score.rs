@@ -38,9 +38,9 @@ use serde_json::{Map, Value};
 
 use crate::config::Config;
 use crate::control::lights::LightsBoard;
-use crate::depth_stage::DepthOutcome;
-use crate::live_frame::LiveFrames;
-use crate::pipeline::{core_sync_config, expect_only_recorded_streams};
+use crate::pipeline::live_frame::LiveFrames;
+use crate::pipeline::reconstruction::DepthOutcome;
+use crate::pipeline::sources::{core_sync_config, expect_only_recorded_streams};
 use crate::sinks::png_out::write_png;
 
 /// What to score.
@@ -253,8 +253,8 @@ pub fn run(
         let seq = frames as u64;
         frames += 1;
         let frame = live.frame(&set, seq, &board);
-        for (name, ms) in &frame.timings {
-            add_ms(name, *ms);
+        for (name, ms) in frame.timings.named() {
+            add_ms(name, ms);
         }
         let start = Instant::now();
         let used = if frame.tracking.is_usable() {

@@ -1,12 +1,18 @@
 //! Per-stage timing statistics for status reports and the demo's summary.
+//!
+//! Each pipeline stage holds the [`StageTimer`] of its own name and records into it; status
+//! reports read every timer through the [`Timings`] they were registered with.
 
 use std::collections::VecDeque;
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+
+use crate::control::types::StageTiming;
 
 /// Running statistics of one stage: count, mean over all frames, and percentiles over the most
 /// recent `window` frames (so a status report reflects the current behaviour).
 #[derive(Debug, Clone)]
 pub struct StageStats {
-    pub name: &'static str,
+    pub name: String,
     frames: u64,
     total_ms: f64,
     last_ms: f64,
@@ -15,9 +21,9 @@ pub struct StageStats {
 }
 
 impl StageStats {
-    pub fn new(name: &'static str, window: usize) -> Self {
+    pub fn new(name: impl Into<String>, window: usize) -> Self {
         Self {
-            name,
+            name: name.into(),
             frames: 0,
             total_ms: 0.0,
             last_ms: 0.0,
@@ -70,6 +76,69 @@ impl StageStats {
     }
 }
 
+/// The timers of a pipeline's stages, in the order they were first asked for.
+#[derive(Debug)]
+pub struct Timings {
+    window: usize,
+    timers: Mutex<Vec<StageTimer>>,
+}
+
+impl Timings {
+    /// Percentiles over the most recent `window` frames of each stage.
+    pub fn new(window: usize) -> Self {
+        Self {
+            window,
+            timers: Mutex::new(Vec::new()),
+        }
+    }
+
+    /// The timer of stage `name`, registered on first use.
+    pub fn stage(&self, name: &str) -> StageTimer {
+        let mut timers = lock(&self.timers);
+        if let Some(timer) = timers.iter().find(|t| t.stats().name == name) {
+            return timer.clone();
+        }
+        let timer = StageTimer(Arc::new(Mutex::new(StageStats::new(name, self.window))));
+        timers.push(timer.clone());
+        timer
+    }
+
+    /// Every stage that has timed a frame.
+    pub fn report(&self) -> Vec<StageTiming> {
+        lock(&self.timers)
+            .iter()
+            .map(StageTimer::stats)
+            .filter(|s| s.frames() > 0)
+            .map(|s| StageTiming {
+                name: s.name.clone(),
+                frames: s.frames(),
+                last_ms: s.last_ms(),
+                mean_ms: s.mean_ms(),
+                p50_ms: s.quantile_ms(0.5),
+                p99_ms: s.quantile_ms(0.99),
+            })
+            .collect()
+    }
+}
+
+/// One stage's statistics, shared between the stage that records and the status that reads.
+#[derive(Debug, Clone)]
+pub struct StageTimer(Arc<Mutex<StageStats>>);
+
+impl StageTimer {
+    pub fn record(&self, ms: f64) {
+        lock(&self.0).record(ms);
+    }
+
+    pub fn stats(&self) -> MutexGuard<'_, StageStats> {
+        lock(&self.0)
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -91,5 +160,18 @@ mod tests {
         assert_eq!(stats.frames(), 200);
         stats.record(f64::NAN);
         assert_eq!(stats.frames(), 200);
+    }
+
+    #[test]
+    fn a_stage_keeps_one_timer_and_reports_once_it_has_timed() {
+        let timings = Timings::new(8);
+        let render = timings.stage("render");
+        timings.stage("output");
+        render.record(3.0);
+        timings.stage("render").record(5.0);
+        let report = timings.report();
+        assert_eq!(report.len(), 1, "output timed nothing");
+        assert_eq!((report[0].name.as_str(), report[0].frames), ("render", 2));
+        assert_eq!(report[0].mean_ms, 4.0);
     }
 }

@@ -14,7 +14,7 @@ use relight_daemon::control::{
     Percentiles, RecordingStatus, ServerError, ServerOptions, StageTiming, StatusReport,
     SyncStreamStatus, TrackingStatus, codes, peer_allowed,
 };
-use relight_daemon::tracking::TrackingState;
+use relight_daemon::pipeline::tracking::TrackingState;
 use serde_json::{Map, Value, json};
 
 const TIMEOUT: Duration = Duration::from_secs(10);

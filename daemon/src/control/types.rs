@@ -218,7 +218,7 @@ pub struct TrackingStatus {
     pub source: String,
     /// `fixed` (scene pose), `tracked`, `held` (last pose, younger than `max_age_ms`) or
     /// `untracked` (no Δ is drawn).
-    pub state: crate::tracking::TrackingState,
+    pub state: crate::pipeline::tracking::TrackingState,
     /// Milliseconds since the frame set the pose was fitted in.
     pub pose_age_ms: Option<f64>,
     /// Corner reprojection RMS of that fit, pixels.

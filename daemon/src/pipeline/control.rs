@@ -1,0 +1,225 @@
+//! The control surface: what the control socket's requests do to the running pipeline. An
+//! engine is built here, on the control thread, and handed to the render thread through the
+//! [`EngineSlot`](super::render::EngineSlot); snapshots are served by the render thread between frames.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use crossbeam_channel::bounded;
+use serde_json::{Map, Value, json};
+
+use super::outputs::SnapshotRequest;
+use super::render::Pending;
+use super::sources::core_sync_config;
+use super::status::lock;
+use super::{Shared, params_map, recording_path};
+use crate::config::Config;
+use crate::control::lights::LightsBoard;
+use crate::control::types::{ControlError, ControlTarget, EngineInfo, StatusReport};
+use crate::sinks::recorder::RecorderError;
+
+/// How long a control request waits for the render thread to serve a snapshot.
+const SNAPSHOT_TIMEOUT: Duration = Duration::from_secs(3);
+
+fn recorder_error(error: RecorderError) -> ControlError {
+    match error {
+        RecorderError::Busy(message) => ControlError::busy(message),
+        RecorderError::Failed(message) => ControlError::failed(message),
+    }
+}
+
+/// The pipeline as the control socket sees it.
+pub(super) struct PipelineControl {
+    pub(super) shared: Arc<Shared>,
+}
+
+impl PipelineControl {
+    fn build_engine(
+        &self,
+        name: &str,
+        params: &Map<String, Value>,
+    ) -> Result<Pending, ControlError> {
+        let built = self
+            .shared
+            .registry
+            .build(name, params)
+            .map_err(|e| match e {
+                relight_engines::registry::RegistryError::UnknownEngine { .. } => {
+                    ControlError::engine_unknown(name)
+                        .with_data(json!({ "known": self.shared.registry.names() }))
+                }
+                other => ControlError::invalid_params(other.to_string()),
+            })?;
+        Ok(Pending::Engine {
+            engine: built.engine,
+            name: name.to_owned(),
+            params: built.params,
+        })
+    }
+}
+
+impl ControlTarget for PipelineControl {
+    fn status(&self) -> StatusReport {
+        super::status::report(&self.shared)
+    }
+
+    fn lights(&self) -> Option<&LightsBoard> {
+        Some(&self.shared.lights)
+    }
+
+    fn engine_list(&self) -> Vec<EngineInfo> {
+        self.shared
+            .registry
+            .specs()
+            .iter()
+            .map(|spec| EngineInfo {
+                name: spec.name.to_owned(),
+                description: spec.description.to_owned(),
+                params_schema: serde_json::to_value(&spec.schema).unwrap_or(Value::Null),
+            })
+            .collect()
+    }
+
+    fn engine_set(&self, name: &str) -> Result<(), ControlError> {
+        let pending = self.build_engine(name, &Map::new())?;
+        *lock(&self.shared.engine.pending) = Some(pending);
+        Ok(())
+    }
+
+    fn engine_params_get(&self) -> Value {
+        json!({
+            "engine": *lock(&self.shared.engine.name),
+            "params": Value::Object(lock(&self.shared.engine.params).clone()),
+        })
+    }
+
+    /// Validate against the engine that renders the next frame: the one waiting to be swapped
+    /// in after an `engine.set`, if any (so `engine set X` then `params set` applies to X),
+    /// else the running one.
+    fn engine_params_set(&self, params: Map<String, Value>) -> Result<Value, ControlError> {
+        let mut pending = lock(&self.shared.engine.pending);
+        let (name, current) = match pending.as_ref() {
+            Some(Pending::Engine { name, params, .. }) => (name.clone(), params.clone()),
+            _ => (
+                lock(&self.shared.engine.name).clone(),
+                lock(&self.shared.engine.params).clone(),
+            ),
+        };
+        let spec = self
+            .shared
+            .registry
+            .spec(&name)
+            .map_err(|e| ControlError::failed(e.to_string()))?;
+        let merged = spec
+            .schema
+            .validate(&current, &params)
+            .map_err(|e| ControlError::invalid_params(e.to_string()))?;
+        match pending.as_mut() {
+            Some(Pending::Engine { engine, params, .. }) => {
+                engine.set_params(&merged);
+                *params = merged.clone();
+            }
+            _ => {
+                *lock(&self.shared.engine.params) = merged.clone();
+                *pending = Some(Pending::Params(merged.clone()));
+            }
+        }
+        Ok(Value::Object(merged))
+    }
+
+    fn record_start(&self, path: Option<PathBuf>) -> Result<PathBuf, ControlError> {
+        let path = match path {
+            Some(path) => path,
+            None => {
+                let dir = lock(&self.shared.config).recorder.dir.clone();
+                std::fs::create_dir_all(&dir).map_err(|e| {
+                    ControlError::io(format!("cannot create {}", dir.display()), &e)
+                })?;
+                recording_path(&dir)
+            }
+        };
+        self.shared.recorder.start(path).map_err(recorder_error)
+    }
+
+    fn record_stop(&self) -> Result<Value, ControlError> {
+        self.shared
+            .recorder
+            .stop_recording()
+            .map_err(recorder_error)
+    }
+
+    fn snapshot(&self, path: Option<PathBuf>) -> Result<Vec<PathBuf>, ControlError> {
+        let dir = path.unwrap_or_else(|| lock(&self.shared.config).snapshot.dir.clone());
+        let (reply, answer) = bounded(1);
+        self.shared
+            .snapshots
+            .try_send(SnapshotRequest { dir, reply })
+            .map_err(|_| ControlError::busy("too many snapshots pending"))?;
+        answer
+            .recv_timeout(SNAPSHOT_TIMEOUT)
+            .map_err(|_| {
+                ControlError::failed(format!(
+                    "no frame rendered within {} s; is a source running? (see `relightctl status`)",
+                    SNAPSHOT_TIMEOUT.as_secs()
+                ))
+            })?
+            .map_err(ControlError::failed)
+    }
+
+    fn replay_step(&self, frames: u32) -> Result<Value, ControlError> {
+        if self.shared.steppers.is_empty() {
+            return Err(ControlError::failed(
+                "the source is not a stepped replay (set [replay] mode = \"stepped\")",
+            ));
+        }
+        if !self.shared.steppers.iter().all(|s| s.step(frames)) {
+            return Err(ControlError::failed("the replay has ended"));
+        }
+        Ok(json!({ "frames": frames }))
+    }
+
+    fn config_reload(&self) -> Result<Value, ControlError> {
+        let path = lock(&self.shared.config).path.clone();
+        let new = Config::load(&path).map_err(|e| {
+            ControlError::invalid_params(format!("configuration not reloaded: {e}"))
+        })?;
+        let old = lock(&self.shared.config).clone();
+        let mut applied = Vec::new();
+        let mut restart_required = Vec::new();
+        if new.engine != old.engine {
+            let pending = self.build_engine(&new.engine.name, &params_map(&new.engine.params))?;
+            *lock(&self.shared.engine.pending) = Some(pending);
+            applied.push("engine");
+        }
+        if new.sync != old.sync {
+            *lock(&self.shared.pending_sync) = Some(core_sync_config(&new.sync));
+            applied.push("sync");
+        }
+        for (name, changed) in [
+            ("recorder.dir", new.recorder.dir != old.recorder.dir),
+            ("snapshot", new.snapshot != old.snapshot),
+            ("output", new.output != old.output),
+        ] {
+            if changed {
+                applied.push(name);
+            }
+        }
+        for (name, changed) in [
+            ("daemon", new.daemon != old.daemon),
+            ("source", new.source != old.source),
+            ("tracking", new.tracking != old.tracking),
+            (
+                "recorder.queue_frames",
+                new.recorder.queue_frames != old.recorder.queue_frames,
+            ),
+        ] {
+            if changed {
+                restart_required.push(name);
+            }
+        }
+        *lock(&self.shared.config) = new;
+        tracing::info!(?applied, ?restart_required, "configuration reloaded");
+        Ok(json!({ "applied": applied, "restart_required": restart_required }))
+    }
+}
