@@ -19,13 +19,13 @@ pub struct Args {
 }
 
 pub fn run(args: Args, config_path: &Path) -> Result<()> {
-    let mut config = Config::load(config_path)?;
-    config.recorder.autostart = false;
     let limit = args
         .seconds
         .map(Duration::try_from_secs_f64)
         .transpose()
         .context("--seconds")?;
+    let mut config = Config::load(config_path)?;
+    config.recorder.autostart = false;
     let term = crate::serve::termination_flag()?;
     let options = PipelineOptions {
         exit_at_end: true,

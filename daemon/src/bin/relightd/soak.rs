@@ -56,7 +56,8 @@ pub fn run(args: Args) -> Result<()> {
             .map(|s| positive("switch-every", s))
             .transpose()?,
         sample_every: positive("sample-every", args.sample_every)?,
-        warmup: Duration::from_secs_f64(args.warmup.max(0.0)),
+        warmup: Duration::try_from_secs_f64(args.warmup.max(0.0))
+            .map_err(|_| anyhow::anyhow!("--warmup must be a finite number of seconds"))?,
         config: match &args.live_config {
             Some(path) => Config::load(path)?,
             None => Config {
