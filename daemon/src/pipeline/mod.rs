@@ -379,9 +379,16 @@ impl RenderLoop<'_> {
         }
     }
 
+    /// Render what is decided: every set in a lossless replay; live, one set, right after the
+    /// bus was drained. Deciding again after a render, on a wall clock that moved on while the
+    /// partners that arrived meanwhile are still unread on the bus, would time them out and
+    /// make sets without colour.
     fn render_ready(&mut self) {
         while let Some(ready) = self.ingest.next_set(&self.shared.counters) {
             self.process(ready);
+            if !self.ingest.is_lossless() {
+                break;
+            }
         }
     }
 
