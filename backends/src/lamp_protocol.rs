@@ -108,7 +108,8 @@ pub fn parse_line(line: &str) -> Result<LampReport, LineError> {
     let (body, sum) = rest
         .rsplit_once('*')
         .ok_or_else(|| malformed("no `*` before the checksum"))?;
-    let found = (sum.len() == 2)
+    // Two hex digits exactly: `from_str_radix` alone would also take a sign (`+A`).
+    let found = (sum.len() == 2 && sum.bytes().all(|b| b.is_ascii_hexdigit()))
         .then(|| u8::from_str_radix(sum, 16).ok())
         .flatten()
         .ok_or_else(|| malformed("checksum is not two hex digits"))?;
@@ -323,6 +324,20 @@ mod tests {
             "{errors:?}"
         );
         assert_eq!(errors.len(), 5);
+    }
+
+    #[test]
+    fn a_checksum_with_a_sign_is_not_two_hex_digits() {
+        let body = "RLAMP,1,1,0.5,3000";
+        assert!(parse_line(&format!("${body}*{:02X}", checksum(body.as_bytes()))).is_ok());
+        for signed in ["+A", "-A", " A", "+0"] {
+            let line = format!("${body}*{signed}");
+            assert!(
+                matches!(parse_line(&line), Err(LineError::Malformed { reason, .. }) if reason.contains("two hex digits")),
+                "{line}: {:?}",
+                parse_line(&line)
+            );
+        }
     }
 
     #[test]

@@ -47,6 +47,14 @@ const MIN_REQUEST_BYTES: i64 = 256;
 const MAX_REQUEST_BYTES: i64 = 16 * 1024 * 1024;
 /// `sun_path` of `sockaddr_un` holds 108 bytes including the terminating NUL.
 const MAX_SOCKET_PATH_BYTES: usize = 107;
+/// The largest configuration file read. A real one is a few KiB.
+pub const MAX_CONFIG_BYTES: u64 = 1024 * 1024;
+/// The longest `[sync]` tolerance and wait, milliseconds: a frame set waiting longer than this
+/// is no longer live.
+const MAX_SYNC_MS: f64 = 10_000.0;
+/// The most frames the recorder may queue: each holds a whole image (a few MB at 640 × 480 with
+/// depth), so more would hold gigabytes rather than smooth a slow disk.
+const MAX_RECORDER_QUEUE_FRAMES: usize = 4096;
 
 /// The validated configuration of relightd.
 #[derive(Debug, Clone, PartialEq)]
@@ -416,10 +424,12 @@ impl fmt::Display for Diagnostic {
 /// Why a configuration could not be loaded.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
-    #[error("{}: cannot read config: {source}", path.display())]
+    /// The reason is in the message, not a `source`: an error chain printed whole would say it
+    /// twice.
+    #[error("{}: cannot read config: {reason}", path.display())]
     Read {
         path: PathBuf,
-        source: std::io::Error,
+        reason: std::io::Error,
     },
     /// The text is not valid TOML.
     #[error("{0}")]
@@ -458,9 +468,9 @@ impl Config {
     /// Reads and validates the configuration file at `path`.
     pub fn load(path: impl AsRef<Path>) -> Result<Config, ConfigError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        let text = read_bounded(path).map_err(|reason| ConfigError::Read {
             path: path.to_owned(),
-            source,
+            reason,
         })?;
         Config::parse(&text, path)
     }
@@ -740,9 +750,9 @@ impl Validator<'_> {
             ),
         }
         if let Some(ms) = raw.max_age_ms {
-            match non_negative_ms(ms).filter(|d| *d <= Duration::from_secs(3600)) {
-                Some(age) => tracking.max_age = age,
-                None => self.error(
+            match non_negative_ms(ms, 3_600_000.0) {
+                Ok(age) => tracking.max_age = age,
+                Err(_) => self.error(
                     "tracking.max_age_ms",
                     format!("must be in [0, 3600000] ms, got {ms}"),
                 ),
@@ -1029,15 +1039,19 @@ impl Validator<'_> {
     fn sync(&mut self, raw: RawSync) -> SyncConfig {
         let mut sync = SyncConfig::default();
         if let Some(ms) = raw.tolerance_ms {
-            match positive_ms(ms) {
-                Some(d) => sync.tolerance = d,
-                None => self.error("sync.tolerance_ms", format!("must be > 0, got {ms}")),
+            match positive_ms(ms, MAX_SYNC_MS) {
+                Ok(d) => sync.tolerance = d,
+                Err(reason) => {
+                    self.error("sync.tolerance_ms", format!("{reason}, got {}", show(ms)))
+                }
             }
         }
         if let Some(ms) = raw.max_wait_ms {
-            match non_negative_ms(ms) {
-                Some(d) => sync.max_wait = d,
-                None => self.error("sync.max_wait_ms", format!("must be >= 0, got {ms}")),
+            match non_negative_ms(ms, MAX_SYNC_MS) {
+                Ok(d) => sync.max_wait = d,
+                Err(reason) => {
+                    self.error("sync.max_wait_ms", format!("{reason}, got {}", show(ms)))
+                }
             }
         }
         if let Some(names) = raw.streams {
@@ -1182,10 +1196,10 @@ impl Validator<'_> {
         }
         if let Some(frames) = raw.queue_frames {
             match usize::try_from(frames) {
-                Ok(n) if n > 0 => recorder.queue_frames = n,
+                Ok(n) if (1..=MAX_RECORDER_QUEUE_FRAMES).contains(&n) => recorder.queue_frames = n,
                 _ => self.error(
                     "recorder.queue_frames",
-                    format!("must be > 0, got {frames}"),
+                    format!("must be in 1..={MAX_RECORDER_QUEUE_FRAMES}, got {frames}"),
                 ),
             }
         }
@@ -1247,12 +1261,62 @@ fn valid_group_name(name: &str) -> bool {
             .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'_' | b'-' | b'.'))
 }
 
-fn positive_ms(ms: f64) -> Option<Duration> {
-    (ms.is_finite() && ms > 0.0).then(|| Duration::from_secs_f64(ms / 1e3))
+/// `ms` milliseconds in (0, `max_ms`], checked before the conversion (which panics on huge
+/// values); the reason otherwise.
+fn positive_ms(ms: f64, max_ms: f64) -> Result<Duration, String> {
+    if ms.is_nan() || ms <= 0.0 {
+        return Err("must be > 0".into());
+    }
+    at_most_ms(ms, max_ms)
 }
 
-fn non_negative_ms(ms: f64) -> Option<Duration> {
-    (ms.is_finite() && ms >= 0.0).then(|| Duration::from_secs_f64(ms / 1e3))
+/// `ms` milliseconds in [0, `max_ms`].
+fn non_negative_ms(ms: f64, max_ms: f64) -> Result<Duration, String> {
+    if ms.is_nan() || ms < 0.0 {
+        return Err("must be >= 0".into());
+    }
+    at_most_ms(ms, max_ms)
+}
+
+/// A number as a message quotes it: huge ones in exponent form, not 300 digits.
+fn show(x: f64) -> String {
+    if x.abs() >= 1e9 {
+        format!("{x:e}")
+    } else {
+        format!("{x}")
+    }
+}
+
+fn at_most_ms(ms: f64, max_ms: f64) -> Result<Duration, String> {
+    if ms > max_ms {
+        return Err(format!("must be at most {max_ms} ms"));
+    }
+    Ok(Duration::from_secs_f64(ms / 1e3))
+}
+
+/// The text of a configuration file: a regular file of at most [`MAX_CONFIG_BYTES`]. Opened
+/// without blocking, so a path linked to a FIFO, a device or a huge file is refused at once
+/// instead of stalling or filling memory (a `config.reload` must not do either).
+fn read_bounded(path: &Path) -> std::io::Result<String> {
+    use std::io::Read as _;
+    use std::os::unix::fs::OpenOptionsExt as _;
+    let invalid = |what: String| std::io::Error::new(std::io::ErrorKind::InvalidInput, what);
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(rustix::fs::OFlags::NONBLOCK.bits() as i32)
+        .open(path)?;
+    if !file.metadata()?.is_file() {
+        return Err(invalid("not a regular file".into()));
+    }
+    let mut bytes = Vec::new();
+    file.take(MAX_CONFIG_BYTES + 1).read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > MAX_CONFIG_BYTES {
+        return Err(invalid(format!(
+            "larger than {} KiB; not a relightd configuration",
+            MAX_CONFIG_BYTES / 1024
+        )));
+    }
+    String::from_utf8(bytes).map_err(|_| invalid("not UTF-8 text".into()))
 }
 
 fn stream_names() -> String {

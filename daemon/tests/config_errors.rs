@@ -339,7 +339,7 @@ fn numeric_limits_are_checked() {
     let d = only_error("[daemon]\nmax_request_bytes = 10\n");
     assert_at(&d, 2, "daemon.max_request_bytes", "between 256 and");
     let d = only_error("[recorder]\nqueue_frames = 0\n");
-    assert_at(&d, 2, "recorder.queue_frames", "must be > 0, got 0");
+    assert_at(&d, 2, "recorder.queue_frames", "must be in 1..=4096, got 0");
     let d = only_error("[output]\nevery_n = -1\n");
     assert_at(&d, 2, "output.every_n", "must be > 0");
     let d = only_error("[sync]\nmax_wait_ms = -1\n");
@@ -407,6 +407,58 @@ fn missing_file_names_its_path() {
     let err = Config::load(&path).expect_err("no such file");
     assert!(matches!(err, ConfigError::Read { .. }), "{err:?}");
     assert!(err.to_string().contains("absent.toml"), "{err}");
+}
+
+/// Values far past any real setting are errors at their line, not a panic or an abort (a crash
+/// here would be a restart loop under `Restart=on-failure`).
+#[test]
+fn huge_values_are_diagnostics_not_crashes() {
+    let d = only_error("[sync]\ntolerance_ms = 1e308\n");
+    assert_at(
+        &d,
+        2,
+        "sync.tolerance_ms",
+        "must be at most 10000 ms, got 1e308",
+    );
+    let d = only_error("[sync]\nmax_wait_ms = 1e300\n");
+    assert_at(&d, 2, "sync.max_wait_ms", "must be at most 10000 ms");
+    let d = only_error("[recorder]\nqueue_frames = 1000000000000\n");
+    assert_at(
+        &d,
+        2,
+        "recorder.queue_frames",
+        "must be in 1..=4096, got 1000000000000",
+    );
+    let config = parse("[sync]\ntolerance_ms = 10000\nmax_wait_ms = 10000\n").expect("the limit");
+    assert_eq!(config.sync.tolerance, Duration::from_secs(10));
+}
+
+/// `config.reload` reads the same path again: a path linked to a device, a FIFO or a huge file
+/// is refused at once, and the reason is said once.
+#[test]
+fn only_a_bounded_regular_file_is_read() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let zero = dir.path().join("zero.toml");
+    std::os::unix::fs::symlink("/dev/zero", &zero).expect("link");
+    let err = Config::load(&zero).expect_err("a device");
+    assert!(err.to_string().contains("not a regular file"), "{err}");
+    let fifo = dir.path().join("fifo.toml");
+    let made = std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .expect("mkfifo");
+    assert!(made.success());
+    let err = Config::load(&fifo).expect_err("a FIFO with no writer, refused without blocking");
+    assert!(err.to_string().contains("not a regular file"), "{err}");
+    let big = dir.path().join("big.toml");
+    let mut text = "# padding\n".repeat(120_000);
+    text.push_str("[sync]\ntolerance_ms = 20\n");
+    std::fs::write(&big, text).expect("write");
+    let err = Config::load(&big).expect_err("over 1 MiB");
+    assert!(err.to_string().contains("larger than 1024 KiB"), "{err}");
+    let absent = Config::load(dir.path().join("absent.toml")).expect_err("absent");
+    let printed = format!("{:#}", anyhow::Error::new(absent));
+    assert_eq!(printed.matches("os error 2").count(), 1, "{printed}");
 }
 
 #[test]
