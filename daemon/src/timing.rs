@@ -4,9 +4,10 @@
 //! reports read every timer through the [`Timings`] they were registered with.
 
 use std::collections::VecDeque;
-use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+use std::sync::{Arc, Mutex, MutexGuard};
 
 use crate::control::types::StageTiming;
+use crate::lock;
 
 /// Running statistics of one stage: count, mean over all frames, and percentiles over the most
 /// recent `window` frames (so a status report reflects the current behaviour).
@@ -133,10 +134,6 @@ impl StageTimer {
     pub fn stats(&self) -> MutexGuard<'_, StageStats> {
         lock(&self.0)
     }
-}
-
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 #[cfg(test)]

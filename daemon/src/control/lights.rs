@@ -11,9 +11,10 @@
 //! next publish.
 
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError, Weak};
+use std::sync::{Arc, Condvar, Mutex, PoisonError, Weak};
 use std::time::{Duration, Instant};
 
+use crate::lock;
 use relight_recon::estimate::LightingEstimate;
 
 /// The latest lighting estimate and the subscribers to be told about the next one.
@@ -38,10 +39,6 @@ struct SlotState {
     closed: bool,
     /// Updates replaced before they were taken.
     coalesced: u64,
-}
-
-fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
-    mutex.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 impl LightsBoard {

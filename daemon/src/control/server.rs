@@ -27,7 +27,7 @@ use std::os::unix::fs::{FileTypeExt, MetadataExt, PermissionsExt};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -36,6 +36,7 @@ use serde_json::Value;
 use super::lights::LightsSubscription;
 use super::rpc::{self, Session as _};
 use super::types::{ControlError, ControlTarget, codes};
+use crate::lock;
 
 /// Connections served at once; further ones get an error line and are closed.
 pub const DEFAULT_MAX_CONNECTIONS: usize = 16;
@@ -381,10 +382,6 @@ impl Drop for ControlServerHandle {
     fn drop(&mut self) {
         self.stop();
     }
-}
-
-fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    mutex.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 /// Removes `path` if it is a socket nobody listens on; refuses to touch anything else.

@@ -12,11 +12,11 @@ use serde_json::{Map, Value, json};
 use super::outputs::SnapshotRequest;
 use super::render::Pending;
 use super::sources::core_sync_config;
-use super::status::lock;
 use super::{Shared, params_map, recording_path};
 use crate::config::Config;
 use crate::control::lights::LightsBoard;
 use crate::control::types::{ControlError, ControlTarget, EngineInfo, StatusReport};
+use crate::lock;
 use crate::sinks::recorder::RecorderError;
 
 /// How long a control request waits for the render thread to serve a snapshot.

@@ -56,6 +56,7 @@ use serde_json::{Map, Value};
 use crate::config::Config;
 use crate::control::lights::LightsBoard;
 use crate::control::types::{ControlTarget, StatusReport};
+use crate::lock;
 use crate::sinks::recorder::Recorder;
 use crate::sinks::writer::ImageWriter;
 use crate::timing::{StageTimer, Timings};
@@ -63,7 +64,7 @@ use ingest::{Ingest, ReadySet};
 use live_frame::{LiveFrame, LiveFrames, LiveTimings};
 use outputs::{Outputs, SnapshotRequest};
 use render::{EngineSlot, RenderStage, Rendered};
-use status::{Counters, Liveness, lock};
+use status::{Counters, Liveness};
 
 /// Frames of timing history behind the percentiles in status reports.
 const TIMING_WINDOW: usize = 512;

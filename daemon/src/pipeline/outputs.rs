@@ -9,8 +9,8 @@ use std::time::Instant;
 use crossbeam_channel::{Receiver, Sender};
 use relight_engines::RelitFrame;
 
-use super::status::lock;
 use crate::config::{Config, OutputConfig};
+use crate::lock;
 use crate::sinks::writer::{ImageWriter, Write};
 use crate::timing::StageTimer;
 

@@ -10,7 +10,8 @@ use relight_engines::{Engine, EngineError, EngineRegistry, RelitFrame};
 use serde_json::{Map, Value};
 
 use super::live_frame::LiveFrame;
-use super::status::{Counters, lock};
+use super::status::Counters;
+use crate::lock;
 use crate::timing::{StageTimer, Timings};
 
 /// A change the render thread applies at the next frame boundary.

@@ -2,8 +2,8 @@
 //! loop is alive, and the report `relightctl status` shows.
 
 use std::collections::VecDeque;
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
 use relight_core::frame::host_now_ns;
@@ -17,6 +17,7 @@ use crate::control::types::{
     AlbedoStatus, DeviceStatus, FramesSkipped, Percentiles, RecordingStatus, StatusReport,
     SyncStreamStatus, TrackingStatus,
 };
+use crate::lock;
 use crate::timing::StageStats;
 
 /// Window behind `render_fps`.
@@ -26,10 +27,6 @@ const FPS_WINDOW: Duration = Duration::from_secs(2);
 const STALL_FRAMES: u64 = 4;
 /// The allowance before the first frame of an engine is timed (pipelines compile lazily).
 const FIRST_FRAME_STALL_MS: u64 = 120_000;
-
-pub(super) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(PoisonError::into_inner)
-}
 
 /// What the stages count, for status reports.
 #[derive(Debug)]
