@@ -2,6 +2,7 @@
 # Checks the systemd integration files without a running systemd and without relightd installed:
 #   - relightd.service with `systemd-analyze verify` (ExecStart=/ExecReload= pointed at an existing
 #     binary in a temporary copy); any message that mentions the unit fails the check;
+#   - its sandbox with `systemd-analyze security --offline=yes`: the exposure must be 2.0 or less;
 #   - sysusers.d/ and tmpfiles.d/ by applying them to a scratch root directory;
 #   - the udev rules with `udevadm verify` where this systemd has it (v254+).
 # Usage: systemd/verify.sh   (exit status 0 when everything is clean)
@@ -31,6 +32,28 @@ if [ "$status" -ne 0 ]; then
     echo "systemd-analyze verify exited with $status:"
     cat "$scratch/verify.log"
     failed=1
+fi
+
+echo "== systemd-analyze security relightd.service (exposure at most 2.0)"
+# Offline: the unit file's own settings are scored, not a running service's. Needs systemd 250+.
+if systemd-analyze security --help 2>/dev/null | grep -q -- '--offline'; then
+    SYSTEMD_LOG_COLOR=0 systemd-analyze security --offline=yes --no-pager \
+        "$scratch/units/relightd.service" >"$scratch/security.log" 2>&1 || true
+    exposure=$(sed -n 's/.*Overall exposure level for relightd\.service: \([0-9.]*\).*/\1/p' \
+        "$scratch/security.log")
+    if [ -z "$exposure" ]; then
+        echo "no exposure level in the output:"
+        cat "$scratch/security.log"
+        failed=1
+    elif awk -v e="$exposure" 'BEGIN { exit !(e > 2.0) }'; then
+        echo "exposure $exposure is above 2.0:"
+        grep '✗' "$scratch/security.log"
+        failed=1
+    else
+        echo "exposure $exposure"
+    fi
+else
+    echo "(systemd-analyze security --offline needs systemd 250+; not checked)"
 fi
 
 echo "== sysusers.d/relightd.conf"

@@ -269,6 +269,46 @@ mod tests {
         }
     }
 
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig { cases: 256, failure_persistence: None, ..Default::default() })]
+
+        /// Format → parse gives back any report the protocol can carry: level at its four
+        /// decimals, orientation at its five (an angle within 1e-4 rad).
+        #[test]
+        fn any_report_round_trips(
+            seq in proptest::prelude::any::<u32>(),
+            on in proptest::prelude::any::<bool>(),
+            level_e4 in 0u32..=10_000,
+            cct_k in 1000u32..=20_000,
+            axis in proptest::array::uniform3(-1.0f32..1.0),
+            angle in -3.1f32..3.1,
+            imu in proptest::prelude::any::<bool>(),
+        ) {
+            let axis = Vec3::from(axis);
+            let orientation = (imu && axis.length() > 0.1)
+                .then(|| Quat::from_axis_angle(axis.normalize(), angle));
+            let report = LampReport { seq, on, level: level_e4 as f32 / 1e4, cct_k, orientation };
+            let line = report.to_line();
+            proptest::prop_assert!(line.len() < MAX_LINE, "{}", line);
+            let back = parse_line(line.trim_end()).unwrap();
+            proptest::prop_assert_eq!((back.seq, back.on, back.level, back.cct_k), (seq, on, report.level, cct_k));
+            match (back.orientation, orientation) {
+                (Some(a), Some(b)) => proptest::prop_assert!(a.angle_between(b) < 1e-4, "{a} {b}"),
+                (None, None) => {}
+                other => proptest::prop_assert!(false, "{other:?}"),
+            }
+        }
+
+        /// Any text never panics the parser, and whatever it accepts writes back to a line it
+        /// accepts again.
+        #[test]
+        fn any_text_parses_or_is_refused(line in "\\$RLAMP,[0-9]{1,10},[01],[0-9.]{1,7},[0-9]{3,6}(,[-0-9.]{1,8}){0,4}\\*[0-9A-Fa-f+-]{2}") {
+            if let Ok(report) = parse_line(&line) {
+                proptest::prop_assert!(parse_line(report.to_line().trim_end()).is_ok());
+            }
+        }
+    }
+
     #[test]
     fn byte_by_byte_equals_all_at_once() {
         let stream: String = (0..6).map(|s| report(s).to_line()).collect();

@@ -6,6 +6,7 @@
 pub mod bus;
 pub mod camera;
 pub mod frame;
+pub mod input_file;
 pub mod light;
 pub mod pose;
 pub mod recording;

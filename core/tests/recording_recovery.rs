@@ -186,3 +186,78 @@ fn random_damage_never_panics() {
         }
     }
 }
+
+/// One corrupted record-length field used to end the walk there: 9 of 220 messages came back
+/// although the summary's chunk index was intact. The reader now resumes from the index, and
+/// frames the damaged chunk itself with the index's length, so nothing is lost.
+#[test]
+fn a_corrupt_record_length_resumes_at_the_indexed_chunks() {
+    let (bytes, messages, chunks) = fixture();
+    for chunk in message_chunks(&chunks) {
+        for bad_length in [u64::MAX, 1 << 40, 3] {
+            let mut damaged = bytes.clone();
+            let at = chunk.offset as usize + 1;
+            damaged[at..at + 8].copy_from_slice(&bad_length.to_le_bytes());
+            let reader = RecordingReader::from_bytes(damaged).unwrap();
+            let read: Vec<StreamMessage> = reader
+                .messages()
+                .collect::<Result<_, _>>()
+                .unwrap_or_else(|e| panic!("chunk {} length {bad_length}: {e}", chunk.index));
+            assert_eq!(read, messages, "chunk {} length {bad_length}", chunk.index);
+            let warnings = reader.warnings();
+            {
+                assert!(
+                    warnings
+                        .iter()
+                        .any(|w| w.contains("resumed from the summary's chunk index")),
+                    "{warnings:?}"
+                );
+            }
+        }
+    }
+}
+
+/// Without the index (the summary is cut away too) the same damage still keeps what came before.
+#[test]
+fn a_corrupt_record_length_without_summary_keeps_the_chunks_before_it() {
+    let (bytes, messages, chunks) = fixture();
+    let footer = mcap::read::footer(&bytes).unwrap();
+    let chunk = message_chunks(&chunks)[2].clone();
+    let mut damaged = bytes[..footer.summary_start as usize].to_vec();
+    let at = chunk.offset as usize + 1;
+    damaged[at..at + 8].copy_from_slice(&u64::MAX.to_le_bytes());
+    let reader = RecordingReader::from_bytes(damaged).unwrap();
+    let read: Vec<StreamMessage> = reader.messages().collect::<Result<_, _>>().unwrap();
+    let before: Vec<StreamMessage> = messages
+        .iter()
+        .filter(|m| m.stamp().host_ns < chunk.message_start_ns)
+        .cloned()
+        .collect();
+    assert_eq!(read, before);
+}
+
+/// `salvage` copies what a damaged recording holds into a complete one, which reads back whole.
+#[test]
+fn salvage_writes_a_complete_copy_of_what_is_left() {
+    use relight_core::recording::RecordingWriter;
+    use relight_core::recording::salvage::{inspect, salvage};
+    let (bytes, messages, chunks) = fixture();
+    let cut = chunks.last().unwrap().offset as usize + 50;
+    let reader = RecordingReader::from_bytes(bytes[..cut].to_vec()).unwrap();
+    let found = inspect(&reader);
+    assert!(!found.is_clean());
+    assert!(!found.has_summary);
+    let mut out = std::io::Cursor::new(Vec::new());
+    let mut writer = RecordingWriter::new(&mut out, reader.meta()).unwrap();
+    let copied = salvage(&reader, &mut writer).unwrap();
+    writer.finish().unwrap();
+    assert_eq!(copied.total_messages(), found.total_messages());
+    let repaired = RecordingReader::from_bytes(out.into_inner()).unwrap();
+    assert!(repaired.has_summary(), "{:?}", repaired.warnings());
+    assert!(inspect(&repaired).is_clean(), "{:?}", inspect(&repaired));
+    let read: Vec<StreamMessage> = repaired.messages().collect::<Result<_, _>>().unwrap();
+    assert_eq!(read.len() as u64, found.total_messages());
+    assert_eq!(read[..], messages[..read.len()]);
+    assert_eq!(repaired.meta(), &meta());
+    assert!(inspect(&RecordingReader::from_bytes(bytes).unwrap()).is_clean());
+}

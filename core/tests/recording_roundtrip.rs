@@ -300,3 +300,28 @@ fn ground_truth_channels_round_trip_beside_the_streams() {
     let back: Vec<TruthMessage> = reader.truth().collect::<Result<_, _>>().unwrap();
     assert_eq!(back, truth);
 }
+
+proptest::proptest! {
+    #![proptest_config(proptest::prelude::ProptestConfig { cases: 24, failure_persistence: None, ..Default::default() })]
+
+    /// Write → read is exact for any traffic, image size, chunk size and compression.
+    #[test]
+    fn any_recording_reads_back_exactly(
+        frames in 1usize..8,
+        width in 1u32..24,
+        height in 1u32..24,
+        seed in proptest::prelude::any::<u64>(),
+        chunk_size_bytes in 64u64..200_000,
+        compression in 0usize..3,
+    ) {
+        let messages = traffic(frames, width, height, seed);
+        let options = RecordingOptions {
+            chunk_size_bytes,
+            compression: [RecordingCompression::Zstd, RecordingCompression::Lz4, RecordingCompression::None][compression],
+            ..Default::default()
+        };
+        let reader = RecordingReader::from_bytes(record(&messages, &options)).unwrap();
+        proptest::prop_assert!(reader.warnings().is_empty(), "{:?}", reader.warnings());
+        proptest::prop_assert_eq!(read_all(&reader), messages);
+    }
+}

@@ -465,25 +465,40 @@ impl fmt::Display for DiagnosticList<'_> {
 }
 
 impl Config {
-    /// Reads and validates the configuration file at `path`.
+    /// Reads the configuration file at `path` (a regular file of at most
+    /// [`MAX_CONFIG_BYTES`]) and runs every check [`Config::validate`] runs. `run`,
+    /// `check-config` and `config.reload` all load through here, so what one accepts the others
+    /// accept.
     pub fn load(path: impl AsRef<Path>) -> Result<Config, ConfigError> {
         let path = path.as_ref();
         let text = read_bounded(path).map_err(|reason| ConfigError::Read {
             path: path.to_owned(),
             reason,
         })?;
-        Config::parse(&text, path)
+        Config::validate(&text, path)
     }
 
-    /// Parses and validates configuration text; `path` names the file in messages and is kept in
-    /// [`Config::path`].
+    /// Parses configuration text and checks its shape: types, ranges, engine names and
+    /// parameters, exclusive sources. The only file it reads is the rig calibration. `path`
+    /// names the file in messages, is kept in [`Config::path`], and is the directory relative
+    /// paths are taken from.
     pub fn parse(text: &str, path: impl AsRef<Path>) -> Result<Config, ConfigError> {
-        let path = path.as_ref();
+        Config::check(text, path.as_ref(), Checks::Shape)
+    }
+
+    /// [`Config::parse`], and also what the configuration names outside itself, as `run` will
+    /// meet it: the scene directory loads, the replay file opens as a recording, the `[sim]`
+    /// settings build a rig, the socket group exists. Every problem is one located diagnostic.
+    pub fn validate(text: &str, path: impl AsRef<Path>) -> Result<Config, ConfigError> {
+        Config::check(text, path.as_ref(), Checks::Resources)
+    }
+
+    fn check(text: &str, path: &Path, checks: Checks) -> Result<Config, ConfigError> {
         let doc = match DeTable::parse(text) {
             Ok(doc) => doc,
             Err(err) => {
                 let (partial, _) = DeTable::parse_recoverable(text);
-                let locator = Locator::new(partial.get_ref());
+                let locator = Locator::new(partial.get_ref(), text);
                 let offset = err.span().map_or(0, |s| s.start);
                 let key = locator.path_near(text, offset);
                 return Err(ConfigError::Syntax(diagnostic(
@@ -495,7 +510,7 @@ impl Config {
                 )));
             }
         };
-        let locator = Locator::new(doc.get_ref());
+        let locator = Locator::new(doc.get_ref(), text);
         let raw: RawConfig = match toml::from_str(text) {
             Ok(raw) => raw,
             Err(err) => {
@@ -520,6 +535,9 @@ impl Config {
             errors: Vec::new(),
         };
         let config = v.config(raw, path);
+        if checks == Checks::Resources {
+            v.resources(&config);
+        }
         if v.errors.is_empty() {
             Ok(config)
         } else {
@@ -531,20 +549,19 @@ impl Config {
 }
 
 impl GroupSpec {
-    /// The numeric gid of this group, looking names up in `/etc/group`.
+    /// The numeric gid of this group: a name is looked up through the system's group database
+    /// (`getgrnam`, so NSS groups such as LDAP's count), a number is taken as it is.
     pub fn resolve_gid(&self) -> Result<u32, GroupLookupError> {
         match self {
             GroupSpec::Gid(gid) => Ok(*gid),
-            GroupSpec::Name(name) => {
-                let text = std::fs::read_to_string("/etc/group").map_err(|source| {
-                    GroupLookupError::Read {
-                        path: PathBuf::from("/etc/group"),
-                        source,
-                    }
-                })?;
-                gid_in_group_file(&text, name)
-                    .ok_or_else(|| GroupLookupError::Unknown { name: name.clone() })
-            }
+            GroupSpec::Name(name) => match nix::unistd::Group::from_name(name) {
+                Ok(Some(group)) => Ok(group.gid.as_raw()),
+                Ok(None) => Err(GroupLookupError::Unknown { name: name.clone() }),
+                Err(errno) => Err(GroupLookupError::Lookup {
+                    name: name.clone(),
+                    reason: errno.desc(),
+                }),
+            },
         }
     }
 }
@@ -561,24 +578,10 @@ impl fmt::Display for GroupSpec {
 /// Why a group name could not be turned into a gid.
 #[derive(Debug, thiserror::Error)]
 pub enum GroupLookupError {
-    #[error("{}: cannot read: {source}", path.display())]
-    Read {
-        path: PathBuf,
-        source: std::io::Error,
-    },
-    #[error("group `{name}` does not exist (see /etc/group)")]
+    #[error("cannot look group `{name}` up: {reason}")]
+    Lookup { name: String, reason: &'static str },
+    #[error("group `{name}` does not exist (`getent group {name}` finds nothing)")]
     Unknown { name: String },
-}
-
-/// Finds `name`'s gid in the text of an `/etc/group` file (`name:password:gid:members`).
-pub fn gid_in_group_file(text: &str, name: &str) -> Option<u32> {
-    text.lines().find_map(|line| {
-        let mut fields = line.split(':');
-        let group = fields.next()?;
-        let _password = fields.next()?;
-        let gid = fields.next()?;
-        (group == name).then(|| gid.trim().parse().ok()).flatten()
-    })
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -695,6 +698,15 @@ struct RawOutput {
 
 // ---------------------------------------------------------------------------------------------
 
+/// How far [`Config::check`] goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Checks {
+    /// The text alone (and the rig calibration it names).
+    Shape,
+    /// Also the scene, the recording, the simulator and the group it names.
+    Resources,
+}
+
 struct Validator<'a> {
     file: &'a Path,
     text: &'a str,
@@ -705,13 +717,62 @@ struct Validator<'a> {
 impl Validator<'_> {
     fn error(&mut self, key: &str, message: String) {
         let offset = self.locator.offset_of(key).unwrap_or(0);
-        self.errors.push(diagnostic(
-            self.file,
-            self.text,
-            offset,
-            Some(key.to_owned()),
+        let (line, column) = self.locator.lines.line_column(self.text, offset);
+        self.errors.push(Diagnostic {
+            file: self.file.to_owned(),
+            line,
+            column,
+            key: Some(key.to_owned()),
             message,
-        ));
+        });
+    }
+
+    /// A path as written, or taken relative to the configuration file's directory (as the
+    /// service runs with `/` as its working directory, that is the only useful meaning).
+    fn relative_to_config(&self, path: PathBuf) -> PathBuf {
+        match self.file.parent() {
+            Some(dir) if path.is_relative() => dir.join(path),
+            _ => path,
+        }
+    }
+
+    /// The checks that read what the configuration names: each is what `run` does first with it.
+    fn resources(&mut self, config: &Config) {
+        if let Some(dir) = &config.scene.dir
+            && let Err(error) = relight_core::scene::Scene::load(dir)
+        {
+            self.error("scene.dir", error.to_string());
+        }
+        match &config.source {
+            SourceConfig::Replay(replay) => {
+                match relight_core::recording::RecordingReader::open(&replay.path) {
+                    Ok(reader) if reader.messages().next().is_none() => self.error(
+                        "replay.path",
+                        format!("{}: the recording holds no messages", replay.path.display()),
+                    ),
+                    Ok(_) => {}
+                    Err(error) => self.error("replay.path", error.to_string()),
+                }
+            }
+            SourceConfig::Sim(sim) => {
+                let built = serde_json::from_value::<relight_sim::device::SimSourceConfig>(
+                    sim.settings.clone(),
+                )
+                .map_err(|e| e.to_string())
+                .and_then(|settings| {
+                    relight_sim::device::SimDevice::new(&settings).map_err(|e| e.to_string())
+                });
+                if let Err(error) = built {
+                    self.error("sim", error);
+                }
+            }
+            SourceConfig::Devices(_) => {}
+        }
+        if let Some(group) = &config.daemon.socket_group
+            && let Err(error) = group.resolve_gid()
+        {
+            self.error("daemon.socket_group", error.to_string());
+        }
     }
 
     fn config(&mut self, raw: RawConfig, path: &Path) -> Config {
@@ -730,7 +791,7 @@ impl Validator<'_> {
                     .unwrap_or_else(|| PathBuf::from(DEFAULT_SNAPSHOTS_DIR)),
             },
             output: self.output(raw.output),
-            rig: self.rig(raw.rig, path),
+            rig: self.rig(raw.rig),
             tracking: self.tracking(raw.tracking),
         }
     }
@@ -783,14 +844,11 @@ impl Validator<'_> {
     }
 
     /// A relative calibration path is taken relative to the configuration file's directory.
-    fn rig(&mut self, raw: RawRig, config_path: &Path) -> RigConfig {
+    fn rig(&mut self, raw: RawRig) -> RigConfig {
         let Some(path) = self.dir("rig.calibration", raw.calibration) else {
             return RigConfig::default();
         };
-        let path = match config_path.parent() {
-            Some(dir) if path.is_relative() => dir.join(path),
-            _ => path,
-        };
+        let path = self.relative_to_config(path);
         let parsed = std::fs::read_to_string(&path)
             .map_err(|e| e.to_string())
             .and_then(|text| {
@@ -929,9 +987,14 @@ impl Validator<'_> {
                         "a device section cannot be combined with [sim]; remove one".to_owned(),
                     );
                 }
-                SourceConfig::Sim(SimConfig {
-                    settings: self.table_to_json("sim", sim),
-                })
+                let mut settings = self.table_to_json("sim", sim);
+                if let Some(scene) = settings.get_mut("scene")
+                    && let Some(dir) = scene.as_str()
+                {
+                    let dir = self.relative_to_config(PathBuf::from(dir));
+                    *scene = serde_json::Value::String(dir.to_string_lossy().into_owned());
+                }
+                SourceConfig::Sim(SimConfig { settings })
             }
             (None, None) => SourceConfig::Devices(devices),
         }
@@ -940,7 +1003,7 @@ impl Validator<'_> {
     fn replay(&mut self, raw: &RawReplay) -> Option<ReplayConfig> {
         let mut ok = true;
         let path = match &raw.path {
-            Some(path) if !path.is_empty() => Some(PathBuf::from(path)),
+            Some(path) if !path.is_empty() => Some(self.relative_to_config(PathBuf::from(path))),
             Some(_) => {
                 self.error("replay.path", "must not be empty".to_owned());
                 None
@@ -1117,12 +1180,27 @@ impl Validator<'_> {
         if let Some(params) = raw.params {
             engine.params = self.table_to_json("engine.params", &params);
         }
+        let registry = relight_engines::EngineRegistry::new();
+        match registry.spec(&engine.name) {
+            Ok(spec) => {
+                let params = engine.params.as_object().cloned().unwrap_or_default();
+                if let Err(error) = spec.schema.validate(&spec.schema.defaults(), &params) {
+                    self.error(
+                        &format!("engine.params.{}", error.name()),
+                        error.to_string(),
+                    );
+                }
+            }
+            Err(error) => self.error("engine.name", error.to_string()),
+        }
         engine
     }
 
     fn scene(&mut self, raw: RawScene) -> SceneConfig {
         let mut scene = SceneConfig {
-            dir: self.dir("scene.dir", raw.dir),
+            dir: self
+                .dir("scene.dir", raw.dir)
+                .map(|dir| self.relative_to_config(dir)),
             ..SceneConfig::default()
         };
         match raw.real.as_deref() {
@@ -1299,15 +1377,8 @@ fn at_most_ms(ms: f64, max_ms: f64) -> Result<Duration, String> {
 /// instead of stalling or filling memory (a `config.reload` must not do either).
 fn read_bounded(path: &Path) -> std::io::Result<String> {
     use std::io::Read as _;
-    use std::os::unix::fs::OpenOptionsExt as _;
     let invalid = |what: String| std::io::Error::new(std::io::ErrorKind::InvalidInput, what);
-    let file = std::fs::OpenOptions::new()
-        .read(true)
-        .custom_flags(rustix::fs::OFlags::NONBLOCK.bits() as i32)
-        .open(path)?;
-    if !file.metadata()?.is_file() {
-        return Err(invalid("not a regular file".into()));
-    }
+    let file = relight_core::input_file::open_regular(path)?;
     let mut bytes = Vec::new();
     file.take(MAX_CONFIG_BYTES + 1).read_to_end(&mut bytes)?;
     if bytes.len() as u64 > MAX_CONFIG_BYTES {
@@ -1369,22 +1440,50 @@ fn diagnostic(
     }
 }
 
-/// 1-based line and character column of a byte offset (clamped to the text).
+/// 1-based line and character column of a byte offset (clamped to the text), for a single
+/// diagnostic; many go through the [`Locator`]'s [`LineIndex`].
 fn line_column(text: &str, offset: usize) -> (usize, usize) {
-    let mut offset = offset.min(text.len());
-    while !text.is_char_boundary(offset) {
-        offset -= 1;
+    LineIndex::new(text).line_column(text, offset)
+}
+
+/// Where each line of a text starts, so that a byte offset's line is a binary search: with one
+/// diagnostic per entry of a 40 000-item list, scanning the text each time was quadratic.
+struct LineIndex {
+    starts: Vec<usize>,
+}
+
+impl LineIndex {
+    fn new(text: &str) -> Self {
+        let starts = std::iter::once(0)
+            .chain(text.match_indices('\n').map(|(i, _)| i + 1))
+            .collect();
+        Self { starts }
     }
-    let before = text.get(..offset).unwrap_or_default();
-    let line = before.matches('\n').count() + 1;
-    let line_start = before.rfind('\n').map_or(0, |i| i + 1);
-    let column = before.get(line_start..).unwrap_or_default().chars().count() + 1;
-    (line, column)
+
+    /// 1-based line and character column of a byte offset (clamped to the text).
+    fn line_column(&self, text: &str, offset: usize) -> (usize, usize) {
+        let mut offset = offset.min(text.len());
+        while !text.is_char_boundary(offset) {
+            offset -= 1;
+        }
+        let line = self.starts.partition_point(|&start| start <= offset);
+        let line_start = self.starts.get(line - 1).copied().unwrap_or(0);
+        let column = text
+            .get(line_start..offset)
+            .unwrap_or_default()
+            .chars()
+            .count()
+            + 1;
+        (line, column)
+    }
 }
 
 /// Maps byte offsets to key paths and key paths to offsets, from the spanned TOML document.
 struct Locator {
     entries: Vec<LocatedKey>,
+    /// The first entry of each path.
+    by_path: std::collections::HashMap<String, usize>,
+    lines: LineIndex,
 }
 
 struct LocatedKey {
@@ -1396,10 +1495,18 @@ struct LocatedKey {
 }
 
 impl Locator {
-    fn new(root: &DeTable<'_>) -> Self {
+    fn new(root: &DeTable<'_>, text: &str) -> Self {
         let mut entries = Vec::new();
         Self::walk_table(root, "", &mut entries);
-        Self { entries }
+        let mut by_path = std::collections::HashMap::with_capacity(entries.len());
+        for (i, entry) in entries.iter().enumerate() {
+            by_path.entry(entry.path.clone()).or_insert(i);
+        }
+        Self {
+            entries,
+            by_path,
+            lines: LineIndex::new(text),
+        }
     }
 
     fn walk_table(table: &DeTable<'_>, prefix: &str, out: &mut Vec<LocatedKey>) {
@@ -1454,11 +1561,14 @@ impl Locator {
         if let Some(path) = self.path_at(offset) {
             return Some(path);
         }
-        let (line, _) = line_column(text, offset);
+        let (line, _) = self.lines.line_column(text, offset);
         let on_line = self
             .entries
             .iter()
-            .filter(|e| e.key_span.start <= offset && line_column(text, e.key_span.start).0 == line)
+            .filter(|e| {
+                e.key_span.start <= offset
+                    && self.lines.line_column(text, e.key_span.start).0 == line
+            })
             .max_by_key(|e| e.key_span.start)
             .map(|e| e.path.clone());
         on_line.or_else(|| {
@@ -1484,7 +1594,7 @@ impl Locator {
     fn offset_of(&self, path: &str) -> Option<usize> {
         let mut path = path;
         loop {
-            if let Some(e) = self.entries.iter().find(|e| e.path == path) {
+            if let Some(e) = self.by_path.get(path).and_then(|&i| self.entries.get(i)) {
                 return Some(e.key_span.start);
             }
             let cut = path.rfind(['.', '['])?;
@@ -1515,14 +1625,5 @@ mod tests {
         assert_eq!(line_column(text, 6), (2, 1));
         assert_eq!(line_column(text, 9), (2, 3));
         assert_eq!(line_column(text, 1000), (3, 1));
-    }
-
-    #[test]
-    fn group_file_lookup() {
-        let text = "root:x:0:\nvideo:x:44:alice,bob\nbroken\nplugdev:x:46:\n";
-        assert_eq!(gid_in_group_file(text, "video"), Some(44));
-        assert_eq!(gid_in_group_file(text, "plugdev"), Some(46));
-        assert_eq!(gid_in_group_file(text, "vid"), None);
-        assert_eq!(gid_in_group_file(text, "broken"), None);
     }
 }

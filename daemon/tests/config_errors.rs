@@ -176,7 +176,7 @@ reference = "color"
 
 [engine]
 name = "dlpv"
-params = { cascades = 3, propagation = { steps = 8 } }
+params = { steps = 8, dampening = 0.5 }
 
 [recorder]
 dir = "/rec"
@@ -216,7 +216,7 @@ every_n = 5
     assert_eq!(config.engine.name, "dlpv");
     assert_eq!(
         config.engine.params,
-        json!({ "cascades": 3, "propagation": { "steps": 8 } })
+        json!({ "steps": 8, "dampening": 0.5 })
     );
     assert_eq!(config.recorder.dir, Path::new("/rec"));
     assert!(config.recorder.autostart);
@@ -500,4 +500,223 @@ fn a_broken_rig_calibration_names_its_own_line() {
     assert!(d.message.contains("focal"), "{d}");
     let missing = only_error("[rig]\ncalibration = \"/nonexistent/rig.toml\"\n");
     assert_at(&missing, 2, "rig.calibration", "/nonexistent/rig.toml");
+}
+
+fn scenes() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes")
+}
+
+fn fixture_recording() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/demo.mcap")
+}
+
+/// `check-config`, `run` and `config.reload` load through one function: what `run` would reject
+/// at start-up (an unknown engine, a missing scene, a missing recording, an unknown group) is a
+/// located diagnostic here, all of them at once.
+#[test]
+fn loading_checks_what_run_needs_and_reports_everything_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("relightd.toml");
+    std::fs::write(
+        &path,
+        "[daemon]\nsocket_group = \"no-such-group-relight\"\n\n[engine]\nname = \"dlvp\"\n\n\
+         [scene]\ndir = \"nowhere\"\n\n[replay]\npath = \"absent.mcap\"\n",
+    )
+    .unwrap();
+    let err = Config::load(&path).expect_err("four problems");
+    let found: Vec<(usize, Option<&str>)> = err
+        .diagnostics()
+        .iter()
+        .map(|d| (d.line, d.key.as_deref()))
+        .collect();
+    assert_eq!(
+        found,
+        [
+            (2, Some("daemon.socket_group")),
+            (5, Some("engine.name")),
+            (8, Some("scene.dir")),
+            (11, Some("replay.path")),
+        ],
+        "{err}"
+    );
+    let shown = err.to_string();
+    assert!(shown.contains("known engines: passthrough"), "{shown}");
+    assert!(shown.contains("does not exist"), "{shown}");
+    // Relative paths are the configuration file's directory's, not the working directory's.
+    assert!(
+        shown.contains(&dir.path().join("nowhere").display().to_string()),
+        "{shown}"
+    );
+    assert!(
+        shown.contains(&dir.path().join("absent.mcap").display().to_string()),
+        "{shown}"
+    );
+
+    // The same text passes the shape check: these problems are about what it names.
+    let text = std::fs::read_to_string(&path).unwrap();
+    let err = Config::parse(&text, &path).expect_err("the engine name is shape");
+    assert_eq!(err.diagnostics().len(), 1, "{err}");
+}
+
+#[test]
+fn engine_parameters_are_checked_against_the_engine_schema() {
+    let err = parse("[engine]\nname = \"dlpv\"\n\n[engine.params]\nwobble = 1\n")
+        .expect_err("unknown parameter");
+    let d = err.diagnostics().first().unwrap();
+    assert_at(d, 5, "engine.params.wobble", "unknown parameter `wobble`");
+    let err = parse("[engine]\nname = \"depth_preview\"\n\n[engine.params]\nopacity = 5.0\n")
+        .expect_err("out of range");
+    assert_at(
+        err.diagnostics().first().unwrap(),
+        5,
+        "engine.params.opacity",
+        "outside",
+    );
+    parse("[engine]\nname = \"depth_preview\"\n\n[engine.params]\nopacity = 0.5\n")
+        .expect("in range");
+}
+
+#[test]
+fn named_resources_that_exist_pass_and_relative_paths_follow_the_config_file() {
+    let dir = tempfile::tempdir().unwrap();
+    std::os::unix::fs::symlink(scenes().join("desk_box"), dir.path().join("scene")).unwrap();
+    std::os::unix::fs::symlink(fixture_recording(), dir.path().join("demo.mcap")).unwrap();
+    let path = dir.path().join("relightd.toml");
+    std::fs::write(
+        &path,
+        "[scene]\ndir = \"scene\"\n\n[replay]\npath = \"demo.mcap\"\n\n[daemon]\nsocket_group = 0\n",
+    )
+    .unwrap();
+    let config = Config::load(&path).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(config.scene.dir, Some(dir.path().join("scene")));
+    let SourceConfig::Replay(replay) = &config.source else {
+        panic!("{:?}", config.source)
+    };
+    assert_eq!(replay.path, dir.path().join("demo.mcap"));
+}
+
+/// A recording path that names a device or a FIFO is refused at once: `check-config` must
+/// neither read /dev/zero into memory nor wait for a FIFO's writer.
+#[test]
+fn a_replay_path_to_a_device_or_a_fifo_is_refused_without_reading() {
+    let dir = tempfile::tempdir().unwrap();
+    let fifo = dir.path().join("fifo.mcap");
+    assert!(
+        std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success()
+    );
+    for target in [Path::new("/dev/zero"), fifo.as_path()] {
+        let path = dir.path().join("relightd.toml");
+        std::fs::write(
+            &path,
+            format!("[replay]\npath = {:?}\n", target.display().to_string()),
+        )
+        .unwrap();
+        let err = Config::load(&path).expect_err("not a recording");
+        let d = err.diagnostics().first().unwrap();
+        assert_eq!(
+            (d.line, d.key.as_deref()),
+            (2, Some("replay.path")),
+            "{err}"
+        );
+        assert!(d.message.contains("not a regular file"), "{err}");
+    }
+}
+
+#[test]
+fn a_broken_sim_section_is_located() {
+    let err = Config::validate(
+        &format!(
+            "[sim]\nscene = {:?}\nwidth = 100000\n",
+            scenes().join("desk_box").display().to_string()
+        ),
+        "relightd.toml",
+    )
+    .expect_err("too wide");
+    let d = err.diagnostics().first().unwrap();
+    assert_at(d, 1, "sim", "width/height");
+}
+
+/// One diagnostic per entry of a 40 000-entry list, each at its own line: locating them is
+/// linear (it was quadratic, 6 s for this list).
+#[test]
+fn a_long_list_gets_every_diagnostic_at_its_line() {
+    let n = 40_000;
+    let mut text = String::from("[sync]\nstreams = [\n");
+    for _ in 0..n {
+        text.push_str("  \"depth\",\n");
+    }
+    text.push_str("]\n");
+    let err = parse(&text).expect_err("duplicates");
+    let diagnostics = err.diagnostics();
+    assert_eq!(diagnostics.len(), n - 1);
+    let last = diagnostics.last().unwrap();
+    assert_eq!(last.line, n + 2, "{last}");
+    assert_eq!(
+        last.key.as_deref(),
+        Some(&*format!("sync.streams[{}]", n - 1))
+    );
+}
+
+#[test]
+fn check_config_prints_every_located_error_and_fails() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("relightd.toml");
+    std::fs::write(
+        &path,
+        "[engine]\nname = \"dlvp\"\n\n[sync]\ntolerance_ms = 1e308\n",
+    )
+    .unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_relightd"))
+        .arg("--config")
+        .arg(&path)
+        .arg("check-config")
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let file = path.display();
+    assert!(
+        stderr.contains(&format!("{file}:2:1: engine.name: unknown engine `dlvp`")),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains(&format!("{file}:5:1: sync.tolerance_ms")),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
+
+proptest::proptest! {
+    #![proptest_config(proptest::prelude::ProptestConfig { cases: 200, failure_persistence: None, ..Default::default() })]
+
+    /// Any number in any numeric key: accepted, or one diagnostic at that key's line that names
+    /// it; never a panic or an abort (huge values used to crash `run`).
+    #[test]
+    fn any_number_in_any_numeric_key_is_accepted_or_located(
+        key in proptest::sample::select(vec![
+            ("sync", "tolerance_ms"), ("sync", "max_wait_ms"), ("recorder", "queue_frames"),
+            ("daemon", "max_request_bytes"), ("scene", "real_albedo"), ("scene", "albedo_every"),
+            ("scene", "depth_stride"), ("scene", "probe_lights"), ("output", "every_n"),
+            ("tracking", "max_age_ms"), ("tracking", "max_rms_px"),
+        ]),
+        value in proptest::prop_oneof![
+            proptest::strategy::Strategy::prop_map(proptest::prelude::any::<i64>(), |v| v.to_string()),
+            proptest::strategy::Strategy::prop_map(proptest::prelude::any::<f64>(), |v| if v.is_nan() { "nan".to_owned() } else { format!("{v:?}") }),
+            proptest::sample::select(vec!["nan".to_owned(), "inf".to_owned(), "-inf".to_owned(), "1e308".to_owned()]),
+        ],
+    ) {
+        let (section, name) = key;
+        let text = format!("[{section}]\n{name} = {value}\n");
+        if let Err(err) = parse(&text) {
+            let full = format!("{section}.{name}");
+            for d in err.diagnostics() {
+                proptest::prop_assert_eq!(d.line, 2, "{}", d);
+                proptest::prop_assert_eq!(d.key.as_deref(), Some(full.as_str()), "{}", d);
+            }
+        }
+    }
 }

@@ -10,9 +10,9 @@ use std::time::Duration;
 use relight_core::StreamKind;
 use relight_daemon::control::{
     AlbedoStatus, Client, ClientError, ControlError, ControlServer, ControlServerHandle,
-    ControlTarget, DeviceState, DeviceStatus, EngineInfo, FramesSkipped, LightsBoard, PeerCred,
-    Percentiles, RecordingStatus, ServerError, ServerOptions, StageTiming, StatusReport,
-    SyncStreamStatus, TrackingStatus, codes, peer_allowed,
+    ControlTarget, DeviceState, DeviceStatus, EngineInfo, FramesSkipped, LightsBoard,
+    OutputRequest, PeerCred, Percentiles, RecordingStatus, ServerError, ServerOptions, StageTiming,
+    StatusReport, SyncStreamStatus, TrackingStatus, codes, peer_allowed,
 };
 use relight_daemon::pipeline::tracking::TrackingState;
 use serde_json::{Map, Value, json};
@@ -155,7 +155,8 @@ impl ControlTarget for FakePipeline {
         Ok(Value::Object(current.clone()))
     }
 
-    fn record_start(&self, path: Option<PathBuf>) -> Result<PathBuf, ControlError> {
+    fn record_start(&self, request: OutputRequest) -> Result<PathBuf, ControlError> {
+        let path = request.path;
         self.log(format!("record_start {path:?}"));
         let mut recording = self.recording.lock().expect("recording lock");
         if recording.is_some() {
@@ -174,7 +175,8 @@ impl ControlTarget for FakePipeline {
         }
     }
 
-    fn snapshot(&self, path: Option<PathBuf>) -> Result<Vec<PathBuf>, ControlError> {
+    fn snapshot(&self, request: OutputRequest) -> Result<Vec<PathBuf>, ControlError> {
+        let path = request.path;
         self.log(format!("snapshot {path:?}"));
         let dir = path.unwrap_or_else(|| PathBuf::from("/snap"));
         if dir == Path::new("/panic") {
@@ -449,6 +451,32 @@ fn wrong_envelope_is_invalid_request() {
     assert_eq!(response["id"], 2);
     assert!(fx.fake.calls().is_empty(), "{:?}", fx.fake.calls());
     assert_usable(&mut c);
+}
+
+/// JSON-RPC ids come back digit for digit: an id is the client's to match responses by, and a
+/// 2^64 that came back as 1.8446744073709552e19 matched nothing.
+#[test]
+fn ids_are_echoed_exactly_as_sent() {
+    let fake = FakePipeline::default();
+    for id in [
+        "18446744073709551616",
+        "-9223372036854775809",
+        "1.0",
+        "1e3",
+        "0.1000000000000000055511151231257827",
+        "-0",
+        "\"x\\u00e9\"",
+    ] {
+        let line = format!(r#"{{"jsonrpc":"2.0","method":"rpc.ping","id":{id}}}"#);
+        let response = relight_daemon::control::rpc::handle_line(line.as_bytes(), &fake)
+            .expect("a request with an id is answered");
+        let echoed = serde_json::from_str::<Value>(&response).expect("JSON")["id"].to_string();
+        let sent = serde_json::from_str::<Value>(id).expect("JSON").to_string();
+        assert_eq!(echoed, sent, "{response}");
+        if !id.starts_with('"') {
+            assert!(response.contains(&format!(r#""id":{id}"#)), "{response}");
+        }
+    }
 }
 
 #[test]

@@ -77,6 +77,12 @@ fn ctl_json(socket: &Path, args: &[&str]) -> Value {
 
 /// Send raw bytes on a fresh connection and read one response line.
 fn raw(socket: &Path, bytes: &[u8]) -> Value {
+    let line = raw_line(socket, bytes);
+    serde_json::from_str(&line).unwrap_or_else(|e| panic!("bad response {line:?}: {e}"))
+}
+
+/// [`raw`]'s response line as text.
+fn raw_line(socket: &Path, bytes: &[u8]) -> String {
     let mut stream = UnixStream::connect(socket).unwrap();
     stream
         .set_read_timeout(Some(Duration::from_secs(10)))
@@ -84,7 +90,7 @@ fn raw(socket: &Path, bytes: &[u8]) -> Value {
     stream.write_all(bytes).unwrap();
     let mut line = String::new();
     BufReader::new(stream).read_line(&mut line).unwrap();
-    serde_json::from_str(&line).unwrap_or_else(|e| panic!("bad response {line:?}: {e}"))
+    line
 }
 
 fn wait_for(socket: &Path, what: &str, mut ok: impl FnMut(&Value) -> bool) -> Value {
@@ -194,8 +200,60 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
         assert_eq!(&bytes[1..4], b"PNG");
     }
 
-    // Hostile requests: each gets the proper JSON-RPC error and the daemon keeps serving.
     let code = |v: &Value| v["error"]["code"].as_i64();
+
+    // Unsafe writes: nothing is overwritten or created through a link unless asked for, and
+    // relative paths land in the recordings directory.
+    let rpc = |request: Value| {
+        let mut line = request.to_string().into_bytes();
+        line.push(b'\n');
+        raw(&socket, &line)
+    };
+    let record = |params: Value| {
+        let started =
+            rpc(json!({"jsonrpc": "2.0", "id": 1, "method": "record.start", "params": params}));
+        if started.get("result").is_some() {
+            rpc(json!({"jsonrpc": "2.0", "id": 2, "method": "record.stop"}));
+        }
+        started
+    };
+    let taken = dir.path().join("taken.mcap");
+    std::fs::write(&taken, b"keep").unwrap();
+    let refused = record(json!({"path": taken}));
+    assert_eq!(code(&refused), Some(-32003), "{refused}");
+    assert_eq!(refused["error"]["data"]["path"], json!(taken), "{refused}");
+    assert!(
+        refused["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("exists"),
+        "{refused}"
+    );
+    assert_eq!(std::fs::read(&taken).unwrap(), b"keep");
+    let replaced = record(json!({"path": taken, "overwrite": true}));
+    assert!(replaced.get("result").is_some(), "{replaced}");
+    assert_ne!(std::fs::read(&taken).unwrap(), b"keep");
+    let dangling = dir.path().join("dangling.mcap");
+    let target = dir.path().join("target.mcap");
+    std::os::unix::fs::symlink(&target, &dangling).unwrap();
+    assert_eq!(code(&record(json!({"path": dangling}))), Some(-32003));
+    assert!(!target.exists(), "a dangling link's target is not created");
+    let relative = record(json!({"path": "relative.mcap"}));
+    assert_eq!(
+        relative["result"]["path"],
+        json!(dir.path().join("recordings/relative.mcap")),
+        "{relative}"
+    );
+    assert_eq!(code(&record(json!({"path": "../up.mcap"}))), Some(-32003));
+    assert!(!dir.path().join("up.mcap").exists());
+    assert_eq!(code(&record(json!({"path": "a\nb.mcap"}))), Some(-32602));
+    let exact = raw_line(
+        &socket,
+        b"{\"jsonrpc\":\"2.0\",\"id\":18446744073709551616,\"method\":\"rpc.ping\"}\n",
+    );
+    assert!(exact.contains("\"id\":18446744073709551616"), "{exact}");
+
+    // Hostile requests: each gets the proper JSON-RPC error and the daemon keeps serving.
     assert_eq!(code(&raw(&socket, b"{not json\n")), Some(-32700));
     assert_eq!(code(&raw(&socket, b"42\n")), Some(-32600));
     assert_eq!(

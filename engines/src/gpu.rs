@@ -90,6 +90,47 @@ fn enumerate() -> Vec<wgpu::Adapter> {
     Vec::new()
 }
 
+/// Every adapter this machine offers, numbered as `RELIGHT_ADAPTER=#N` takes them
+/// (`relightd gpu`), and the index of the one chosen without `RELIGHT_ADAPTER`.
+pub fn adapters() -> (Vec<AdapterSummary>, Option<usize>) {
+    let adapters = enumerate();
+    let preferred = (0..adapters.len()).min_by_key(|&i| rank(&adapters[i].get_info()));
+    (summarize(&adapters), preferred)
+}
+
+/// GPU device nodes present in `/dev` (DRM render nodes, NVIDIA's per-GPU nodes): when the
+/// chosen adapter is a CPU although these exist, the GPU's Vulkan driver is missing or the
+/// service's device policy hides them.
+pub fn gpu_device_nodes() -> Vec<std::path::PathBuf> {
+    let mut nodes = Vec::new();
+    for (dir, prefix) in [("/dev/dri", "renderD"), ("/dev", "nvidia")] {
+        let Ok(entries) = std::fs::read_dir(dir) else {
+            continue;
+        };
+        for entry in entries.flatten() {
+            let name = entry.file_name();
+            let name = name.to_string_lossy();
+            let is_node = name
+                .strip_prefix(prefix)
+                .is_some_and(|rest| !rest.is_empty() && rest.bytes().all(|b| b.is_ascii_digit()));
+            if is_node {
+                nodes.push(entry.path());
+            }
+        }
+    }
+    nodes.sort();
+    nodes
+}
+
+fn is_gpu(device_type: wgpu::DeviceType) -> bool {
+    matches!(
+        device_type,
+        wgpu::DeviceType::DiscreteGpu
+            | wgpu::DeviceType::IntegratedGpu
+            | wgpu::DeviceType::VirtualGpu
+    )
+}
+
 /// The adapters as listed to the user (and numbered for `RELIGHT_ADAPTER=#N`).
 fn summarize(adapters: &[wgpu::Adapter]) -> Vec<AdapterSummary> {
     adapters
@@ -209,6 +250,26 @@ impl GpuContext {
             timestamps,
             "GPU context ready"
         );
+        if info.device_type == wgpu::DeviceType::Cpu {
+            let gpus: Vec<String> = summaries
+                .iter()
+                .filter(|s| is_gpu(s.device_type))
+                .map(ToString::to_string)
+                .collect();
+            if !gpus.is_empty() {
+                tracing::warn!(
+                    adapter = %info.name,
+                    "rendering on a CPU adapter although GPU adapters exist ({}); choose one with {ADAPTER_ENV}=#N (`relightd gpu` lists them)",
+                    gpus.join(", ")
+                );
+            } else if let nodes @ [_, ..] = gpu_device_nodes().as_slice() {
+                tracing::warn!(
+                    adapter = %info.name,
+                    "rendering on a CPU adapter although GPU device nodes exist ({}): no Vulkan driver takes them; install the GPU's Vulkan driver (or, under systemd, check DeviceAllow)",
+                    nodes.iter().map(|n| n.display().to_string()).collect::<Vec<_>>().join(", ")
+                );
+            }
+        }
         Ok(Self {
             device,
             queue,

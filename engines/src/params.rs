@@ -59,6 +59,18 @@ pub enum ParamError {
     },
 }
 
+impl ParamError {
+    /// The parameter the error is about, as the request or the file wrote it.
+    pub fn name(&self) -> &str {
+        match self {
+            ParamError::Unknown { name, .. }
+            | ParamError::WrongType { name, .. }
+            | ParamError::OutOfRange { name, .. }
+            | ParamError::NotAChoice { name, .. } => name,
+        }
+    }
+}
+
 /// The parameters one engine accepts.
 #[derive(Debug, Clone, PartialEq, Default, Serialize)]
 pub struct ParamsSchema {

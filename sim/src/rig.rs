@@ -335,20 +335,28 @@ const BOARD_SUPERSAMPLING: u32 = 4;
 /// How close (m) a surface must be to the board's plane to carry its print.
 const BOARD_TOLERANCE_M: f32 = 0.003;
 
+/// The largest image side the simulator renders: a larger one (4096² and up is already a
+/// minutes-long path trace) is a typo, and its buffers would not fit in memory.
+const MAX_IMAGE_SIDE: u32 = 8192;
+const MAX_FPS: u32 = 1000;
+const MAX_COLOR_SPP: u32 = 65_536;
+
 impl SimRig {
     pub fn new(scene: &Scene, settings: SimSettings) -> Result<Self, SimError> {
         let bad = |setting, reason: &str| SimError::Setting {
             setting,
             reason: reason.into(),
         };
-        if settings.width == 0 || settings.height == 0 {
-            return Err(bad("width/height", "must be positive"));
+        if !(1..=MAX_IMAGE_SIDE).contains(&settings.width)
+            || !(1..=MAX_IMAGE_SIDE).contains(&settings.height)
+        {
+            return Err(bad("width/height", "must be in 1..=8192"));
         }
-        if settings.fps == 0 {
-            return Err(bad("fps", "must be positive"));
+        if !(1..=MAX_FPS).contains(&settings.fps) {
+            return Err(bad("fps", "must be in 1..=1000"));
         }
-        if settings.color_spp == 0 {
-            return Err(bad("color_spp", "must be at least 1"));
+        if !(1..=MAX_COLOR_SPP).contains(&settings.color_spp) {
+            return Err(bad("color_spp", "must be in 1..=65536"));
         }
         if !(settings.exposure.is_finite() && settings.exposure > 0.0) {
             return Err(bad("exposure", "must be a positive number"));

@@ -73,6 +73,7 @@
 //! complete chunk plus a warning saying where it was cut.
 
 mod reader;
+pub mod salvage;
 pub mod schema;
 pub mod truth;
 mod writer;

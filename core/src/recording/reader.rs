@@ -78,6 +78,15 @@ enum Block {
 }
 
 impl Block {
+    /// Where the block's record starts (for a loose message, its data).
+    fn file_offset(&self) -> usize {
+        match self {
+            Block::Chunk { info, .. } => usize::try_from(info.offset).unwrap_or(usize::MAX),
+            Block::BadChunk { offset, .. } => usize::try_from(*offset).unwrap_or(usize::MAX),
+            Block::Message { data, .. } => data.start,
+        }
+    }
+
     fn start_ns(&self) -> u64 {
         match self {
             Block::Chunk { info, .. } => info.message_start_ns,
@@ -129,10 +138,16 @@ impl fmt::Debug for RecordingReader {
 impl RecordingReader {
     /// Read the file at `path` into memory and index it.
     pub fn open(path: &Path) -> Result<Self, RecordingError> {
-        let bytes = std::fs::read(path).map_err(|source| RecordingError::Io {
+        let io = |source| RecordingError::Io {
             path: path.to_owned(),
             source,
-        })?;
+        };
+        let mut bytes = Vec::new();
+        std::io::Read::read_to_end(
+            &mut crate::input_file::open_regular(path).map_err(io)?,
+            &mut bytes,
+        )
+        .map_err(io)?;
         let reader = Self::from_bytes(bytes)?;
         for warning in &reader.warnings {
             tracing::warn!(path = %path.display(), "{warning}");
@@ -421,6 +436,27 @@ impl RecordingReader {
             }
         }
 
+        let stopped = match walk_end {
+            WalkEnd::InsideRecord { offset, .. } => Some(offset),
+            _ => None,
+        };
+        let bad_chunk = self
+            .blocks
+            .iter()
+            .any(|b| matches!(b, Block::BadChunk { .. }));
+        let resumed = (stopped.is_some() || bad_chunk)
+            .then(|| self.resume_at_indexed_chunks(bytes, stopped.unwrap_or(usize::MAX)))
+            .flatten();
+        if let Some((damage, recovered)) = resumed {
+            // The file ends in an intact footer and summary: the walk was stopped or thrown off
+            // by a damaged record, not by the end of what was written.
+            self.summary_present = true;
+            let complete = self.count_complete_messages(bytes);
+            self.warnings.push(format!(
+                "record at byte {damage} is damaged; resumed from the summary's chunk index: {recovered} chunks from there recovered; read {complete} complete messages"
+            ));
+            return Ok(());
+        }
         match walk_end {
             WalkEnd::Footer => {
                 self.summary_present = true;
@@ -468,6 +504,56 @@ impl RecordingReader {
             }
         }
         Ok(())
+    }
+
+    /// Replaces what the linear walk read from the first damage on (the first chunk whose header
+    /// did not parse, or where the walk stopped) with the chunks the summary's chunk index lists
+    /// from there, each framed with the index's record length rather than its own length field:
+    /// a corrupt length loses nothing when the chunk's bytes are intact (its CRC decides), and a
+    /// walk thrown off its records by one reads no garbage after it. Returns where the damage
+    /// was and how many chunks were recovered, or `None` when the file has no readable index.
+    fn resume_at_indexed_chunks(&mut self, bytes: &[u8], stopped: usize) -> Option<(usize, usize)> {
+        let entries = summary_chunk_index(bytes)?;
+        let damage = self
+            .blocks
+            .iter()
+            .filter_map(|block| match block {
+                Block::BadChunk { offset, .. } => usize::try_from(*offset).ok(),
+                _ => None,
+            })
+            .fold(stopped, usize::min);
+        self.blocks.retain(|block| block.file_offset() < damage);
+        let mut recovered = 0;
+        for (index, (offset, length)) in entries.into_iter().enumerate() {
+            let (Ok(start), Ok(length)) = (usize::try_from(offset), usize::try_from(length)) else {
+                continue;
+            };
+            let end = start.checked_add(length).filter(|&end| end <= bytes.len());
+            let (Some(end), Some(&op::CHUNK)) = (end, bytes.get(start)) else {
+                continue;
+            };
+            if start < damage || length < RECORD_PREFIX_LEN {
+                continue;
+            }
+            let body = start + RECORD_PREFIX_LEN..end;
+            match body_of(bytes, &body).map(|b| mcap::parse_record(op::CHUNK, b)) {
+                Some(Ok(Record::Chunk { header, .. })) => {
+                    self.blocks.push(Block::Chunk {
+                        info: chunk_info(index, start, end, &header),
+                        body,
+                    });
+                    recovered += 1;
+                }
+                Some(Err(e)) => self.blocks.push(Block::BadChunk {
+                    index,
+                    offset,
+                    reason: format!("chunk header does not parse: {e}"),
+                    start_ns: self.blocks.last().map(Block::start_ns).unwrap_or(0),
+                }),
+                _ => {}
+            }
+        }
+        Some((damage, recovered))
     }
 
     /// Messages in loose records and in chunks that decompress cleanly. Used only for the
@@ -536,6 +622,47 @@ fn frame_record(bytes: &[u8], pos: usize) -> Framed {
             length: Some(length),
         },
     }
+}
+
+/// Footer record: prefix, summary start, summary offset start, summary CRC.
+const FOOTER_RECORD_LEN: usize = RECORD_PREFIX_LEN + 8 + 8 + 4;
+
+/// The chunk offsets and record lengths the summary section's Chunk Index records give, found
+/// through the footer at the very end of the file; `None` when the file does not end in a
+/// footer and the magic, or its summary has no chunk index.
+fn summary_chunk_index(bytes: &[u8]) -> Option<Vec<(u64, u64)>> {
+    let magic_start = bytes.len().checked_sub(mcap::MAGIC.len())?;
+    if bytes.get(magic_start..)? != mcap::MAGIC {
+        return None;
+    }
+    let footer_start = magic_start.checked_sub(FOOTER_RECORD_LEN)?;
+    let Framed::Record {
+        opcode: op::FOOTER,
+        body,
+    } = frame_record(bytes, footer_start)
+    else {
+        return None;
+    };
+    let Ok(Record::Footer(footer)) = mcap::parse_record(op::FOOTER, body_of(bytes, &body)?) else {
+        return None;
+    };
+    let mut pos = usize::try_from(footer.summary_start)
+        .ok()
+        .filter(|&start| start > mcap::MAGIC.len() && start < footer_start)?;
+    let mut offsets = Vec::new();
+    while pos < footer_start {
+        let Framed::Record { opcode, body } = frame_record(bytes, pos) else {
+            break;
+        };
+        pos = body.end;
+        if opcode == op::CHUNK_INDEX
+            && let Some(Ok(Record::ChunkIndex(index))) =
+                body_of(bytes, &body).map(|b| mcap::parse_record(opcode, b))
+        {
+            offsets.push((index.chunk_start_offset, index.chunk_length));
+        }
+    }
+    (!offsets.is_empty()).then_some(offsets)
 }
 
 fn body_of<'a>(bytes: &'a [u8], range: &Range<usize>) -> Option<&'a [u8]> {
@@ -640,11 +767,18 @@ const MAX_RECORD_BYTES: usize = 256 << 20;
 /// Decompress one chunk record (`opcode..end` in `bytes`) and parse all its records; any failure
 /// (decompression, CRC, framing, a record over [`MAX_RECORD_BYTES`]) fails the whole chunk, so
 /// that no message of a chunk with a bad CRC escapes.
+/// The records of the chunk record at `record`. Its prefix is rebuilt from the range rather
+/// than read from the file, so a chunk framed by the summary's index despite a corrupt length
+/// field reads as what it is.
 fn load_chunk(bytes: &[u8], record: Range<usize>) -> Result<Vec<Record<'static>>, String> {
-    let mut input = bytes
-        .get(record)
+    let body = bytes
+        .get(record.start + RECORD_PREFIX_LEN..record.end)
         .ok_or("chunk record lies outside the file")?;
-    let limit = input.len().max(MAX_RECORD_BYTES);
+    let mut prefix = [0u8; RECORD_PREFIX_LEN];
+    prefix[0] = op::CHUNK;
+    prefix[1..].copy_from_slice(&(body.len() as u64).to_le_bytes());
+    let mut parts = [&prefix[..], body];
+    let limit = (body.len() + RECORD_PREFIX_LEN).max(MAX_RECORD_BYTES);
     let mut reader = LinearReader::new_with_options(
         LinearReaderOptions::default()
             .with_skip_start_magic(true)
@@ -657,11 +791,16 @@ fn load_chunk(bytes: &[u8], record: Range<usize>) -> Result<Vec<Record<'static>>
     while let Some(event) = reader.next_event() {
         match event.map_err(|e| e.to_string())? {
             LinearReadEvent::ReadRequest(wanted) => {
+                let mut empty: &[u8] = &[];
+                let input = parts
+                    .iter_mut()
+                    .find(|part| !part.is_empty())
+                    .unwrap_or(&mut empty);
                 let len = wanted.min(input.len());
                 let (now, rest) = input.split_at(len);
                 reader.insert(len).copy_from_slice(now);
                 reader.notify_read(len);
-                input = rest;
+                *input = rest;
             }
             LinearReadEvent::Record { data, opcode } => {
                 let record = mcap::parse_record(opcode, data).map_err(|e| e.to_string())?;

@@ -110,19 +110,35 @@ impl Scene {
     /// Load `dir/scene.toml` and the glTF it names.
     pub fn load(dir: &Path) -> Result<Scene, SceneError> {
         let toml_path = dir.join("scene.toml");
-        let text = std::fs::read_to_string(&toml_path).map_err(|source| SceneError::Io {
-            path: toml_path.clone(),
-            source,
+        let text = read_regular(&toml_path).and_then(|bytes| {
+            String::from_utf8(bytes).map_err(|_| SceneError::Io {
+                path: toml_path.clone(),
+                source: std::io::Error::new(std::io::ErrorKind::InvalidData, "not UTF-8 text"),
+            })
         })?;
         let desc: SceneToml = toml::from_str(&text).map_err(|e| SceneError::Toml {
             path: toml_path.clone(),
             message: e.to_string(),
         })?;
-        let gltf_path = dir.join(&desc.gltf);
-        let (document, buffers, _) = gltf::import(&gltf_path).map_err(|e| SceneError::Gltf {
+        let gltf_path = inside(dir, &desc.gltf, &toml_path, "gltf")?;
+        let gltf_error = |message: String| SceneError::Gltf {
             path: gltf_path.clone(),
-            message: e.to_string(),
-        })?;
+            message,
+        };
+        let gltf::Gltf { document, blob } = gltf::Gltf::from_slice(&read_regular(&gltf_path)?)
+            .map_err(|e| gltf_error(e.to_string()))?;
+        // Buffers only: images are not used, and a buffer file must lie beside the glTF.
+        let gltf_dir = gltf_path.parent().unwrap_or(dir);
+        for buffer in document.buffers() {
+            if let gltf::buffer::Source::Uri(uri) = buffer.source()
+                && !uri.starts_with("data:")
+            {
+                let path = inside(gltf_dir, Path::new(uri), &gltf_path, "buffers.uri")?;
+                read_regular_check(&path)?;
+            }
+        }
+        let buffers = gltf::import_buffers(&document, Some(gltf_dir), blob)
+            .map_err(|e| gltf_error(e.to_string()))?;
 
         let mut materials: Vec<Material> = document
             .materials()
@@ -320,7 +336,11 @@ impl Scene {
         }
         let environment = match &desc.environment {
             None => None,
-            Some(env) => Some(load_environment(&dir.join(&env.file), env.intensity_scale)?),
+            Some(env) => {
+                let path = inside(dir, &env.file, &toml_path, "environment.file")?;
+                read_regular_check(&path)?;
+                Some(load_environment(&path, env.intensity_scale)?)
+            }
         };
         Ok(Scene {
             name: dir
@@ -395,6 +415,44 @@ fn flat_normals(positions: &[Vec3], triangles: &[[u32; 3]]) -> Vec<Vec3> {
         }
     }
     normals.into_iter().map(Vec3::normalize_or_zero).collect()
+}
+
+/// `relative` under `dir`: a scene's files lie in its directory, so an absolute path, a `..` or
+/// a URL scheme is refused (a scene from elsewhere cannot make the loader read `/dev/zero`).
+fn inside(dir: &Path, relative: &Path, named_in: &Path, key: &str) -> Result<PathBuf, SceneError> {
+    let text = relative.to_string_lossy();
+    let escapes = relative.is_absolute()
+        || text.contains("://")
+        || relative
+            .components()
+            .any(|c| c == std::path::Component::ParentDir);
+    if escapes {
+        return Err(SceneError::Invalid {
+            path: named_in.to_owned(),
+            key: key.to_owned(),
+            message: format!("{text:?} must be a path inside the scene directory"),
+        });
+    }
+    Ok(dir.join(relative))
+}
+
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> SceneError + '_ {
+    move |source| SceneError::Io {
+        path: path.to_owned(),
+        source,
+    }
+}
+
+/// The bytes of `path`, a regular file ([`crate::input_file`]).
+fn read_regular(path: &Path) -> Result<Vec<u8>, SceneError> {
+    let mut bytes = Vec::new();
+    std::io::Read::read_to_end(&mut read_regular_check(path)?, &mut bytes)
+        .map_err(io_error(path))?;
+    Ok(bytes)
+}
+
+fn read_regular_check(path: &Path) -> Result<std::fs::File, SceneError> {
+    crate::input_file::open_regular(path).map_err(io_error(path))
 }
 
 fn load_environment(path: &Path, scale: f32) -> Result<EnvironmentMap, SceneError> {

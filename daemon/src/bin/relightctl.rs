@@ -45,8 +45,14 @@ enum Command {
         #[command(subcommand)]
         action: RecordAction,
     },
-    /// Write the current frame set's images (to PATH, or the configured snapshot directory).
-    Snapshot { path: Option<PathBuf> },
+    /// Write the current frame set's images to the directory PATH (relative to the daemon's
+    /// snapshot directory) or to that directory itself.
+    Snapshot {
+        path: Option<PathBuf>,
+        /// Replace files that exist already (they are refused otherwise).
+        #[arg(long)]
+        overwrite: bool,
+    },
     /// Re-read the configuration file.
     Reload,
     /// Advance a stepped replay by FRAMES messages (default 1).
@@ -99,8 +105,14 @@ enum LightsAction {
 
 #[derive(Debug, Subcommand)]
 enum RecordAction {
-    /// Start recording (to PATH, or a new file in the configured recordings directory).
-    Start { path: Option<PathBuf> },
+    /// Start recording to PATH (relative to the daemon's recordings directory,
+    /// /var/lib/relightd/recordings under the service), or to a new file there.
+    Start {
+        path: Option<PathBuf>,
+        /// Replace PATH if it exists (it is refused otherwise).
+        #[arg(long)]
+        overwrite: bool,
+    },
     /// Stop recording and show its summary.
     Stop,
 }
@@ -215,10 +227,14 @@ fn request(command: &Command) -> (&str, Option<Value>) {
             }
         },
         Command::Record { action } => match action {
-            RecordAction::Start { path } => ("record.start", path_params(path.as_deref())),
+            RecordAction::Start { path, overwrite } => {
+                ("record.start", output_params(path.as_deref(), *overwrite))
+            }
             RecordAction::Stop => ("record.stop", None),
         },
-        Command::Snapshot { path } => ("snapshot", path_params(path.as_deref())),
+        Command::Snapshot { path, overwrite } => {
+            ("snapshot", output_params(path.as_deref(), *overwrite))
+        }
         Command::Reload => ("config.reload", None),
         Command::Step { frames } => ("replay.step", frames.map(|n| json!({ "frames": n }))),
         Command::Lights { action } => match action {
@@ -229,11 +245,17 @@ fn request(command: &Command) -> (&str, Option<Value>) {
     }
 }
 
-/// `{"path": ...}` with the path made absolute here: the daemon's working directory is not ours.
-fn path_params(path: Option<&Path>) -> Option<Value> {
-    let path = path?;
-    let path = std::path::absolute(path).unwrap_or_else(|_| path.to_owned());
-    Some(json!({ "path": path }))
+/// `{"path": ..., "overwrite": ...}`. A relative path is sent as it is: the daemon takes it from
+/// its own output directory, which is where the service may write.
+fn output_params(path: Option<&Path>, overwrite: bool) -> Option<Value> {
+    let mut params = Map::new();
+    if let Some(path) = path {
+        params.insert("path".into(), json!(path));
+    }
+    if overwrite {
+        params.insert("overwrite".into(), Value::Bool(true));
+    }
+    (!params.is_empty()).then_some(Value::Object(params))
 }
 
 /// A readable rendering of a command's result.

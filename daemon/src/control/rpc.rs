@@ -10,9 +10,9 @@
 //! | `engine.set`        | `name`                         | `null`                         |
 //! | `engine.params.get` | —                              | the parameter object           |
 //! | `engine.params.set` | `params` (object), see below   | the full new parameter object  |
-//! | `record.start`      | `path`?                        | `{"path": ...}`                |
+//! | `record.start`      | `path`?, `overwrite`?          | `{"path": ...}`                |
 //! | `record.stop`       | —                              | the recording summary          |
-//! | `snapshot`          | `path`?                        | `{"paths": [...]}`             |
+//! | `snapshot`          | `path`?, `overwrite`?          | `{"paths": [...]}`             |
 //! | `config.reload`     | —                              | what changed                   |
 //! | `replay.step`       | `frames`? (integer ≥ 1, def. 1)| `{"frames": n}`                |
 //! | `rpc.ping`          | —                              | `"pong"`                       |
@@ -35,6 +35,12 @@
 //! `engine.params.set` accepts `{"params": {...}}`, `[{...}]`, or the parameter object itself
 //! (`{"exposure": 2.0}`); an object whose only key is `params` is always read as the wrapped form.
 //! Optional params may be `null`. Blank lines are ignored.
+//!
+//! Output paths (`record.start`, `snapshot`): a relative path is taken from the recorder's or the
+//! snapshot directory, not from the daemon's working directory; `..` and control characters
+//! are refused (−32602); an existing file is refused unless `overwrite` is `true`; a file that
+//! cannot be created is −32003 (`data.path` names it). Ids are echoed exactly as sent, digit for
+//! digit (`18446744073709551616` stays that, `1.0` stays `1.0`).
 
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::PathBuf;
@@ -43,7 +49,7 @@ use serde::Serialize;
 use serde_json::{Map, Value, json};
 
 use super::lights::LightsSubscription;
-use super::types::{ControlError, ControlTarget};
+use super::types::{ControlError, ControlTarget, OutputRequest};
 #[cfg(doc)]
 use super::types::{EngineInfo, StatusReport};
 #[cfg(doc)]
@@ -164,7 +170,70 @@ pub fn handle_line_capped(
             &ControlError::parse_error(format!("parse error: {err}")),
         ),
     };
-    Some(response.to_string())
+    Some(with_ids_as_sent(response, text))
+}
+
+/// The `id` member of a request, as written.
+#[derive(serde::Deserialize)]
+struct RawId<'a> {
+    #[serde(borrow, default)]
+    id: Option<&'a serde_json::value::RawValue>,
+}
+
+/// The numeric ids of the request(s) in `text` as they were written, where parsing into a
+/// [`Value`] changed them (a u64 overflow becomes an f64, `1e3` becomes `1000.0`).
+fn altered_numeric_ids(text: &str) -> Vec<(Value, &str)> {
+    fn raw_id(request: &str) -> Option<&str> {
+        let id = serde_json::from_str::<RawId<'_>>(request).ok()?.id?.get();
+        id.starts_with(|c: char| c == '-' || c.is_ascii_digit())
+            .then_some(id)
+    }
+    let ids: Vec<&str> = match serde_json::from_str::<Vec<&serde_json::value::RawValue>>(text) {
+        Ok(batch) => batch.iter().filter_map(|r| raw_id(r.get())).collect(),
+        Err(_) => raw_id(text).into_iter().collect(),
+    };
+    ids.into_iter()
+        .filter_map(|raw| {
+            let parsed: Value = serde_json::from_str(raw).ok()?;
+            let written = serde_json::to_string(&parsed).ok()?;
+            (written != raw).then_some((parsed, raw))
+        })
+        .collect()
+}
+
+/// The response line, with each numeric id written as its request wrote it: the id is the
+/// client's to match responses by, digit for digit.
+fn with_ids_as_sent(response: Value, text: &str) -> String {
+    let mut altered = altered_numeric_ids(text);
+    if altered.is_empty() {
+        return response.to_string();
+    }
+    let mut write_one = |response: &Value| -> String {
+        let Some(position) = response
+            .get("id")
+            .and_then(|id| altered.iter().position(|(parsed, _)| parsed == id))
+        else {
+            return response.to_string();
+        };
+        let (_, raw) = altered.remove(position);
+        let mut without_id = response.clone();
+        if let Some(object) = without_id.as_object_mut() {
+            object.remove("id");
+        }
+        let body = without_id.to_string();
+        match body.strip_suffix('}') {
+            Some("{") => format!("{{\"id\":{raw}}}"),
+            Some(open) => format!("{open},\"id\":{raw}}}"),
+            None => body,
+        }
+    };
+    match &response {
+        Value::Array(batch) => {
+            let parts: Vec<String> = batch.iter().map(&mut write_one).collect();
+            format!("[{}]", parts.join(","))
+        }
+        single => write_one(single),
+    }
 }
 
 /// Handles one parsed request or batch; `None` when no response is due.
@@ -382,9 +451,8 @@ fn dispatch(
             target.engine_params_set(params)
         }
         "record.start" => {
-            let [path] = named_params(method, params, ["path"])?;
-            let path = optional_path(method, "path", path)?;
-            let path = target.record_start(path)?;
+            let request = output_request(method, params)?;
+            let path = target.record_start(request)?;
             Ok(json!({ "path": path }))
         }
         "record.stop" => {
@@ -392,9 +460,8 @@ fn dispatch(
             target.record_stop()
         }
         "snapshot" => {
-            let [path] = named_params(method, params, ["path"])?;
-            let path = optional_path(method, "path", path)?;
-            let paths = target.snapshot(path)?;
+            let request = output_request(method, params)?;
+            let paths = target.snapshot(request)?;
             Ok(json!({ "paths": paths }))
         }
         "config.reload" => {
@@ -527,6 +594,25 @@ fn required_string(method: &str, name: &str, value: Option<Value>) -> Result<Str
     }
 }
 
+/// `path`? and `overwrite`? of `record.start` and `snapshot`.
+fn output_request(method: &str, params: Option<Value>) -> Result<OutputRequest, ControlError> {
+    let [path, overwrite] = named_params(method, params, ["path", "overwrite"])?;
+    let overwrite = match overwrite {
+        None => false,
+        Some(Value::Bool(overwrite)) => overwrite,
+        Some(other) => {
+            return Err(ControlError::invalid_params(format!(
+                "{method}: `overwrite` must be true or false, got {}",
+                type_name(&other)
+            )));
+        }
+    };
+    Ok(OutputRequest {
+        path: optional_path(method, "path", path)?,
+        overwrite,
+    })
+}
+
 fn optional_path(
     method: &str,
     name: &str,
@@ -537,6 +623,11 @@ fn optional_path(
         Some(Value::String(s)) if s.is_empty() => Err(ControlError::invalid_params(format!(
             "{method}: `{name}` must not be empty"
         ))),
+        Some(Value::String(s)) if s.chars().any(char::is_control) => {
+            Err(ControlError::invalid_params(format!(
+                "{method}: `{name}` must not hold control characters, got {s:?}"
+            )))
+        }
         Some(Value::String(s)) => Ok(Some(PathBuf::from(s))),
         Some(other) => Err(ControlError::invalid_params(format!(
             "{method}: `{name}` must be a string, got {}",

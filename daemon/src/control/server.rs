@@ -169,6 +169,34 @@ pub fn admission(
     Ok(())
 }
 
+/// The peer's supplementary groups: the process's own from `/proc/<pid>/status`, or, where
+/// `/proc` hides other users' processes (systemd's `ProtectProc=invisible`), its user's from
+/// the group database (`getgrouplist`).
+fn peer_groups(cred: &PeerCred) -> Vec<u32> {
+    if let Some(status) = cred
+        .pid
+        .and_then(|pid| std::fs::read_to_string(format!("/proc/{pid}/status")).ok())
+    {
+        return status_groups(&status);
+    }
+    user_groups(cred.uid, cred.gid)
+}
+
+/// The groups the user database gives `uid` (with `gid` as its primary group); empty when the
+/// user has no entry.
+pub fn user_groups(uid: u32, gid: u32) -> Vec<u32> {
+    use nix::unistd::{Gid, Uid, User, getgrouplist};
+    let Ok(Some(user)) = User::from_uid(Uid::from_raw(uid)) else {
+        return Vec::new();
+    };
+    let Ok(name) = std::ffi::CString::new(user.name) else {
+        return Vec::new();
+    };
+    getgrouplist(&name, Gid::from_raw(gid))
+        .map(|groups| groups.into_iter().map(Gid::as_raw).collect())
+        .unwrap_or_default()
+}
+
 /// The supplementary groups listed on the `Groups:` line of a `/proc/<pid>/status` file.
 pub fn status_groups(status: &str) -> Vec<u32> {
     status
@@ -457,11 +485,7 @@ fn admit(mut stream: UnixStream, shared: &Arc<Shared>) {
             return;
         }
     };
-    let groups = cred
-        .pid
-        .and_then(|pid| std::fs::read_to_string(format!("/proc/{pid}/status")).ok())
-        .map(|status| status_groups(&status))
-        .unwrap_or_default();
+    let groups = peer_groups(&cred);
     if !peer_allowed(
         &cred,
         shared.daemon_uid,
@@ -1043,6 +1067,23 @@ mod tests {
                 ReadLine::TooLong(11)
             ]
         );
+    }
+
+    #[test]
+    fn user_database_groups_hold_the_primary_group() {
+        let uid = rustix::process::getuid().as_raw();
+        let gid = rustix::process::getgid().as_raw();
+        let groups = user_groups(uid, gid);
+        if nix::unistd::User::from_uid(nix::unistd::Uid::from_raw(uid))
+            .ok()
+            .flatten()
+            .is_some()
+        {
+            assert!(groups.contains(&gid), "{groups:?} lacks {gid}");
+        } else {
+            assert!(groups.is_empty());
+        }
+        assert!(user_groups(u32::MAX - 7, 0).is_empty());
     }
 
     #[test]

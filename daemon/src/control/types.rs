@@ -44,14 +44,14 @@ pub trait ControlTarget: Send + Sync + 'static {
         &self,
         params: serde_json::Map<String, Value>,
     ) -> Result<Value, ControlError>;
-    /// Starts recording to `path` (or a timestamped file in the recorder directory); returns the
-    /// file being written.
-    fn record_start(&self, path: Option<PathBuf>) -> Result<PathBuf, ControlError>;
+    /// Starts recording to `request.path` (relative to the recorder directory; by default a
+    /// timestamped file there); returns the file being written.
+    fn record_start(&self, request: OutputRequest) -> Result<PathBuf, ControlError>;
     /// Stops recording; returns a summary (file, messages, bytes, duration…).
     fn record_stop(&self) -> Result<Value, ControlError>;
-    /// Writes the current frame set's images to `path` (a directory or file stem) or the snapshot
-    /// directory; returns the files written.
-    fn snapshot(&self, path: Option<PathBuf>) -> Result<Vec<PathBuf>, ControlError>;
+    /// Writes the current frame set's images to the directory `request.path` (relative to the
+    /// snapshot directory; by default that directory); returns the files written.
+    fn snapshot(&self, request: OutputRequest) -> Result<Vec<PathBuf>, ControlError>;
     /// Re-reads the configuration file and applies what can change at run time; returns what
     /// changed.
     fn config_reload(&self) -> Result<Value, ControlError>;
@@ -66,6 +66,16 @@ pub trait ControlTarget: Send + Sync + 'static {
     fn lights(&self) -> Option<&LightsBoard> {
         None
     }
+}
+
+/// Where a client asked a file to go (`record.start`, `snapshot`).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct OutputRequest {
+    /// As the client wrote it (free of control characters, checked by the protocol layer);
+    /// relative paths are the target's to resolve.
+    pub path: Option<PathBuf>,
+    /// Replace an existing file instead of refusing it.
+    pub overwrite: bool,
 }
 
 /// A JSON-RPC error object, as returned by a [`ControlTarget`] or raised by the server.
@@ -132,6 +142,12 @@ impl ControlError {
     /// An I/O failure, with what was being done: `ControlError::io("cannot create /x", &err)`.
     pub fn io(context: impl std::fmt::Display, err: &std::io::Error) -> Self {
         Self::new(codes::IO, format!("{context}: {err}"))
+    }
+
+    /// A file that could not be created or written; `message` says why (the OS reason, or what
+    /// was refused) and `data.path` names the file.
+    pub fn file(path: &std::path::Path, message: impl Into<String>) -> Self {
+        Self::new(codes::IO, message).with_data(serde_json::json!({ "path": path }))
     }
 
     pub fn permission_denied(uid: u32) -> Self {

@@ -2,7 +2,7 @@
 //! engine is built here, on the control thread, and handed to the render thread through the
 //! [`EngineSlot`](super::render::EngineSlot); snapshots are served by the render thread between frames.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -15,9 +15,11 @@ use super::sources::core_sync_config;
 use super::{Shared, params_map, recording_path};
 use crate::config::Config;
 use crate::control::lights::LightsBoard;
-use crate::control::types::{ControlError, ControlTarget, EngineInfo, StatusReport};
+use crate::control::types::{ControlError, ControlTarget, EngineInfo, OutputRequest, StatusReport};
 use crate::lock;
 use crate::sinks::recorder::RecorderError;
+use crate::sinks::safe_file::{Existing, resolve_output};
+use crate::sinks::writer::WriteFailure;
 
 /// How long a control request waits for the render thread to serve a snapshot.
 const SNAPSHOT_TIMEOUT: Duration = Duration::from_secs(3);
@@ -26,7 +28,15 @@ fn recorder_error(error: RecorderError) -> ControlError {
     match error {
         RecorderError::Busy(message) => ControlError::busy(message),
         RecorderError::Failed(message) => ControlError::failed(message),
+        RecorderError::File { ref path, .. } => ControlError::file(path, error.to_string()),
     }
+}
+
+/// A client's output path, resolved under `base` ([`resolve_output`]); a refusal is −32003.
+fn resolve(requested: Option<&Path>, base: &Path) -> Result<Option<PathBuf>, ControlError> {
+    requested
+        .map(|path| resolve_output(path, base).map_err(|e| ControlError::file(path, e.to_string())))
+        .transpose()
 }
 
 /// The pipeline as the control socket sees it.
@@ -128,18 +138,19 @@ impl ControlTarget for PipelineControl {
         Ok(Value::Object(merged))
     }
 
-    fn record_start(&self, path: Option<PathBuf>) -> Result<PathBuf, ControlError> {
-        let path = match path {
-            Some(path) => path,
-            None => {
-                let dir = lock(&self.shared.config).recorder.dir.clone();
-                std::fs::create_dir_all(&dir).map_err(|e| {
-                    ControlError::io(format!("cannot create {}", dir.display()), &e)
-                })?;
-                recording_path(&dir)
-            }
-        };
-        self.shared.recorder.start(path).map_err(recorder_error)
+    fn record_start(&self, request: OutputRequest) -> Result<PathBuf, ControlError> {
+        let dir = lock(&self.shared.config).recorder.dir.clone();
+        let path = resolve(request.path.as_deref(), &dir)?;
+        if path.as_ref().is_none_or(|path| path.starts_with(&dir)) {
+            std::fs::create_dir_all(&dir).map_err(|e| {
+                ControlError::file(&dir, format!("cannot create {}: {e}", dir.display()))
+            })?;
+        }
+        let path = path.unwrap_or_else(|| recording_path(&dir));
+        self.shared
+            .recorder
+            .start(path, Existing::from_overwrite(request.overwrite))
+            .map_err(recorder_error)
     }
 
     fn record_stop(&self) -> Result<Value, ControlError> {
@@ -149,12 +160,17 @@ impl ControlTarget for PipelineControl {
             .map_err(recorder_error)
     }
 
-    fn snapshot(&self, path: Option<PathBuf>) -> Result<Vec<PathBuf>, ControlError> {
-        let dir = path.unwrap_or_else(|| lock(&self.shared.config).snapshot.dir.clone());
+    fn snapshot(&self, request: OutputRequest) -> Result<Vec<PathBuf>, ControlError> {
+        let base = lock(&self.shared.config).snapshot.dir.clone();
+        let dir = resolve(request.path.as_deref(), &base)?.unwrap_or(base);
         let (reply, answer) = bounded(1);
         self.shared
             .snapshots
-            .try_send(SnapshotRequest { dir, reply })
+            .try_send(SnapshotRequest {
+                dir: dir.clone(),
+                existing: Existing::from_overwrite(request.overwrite),
+                reply,
+            })
             .map_err(|_| ControlError::busy("too many snapshots pending"))?;
         answer
             .recv_timeout(SNAPSHOT_TIMEOUT)
@@ -164,7 +180,10 @@ impl ControlTarget for PipelineControl {
                     SNAPSHOT_TIMEOUT.as_secs()
                 ))
             })?
-            .map_err(ControlError::failed)
+            .map_err(|failure| match failure {
+                WriteFailure::Behind => ControlError::busy(failure.to_string()),
+                WriteFailure::Io(message) => ControlError::file(&dir, message),
+            })
     }
 
     fn replay_step(&self, frames: u32) -> Result<Value, ControlError> {

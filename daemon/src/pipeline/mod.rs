@@ -58,6 +58,7 @@ use crate::control::lights::LightsBoard;
 use crate::control::types::{ControlTarget, StatusReport};
 use crate::lock;
 use crate::sinks::recorder::Recorder;
+use crate::sinks::safe_file::Existing;
 use crate::sinks::writer::ImageWriter;
 use crate::timing::{StageTimer, Timings};
 use ingest::{Ingest, ReadySet};
@@ -180,7 +181,7 @@ impl Pipeline {
         if let Some(dir) = autostart {
             shared
                 .recorder
-                .start(recording_path(&dir))
+                .start(recording_path(&dir), Existing::Refuse)
                 .map_err(anyhow::Error::new)
                 .context("[recorder] autostart")?;
         }

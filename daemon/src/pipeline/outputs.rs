@@ -11,14 +11,16 @@ use relight_engines::RelitFrame;
 
 use crate::config::{Config, OutputConfig};
 use crate::lock;
-use crate::sinks::writer::{ImageWriter, Write};
+use crate::sinks::safe_file::Existing;
+use crate::sinks::writer::{ImageWriter, Write, WriteFailure};
 use crate::timing::StageTimer;
 
 /// A `snapshot` request from the control socket, answered with the files written.
 #[derive(Debug)]
 pub struct SnapshotRequest {
     pub dir: PathBuf,
-    pub reply: Sender<Result<Vec<PathBuf>, String>>,
+    pub existing: Existing,
+    pub reply: Sender<Result<Vec<PathBuf>, WriteFailure>>,
 }
 
 #[derive(Debug)]
@@ -50,6 +52,7 @@ impl Outputs {
                 dir,
                 file_name: format!("composite_{seq:06}.png"),
                 image: relit.composite.clone(),
+                existing: Existing::Replace,
                 reply: None,
             });
         }
@@ -69,6 +72,7 @@ impl Outputs {
                 dir: request.dir,
                 file_name: format!("snapshot_{:06}_composite.png", relit.seq),
                 image: relit.composite.clone(),
+                existing: request.existing,
                 reply: Some(request.reply),
             });
         }

@@ -5,9 +5,12 @@ use std::path::Path;
 
 use relight_core::{Image, PixelFormat};
 
+use super::safe_file::Existing;
+
 #[derive(Debug, thiserror::Error)]
 pub enum PngError {
-    #[error("cannot create {path}: {source}")]
+    /// The source's message names the path and the reason.
+    #[error("{source}")]
     Create {
         path: String,
         source: std::io::Error,
@@ -24,6 +27,11 @@ pub enum PngError {
 /// Write `image` to `path`, a regular file ([`super::safe_file`]). Depth in metres is converted
 /// to millimetres (invalid → 0).
 pub fn write_png(path: &Path, image: &Image) -> Result<(), PngError> {
+    write_png_as(path, image, Existing::Replace)
+}
+
+/// [`write_png`], refusing an existing file unless `existing` says to replace it.
+pub fn write_png_as(path: &Path, image: &Image, existing: Existing) -> Result<(), PngError> {
     let name = path.display().to_string();
     let (color, depth, data): (_, _, Vec<u8>) = match image.format() {
         PixelFormat::Rgb8 => (
@@ -67,10 +75,11 @@ pub fn write_png(path: &Path, image: &Image) -> Result<(), PngError> {
             return Err(PngError::Unsupported { path: name, format });
         }
     };
-    let file = super::safe_file::create_regular(path).map_err(|source| PngError::Create {
-        path: name.clone(),
-        source,
-    })?;
+    let file =
+        super::safe_file::create_regular(path, existing).map_err(|source| PngError::Create {
+            path: name.clone(),
+            source,
+        })?;
     let mut encoder = ::png::Encoder::new(BufWriter::new(file), image.width(), image.height());
     encoder.set_color(color);
     encoder.set_depth(depth);

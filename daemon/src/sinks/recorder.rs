@@ -2,7 +2,7 @@
 //! bounded queue, drop-oldest so a slow disk never stalls capture) that writes while recording.
 //!
 //! The file is opened on that thread, as a regular file only ([`super::safe_file`]: a FIFO or a
-//! link is refused at once). A request waits for the thread at most [`ANSWER_TIMEOUT`]: a
+//! link is refused at once, and an existing file unless the request replaces it). A request waits for the thread at most [`ANSWER_TIMEOUT`]: a
 //! recorder stuck on its disk answers "busy" instead of holding the control connection.
 
 use std::fs::File;
@@ -19,12 +19,15 @@ use relight_core::bus::{Bus, Subscription};
 use relight_core::recording::{RecordingMeta, RecordingWriter};
 use serde_json::{Value, json};
 
+use super::safe_file::Existing;
+
 /// How long a request waits for the recorder thread's answer.
 pub const ANSWER_TIMEOUT: Duration = Duration::from_secs(3);
 
 enum Command {
     Start {
         path: PathBuf,
+        existing: Existing,
         reply: Sender<Result<PathBuf, RecorderError>>,
     },
     Stop {
@@ -41,6 +44,9 @@ pub enum RecorderError {
     Busy(String),
     #[error("{0}")]
     Failed(String),
+    /// The file could not be created: the message names it and says why.
+    #[error("cannot start recording: {message}")]
+    File { path: PathBuf, message: String },
 }
 
 /// What the status report shows of the recorder.
@@ -111,9 +117,16 @@ impl Recorder {
         &self.status
     }
 
-    pub fn start(&self, path: PathBuf) -> Result<PathBuf, RecorderError> {
+    pub fn start(&self, path: PathBuf, existing: Existing) -> Result<PathBuf, RecorderError> {
         let (reply, answer) = bounded(1);
-        self.send(Command::Start { path, reply }, &answer)
+        self.send(
+            Command::Start {
+                path,
+                existing,
+                reply,
+            },
+            &answer,
+        )
     }
 
     pub fn stop_recording(&self) -> Result<Value, RecorderError> {
@@ -175,14 +188,19 @@ fn run(
     while !stop.load(Ordering::Acquire) {
         while let Ok(command) = commands.try_recv() {
             match command {
-                Command::Start { path, reply } => {
+                Command::Start {
+                    path,
+                    existing,
+                    reply,
+                } => {
                     let result = if active.is_some() {
                         Err(RecorderError::Busy(
                             "already recording; stop first".to_owned(),
                         ))
                     } else {
-                        create(&path, meta)
-                            .map(|writer| {
+                        match create(&path, existing, meta) {
+                            Err(message) => Err(RecorderError::File { path, message }),
+                            Ok(writer) => {
                                 // Discard what queued up before the start.
                                 while subscription.try_recv().is_some() {}
                                 *status.path.lock().unwrap_or_else(PoisonError::into_inner) =
@@ -195,11 +213,9 @@ fn run(
                                     writer,
                                     drops_at_start: subscription.dropped(),
                                 });
-                                path
-                            })
-                            .map_err(|e| {
-                                RecorderError::Failed(format!("cannot start recording: {e}"))
-                            })
+                                Ok(path)
+                            }
+                        }
                     };
                     let _ = reply.send(result);
                 }
@@ -238,9 +254,10 @@ fn run(
 /// A new recording at `path`, a regular file.
 fn create(
     path: &std::path::Path,
+    existing: Existing,
     meta: &RecordingMeta,
 ) -> Result<RecordingWriter<BufWriter<File>>, String> {
-    let file = super::safe_file::create_regular(path).map_err(|e| e.to_string())?;
+    let file = super::safe_file::create_regular(path, existing).map_err(|e| e.to_string())?;
     RecordingWriter::new(BufWriter::with_capacity(1 << 20, file), meta).map_err(|e| e.to_string())
 }
 

@@ -9,7 +9,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use crossbeam_channel::Sender;
 use relight_core::Image;
 
-use super::png_out::write_png;
+use super::png_out::write_png_as;
+use super::safe_file::Existing;
 use crate::worker::Worker;
 
 /// Writes queued before new ones are dropped.
@@ -21,7 +22,21 @@ pub struct Write {
     pub dir: PathBuf,
     pub file_name: String,
     pub image: Image,
-    pub reply: Option<Sender<Result<Vec<PathBuf>, String>>>,
+    /// Whether an existing file of that name is replaced.
+    pub existing: Existing,
+    pub reply: Option<Sender<Result<Vec<PathBuf>, WriteFailure>>>,
+}
+
+/// Why an image was not written.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum WriteFailure {
+    /// The queue was full: try again.
+    #[error("the image writer is behind ({QUEUE_WRITES} writes queued); not written")]
+    Behind,
+    /// Creating the directory or the file, or writing it, failed; the message names the path
+    /// and the reason.
+    #[error("{0}")]
+    Io(String),
 }
 
 /// Handle to the writer thread; dropping it writes what is queued and joins.
@@ -63,9 +78,7 @@ impl ImageWriter {
         if let Err(job) = self.worker.offer(job) {
             self.dropped.fetch_add(1, Ordering::Relaxed);
             if let Some(reply) = job.reply {
-                let _ = reply.send(Err(format!(
-                    "the image writer is behind ({QUEUE_WRITES} writes queued); not written"
-                )));
+                let _ = reply.send(Err(WriteFailure::Behind));
             }
         }
     }
@@ -81,11 +94,11 @@ impl ImageWriter {
     }
 }
 
-fn write(job: &Write) -> Result<Vec<PathBuf>, String> {
+fn write(job: &Write) -> Result<Vec<PathBuf>, WriteFailure> {
     std::fs::create_dir_all(&job.dir)
-        .map_err(|e| format!("cannot create {}: {e}", job.dir.display()))?;
+        .map_err(|e| WriteFailure::Io(format!("cannot create {}: {e}", job.dir.display())))?;
     let path = job.dir.join(&job.file_name);
-    write_png(&path, &job.image).map_err(|e| e.to_string())?;
+    write_png_as(&path, &job.image, job.existing).map_err(|e| WriteFailure::Io(e.to_string()))?;
     Ok(vec![path])
 }
 
@@ -114,15 +127,30 @@ mod tests {
                 dir: dir.path().to_path_buf(),
                 file_name: name.into(),
                 image: Image::new(2, 2, PixelFormat::Rgb8),
+                existing: Existing::Replace,
                 reply: Some(reply.clone()),
             });
         }
         let fifo_answer = answers.recv().unwrap();
-        assert!(fifo_answer.unwrap_err().contains("FIFO"));
+        assert!(fifo_answer.unwrap_err().to_string().contains("FIFO"));
         assert_eq!(
             answers.recv().unwrap().unwrap(),
             vec![dir.path().join("ok.png")]
         );
         assert_eq!((writer.failed(), writer.dropped()), (1, 0));
+
+        // A snapshot without `overwrite` does not replace a file of the same name.
+        writer.offer(Write {
+            dir: dir.path().to_path_buf(),
+            file_name: "ok.png".into(),
+            image: Image::new(2, 2, PixelFormat::Rgb8),
+            existing: Existing::Refuse,
+            reply: Some(reply),
+        });
+        let refused = answers.recv().unwrap().unwrap_err();
+        assert!(
+            matches!(&refused, WriteFailure::Io(m) if m.contains("it exists")),
+            "{refused}"
+        );
     }
 }

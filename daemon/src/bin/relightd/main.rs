@@ -7,14 +7,17 @@
 //! truth (how the demo recording is made); `relightd score` replays such a recording through the
 //! live path and scores it against its truth; `relightd render` renders an offline scene with an
 //! engine; `relightd bench` times and scores every engine; `relightd soak` watches resources
-//! over a long replay; `relightd check-config` validates a configuration file.
+//! over a long replay; `relightd check-config` validates a configuration file; `relightd
+//! recording check|repair` inspects and repairs recordings; `relightd gpu` lists adapters.
 //!
 //! `main` only parses and dispatches: each subcommand is a module with its arguments and its
 //! `run`.
 
 mod bench;
+mod gpu;
 mod params;
 mod record;
+mod recording;
 mod render;
 mod replay;
 mod score;
@@ -60,8 +63,15 @@ enum Command {
     /// engines, and print the process's RSS, open descriptors and threads at intervals, with
     /// the growth after the warm-up at the end.
     Soak(soak::Args),
-    /// Validate a configuration file and print it as understood.
+    /// Validate a configuration file as `run` would (the engine and its parameters, the scene,
+    /// the replay file, the simulator's settings, the socket group) and print it as understood.
     CheckConfig,
+    /// List the GPU adapters (numbered for RELIGHT_ADAPTER=#N), the one chosen, and the GPU
+    /// device nodes present.
+    Gpu,
+    /// Check a recording, or repair one into a complete copy.
+    #[command(subcommand)]
+    Recording(recording::Command),
     /// Time every engine × setting × scene and measure its Δ error against the reference path
     /// tracer; prints a table, writes bench.csv, bench.json and bench.svg (speed vs error).
     Bench(bench::Args),
@@ -71,6 +81,7 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("RELIGHT_LOG")
@@ -78,8 +89,8 @@ fn main() -> std::process::ExitCode {
         )
         .with_writer(std::io::stderr)
         .init();
-    match run(Cli::parse()) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
+    match run(cli) {
+        Ok(code) => code,
         Err(error) => {
             eprintln!("relightd: {error:#}");
             std::process::ExitCode::FAILURE
@@ -87,8 +98,10 @@ fn main() -> std::process::ExitCode {
     }
 }
 
-fn run(cli: Cli) -> Result<()> {
-    match cli.command.unwrap_or(Command::Run) {
+/// Runs the subcommand; its exit status is success unless it says otherwise (`recording check`
+/// on a damaged file).
+fn run(cli: Cli) -> Result<std::process::ExitCode> {
+    let done = match cli.command.unwrap_or(Command::Run) {
         Command::Run => serve::run(Config::load(&cli.config)?, PipelineOptions::default(), true),
         Command::Replay(args) => replay::run(args),
         Command::Record(args) => record::run(args, &cli.config),
@@ -100,7 +113,10 @@ fn run(cli: Cli) -> Result<()> {
             println!("{}: ok\n{config:#?}", cli.config.display());
             Ok(())
         }
+        Command::Recording(command) => return recording::run(command),
+        Command::Gpu => gpu::run(),
         Command::Bench(args) => bench::run(args),
         Command::Render(args) => render::run(args),
-    }
+    };
+    done.map(|()| std::process::ExitCode::SUCCESS)
 }

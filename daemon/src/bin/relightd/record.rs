@@ -7,12 +7,16 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use relight_daemon::config::Config;
+use relight_daemon::control::OutputRequest;
 use relight_daemon::pipeline::{Pipeline, PipelineOptions};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
     #[arg(long)]
     out: PathBuf,
+    /// Replace OUT if it exists (it is refused otherwise).
+    #[arg(long)]
+    overwrite: bool,
     /// Stop after this many seconds (default: until SIGINT/SIGTERM or the sources end).
     #[arg(long)]
     seconds: Option<f64>,
@@ -34,7 +38,11 @@ pub fn run(args: Args, config_path: &Path) -> Result<()> {
     let mut pipeline = Pipeline::start(config, options)?;
     let control = pipeline.control();
     control
-        .record_start(Some(args.out))
+        .record_start(OutputRequest {
+            // Relative to where the command runs, not to the recorder directory.
+            path: Some(std::path::absolute(&args.out).context("--out")?),
+            overwrite: args.overwrite,
+        })
         .map_err(|e| anyhow::anyhow!("{}", e.message))?;
     let started = Instant::now();
     while !term.load(Ordering::Acquire)
