@@ -138,16 +138,10 @@ impl fmt::Debug for RecordingReader {
 impl RecordingReader {
     /// Read the file at `path` into memory and index it.
     pub fn open(path: &Path) -> Result<Self, RecordingError> {
-        let io = |source| RecordingError::Io {
+        let bytes = crate::input_file::read_regular(path).map_err(|source| RecordingError::Io {
             path: path.to_owned(),
             source,
-        };
-        let mut bytes = Vec::new();
-        std::io::Read::read_to_end(
-            &mut crate::input_file::open_regular(path).map_err(io)?,
-            &mut bytes,
-        )
-        .map_err(io)?;
+        })?;
         let reader = Self::from_bytes(bytes)?;
         for warning in &reader.warnings {
             tracing::warn!(path = %path.display(), "{warning}");

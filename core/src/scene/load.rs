@@ -445,10 +445,7 @@ fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> SceneError + '_ {
 
 /// The bytes of `path`, a regular file ([`crate::input_file`]).
 fn read_regular(path: &Path) -> Result<Vec<u8>, SceneError> {
-    let mut bytes = Vec::new();
-    std::io::Read::read_to_end(&mut read_regular_check(path)?, &mut bytes)
-        .map_err(io_error(path))?;
-    Ok(bytes)
+    crate::input_file::read_regular(path).map_err(io_error(path))
 }
 
 fn read_regular_check(path: &Path) -> Result<std::fs::File, SceneError> {
