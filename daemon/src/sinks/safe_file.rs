@@ -94,9 +94,7 @@ pub fn create_regular(path: &Path, existing: Existing) -> io::Result<File> {
     }
     let fd = rustix::fs::open(path, flags, Mode::from_raw_mode(0o644)).map_err(|errno| {
         let reason = match errno {
-            rustix::io::Errno::EXIST => {
-                "it exists; ask for overwrite (`overwrite: true`, `--overwrite`) to replace it"
-            }
+            rustix::io::Errno::EXIST => existing_kind_reason(path),
             rustix::io::Errno::LOOP => "it is a symbolic link; output is not written through links",
             rustix::io::Errno::NXIO => "it is a FIFO or socket; output goes to regular files only",
             rustix::io::Errno::ROFS if under_systemd() => {
@@ -121,6 +119,22 @@ pub fn create_regular(path: &Path, existing: Existing) -> io::Result<File> {
     rustix::fs::ftruncate(&fd, 0)?;
     rustix::fs::fcntl_setfl(&fd, OFlags::empty())?;
     Ok(File::from(fd))
+}
+
+/// Why an exclusive create found `path` taken, naming what is there: replacing a link or a
+/// FIFO is refused even with overwrite, so "ask for overwrite" would mislead for those.
+fn existing_kind_reason(path: &Path) -> &'static str {
+    match rustix::fs::lstat(path).map(|stat| FileType::from_raw_mode(stat.st_mode)) {
+        Ok(FileType::Symlink) => "it is a symbolic link; output is not written through links",
+        Ok(FileType::Fifo | FileType::Socket) => {
+            "it is a FIFO or socket; output goes to regular files only"
+        }
+        Ok(FileType::Directory) => "it is a directory",
+        Ok(FileType::RegularFile) | Err(_) => {
+            "it exists; ask for overwrite (`overwrite: true`, `--overwrite`) to replace it"
+        }
+        Ok(_) => "it is a device or other special file; output goes to regular files only",
+    }
 }
 
 #[cfg(test)]
@@ -186,8 +200,21 @@ mod tests {
         let dangling = dir.path().join("dangling.mcap");
         let target = dir.path().join("target.mcap");
         std::os::unix::fs::symlink(&target, &dangling).unwrap();
-        assert!(create_regular(&dangling, Existing::Refuse).is_err());
+        let error = create_regular(&dangling, Existing::Refuse).unwrap_err();
+        assert!(error.to_string().contains("symbolic link"), "{error}");
         assert!(!target.exists(), "a dangling link's target is not created");
+
+        let fifo = dir.path().join("fifo.mcap");
+        rustix::fs::mknodat(
+            rustix::fs::CWD,
+            &fifo,
+            FileType::Fifo,
+            Mode::from_raw_mode(0o644),
+            0,
+        )
+        .unwrap();
+        let error = create_regular(&fifo, Existing::Refuse).unwrap_err();
+        assert!(error.to_string().contains("FIFO"), "{error}");
     }
 
     #[test]
