@@ -22,6 +22,8 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+mod print;
+
 use crate::pipeline::tracking::{TrackingConfig, TrackingSource};
 use relight_core::StreamKind;
 use relight_engines::live_scene::{LightSource, RealGeometry};

@@ -64,7 +64,8 @@ enum Command {
     /// the growth after the warm-up at the end.
     Soak(soak::Args),
     /// Validate a configuration file as `run` would (the engine and its parameters, the scene,
-    /// the replay file, the simulator's settings, the socket group) and print it as understood.
+    /// the replay file, the simulator's settings, the socket group) and print it as understood: a
+    /// configuration file with every default filled in and every path resolved.
     CheckConfig,
     /// List the GPU adapters (numbered for RELIGHT_ADAPTER=#N), the one chosen, and the GPU
     /// device nodes present.
@@ -110,7 +111,9 @@ fn run(cli: Cli) -> Result<std::process::ExitCode> {
         Command::Soak(args) => soak::run(args),
         Command::CheckConfig => {
             let config = Config::load(&cli.config)?;
-            println!("{}: ok\n{config:#?}", cli.config.display());
+            // A comment line, then the configuration as understood: every default filled in,
+            // every path resolved, itself a valid configuration file.
+            print!("# {}: ok\n{}", cli.config.display(), config.to_toml());
             Ok(())
         }
         Command::Recording(command) => return recording::run(command),
