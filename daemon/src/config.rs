@@ -738,7 +738,8 @@ impl Validator<'_> {
         }
     }
 
-    /// The checks that read what the configuration names: each is what `run` does first with it.
+    /// The checks that read what the configuration names: each is what `run` does first with it
+    /// (device sections: everything short of opening the hardware).
     fn resources(&mut self, config: &Config) {
         if let Some(dir) = &config.scene.dir
             && let Err(error) = relight_core::scene::Scene::load(dir)
@@ -768,7 +769,13 @@ impl Validator<'_> {
                     self.error("sim", error);
                 }
             }
-            SourceConfig::Devices(_) => {}
+            SourceConfig::Devices(devices) => {
+                if let Err((stream, error)) =
+                    crate::devices::check(devices, config.rig.calibration.as_ref())
+                {
+                    self.error(stream.name(), error);
+                }
+            }
         }
         if let Some(group) = &config.daemon.socket_group
             && let Err(error) = group.resolve_gid()

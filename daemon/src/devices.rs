@@ -213,65 +213,61 @@ fn single_stream(plan: &DevicePlan) -> anyhow::Result<StreamKind> {
     }
 }
 
-/// Build one device of a backend compiled into this build.
-fn build(
-    plan: &DevicePlan,
-    rig: Option<&RigCalibration>,
-    bus: &Bus,
-) -> anyhow::Result<Box<dyn Device>> {
-    let _ = (rig, bus);
+/// A device's settings as its backend's typed config, with what it needs from the rig: every
+/// check that does not touch the hardware, so `check-config` can run them.
+enum Typed {
+    #[cfg(feature = "openni2")]
+    Openni2(relight_backends::openni2::OpenNi2Config),
+    #[cfg(feature = "freenect")]
+    Freenect(relight_backends::freenect::FreenectConfig),
+    #[cfg(feature = "v4l2")]
+    V4l2(relight_backends::v4l2::V4l2Config),
+    #[cfg(feature = "ueye")]
+    Ueye(relight_backends::ueye::UeyeConfig),
+    #[cfg(feature = "apriltag")]
+    Apriltag(
+        relight_backends::markers::apriltag::AprilTagConfig,
+        relight_core::camera::CameraModel,
+    ),
+    #[cfg(feature = "opencv")]
+    Aruco(
+        relight_backends::markers::aruco::ArucoConfig,
+        relight_core::camera::CameraModel,
+    ),
+    #[cfg(feature = "lamp")]
+    Lamp(
+        relight_backends::lamp::LampConfig,
+        String,
+        Box<RigCalibration>,
+    ),
+}
+
+fn typed(plan: &DevicePlan, rig: Option<&RigCalibration>) -> anyhow::Result<Typed> {
+    let _ = rig;
     match plan.backend {
         #[cfg(feature = "openni2")]
-        DeviceBackend::Openni2 => {
-            use relight_backends::openni2::{OpenNi2Config, OpenNi2Device};
-            let config: OpenNi2Config = settings(plan.settings.clone())?;
-            Ok(Box::new(OpenNi2Device::new(config, &plan.streams)?))
-        }
+        DeviceBackend::Openni2 => Ok(Typed::Openni2(settings(plan.settings.clone())?)),
         #[cfg(feature = "freenect")]
-        DeviceBackend::Freenect => {
-            use relight_backends::freenect::{FreenectConfig, FreenectDevice};
-            let config: FreenectConfig = settings(with_stream_switches(
-                plan,
-                &[(StreamKind::Depth, "depth"), (StreamKind::Color, "color")],
-            )?)?;
-            Ok(Box::new(FreenectDevice::new(config)?))
-        }
+        DeviceBackend::Freenect => Ok(Typed::Freenect(settings(with_stream_switches(
+            plan,
+            &[(StreamKind::Depth, "depth"), (StreamKind::Color, "color")],
+        )?)?)),
         #[cfg(feature = "v4l2")]
-        DeviceBackend::V4l2 => {
-            use relight_backends::v4l2::{V4l2Color, V4l2Probe};
-            Ok(match single_stream(plan)? {
-                StreamKind::Probe => {
-                    Box::new(V4l2Probe::new(settings(plan.settings.clone())?)?.into_device())
-                }
-                _ => Box::new(V4l2Color::new(settings(plan.settings.clone())?)?.into_device()),
-            })
-        }
+        DeviceBackend::V4l2 => Ok(Typed::V4l2(settings(plan.settings.clone())?)),
         #[cfg(feature = "ueye")]
-        DeviceBackend::Ueye => {
-            use relight_backends::ueye::{UeyeColor, UeyeProbe};
-            Ok(match single_stream(plan)? {
-                StreamKind::Probe => {
-                    Box::new(UeyeProbe::new(settings(plan.settings.clone())?)?.into_device())
-                }
-                _ => Box::new(UeyeColor::new(settings(plan.settings.clone())?)?.into_device()),
-            })
-        }
+        DeviceBackend::Ueye => Ok(Typed::Ueye(settings(plan.settings.clone())?)),
         #[cfg(feature = "apriltag")]
-        DeviceBackend::Apriltag => {
-            use relight_backends::markers::apriltag::apriltag_device;
-            let config = settings(plan.settings.clone())?;
-            Ok(Box::new(apriltag_device(&config, colour_camera(rig)?)?))
-        }
+        DeviceBackend::Apriltag => Ok(Typed::Apriltag(
+            settings(plan.settings.clone())?,
+            colour_camera(rig)?,
+        )),
         #[cfg(feature = "opencv")]
-        DeviceBackend::Aruco => {
-            use relight_backends::markers::aruco::aruco_device;
-            let config = settings(plan.settings.clone())?;
-            Ok(Box::new(aruco_device(&config, colour_camera(rig)?)?))
-        }
+        DeviceBackend::Aruco => Ok(Typed::Aruco(
+            settings(plan.settings.clone())?,
+            colour_camera(rig)?,
+        )),
         #[cfg(feature = "lamp")]
         DeviceBackend::LampSerial => {
-            use relight_backends::lamp::{BoardPose, SerialLamp};
-            use relight_backends::sources::SourceDevice;
             let mut config = plan.settings.clone();
             let board = match config.as_object_mut().and_then(|t| t.remove("board")) {
                 None => "board".to_owned(),
@@ -281,8 +277,7 @@ fn build(
             let Some(rig) = rig else {
                 bail!("the lamp needs [rig] calibration (its marker's offset to the light)");
             };
-            let lamp = SerialLamp::on_bus(settings(config)?, bus, rig, BoardPose::new(board))?;
-            Ok(Box::new(SourceDevice::new(lamp, LAMP_POOL_FRAMES)))
+            Ok(Typed::Lamp(settings(config)?, board, Box::new(rig.clone())))
         }
         #[allow(unreachable_patterns)]
         _ => bail!(
@@ -290,6 +285,73 @@ fn build(
             plan.backend,
             plan.backend.feature()
         ),
+    }
+}
+
+/// What `spawn` would refuse before opening anything: sections that contradict each other, and
+/// settings their backend does not take. The error names the device (`depth+color`).
+pub fn check(
+    devices: &BTreeMap<StreamKind, DeviceConfig>,
+    rig: Option<&RigCalibration>,
+) -> Result<(), (StreamKind, String)> {
+    let plans = plan(devices).map_err(|e| {
+        let first = devices.keys().next().copied().unwrap_or(StreamKind::Depth);
+        (first, format!("{e:#}"))
+    })?;
+    for plan in &plans {
+        typed(plan, rig).map_err(|e| (plan.streams[0], format!("{}: {e:#}", plan.backend)))?;
+    }
+    Ok(())
+}
+
+/// Build one device of a backend compiled into this build.
+fn build(
+    plan: &DevicePlan,
+    rig: Option<&RigCalibration>,
+    bus: &Bus,
+) -> anyhow::Result<Box<dyn Device>> {
+    let _ = bus;
+    match typed(plan, rig)? {
+        #[cfg(feature = "openni2")]
+        Typed::Openni2(config) => Ok(Box::new(relight_backends::openni2::OpenNi2Device::new(
+            config,
+            &plan.streams,
+        )?)),
+        #[cfg(feature = "freenect")]
+        Typed::Freenect(config) => Ok(Box::new(relight_backends::freenect::FreenectDevice::new(
+            config,
+        )?)),
+        #[cfg(feature = "v4l2")]
+        Typed::V4l2(config) => {
+            use relight_backends::v4l2::{V4l2Color, V4l2Probe};
+            Ok(match single_stream(plan)? {
+                StreamKind::Probe => Box::new(V4l2Probe::new(config)?.into_device()),
+                _ => Box::new(V4l2Color::new(config)?.into_device()),
+            })
+        }
+        #[cfg(feature = "ueye")]
+        Typed::Ueye(config) => {
+            use relight_backends::ueye::{UeyeColor, UeyeProbe};
+            Ok(match single_stream(plan)? {
+                StreamKind::Probe => Box::new(UeyeProbe::new(config)?.into_device()),
+                _ => Box::new(UeyeColor::new(config)?.into_device()),
+            })
+        }
+        #[cfg(feature = "apriltag")]
+        Typed::Apriltag(config, camera) => Ok(Box::new(
+            relight_backends::markers::apriltag::apriltag_device(&config, camera)?,
+        )),
+        #[cfg(feature = "opencv")]
+        Typed::Aruco(config, camera) => Ok(Box::new(
+            relight_backends::markers::aruco::aruco_device(&config, camera)?,
+        )),
+        #[cfg(feature = "lamp")]
+        Typed::Lamp(config, board, rig) => {
+            use relight_backends::lamp::{BoardPose, SerialLamp};
+            use relight_backends::sources::SourceDevice;
+            let lamp = SerialLamp::on_bus(config, bus, &rig, BoardPose::new(board))?;
+            Ok(Box::new(SourceDevice::new(lamp, LAMP_POOL_FRAMES)))
+        }
     }
 }
 

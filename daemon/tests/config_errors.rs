@@ -558,6 +558,32 @@ fn loading_checks_what_run_needs_and_reports_everything_at_once() {
     assert_eq!(err.diagnostics().len(), 1, "{err}");
 }
 
+/// Device sections get the checks `run` makes before opening the hardware: the backend's typed
+/// settings (unknown keys, wrong types) and what it needs from the rig calibration.
+#[test]
+fn device_settings_are_checked_as_run_would_before_opening_anything() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("relightd.toml");
+    std::fs::write(&path, "[depth]\nbackend = \"openni2\"\nurl = \"Dummy\"\n").unwrap();
+    let err = Config::load(&path).expect_err("a misspelt key");
+    let d = err.diagnostics().first().unwrap();
+    assert_eq!((d.line, d.key.as_deref()), (1, Some("depth")), "{err}");
+    assert!(d.message.contains("url"), "{err}");
+    // The same text passes the shape check: the key is the backend's, not the file's.
+    let text = std::fs::read_to_string(&path).unwrap();
+    Config::parse(&text, &path).unwrap_or_else(|e| panic!("{e}"));
+
+    std::fs::write(&path, "[markers]\nbackend = \"apriltag\"\n").unwrap();
+    let err = Config::load(&path).expect_err("no colour camera");
+    assert!(
+        err.to_string().contains("colour camera's calibration"),
+        "{err}"
+    );
+
+    std::fs::write(&path, "[depth]\nbackend = \"openni2\"\nuri = \"Dummy\"\n").unwrap();
+    Config::load(&path).unwrap_or_else(|e| panic!("{e}"));
+}
+
 #[test]
 fn engine_parameters_are_checked_against_the_engine_schema() {
     let err = parse("[engine]\nname = \"dlpv\"\n\n[engine.params]\nwobble = 1\n")
