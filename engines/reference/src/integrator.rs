@@ -72,7 +72,8 @@ static BLACK: Material = Material {
 ///
 /// Emissive surfaces are not light-sampled: their emission counts (with weight 1) wherever a
 /// camera or BSDF-sampled ray hits them. `max_bounces` counts the vertices after the first hit
-/// that may still scatter; 0 gives emission plus direct light at the first hit.
+/// that may still scatter; 0 gives emission plus direct light at the first hit, the
+/// environment's included in full (both halves of its MIS).
 pub fn radiance(
     ctx: &PathContext<'_>,
     geometry: &Geometry,
@@ -86,7 +87,11 @@ pub fn radiance(
     let mut touched_virtual = false;
     // Solid-angle density of the BSDF sample that produced `dir`; `None` for the camera ray.
     let mut last_bsdf_pdf: Option<f32> = None;
-    for depth in 0..=ctx.max_bounces {
+    // One ray more than the path has vertices: the last vertex's BSDF-sampled ray, which only
+    // finishes that vertex's environment MIS (its light-sampled half was weighted as if this
+    // ray would follow). Whatever it hits adds nothing.
+    for depth in 0..=ctx.max_bounces.saturating_add(1) {
+        let finishing_environment_mis = depth > ctx.max_bounces;
         let Some(hit) = geometry.intersect(origin, dir, 0.0, f32::INFINITY) else {
             if let Some(env) = &scene.environment {
                 let weight = match (last_bsdf_pdf, ctx.env) {
@@ -101,6 +106,9 @@ pub fn radiance(
             break;
         };
         touched_virtual |= tri.is_virtual;
+        if finishing_environment_mis {
+            break;
+        }
         let material = scene.materials.get(tri.material).unwrap_or(&BLACK);
         let p = origin + dir * hit.t;
         let wo = -dir;
@@ -166,7 +174,7 @@ pub fn radiance(
                 }
             }
         }
-        if depth == ctx.max_bounces {
+        if depth == ctx.max_bounces && ctx.env.is_none() {
             break;
         }
         let Some(wi) = bsdf.sample(rng) else {

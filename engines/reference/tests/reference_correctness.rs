@@ -266,10 +266,26 @@ fn window_environment() -> (EnvironmentMap, Vec3) {
     (map, irradiance.as_vec3())
 }
 
+/// A plane sees nothing but the sky, so its radiance is ρ/π · E at any bounce count. At
+/// `max_bounces = 0` this checks that the last vertex counts both halves of the environment's
+/// MIS (it used to count only the light-sampled half, 0.18× the answer under a constant sky).
 #[test]
 fn diffuse_plane_under_bright_window_environment_matches_its_irradiance() {
+    let constant_sky = Vec3::new(0.4, 0.5, 0.6);
+    let constant = EnvironmentMap {
+        width: 8,
+        height: 4,
+        radiance: vec![constant_sky; 32],
+    };
+    for max_bounces in [0, 8] {
+        diffuse_plane_under(window_environment(), max_bounces);
+        // E = π L for a full hemisphere of constant radiance L.
+        diffuse_plane_under((constant.clone(), PI * constant_sky), max_bounces);
+    }
+}
+
+fn diffuse_plane_under((environment, irradiance): (EnvironmentMap, Vec3), max_bounces: u32) {
     let albedo = Vec3::new(0.6, 0.5, 0.4);
-    let (environment, irradiance) = window_environment();
     let mut scene = scene(
         "window",
         camera(Vec3::new(0.0, 3.0, 2.0), Vec3::ZERO, 16, 12),
@@ -286,6 +302,7 @@ fn diffuse_plane_under_bright_window_environment_matches_its_irradiance() {
     scene.environment = Some(environment);
     let settings = ReferenceSettings {
         spp: 32,
+        max_bounces,
         ..ReferenceSettings::default()
     };
     let images = render_reference(&scene, settings).unwrap();
@@ -307,7 +324,7 @@ fn diffuse_plane_under_bright_window_environment_matches_its_irradiance() {
         let error = (mean - e).abs();
         assert!(
             error < 3.0 * std_error.max(1e-9) && error < 0.01 * e,
-            "channel {channel}: {mean} vs {e} (standard error {std_error})"
+            "max_bounces {max_bounces}, channel {channel}: {mean} vs {e} (standard error {std_error})"
         );
         // MIS with environment sampling keeps the window from making fireflies: every pixel's
         // own standard error is below 10% after 32 samples.
