@@ -74,6 +74,21 @@ fn empty_file_gives_defaults() {
     assert_eq!(config.source, SourceConfig::Devices(BTreeMap::new()));
 }
 
+/// The README's calibration capture config loads as `record` would load it.
+#[test]
+fn rig_capture_example_loads() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../systemd/rig-capture.toml");
+    let config = Config::load(&path).unwrap_or_else(|err| panic!("{err}"));
+    let SourceConfig::Devices(devices) = &config.source else {
+        panic!("{:?}", config.source)
+    };
+    assert_eq!(
+        devices.keys().copied().collect::<Vec<_>>(),
+        [StreamKind::Depth, StreamKind::Color, StreamKind::Probe]
+    );
+    assert_eq!(config.sync.reference, StreamKind::Color);
+}
+
 #[test]
 fn example_file_parses_and_documents_the_defaults() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../systemd/relightd.toml");
