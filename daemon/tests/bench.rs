@@ -35,3 +35,30 @@ fn bench_measures_every_case_and_writes_its_outputs() {
     let csv = std::fs::read_to_string(dir.path().join("bench.csv")).unwrap();
     assert_eq!(csv.lines().count(), rows.len() + 1);
 }
+
+/// `bench --engine nosuch` used to print an empty table and exit 0.
+#[test]
+fn an_unknown_engine_is_an_error_that_lists_the_benched_ones() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_relightd"))
+        .args([
+            "bench",
+            "--engine",
+            "nosuch",
+            "--scene",
+            "tests/scenes/spot_bleed",
+        ])
+        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("nosuch") && stderr.contains("differential"),
+        "{stderr}"
+    );
+    assert!(
+        out.stdout.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+}

@@ -930,11 +930,52 @@ fn relightctl_exit_codes_and_output() {
     assert_eq!(code, 0, "{err}");
     assert!(out.contains("/s/composite.png"), "{out}");
 
+    // Readable by default, floats rounded (an f32 0.3 arrives as 0.30000001192092896).
+    let (code, out, err) = relightctl(
+        &fx.socket,
+        &[
+            "call",
+            "engine.params.set",
+            r#"{"params":{"gain":0.30000001192092896}}"#,
+        ],
+    );
+    assert_eq!(code, 0, "{err}");
+    assert!(!out.contains('{'), "not JSON: {out}");
+    assert!(out.contains("gain") && out.contains("0.3\n"), "{out}");
+
     let missing = fx.socket.with_file_name("absent.sock");
     let (code, _, err) = relightctl(&missing, &["status"]);
-    assert_eq!(code, 2);
+    assert_eq!(code, 3, "unreachable, apart from clap's 2 for usage: {err}");
     assert!(err.contains("absent.sock"), "{err}");
     assert!(err.contains("systemctl status relightd"), "{err}");
+    let usage = Command::new(env!("CARGO_BIN_EXE_relightctl"))
+        .arg("no-such-command")
+        .output()
+        .unwrap();
+    assert_eq!(usage.status.code(), Some(2));
+
+    // --socket after the command, and RELIGHT_SOCKET instead of it.
+    let after = Command::new(env!("CARGO_BIN_EXE_relightctl"))
+        .args(["status", "--socket"])
+        .arg(&fx.socket)
+        .output()
+        .unwrap();
+    assert!(
+        after.status.success(),
+        "{}",
+        String::from_utf8_lossy(&after.stderr)
+    );
+    let from_env = Command::new(env!("CARGO_BIN_EXE_relightctl"))
+        .args(["engine", "list", "--json"])
+        .env("RELIGHT_SOCKET", &fx.socket)
+        .output()
+        .unwrap();
+    assert!(
+        from_env.status.success(),
+        "{}",
+        String::from_utf8_lossy(&from_env.stderr)
+    );
+    serde_json::from_slice::<Vec<EngineInfo>>(&from_env.stdout).expect("--json after the command");
 }
 
 /// An estimate whose main light is a point light of `intensity` 1 m above the origin, with

@@ -349,13 +349,7 @@ fn parse_rect(text: &str) -> Result<PixelRect, String> {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
-        )
-        .init();
+    relight_log::init("warn");
     let progress = ProgressSink::terminal(cli.quiet);
     let result = match &cli.command {
         Command::Intrinsics(args) => intrinsics(args, &progress),

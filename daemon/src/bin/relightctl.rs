@@ -1,7 +1,11 @@
 //! relightctl: command-line client of relightd's control socket.
 //!
 //! Exit status: 0 on success, 1 when the daemon answers with an error (or the exchange fails after
-//! connecting), 2 when the socket cannot be reached or the command line is wrong.
+//! connecting), 2 when the command line is wrong (clap's usage error), 3 when the socket cannot
+//! be reached (no daemon, wrong `--socket`, no permission).
+//!
+//! Every command prints a readable summary with rounded numbers; `--json` prints the daemon's
+//! result as it came.
 
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
@@ -18,14 +22,14 @@ use serde_json::{Map, Value, json};
 #[derive(Debug, Parser)]
 #[command(name = "relightctl", version, about = "Control a running relightd")]
 struct Cli {
-    /// The daemon's control socket.
-    #[arg(long, value_name = "PATH", default_value = DEFAULT_SOCKET_PATH)]
+    /// The daemon's control socket (before or after the command).
+    #[arg(long, global = true, value_name = "PATH", env = "RELIGHT_SOCKET", default_value = DEFAULT_SOCKET_PATH)]
     socket: PathBuf,
     /// Print the raw JSON result instead of a readable summary.
-    #[arg(long)]
+    #[arg(long, global = true)]
     json: bool,
-    /// How long to wait for the daemon's answer.
-    #[arg(long, value_name = "N", default_value_t = 5000)]
+    /// How long to wait for the daemon's answer, ms.
+    #[arg(long, global = true, value_name = "N", default_value_t = 5000)]
     timeout_ms: u64,
     #[command(subcommand)]
     command: Command,
@@ -187,6 +191,9 @@ fn watch_lights(socket: &Path, timeout: Duration) -> Result<(), ClientError> {
     }
 }
 
+/// The socket cannot be reached; 2 is clap's usage error.
+const EXIT_UNREACHABLE: u8 = 3;
+
 /// The exit status of a finished command, after saying what went wrong.
 fn exit_code(method: &str, result: Result<(), ClientError>) -> ExitCode {
     match result {
@@ -200,7 +207,7 @@ fn exit_code(method: &str, result: Result<(), ClientError>) -> ExitCode {
         }
         Err(err @ ClientError::Connect { .. }) => {
             eprintln!("relightctl: {err}");
-            ExitCode::from(2)
+            ExitCode::from(EXIT_UNREACHABLE)
         }
         Err(err) => {
             eprintln!("relightctl: {method}: {err}");
@@ -263,7 +270,7 @@ fn render(command: &Command, result: &Value) -> String {
     match command {
         Command::Status => match serde_json::from_value::<StatusReport>(result.clone()) {
             Ok(status) => render_status(&status),
-            Err(_) => pretty(result),
+            Err(_) => readable(result, &[]),
         },
         Command::Engine {
             action: EngineAction::List,
@@ -276,7 +283,7 @@ fn render(command: &Command, result: &Value) -> String {
                     .map(|e| vec![e.name, e.description])
                     .collect(),
             ),
-            Err(_) => pretty(result),
+            Err(_) => readable(result, &[]),
         },
         Command::Engine {
             action: EngineAction::Set { name },
@@ -285,14 +292,43 @@ fn render(command: &Command, result: &Value) -> String {
             action: RecordAction::Start { .. },
         } => match result.get("path").and_then(Value::as_str) {
             Some(path) => format!("recording to {path}\n"),
-            None => pretty(result),
+            None => readable(result, &[]),
         },
         Command::Snapshot { .. } => match result.get("paths").and_then(Value::as_array) {
             Some(paths) => paths
                 .iter()
                 .map(|p| format!("{}\n", p.as_str().unwrap_or_default()))
                 .collect(),
-            None => pretty(result),
+            None => readable(result, &[]),
+        },
+        Command::Record {
+            action: RecordAction::Stop,
+        } => match result.get("path").and_then(Value::as_str) {
+            Some(path) => format!("stopped recording {path}\n{}", readable(result, &["path"])),
+            None => readable(result, &[]),
+        },
+        Command::Reload => {
+            let list = |key: &str| {
+                let names: Vec<&str> = result
+                    .get(key)
+                    .and_then(Value::as_array)
+                    .map(|a| a.iter().filter_map(Value::as_str).collect())
+                    .unwrap_or_default();
+                if names.is_empty() {
+                    "nothing".to_owned()
+                } else {
+                    names.join(", ")
+                }
+            };
+            format!(
+                "configuration reloaded\napplied           {}\nneeds a restart   {}\n",
+                list("applied"),
+                list("restart_required")
+            )
+        }
+        Command::Step { .. } => match result.get("frames").and_then(Value::as_u64) {
+            Some(n) => format!("stepped {n} frame set{}\n", if n == 1 { "" } else { "s" }),
+            None => readable(result, &[]),
         },
         Command::Lights {
             action: LightsAction::Get,
@@ -301,9 +337,82 @@ fn render(command: &Command, result: &Value) -> String {
             action: LightsAction::Get,
         } => match serde_json::from_value::<LightingEstimate>(result.clone()) {
             Ok(estimate) => render_lights(&estimate),
-            Err(_) => pretty(result),
+            Err(_) => readable(result, &[]),
         },
-        _ => pretty(result),
+        _ => readable(result, &[]),
+    }
+}
+
+/// A JSON result as indented `key  value` lines with rounded numbers (floats the daemon widened
+/// from f32 print as `27.3`, not `27.299999237060547`), leaving out the top-level `skip` keys.
+fn readable(value: &Value, skip: &[&str]) -> String {
+    fn scalar(value: &Value) -> String {
+        match value {
+            Value::Number(n) if n.is_f64() => round(n.as_f64().unwrap_or(f64::NAN)),
+            Value::String(s) => s.clone(),
+            Value::Null => "-".to_owned(),
+            other => other.to_string(),
+        }
+    }
+    fn lines(value: &Value, indent: usize, skip: &[&str], out: &mut String) {
+        let entries: Vec<(String, &Value)> = match value {
+            Value::Object(map) => map
+                .iter()
+                .filter(|(k, _)| !skip.contains(&k.as_str()))
+                .map(|(k, v)| (k.clone(), v))
+                .collect(),
+            Value::Array(items) => items
+                .iter()
+                .enumerate()
+                .map(|(i, v)| (format!("[{i}]"), v))
+                .collect(),
+            scalar_value => {
+                out.push_str(&format!("{:indent$}{}\n", "", scalar(scalar_value)));
+                return;
+            }
+        };
+        let width = entries
+            .iter()
+            .map(|(k, _)| k.chars().count())
+            .max()
+            .unwrap_or(0);
+        for (key, value) in entries {
+            match value {
+                Value::Array(items) if items.iter().all(|v| !v.is_object() && !v.is_array()) => {
+                    let items: Vec<String> = items.iter().map(scalar).collect();
+                    out.push_str(&format!(
+                        "{:indent$}{key:<width$}  [{}]\n",
+                        "",
+                        items.join(", ")
+                    ));
+                }
+                Value::Object(_) | Value::Array(_) => {
+                    out.push_str(&format!("{:indent$}{key}\n", ""));
+                    lines(value, indent + 2, &[], out);
+                }
+                _ => out.push_str(&format!("{:indent$}{key:<width$}  {}\n", "", scalar(value))),
+            }
+        }
+    }
+    let mut out = String::new();
+    lines(value, 0, skip, &mut out);
+    out
+}
+
+/// Six significant digits, trailing zeros dropped: enough for any parameter or timing shown.
+fn round(x: f64) -> String {
+    if !x.is_finite() {
+        return x.to_string();
+    }
+    if x == 0.0 {
+        return "0".to_owned();
+    }
+    let digits = (5 - x.abs().log10().floor() as i32).clamp(0, 12) as usize;
+    let text = format!("{x:.digits$}");
+    if text.contains('.') {
+        text.trim_end_matches('0').trim_end_matches('.').to_owned()
+    } else {
+        text
     }
 }
 
@@ -334,10 +443,6 @@ fn render_lights(estimate: &LightingEstimate) -> String {
         ));
     }
     out
-}
-
-fn pretty(value: &Value) -> String {
-    format!("{value:#}\n")
 }
 
 fn render_status(status: &StatusReport) -> String {

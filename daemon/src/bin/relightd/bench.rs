@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use relight_daemon::bench::{self, BenchSettings};
 
 #[derive(Debug, clap::Args)]
@@ -31,6 +31,7 @@ pub struct Args {
     /// maps in one pass) at these output sizes, e.g. `--ibl-maps 128,256,512`.
     #[arg(long, value_delimiter = ',')]
     ibl_maps: Vec<u32>,
+    /// Where bench.csv, bench.json and bench.svg (or ibl_maps.csv) are written.
     #[arg(long, default_value = "target/bench")]
     out: PathBuf,
 }
@@ -38,6 +39,7 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     if !args.ibl_maps.is_empty() {
         println!("size     input texels  maps  median ms");
+        let mut csv = String::from("size,input_texels,maps,median_ms\n");
         for row in bench::ibl_map_timings(&args.ibl_maps, 8, args.frames)? {
             println!(
                 "{:>4}²  {:>13}  {:>4}  {:>9.1}",
@@ -46,7 +48,19 @@ pub fn run(args: Args) -> Result<()> {
                 row.levels + 1,
                 row.median_ms
             );
+            csv += &format!(
+                "{},{},{},{}\n",
+                row.size,
+                row.input_texels,
+                row.levels + 1,
+                row.median_ms
+            );
         }
+        std::fs::create_dir_all(&args.out)
+            .with_context(|| format!("creating {}", args.out.display()))?;
+        let path = args.out.join("ibl_maps.csv");
+        std::fs::write(&path, csv).with_context(|| format!("writing {}", path.display()))?;
+        println!("wrote {}", path.display());
         return Ok(());
     }
     let scenes = if args.scenes.is_empty() {
@@ -60,7 +74,16 @@ pub fn run(args: Args) -> Result<()> {
     } else {
         args.scenes
     };
-    let cases = bench::default_cases(args.sweep)
+    let all_cases = bench::default_cases(args.sweep);
+    let mut benched: Vec<&str> = all_cases.iter().map(|c| c.engine.as_str()).collect();
+    benched.dedup();
+    if let Some(unknown) = args.engines.iter().find(|e| !benched.contains(&e.as_str())) {
+        bail!(
+            "--engine {unknown}: not an engine the bench runs; it runs {}",
+            benched.join(", ")
+        );
+    }
+    let cases = all_cases
         .into_iter()
         .filter(|c| args.engines.is_empty() || args.engines.contains(&c.engine))
         .collect();

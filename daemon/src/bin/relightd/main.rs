@@ -81,15 +81,29 @@ enum Command {
     Render(render::Args),
 }
 
+/// Mesa's implicit Vulkan layer `VK_LAYER_MESA_device_select` connects to Wayland to order
+/// devices by the display's GPU, and without a session prints "error: XDG_RUNTIME_DIR is invalid
+/// or not set" once per Vulkan instance. relightd ranks adapters itself (`RELIGHT_ADAPTER`), so
+/// on a machine without a display the layer is turned off with its own switch, unless the user
+/// set it.
+fn quiet_mesa_device_select() {
+    let no_display = ["WAYLAND_DISPLAY", "DISPLAY", "XDG_RUNTIME_DIR"]
+        .iter()
+        .all(|v| std::env::var_os(v).is_none());
+    if no_display && std::env::var_os("NODEVICE_SELECT").is_none() {
+        // SAFETY: the first statement of main, before any thread exists, so nothing reads the
+        // environment concurrently.
+        #[allow(unsafe_code)]
+        unsafe {
+            std::env::set_var("NODEVICE_SELECT", "1");
+        }
+    }
+}
+
 fn main() -> std::process::ExitCode {
+    quiet_mesa_device_select();
     let cli = Cli::parse();
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_env("RELIGHT_LOG")
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    relight_log::init("info");
     match run(cli) {
         Ok(code) => code,
         Err(error) => {

@@ -54,11 +54,18 @@ pub fn run(config: Config, options: PipelineOptions, serve_socket: bool) -> Resu
     };
     let watchdog = daemon.watchdog.then(sd_notify::watchdog_enabled).flatten();
     notify_systemd(sd_notify::NotifyState::Ready);
+    let under_systemd = std::env::var_os("NOTIFY_SOCKET").is_some();
     let started = Instant::now();
     let mut last_ping = Instant::now();
+    let mut last_status = Instant::now();
     let done = || term.load(Ordering::Acquire) || (exit_at_end && pipeline.is_finished());
     while !done() {
         std::thread::sleep(Duration::from_millis(20));
+        if under_systemd && last_status.elapsed() >= STATUS_INTERVAL {
+            let line = status_line(&pipeline.status());
+            notify_systemd(sd_notify::NotifyState::Status(&line));
+            last_status = Instant::now();
+        }
         if let Some(interval) = watchdog
             && last_ping.elapsed() >= interval / 2
         {
@@ -84,6 +91,32 @@ pub fn run(config: Config, options: PipelineOptions, serve_socket: bool) -> Resu
 /// Whether `socket` was asked for on the command line (the default one is the service's).
 pub fn is_explicit_socket(socket: &Path) -> bool {
     socket != Path::new(config::DEFAULT_SOCKET_PATH)
+}
+
+/// How often the unit's status line (`systemctl status relightd`) is refreshed.
+const STATUS_INTERVAL: Duration = Duration::from_secs(5);
+
+/// One line for systemd's `STATUS=`: engine, frame rate, latency, devices and tracking.
+pub fn status_line(status: &StatusReport) -> String {
+    let running = status
+        .devices
+        .iter()
+        .filter(|d| d.state.name() == "running")
+        .count();
+    let mut line = format!(
+        "{}: {:.1} fps, latency p50 {:.0} ms, devices {running}/{} running",
+        status.engine,
+        status.render_fps,
+        status.latency_ms.p50,
+        status.devices.len()
+    );
+    if let Some(tracking) = &status.tracking {
+        line += &format!(", tracking {}", tracking.state.name());
+    }
+    if status.recording.is_some() {
+        line += ", recording";
+    }
+    line
 }
 
 /// Tell systemd (when it started us with a notify socket) how we are doing.
