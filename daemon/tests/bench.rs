@@ -50,7 +50,7 @@ fn an_unknown_engine_is_an_error_that_lists_the_benched_ones() {
         .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(1));
+    assert_eq!(out.status.code(), Some(2), "a usage error");
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(
         stderr.contains("nosuch") && stderr.contains("differential"),

@@ -768,6 +768,7 @@ fn load_chunk(bytes: &[u8], record: Range<usize>) -> Result<Vec<Record<'static>>
     let body = bytes
         .get(record.start + RECORD_PREFIX_LEN..record.end)
         .ok_or("chunk record lies outside the file")?;
+    check_uncompressed_records(body)?;
     let mut prefix = [0u8; RECORD_PREFIX_LEN];
     prefix[0] = op::CHUNK;
     prefix[1..].copy_from_slice(&(body.len() as u64).to_le_bytes());
@@ -803,6 +804,49 @@ fn load_chunk(bytes: &[u8], record: Range<usize>) -> Result<Vec<Record<'static>>
         }
     }
     Ok(records)
+}
+
+/// An uncompressed chunk's records must each fit inside the chunk. The mcap crate (0.26)
+/// subtracts a record's length from what is left of the chunk before checking it, which panics
+/// with overflow checks on and wraps without them (found by the `recording_reader` fuzz
+/// target); so the records are walked here first and an overrun is the chunk's corruption.
+/// Compressed chunks are framed by their decompressed size and need no such walk.
+fn check_uncompressed_records(body: &[u8]) -> Result<(), String> {
+    let truncated = || "chunk header is truncated".to_owned();
+    let u64_at = |at: usize| -> Option<u64> {
+        Some(u64::from_le_bytes(body.get(at..at + 8)?.try_into().ok()?))
+    };
+    // message_start_time, message_end_time, uncompressed_size: u64; uncompressed_crc: u32.
+    let compression_at = 8 + 8 + 8 + 4;
+    let compression_len = body
+        .get(compression_at..compression_at + 4)
+        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+        .ok_or_else(truncated)?;
+    if compression_len != 0 {
+        return Ok(());
+    }
+    let records_len_at = compression_at + 4;
+    let records_len = u64_at(records_len_at).ok_or_else(truncated)?;
+    let records = body
+        .get(records_len_at + 8..)
+        .filter(|rest| records_len <= rest.len() as u64)
+        .map(|rest| &rest[..records_len as usize])
+        .ok_or("chunk records overrun the chunk")?;
+    let mut at = 0usize;
+    while at < records.len() {
+        let length = records
+            .get(at + 1..at + RECORD_PREFIX_LEN)
+            .map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
+            .ok_or_else(|| format!("record at {at} of the chunk is cut off"))?;
+        let left = (records.len() - at - RECORD_PREFIX_LEN) as u64;
+        if length > left {
+            return Err(format!(
+                "record at {at} of the chunk claims {length} bytes, {left} are left"
+            ));
+        }
+        at += RECORD_PREFIX_LEN + length as usize;
+    }
+    Ok(())
 }
 
 /// A message waiting in the merge heap, ordered by log time, then by arrival (file order).

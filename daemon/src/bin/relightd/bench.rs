@@ -24,8 +24,8 @@ pub struct Args {
     /// Add the papers' parameter sweeps (DLPV volume × steps and RSM sizes, DVCT volume × step, DIR VPL count and ISM size, IBL map size).
     #[arg(long)]
     sweep: bool,
-    /// Only these engines.
-    #[arg(long = "engine")]
+    /// Only these engines (repeatable).
+    #[arg(long = "engine", value_parser = crate::engine_name())]
     engines: Vec<String>,
     /// Instead of the engine table: time the `ibl` map convolution (diffuse + 8 specular
     /// maps in one pass) at these output sizes, e.g. `--ibl-maps 128,256,512`.

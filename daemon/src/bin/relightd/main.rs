@@ -100,6 +100,18 @@ fn quiet_mesa_device_select() {
     }
 }
 
+/// `--engine`: a registered engine, listed in `--help` and in the error for any other name.
+fn engine_name() -> clap::builder::PossibleValuesParser {
+    clap::builder::PossibleValuesParser::new(relight_engines::EngineRegistry::new().names())
+}
+
+/// `render --engine`: an engine, or `reference` for the path tracer alone.
+fn engine_or_reference() -> clap::builder::PossibleValuesParser {
+    let mut names = vec!["reference"];
+    names.extend(relight_engines::EngineRegistry::new().names());
+    clap::builder::PossibleValuesParser::new(names)
+}
+
 fn main() -> std::process::ExitCode {
     quiet_mesa_device_select();
     let cli = Cli::parse();

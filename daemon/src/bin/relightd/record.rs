@@ -12,6 +12,7 @@ use relight_daemon::pipeline::{Pipeline, PipelineOptions};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// The MCAP file to write (relative to the working directory).
     #[arg(long)]
     out: PathBuf,
     /// Replace OUT if it exists (it is refused otherwise).

@@ -14,24 +14,29 @@ use relight_reference::{ReferenceSettings, render_reference};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// The scene directory (scene.toml + glTF).
     #[arg(long)]
     scene: PathBuf,
-    #[arg(long, default_value = "reference")]
+    /// `reference` (the CPU path tracer alone) or an engine, judged against the reference.
+    #[arg(long, default_value = "reference", value_parser = crate::engine_or_reference())]
     engine: String,
     /// Reference samples per pixel (for another engine: of the reference it is judged
     /// against, whose L^μ is also its camera image).
     #[arg(long, default_value_t = 64)]
     spp: u32,
+    /// Output directory: L^ρ, L^μ and Δ as EXR, the composite as PNG, summary.json.
     #[arg(long)]
     out: PathBuf,
     /// Override the scene camera's image size.
     #[arg(long, requires = "height")]
     width: Option<u32>,
+    /// With --width: the image height.
     #[arg(long, requires = "width")]
     height: Option<u32>,
     /// Bounces after the first hit.
     #[arg(long, default_value_t = 8)]
     bounces: u32,
+    /// Seeds the reference's random streams (same seed, same image).
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Engine parameters (`name=value`, repeatable), as `relightctl engine params set`.

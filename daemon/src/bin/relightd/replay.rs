@@ -16,7 +16,10 @@ pub enum Mode {
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// The MCAP recording to play.
     recording: PathBuf,
+    /// `realtime` at the recorded pace, `fast` as fast as the pipeline takes it, `stepped`
+    /// one frame set per `relightctl step`.
     #[arg(long, value_enum, default_value = "realtime")]
     mode: Mode,
     /// Playback speed for `realtime` mode.
@@ -25,7 +28,8 @@ pub struct Args {
     /// Start over at the end (runs until stopped).
     #[arg(long = "loop")]
     looping: bool,
-    #[arg(long, default_value = "passthrough")]
+    /// The engine to start with.
+    #[arg(long, default_value = "passthrough", value_parser = crate::engine_name())]
     engine: String,
     /// Write composite PNGs here.
     #[arg(long)]

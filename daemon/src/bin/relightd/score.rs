@@ -9,10 +9,13 @@ use relight_daemon::score::{ScoreSettings, default_config};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// A simulated recording with ground truth (`relightd simulate`).
     recording: PathBuf,
+    /// The scene the recording was simulated from (its virtual object is inserted).
     #[arg(long)]
     scene: PathBuf,
-    #[arg(long, default_value = "differential")]
+    /// The engine to score.
+    #[arg(long, default_value = "differential", value_parser = crate::engine_name())]
     engine: String,
     /// Engine parameters (`name=value`, repeatable).
     #[arg(long = "param")]

@@ -23,26 +23,34 @@ pub enum TrajectoryKind {
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// The scene directory to film.
     #[arg(long)]
     scene: PathBuf,
+    /// The MCAP recording to write.
     #[arg(long)]
     out: PathBuf,
+    /// Colour and depth image width.
     #[arg(long, default_value_t = 320)]
     width: u32,
+    /// Colour and depth image height.
     #[arg(long, default_value_t = 240)]
     height: u32,
+    /// Frames per second of depth and colour.
     #[arg(long, default_value_t = 30)]
     fps: u32,
+    /// Length of the recording.
     #[arg(long, default_value_t = 3.0)]
     seconds: f64,
     /// Path-traced samples per pixel of each colour frame.
     #[arg(long, default_value_t = 16)]
     spp: u32,
+    /// How the hand-held camera moves.
     #[arg(long, value_enum, default_value = "shake")]
     trajectory: TrajectoryKind,
     /// Ground truth every Nth frame (0: none).
     #[arg(long, default_value_t = 1)]
     truth_every: u32,
+    /// Seeds every noise source (same seed, same recording).
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Gaussian noise on each detected tag corner, pixels (0: ideal). The default is what

@@ -10,12 +10,15 @@ use relight_daemon::soak::SoakSettings;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// The recording replayed in a loop.
     recording: PathBuf,
+    /// A scene directory, for the engines that need one.
     #[arg(long)]
     scene: Option<PathBuf>,
     /// Engines to run; with --switch-every, each in turn (repeatable or comma-separated).
-    #[arg(long = "engine", value_delimiter = ',', default_value = "differential")]
+    #[arg(long = "engine", value_delimiter = ',', default_value = "differential", value_parser = crate::engine_name())]
     engines: Vec<String>,
+    /// How long to run.
     #[arg(long, default_value_t = 60.0)]
     seconds: f64,
     /// Switch to the next engine every this many seconds.
