@@ -16,7 +16,9 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use plotters::prelude::*;
 use relight_core::scene::Scene;
-use relight_engines::offline::{background, delta_error, delta_pixels, reference, scene_frame};
+use relight_engines::offline::{
+    background, delta_error, delta_pixels, object_error, reference, scene_frame,
+};
 use relight_engines::reference::ReferenceImages;
 use relight_engines::{EngineRegistry, RelitFrame, SceneFrame};
 use serde::Serialize;
@@ -132,6 +134,9 @@ pub struct BenchRow {
     pub relative_l2: f64,
     /// max |Δ − Δ_ref| over real pixels and channels.
     pub max_abs: f64,
+    /// ‖C − L^ρ_ref‖₂ / ‖L^ρ_ref‖₂ of the composite over the virtual object's pixels
+    /// ([`object_error`]); `None` (JSON `null`) when the object covers no pixel.
+    pub object_relative_l2: Option<f64>,
 }
 
 /// Measure every case on every scene.
@@ -214,6 +219,8 @@ fn measure(
         &reference.delta,
         &reference.virtual_mask,
     );
+    let object_relative_l2 =
+        object_error(&out.composite, &reference.l_rho, &reference.virtual_mask);
     Ok(BenchRow {
         scene: scene.to_owned(),
         engine: case.engine.clone(),
@@ -224,19 +231,23 @@ fn measure(
         gpu_passes,
         relative_l2,
         max_abs,
+        object_relative_l2,
     })
 }
 
 pub fn table(rows: &[BenchRow]) -> String {
     let mut s = format!(
-        "{:<14} {:<48} {:>10} {:>10} {:>9} {:>9}\n",
-        "scene", "engine / setting", "median ms", "GPU ms", "rel L2", "max abs"
+        "{:<14} {:<48} {:>10} {:>10} {:>9} {:>9} {:>9}\n",
+        "scene", "engine / setting", "median ms", "GPU ms", "rel L2", "max abs", "object L2"
     );
     for r in rows {
         let gpu = r.gpu_ms.map_or("-".to_owned(), |ms| format!("{ms:.2}"));
+        let object = r
+            .object_relative_l2
+            .map_or("-".to_owned(), |e| format!("{e:.4}"));
         s.push_str(&format!(
-            "{:<14} {:<48} {:>10.2} {:>10} {:>9.4} {:>9.4}\n",
-            r.scene, r.setting, r.median_ms, gpu, r.relative_l2, r.max_abs
+            "{:<14} {:<48} {:>10.2} {:>10} {:>9.4} {:>9.4} {:>9}\n",
+            r.scene, r.setting, r.median_ms, gpu, r.relative_l2, r.max_abs, object
         ));
     }
     s
@@ -246,13 +257,25 @@ pub fn table(rows: &[BenchRow]) -> String {
 /// `dir`.
 pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let mut csv =
-        String::from("scene,engine,setting,median_ms,min_ms,gpu_ms,relative_l2,max_abs\n");
+    let mut csv = String::from(
+        "scene,engine,setting,median_ms,min_ms,gpu_ms,relative_l2,max_abs,object_relative_l2\n",
+    );
     for r in rows {
         let gpu = r.gpu_ms.map_or(String::new(), |ms| ms.to_string());
+        let object = r
+            .object_relative_l2
+            .map_or(String::new(), |e| e.to_string());
         csv.push_str(&format!(
-            "{},{},\"{}\",{},{},{},{},{}\n",
-            r.scene, r.engine, r.setting, r.median_ms, r.min_ms, gpu, r.relative_l2, r.max_abs
+            "{},{},\"{}\",{},{},{},{},{},{}\n",
+            r.scene,
+            r.engine,
+            r.setting,
+            r.median_ms,
+            r.min_ms,
+            gpu,
+            r.relative_l2,
+            r.max_abs,
+            object
         ));
     }
     std::fs::write(dir.join("bench.csv"), csv)?;

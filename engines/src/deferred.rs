@@ -98,10 +98,19 @@ pub struct Deferred {
     /// Light with [`Scene::environment_lights`] (engines that do not sample the environment map
     /// themselves).
     environment_lights: bool,
+    /// Directional lights cut from the scene's environment map when it has no
+    /// `environment_lights` of its own (a scene file's map; the probe path sets them).
+    derived_environment_lights: Vec<Light>,
     timer: Option<GpuTimer>,
 }
 
 const MAX_LAYERS: u32 = 64;
+
+/// How many directional lights stand for a scene file's environment map in the engines that do
+/// not sample it (`differential`, `dlpv`, `dvct`): as many as the probe path cuts its map into
+/// by default (`[scene] probe_lights`). Without them those engines lit an environment-only
+/// scene with nothing, and drew the virtual object black.
+const DERIVED_ENVIRONMENT_LIGHTS: u32 = 8;
 
 /// `LIGHT_SHADOW_ONLY` in `shaders/common.wgsl`, in `GpuLight::faces[2]`.
 const LIGHT_SHADOW_ONLY: u32 = 1;
@@ -133,6 +142,7 @@ impl Deferred {
             extra_lights: Vec::new(),
             extra_role: ExtraLights::Full,
             environment_lights: true,
+            derived_environment_lights: Vec::new(),
             timer: GpuTimer::new(&ctx),
             ctx,
         }
@@ -182,6 +192,12 @@ impl Deferred {
         {
             self.scene = Some((scene.clone(), GpuScene::new(&ctx, scene)));
             self.light = None;
+            self.derived_environment_lights = match &scene.environment {
+                Some(env) if self.environment_lights && scene.environment_lights.is_empty() => {
+                    crate::dir::environment_lights(env, DERIVED_ENVIRONMENT_LIGHTS)
+                }
+                _ => Vec::new(),
+            };
         }
         let Some((_, gpu_scene)) = &self.scene else {
             unreachable!("uploaded above")
@@ -194,10 +210,12 @@ impl Deferred {
         {
             self.frame = Some(FrameResources::new(&ctx, width, height));
         }
-        let environment_lights: &[Light] = if self.environment_lights {
-            &scene.environment_lights
-        } else {
+        let environment_lights: &[Light] = if !self.environment_lights {
             &[]
+        } else if scene.environment_lights.is_empty() {
+            &self.derived_environment_lights
+        } else {
+            &scene.environment_lights
         };
         (self.lights_cpu, self.faces_cpu) =
             if self.extra_lights.is_empty() && environment_lights.is_empty() {

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use glam::Vec3;
 use relight_core::scene::Scene;
-use relight_core::srgb::linear_to_srgb;
+use relight_core::srgb::{linear_to_srgb, srgb_to_linear};
 use relight_core::{Frame, Image, PixelFormat, Timestamp};
 
 use crate::engine::SceneFrame;
@@ -99,4 +99,57 @@ pub fn delta_error(delta: &[Vec3], reference: &[Vec3], virtual_mask: &[bool]) ->
         max_abs = max_abs.max(f64::from(e.abs().max_element()));
     }
     ((err / norm.max(1e-30)).sqrt(), max_abs)
+}
+
+/// The composite judged on the virtual object's own pixels (where the reference's camera ray
+/// hits the object): ‖C − min(L^ρ_ref, 1)‖₂ / ‖min(L^ρ_ref, 1)‖₂, with C the 8-bit composite
+/// decoded from sRGB and the reference clipped as that composite is. Δ on real pixels cannot
+/// see an object drawn wrong; this can. `None` when the object covers no pixel or the composite
+/// is missing, mis-sized or not 8-bit RGB.
+pub fn object_error(composite: &Image, l_rho: &[Vec3], virtual_mask: &[bool]) -> Option<f64> {
+    let bytes = composite
+        .as_u8()
+        .filter(|_| composite.format() == PixelFormat::Rgb8)?;
+    if bytes.len() != l_rho.len() * 3 || virtual_mask.len() != l_rho.len() {
+        return None;
+    }
+    let (mut err, mut norm, mut pixels) = (0.0f64, 0.0f64, 0usize);
+    for ((rgb, r), _) in bytes
+        .chunks_exact(3)
+        .zip(l_rho)
+        .zip(virtual_mask)
+        .filter(|(_, on_object)| **on_object)
+    {
+        let c = Vec3::new(
+            srgb_to_linear(rgb[0]),
+            srgb_to_linear(rgb[1]),
+            srgb_to_linear(rgb[2]),
+        );
+        let r = r.clamp(Vec3::ZERO, Vec3::ONE);
+        err += f64::from((c - r).length_squared());
+        norm += f64::from(r.length_squared());
+        pixels += 1;
+    }
+    (pixels > 0).then(|| (err / norm.max(1e-30)).sqrt())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn object_error_compares_the_composite_with_the_clipped_reference_on_object_pixels() {
+        let l_rho = vec![Vec3::splat(0.5), Vec3::splat(4.0), Vec3::splat(0.2)];
+        let mask = [true, true, false];
+        // The object drawn exactly (8-bit), a real pixel far off: no error on the object.
+        let exact = srgb_image(3, 1, &[Vec3::splat(0.5), Vec3::ONE, Vec3::ZERO]);
+        let error = object_error(&exact, &l_rho, &mask).unwrap();
+        assert!(error < 0.01, "{error}");
+        // The object drawn black: an error of 1.
+        let black = srgb_image(3, 1, &[Vec3::ZERO; 3]);
+        let error = object_error(&black, &l_rho, &mask).unwrap();
+        assert!((error - 1.0).abs() < 1e-6, "{error}");
+        assert_eq!(object_error(&black, &l_rho, &[false; 3]), None);
+        assert_eq!(object_error(&black, &l_rho[..2], &mask[..2]), None);
+    }
 }

@@ -260,22 +260,21 @@ impl RecordingReader {
                 });
             }
         };
-        let library =
-            match body_of(bytes, &header_body).map(|b| mcap::parse_record(header_opcode, b)) {
-                Some(Ok(Record::Header(header))) => header.library,
-                Some(Ok(_)) | None => {
-                    return Err(RecordingError::NotMcap {
-                        reason: format!(
-                            "the first record has opcode {header_opcode:#04x}, not a header"
-                        ),
-                    });
-                }
-                Some(Err(e)) => {
-                    return Err(RecordingError::NotMcap {
-                        reason: format!("the header record does not parse: {e}"),
-                    });
-                }
-            };
+        let library = match body_of(bytes, &header_body).map(|b| parse_record(header_opcode, b)) {
+            Some(Ok(Record::Header(header))) => header.library,
+            Some(Ok(_)) | None => {
+                return Err(RecordingError::NotMcap {
+                    reason: format!(
+                        "the first record has opcode {header_opcode:#04x}, not a header"
+                    ),
+                });
+            }
+            Some(Err(e)) => {
+                return Err(RecordingError::NotMcap {
+                    reason: format!("the header record does not parse: {e}"),
+                });
+            }
+        };
         pos = header_body.end;
 
         let mut metadata: BTreeMap<String, BTreeMap<String, String>> = BTreeMap::new();
@@ -317,7 +316,7 @@ impl RecordingReader {
                 op::CHUNK => {
                     let index = chunk_count;
                     chunk_count += 1;
-                    match mcap::parse_record(opcode, body) {
+                    match parse_record(opcode, body) {
                         Ok(Record::Chunk { header, .. }) => self.blocks.push(Block::Chunk {
                             info: chunk_info(index, record_offset, pos, &header),
                             body: body_range,
@@ -334,7 +333,7 @@ impl RecordingReader {
                         }
                     }
                 }
-                op::MESSAGE => match mcap::parse_record(opcode, body) {
+                op::MESSAGE => match parse_record(opcode, body) {
                     Ok(Record::Message { header, .. }) => self.blocks.push(Block::Message {
                         header,
                         data: body_range.start + MESSAGE_HEADER_LEN..body_range.end,
@@ -342,7 +341,7 @@ impl RecordingReader {
                     Ok(_) => {}
                     Err(e) => corrupt(e.to_string()),
                 },
-                op::CHANNEL => match mcap::parse_record(opcode, body) {
+                op::CHANNEL => match parse_record(opcode, body) {
                     Ok(Record::Channel(channel)) => {
                         self.channels.entry(channel.id).or_insert_with(|| {
                             channel_info(&channel.topic, &channel.message_encoding)
@@ -351,7 +350,7 @@ impl RecordingReader {
                     Ok(_) => {}
                     Err(e) => corrupt(e.to_string()),
                 },
-                op::METADATA => match mcap::parse_record(opcode, body) {
+                op::METADATA => match parse_record(opcode, body) {
                     Ok(Record::Metadata(record)) => {
                         metadata.entry(record.name).or_insert(record.metadata);
                     }
@@ -360,9 +359,8 @@ impl RecordingReader {
                 },
                 op::ATTACHMENT => match attachment_name_and_data(body) {
                     Ok((name, data)) => {
-                        // parse_record only after the lengths are known to be consistent: it
-                        // slices by them unchecked. It verifies the CRC.
-                        match mcap::parse_record(opcode, body) {
+                        // It verifies the CRC.
+                        match parse_record(opcode, body) {
                             Ok(_) if name == CALIBRATION_ATTACHMENT => {
                                 calibration_attachment = Some(
                                     body_range.start + data.start..body_range.start + data.end,
@@ -530,7 +528,7 @@ impl RecordingReader {
                 continue;
             }
             let body = start + RECORD_PREFIX_LEN..end;
-            match body_of(bytes, &body).map(|b| mcap::parse_record(op::CHUNK, b)) {
+            match body_of(bytes, &body).map(|b| parse_record(op::CHUNK, b)) {
                 Some(Ok(Record::Chunk { header, .. })) => {
                     self.blocks.push(Block::Chunk {
                         info: chunk_info(index, start, end, &header),
@@ -637,7 +635,7 @@ fn summary_chunk_index(bytes: &[u8]) -> Option<Vec<(u64, u64)>> {
     else {
         return None;
     };
-    let Ok(Record::Footer(footer)) = mcap::parse_record(op::FOOTER, body_of(bytes, &body)?) else {
+    let Ok(Record::Footer(footer)) = parse_record(op::FOOTER, body_of(bytes, &body)?) else {
         return None;
     };
     let mut pos = usize::try_from(footer.summary_start)
@@ -651,7 +649,7 @@ fn summary_chunk_index(bytes: &[u8]) -> Option<Vec<(u64, u64)>> {
         pos = body.end;
         if opcode == op::CHUNK_INDEX
             && let Some(Ok(Record::ChunkIndex(index))) =
-                body_of(bytes, &body).map(|b| mcap::parse_record(opcode, b))
+                body_of(bytes, &body).map(|b| parse_record(opcode, b))
         {
             offsets.push((index.chunk_start_offset, index.chunk_length));
         }
@@ -712,6 +710,16 @@ fn chunk_info(index: usize, offset: usize, end_offset: usize, header: &ChunkHead
 /// Read an Attachment body's name and the range of its data, checking that every length field
 /// fits: log time, create time (u64 each), name, media type (u32-prefixed strings), data length
 /// (u64), data, CRC (u32).
+/// [`mcap::parse_record`], which slices an attachment's body by its length fields unchecked
+/// (a short or inconsistent one panicked: found by the `recording_reader` fuzz target), with
+/// those lengths checked first. Every record the reader parses goes through here.
+fn parse_record(opcode: u8, body: &[u8]) -> Result<Record<'_>, String> {
+    if opcode == op::ATTACHMENT {
+        attachment_name_and_data(body)?;
+    }
+    mcap::parse_record(opcode, body).map_err(|e| e.to_string())
+}
+
 fn attachment_name_and_data(body: &[u8]) -> Result<(String, Range<usize>), String> {
     let mut pos = 16usize;
     let string = |pos: &mut usize| -> Result<String, String> {
@@ -798,7 +806,7 @@ fn load_chunk(bytes: &[u8], record: Range<usize>) -> Result<Vec<Record<'static>>
                 *input = rest;
             }
             LinearReadEvent::Record { data, opcode } => {
-                let record = mcap::parse_record(opcode, data).map_err(|e| e.to_string())?;
+                let record = parse_record(opcode, data)?;
                 records.push(record.into_owned());
             }
         }

@@ -143,6 +143,8 @@ fn render_engine(
     let delta = offline::delta_pixels(&relit.delta);
     let (relative_l2, max_abs) =
         offline::delta_error(&delta, &reference.delta, &reference.virtual_mask);
+    let object_l2 =
+        offline::object_error(&relit.composite, &reference.l_rho, &reference.virtual_mask);
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     write_exr(&out.join("delta.exr"), w, h, &delta)?;
     write_exr(&out.join("delta_reference.exr"), w, h, &reference.delta)?;
@@ -158,13 +160,15 @@ fn render_engine(
         "reference_spp": spp,
         "delta_relative_l2": relative_l2,
         "delta_max_abs": max_abs,
+        "object_relative_l2": object_l2,
     });
     std::fs::write(
         out.join("summary.json"),
         serde_json::to_string_pretty(&summary)?,
     )?;
+    let object = object_l2.map_or("no object pixels".to_owned(), |e| format!("{e:.4}"));
     println!(
-        "{}: {engine} {w}×{h} in {ms:.1} ms; Δ vs reference ({spp} spp): relative L2 {relative_l2:.4}, max abs {max_abs:.4}; wrote {}",
+        "{}: {engine} {w}×{h} in {ms:.1} ms; Δ vs reference ({spp} spp): relative L2 {relative_l2:.4}, max abs {max_abs:.4}; object pixels vs L^ρ: relative L2 {object}; wrote {}",
         scene.name,
         out.display()
     );
