@@ -63,7 +63,7 @@ pub fn default_cases(sweep: bool) -> Vec<BenchCase> {
     let mut cases = vec![
         BenchCase::new("differential", json!({})),
         BenchCase::new("dlpv", json!({})),
-        BenchCase::new("dlpv", json!({ "shadows": "shadow_map" })),
+        BenchCase::new("dlpv", json!({ "shadows": "antiradiance" })),
         BenchCase::new("dvct", json!({})),
         BenchCase::new("dvct", json!({ "shadows": "cones" })),
         BenchCase::new("dir", json!({})),

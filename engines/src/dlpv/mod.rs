@@ -19,6 +19,12 @@
 //!
 //! The volume is centred on the virtual object's bounding box, `volume_scale` × its largest edge
 //! on a side (the paper: about 2×).
+//!
+//! The default is `shadows = "shadow_map"`, chosen by measurement: relative L2 of Δ against the
+//! reference (160 × 120, 32 spp) with shadow maps / antiradiance: desk_box 0.41 / 0.74,
+//! spot_bleed 0.20 / 0.77, touching_wall 0.69 / 1.17, glossy_floor 0.10 / 0.85, window_env
+//! 0.27 / 0.89. Antiradiance holds a shadow only where the whole shadow lies inside the volume
+//! and the propagation carries it undiluted; at 32³ and 32 steps it smears and leaks it.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -62,7 +68,7 @@ impl Default for DlpvSettings {
             volume_size: 32,
             steps: 32,
             dampening: 0.5,
-            antiradiance: true,
+            antiradiance: false,
             volume_scale: 2.0,
             shadow_bias: 1.5,
             lookup_offset: 0.0,
@@ -116,8 +122,8 @@ impl Dlpv {
             ),
             ParamSpec::choice(
                 "shadows",
-                "`antiradiance`: direct injection as in the paper; `shadow_map`: the differential engine's shadows, volume for indirect only",
-                vec!["antiradiance", "shadow_map"],
+                "`shadow_map` (default, the lower error measured on every scene): the differential engine's shadows, volume for indirect only; `antiradiance`: direct injection as in the paper",
+                vec!["shadow_map", "antiradiance"],
             ),
             float(
                 "volume_scale",
