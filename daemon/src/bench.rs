@@ -14,10 +14,13 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
+use glam::Vec3;
 use plotters::prelude::*;
+use relight_core::Image;
 use relight_core::scene::Scene;
 use relight_engines::offline::{
-    background, delta_error, delta_pixels, object_error, reference, scene_frame,
+    background, delta_error, delta_pixels, object_error, reference_noise, reference_renderer,
+    scene_frame,
 };
 use relight_engines::reference::ReferenceImages;
 use relight_engines::{EngineRegistry, RelitFrame, SceneFrame};
@@ -113,7 +116,10 @@ pub struct BenchSettings {
     pub scenes: Vec<PathBuf>,
     pub width: u32,
     pub height: u32,
+    /// Samples per pixel the reference starts with.
     pub reference_spp: u32,
+    /// The most it is refined to (see [`run`]); at most `reference_spp` turns refining off.
+    pub max_reference_spp: u32,
     pub frames: u32,
     pub cases: Vec<BenchCase>,
 }
@@ -137,17 +143,51 @@ pub struct BenchRow {
     /// ‖C − L^ρ_ref‖₂ / ‖L^ρ_ref‖₂ of the composite over the virtual object's pixels
     /// ([`object_error`]); `None` (JSON `null`) when the object covers no pixel.
     pub object_relative_l2: Option<f64>,
+    /// The reference's own noise in the metric of `relative_l2` ([`reference_noise`]): the
+    /// row's error reads about √(e² + noise²) for a true error e.
+    pub reference_noise: f64,
+    /// Samples per pixel of the reference the row was scored against.
+    pub reference_spp: u32,
+}
+
+/// What a row is scored from, kept until the scene's reference is final.
+struct Rendered {
+    delta: Vec<Vec3>,
+    composite: Image,
+}
+
+impl BenchRow {
+    /// (Re)score against `reference`.
+    fn score(&mut self, rendered: &Rendered, reference: &ReferenceImages) {
+        (self.relative_l2, self.max_abs) =
+            delta_error(&rendered.delta, &reference.delta, &reference.virtual_mask);
+        self.object_relative_l2 = object_error(
+            &rendered.composite,
+            &reference.l_rho,
+            &reference.virtual_mask,
+        );
+        self.reference_noise = reference_noise(reference);
+        self.reference_spp = reference.spp;
+    }
 }
 
 /// Measure every case on every scene.
+///
+/// Per scene, the reference starts at `reference_spp` samples; after every case has rendered,
+/// samples are added (doubling) until the reference's noise is under a third of the best row's
+/// error, or `max_reference_spp` is reached, and every row is scored against that final
+/// reference. `progress` sees each scene's rows once they are final.
 pub fn run(settings: &BenchSettings, mut progress: impl FnMut(&BenchRow)) -> Result<Vec<BenchRow>> {
     let registry = EngineRegistry::new();
     let (w, h) = (settings.width, settings.height);
     let mut rows = Vec::new();
     for dir in &settings.scenes {
         let scene = Arc::new(Scene::load(dir)?);
-        let reference = reference(&scene, w, h, settings.reference_spp)?;
+        let mut renderer = reference_renderer(&scene, w, h)?;
+        renderer.add_samples(settings.reference_spp.max(2));
+        let mut reference = renderer.images();
         let frame = scene_frame(scene.clone(), background(&reference));
+        let mut scene_rows: Vec<(BenchRow, Rendered)> = Vec::new();
         for case in &settings.cases {
             // A setting this adapter cannot hold (a volume beyond its storage limits) costs that
             // row only: the error names the limit and the setting.
@@ -159,12 +199,31 @@ pub fn run(settings: &BenchSettings, mut progress: impl FnMut(&BenchRow)) -> Res
                 &reference,
                 settings.frames,
             ) {
-                Ok(row) => {
-                    progress(&row);
-                    rows.push(row);
-                }
+                Ok(measured) => scene_rows.push(measured),
                 Err(e) => tracing::warn!("{}: skipped: {e:#}", scene.name),
             }
+        }
+        let best = |rows: &[(BenchRow, Rendered)]| {
+            rows.iter()
+                .map(|(row, _)| row.relative_l2)
+                .filter(|e| e.is_finite())
+                .fold(f64::INFINITY, f64::min)
+        };
+        while reference_noise(&reference) > best(&scene_rows) / 3.0
+            && renderer.spp() < settings.max_reference_spp
+        {
+            let more = renderer
+                .spp()
+                .min(settings.max_reference_spp - renderer.spp());
+            renderer.add_samples(more);
+            reference = renderer.images();
+            for (row, rendered) in &mut scene_rows {
+                row.score(rendered, &reference);
+            }
+        }
+        for (row, _) in scene_rows {
+            progress(&row);
+            rows.push(row);
         }
     }
     Ok(rows)
@@ -178,7 +237,7 @@ fn measure(
     frame: &SceneFrame,
     reference: &ReferenceImages,
     frames: u32,
-) -> Result<BenchRow> {
+) -> Result<(BenchRow, Rendered)> {
     let mut engine = registry
         .build(&case.engine, &case.params)
         .with_context(|| case.label())?
@@ -214,14 +273,11 @@ fn measure(
         .iter()
         .filter_map(|t| Some((t.pass.strip_prefix("gpu.")?.to_owned(), t.ms)))
         .collect();
-    let (relative_l2, max_abs) = delta_error(
-        &delta_pixels(&out.delta),
-        &reference.delta,
-        &reference.virtual_mask,
-    );
-    let object_relative_l2 =
-        object_error(&out.composite, &reference.l_rho, &reference.virtual_mask);
-    Ok(BenchRow {
+    let rendered = Rendered {
+        delta: delta_pixels(&out.delta),
+        composite: out.composite.clone(),
+    };
+    let mut row = BenchRow {
         scene: scene.to_owned(),
         engine: case.engine.clone(),
         setting: case.label(),
@@ -229,16 +285,28 @@ fn measure(
         min_ms: times[0],
         gpu_ms: gpu_times.get(gpu_times.len() / 2).copied(),
         gpu_passes,
-        relative_l2,
-        max_abs,
-        object_relative_l2,
-    })
+        relative_l2: f64::NAN,
+        max_abs: f64::NAN,
+        object_relative_l2: None,
+        reference_noise: f64::NAN,
+        reference_spp: 0,
+    };
+    row.score(&rendered, reference);
+    Ok((row, rendered))
 }
 
 pub fn table(rows: &[BenchRow]) -> String {
     let mut s = format!(
-        "{:<14} {:<48} {:>10} {:>10} {:>9} {:>9} {:>9}\n",
-        "scene", "engine / setting", "median ms", "GPU ms", "rel L2", "max abs", "object L2"
+        "{:<14} {:<48} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>7}\n",
+        "scene",
+        "engine / setting",
+        "median ms",
+        "GPU ms",
+        "rel L2",
+        "max abs",
+        "object L2",
+        "ref noise",
+        "ref spp"
     );
     for r in rows {
         let gpu = r.gpu_ms.map_or("-".to_owned(), |ms| format!("{ms:.2}"));
@@ -246,8 +314,16 @@ pub fn table(rows: &[BenchRow]) -> String {
             .object_relative_l2
             .map_or("-".to_owned(), |e| format!("{e:.4}"));
         s.push_str(&format!(
-            "{:<14} {:<48} {:>10.2} {:>10} {:>9.4} {:>9.4} {:>9}\n",
-            r.scene, r.setting, r.median_ms, gpu, r.relative_l2, r.max_abs, object
+            "{:<14} {:<48} {:>10.2} {:>10} {:>9.4} {:>9.4} {:>9} {:>9.4} {:>7}\n",
+            r.scene,
+            r.setting,
+            r.median_ms,
+            gpu,
+            r.relative_l2,
+            r.max_abs,
+            object,
+            r.reference_noise,
+            r.reference_spp
         ));
     }
     s
@@ -258,7 +334,7 @@ pub fn table(rows: &[BenchRow]) -> String {
 pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut csv = String::from(
-        "scene,engine,setting,median_ms,min_ms,gpu_ms,relative_l2,max_abs,object_relative_l2\n",
+        "scene,engine,setting,median_ms,min_ms,gpu_ms,relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp\n",
     );
     for r in rows {
         let gpu = r.gpu_ms.map_or(String::new(), |ms| ms.to_string());
@@ -266,7 +342,7 @@ pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()>
             .object_relative_l2
             .map_or(String::new(), |e| e.to_string());
         csv.push_str(&format!(
-            "{},{},\"{}\",{},{},{},{},{},{}\n",
+            "{},{},\"{}\",{},{},{},{},{},{},{},{}\n",
             r.scene,
             r.engine,
             r.setting,
@@ -275,7 +351,9 @@ pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()>
             gpu,
             r.relative_l2,
             r.max_abs,
-            object
+            object,
+            r.reference_noise,
+            r.reference_spp
         ));
     }
     std::fs::write(dir.join("bench.csv"), csv)?;

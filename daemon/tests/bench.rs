@@ -13,6 +13,7 @@ fn bench_measures_every_case_and_writes_its_outputs() {
         width: 48,
         height: 36,
         reference_spp: 16,
+        max_reference_spp: 64,
         frames: 1,
         cases: default_cases(false),
     };
@@ -25,6 +26,23 @@ fn bench_measures_every_case_and_writes_its_outputs() {
             "{row:?}"
         );
     }
+    // The reference is refined towards a third of the best error, within its cap.
+    for row in &rows {
+        assert!((16..=64).contains(&row.reference_spp), "{row:?}");
+        assert!(
+            row.reference_noise.is_finite() && row.reference_noise > 0.0,
+            "{row:?}"
+        );
+    }
+    let best = rows
+        .iter()
+        .map(|r| r.relative_l2)
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        rows[0].reference_spp == 64 || rows[0].reference_noise <= best / 3.0,
+        "{:?}",
+        rows[0]
+    );
     assert!(table(&rows).lines().count() == rows.len() + 1);
     let dir = tempfile::tempdir().unwrap();
     write_outputs(&rows, dir.path(), "test adapter").unwrap();

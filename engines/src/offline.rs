@@ -9,7 +9,9 @@ use relight_core::srgb::{linear_to_srgb, srgb_to_linear};
 use relight_core::{Frame, Image, PixelFormat, Timestamp};
 
 use crate::engine::SceneFrame;
-use crate::reference::{ReferenceError, ReferenceImages, ReferenceSettings, render_reference};
+use crate::reference::{
+    ReferenceError, ReferenceImages, ReferenceRenderer, ReferenceSettings, render_reference,
+};
 
 /// What the engines are judged against: the reference with full light transport, `spp` samples
 /// at pixel centres (as the engines' rasteriser samples, so silhouettes agree pixel for pixel).
@@ -19,15 +21,46 @@ pub fn reference(
     height: u32,
     spp: u32,
 ) -> Result<ReferenceImages, ReferenceError> {
-    render_reference(
-        scene,
-        ReferenceSettings {
-            spp,
-            pixel_jitter: false,
-            size: Some((width, height)),
-            ..ReferenceSettings::default()
-        },
-    )
+    render_reference(scene, reference_settings(width, height, spp))
+}
+
+/// The same reference, progressive: samples are added until its noise is small enough (the
+/// bench refines it against the best engine's error).
+pub fn reference_renderer(
+    scene: &Scene,
+    width: u32,
+    height: u32,
+) -> Result<ReferenceRenderer, ReferenceError> {
+    ReferenceRenderer::new(scene, reference_settings(width, height, 0))
+}
+
+fn reference_settings(width: u32, height: u32, spp: u32) -> ReferenceSettings {
+    ReferenceSettings {
+        spp,
+        pixel_jitter: false,
+        size: Some((width, height)),
+        ..ReferenceSettings::default()
+    }
+}
+
+/// The reference's own noise in the metric of [`delta_error`]: √(Σ σ²) / ‖Δ_ref‖₂ over real
+/// pixels, σ each pixel's standard error of Δ. An engine scored against it reads about
+/// √(e² + noise²) for a true error e, so a row is only meaningful where its error is well above
+/// this.
+pub fn reference_noise(reference: &ReferenceImages) -> f64 {
+    let (mut variance, mut norm) = (0.0f64, 0.0f64);
+    for ((se, d), on_object) in reference
+        .delta_std_error
+        .iter()
+        .zip(&reference.delta)
+        .zip(&reference.virtual_mask)
+    {
+        if !on_object {
+            variance += f64::from(se.length_squared());
+            norm += f64::from(d.length_squared());
+        }
+    }
+    (variance / norm.max(1e-30)).sqrt()
 }
 
 /// The camera image of an offline scene: the reference's L^μ, sRGB-encoded and clipped, as a

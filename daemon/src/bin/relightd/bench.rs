@@ -15,9 +15,13 @@ pub struct Args {
     width: u32,
     #[arg(long, default_value_t = 120)]
     height: u32,
-    /// Reference samples per pixel.
+    /// Reference samples per pixel to start with.
     #[arg(long, default_value_t = 256)]
     reference_spp: u32,
+    /// The most the reference is refined to: samples are added until its noise is under a
+    /// third of the best engine's error (each row reports the noise and the samples).
+    #[arg(long, default_value_t = 4096)]
+    max_reference_spp: u32,
     /// Timed frames per case (after two warm-up frames); the median is reported.
     #[arg(long, default_value_t = 5)]
     frames: u32,
@@ -92,6 +96,7 @@ pub fn run(args: Args) -> Result<()> {
         width: args.width,
         height: args.height,
         reference_spp: args.reference_spp,
+        max_reference_spp: args.max_reference_spp,
         frames: args.frames,
         cases,
     };
