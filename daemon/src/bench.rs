@@ -171,24 +171,55 @@ impl BenchRow {
     }
 }
 
+/// What [`run`] is doing, for a progress display.
+#[derive(Debug)]
+pub enum BenchProgress<'a> {
+    /// Rendering (or refining) `scene`'s reference to `spp` samples per pixel.
+    Reference { scene: &'a str, spp: u32 },
+    /// Measuring case `done + 1` of `total` (over all scenes).
+    Case {
+        scene: &'a str,
+        setting: String,
+        done: usize,
+        total: usize,
+    },
+    /// A row, final (scored against its scene's final reference).
+    Row(&'a BenchRow),
+}
+
 /// Measure every case on every scene.
 ///
 /// Per scene, the reference starts at `reference_spp` samples; after every case has rendered,
 /// samples are added (doubling) until the reference's noise is under a third of the best row's
 /// error, or `max_reference_spp` is reached, and every row is scored against that final
 /// reference. `progress` sees each scene's rows once they are final.
-pub fn run(settings: &BenchSettings, mut progress: impl FnMut(&BenchRow)) -> Result<Vec<BenchRow>> {
+pub fn run(
+    settings: &BenchSettings,
+    mut progress: impl FnMut(BenchProgress<'_>),
+) -> Result<Vec<BenchRow>> {
     let registry = EngineRegistry::new();
     let (w, h) = (settings.width, settings.height);
+    let total = settings.scenes.len() * settings.cases.len();
     let mut rows = Vec::new();
-    for dir in &settings.scenes {
+    for (scene_index, dir) in settings.scenes.iter().enumerate() {
         let scene = Arc::new(Scene::load(dir)?);
         let mut renderer = reference_renderer(&scene, w, h)?;
-        renderer.add_samples(settings.reference_spp.max(2));
+        let spp = settings.reference_spp.max(2);
+        progress(BenchProgress::Reference {
+            scene: &scene.name,
+            spp,
+        });
+        renderer.add_samples(spp);
         let mut reference = renderer.images();
         let frame = scene_frame(scene.clone(), background(&reference));
         let mut scene_rows: Vec<(BenchRow, Rendered)> = Vec::new();
-        for case in &settings.cases {
+        for (case_index, case) in settings.cases.iter().enumerate() {
+            progress(BenchProgress::Case {
+                scene: &scene.name,
+                setting: case.label(),
+                done: scene_index * settings.cases.len() + case_index,
+                total,
+            });
             // A setting this adapter cannot hold (a volume beyond its storage limits) costs that
             // row only: the error names the limit and the setting.
             match measure(
@@ -215,6 +246,10 @@ pub fn run(settings: &BenchSettings, mut progress: impl FnMut(&BenchRow)) -> Res
             let more = renderer
                 .spp()
                 .min(settings.max_reference_spp - renderer.spp());
+            progress(BenchProgress::Reference {
+                scene: &scene.name,
+                spp: renderer.spp() + more,
+            });
             renderer.add_samples(more);
             reference = renderer.images();
             for (row, rendered) in &mut scene_rows {
@@ -222,7 +257,7 @@ pub fn run(settings: &BenchSettings, mut progress: impl FnMut(&BenchRow)) -> Res
             }
         }
         for (row, _) in scene_rows {
-            progress(&row);
+            progress(BenchProgress::Row(&row));
             rows.push(row);
         }
     }

@@ -104,12 +104,39 @@ pub fn run(args: Args) -> Result<()> {
         .map(|c| format!("{} ({:?})", c.info.name, c.info.backend))
         .unwrap_or_else(|e| format!("no GPU: {e}"));
     eprintln!("bench on {adapter}");
-    let rows = bench::run(&settings, |row| {
-        eprintln!(
+    // A bar on a terminal; on a pipe or in a log, one line per reference and per row.
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} cases  {elapsed}  {msg}")
+            .expect("a valid template"),
+    );
+    let say = |line: String| {
+        if bar.is_hidden() {
+            eprintln!("{line}");
+        } else {
+            bar.println(line);
+        }
+    };
+    let rows = bench::run(&settings, |event| match event {
+        bench::BenchProgress::Reference { scene, spp } => {
+            bar.set_message(format!("{scene}: reference at {spp} spp"));
+            say(format!("{scene}: rendering the reference to {spp} spp"));
+        }
+        bench::BenchProgress::Case {
+            scene,
+            setting,
+            done,
+            total,
+        } => {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+            bar.set_message(format!("{scene}: {setting}"));
+        }
+        bench::BenchProgress::Row(row) => say(format!(
             "{:<14} {:<52} {:>9.2} ms  rel L2 {:.4}",
             row.scene, row.setting, row.median_ms, row.relative_l2
-        );
+        )),
     })?;
+    bar.finish_and_clear();
     print!("{}", bench::table(&rows));
     bench::write_outputs(&rows, &args.out, &adapter)?;
     println!("wrote {}/bench.{{csv,json,svg}}", args.out.display());

@@ -10,7 +10,7 @@ use relight_core::scene::Scene;
 use relight_daemon::sinks::exr_out::write_exr;
 use relight_daemon::sinks::png_out::{tonemap_reinhard, write_png};
 use relight_engines::offline;
-use relight_reference::{ReferenceSettings, render_reference};
+use relight_reference::{ReferenceImages, ReferenceRenderer, ReferenceSettings};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -69,7 +69,8 @@ pub fn run(args: Args) -> Result<()> {
 fn render_with_reference(scene_dir: &Path, settings: ReferenceSettings, out: &Path) -> Result<()> {
     let scene = Scene::load(scene_dir)?;
     let started = Instant::now();
-    let images = render_reference(&scene, settings)?;
+    let mut renderer = ReferenceRenderer::new(&scene, settings)?;
+    let images = trace_with_progress(&mut renderer, settings.spp);
     let seconds = started.elapsed().as_secs_f64();
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let (w, h) = (images.width, images.height);
@@ -119,6 +120,24 @@ fn render_with_reference(scene_dir: &Path, settings: ReferenceSettings, out: &Pa
     Ok(())
 }
 
+/// Trace `spp` samples per pixel in batches, with a bar on stderr when it is a terminal (a
+/// 256-spp reference takes a minute on a laptop CPU).
+fn trace_with_progress(renderer: &mut ReferenceRenderer, spp: u32) -> ReferenceImages {
+    let bar = indicatif::ProgressBar::new(u64::from(spp)).with_style(
+        indicatif::ProgressStyle::with_template(
+            "reference {bar:30} {pos}/{len} spp  {elapsed} (eta {eta})",
+        )
+        .expect("a valid template"),
+    );
+    let batch = (spp / 32).max(1);
+    while renderer.spp() < spp {
+        renderer.add_samples(batch.min(spp - renderer.spp()));
+        bar.set_position(u64::from(renderer.spp()));
+    }
+    bar.finish_and_clear();
+    renderer.images()
+}
+
 /// Render an offline scene with a relighting engine: Δ as EXR, the composite as PNG, and a
 /// summary with the frame time and the error of Δ against the reference at `spp`.
 fn render_engine(
@@ -133,7 +152,7 @@ fn render_engine(
     let (w, h) = size.unwrap_or((scene.camera.width, scene.camera.height));
     let mut built = relight_engines::EngineRegistry::new()
         .build(engine, &crate::params::parse_params(params)?)?;
-    let reference = offline::reference(&scene, w, h, spp)?;
+    let reference = trace_with_progress(&mut offline::reference_renderer(&scene, w, h)?, spp);
     let frame = offline::scene_frame(scene.clone(), offline::background(&reference));
     let mut relit = relight_engines::RelitFrame::default();
     built.engine.render(&frame, &mut relit)?;
