@@ -399,54 +399,101 @@ pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()>
     plot(rows, &dir.join("bench.svg"), adapter)
 }
 
+/// The sensor's frame period: a live engine must fit under it.
+const FRAME_BUDGET_MS: f64 = 1000.0 / 30.0;
+
+/// Frame time against Δ error, one panel per scene on shared axes (log time, so 0.1 ms and 5 s
+/// both read), one colour per engine, each point labelled with its setting, and the 33 ms
+/// budget of a 30 Hz sensor as a vertical line.
 fn plot(rows: &[BenchRow], path: &Path, adapter: &str) -> Result<()> {
+    let plot_error = |e: DrawingAreaErrorKind<_>| anyhow::anyhow!("{e}");
     let finite: Vec<&BenchRow> = rows
         .iter()
         .filter(|r| r.median_ms.is_finite() && r.relative_l2.is_finite() && r.median_ms > 0.0)
         .collect();
-    let max_ms = finite.iter().map(|r| r.median_ms).fold(1.0, f64::max) * 1.2;
-    let max_err = finite.iter().map(|r| r.relative_l2).fold(0.1, f64::max) * 1.1;
-    let root = SVGBackend::new(path, (900, 600)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| anyhow::anyhow!("{e}"))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(
-            format!("relight engines: frame time vs Δ error ({adapter})"),
-            ("sans-serif", 20),
-        )
-        .margin(20)
-        .x_label_area_size(40)
-        .y_label_area_size(60)
-        .build_cartesian_2d((0.1f64..max_ms).log_scale(), 0.0f64..max_err)
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
-    chart
-        .configure_mesh()
-        .x_desc("median frame time (ms, log)")
-        .y_desc("relative L2 error of Δ (real pixels)")
-        .draw()
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let min_ms = finite
+        .iter()
+        .map(|r| r.median_ms)
+        .fold(FRAME_BUDGET_MS, f64::min)
+        / 1.5;
+    let max_ms = finite
+        .iter()
+        .map(|r| r.median_ms)
+        .fold(FRAME_BUDGET_MS, f64::max)
+        * 1.5;
+    let max_err = finite.iter().map(|r| r.relative_l2).fold(0.1, f64::max) * 1.15;
+    let mut scenes: Vec<&str> = finite.iter().map(|r| r.scene.as_str()).collect();
+    scenes.dedup();
     let mut engines: Vec<&str> = finite.iter().map(|r| r.engine.as_str()).collect();
-    engines.dedup();
     engines.sort_unstable();
     engines.dedup();
-    for (i, engine) in engines.iter().enumerate() {
-        let colour = Palette99::pick(i).to_rgba();
-        let points: Vec<(f64, f64)> = finite
-            .iter()
-            .filter(|r| r.engine == *engine)
-            .map(|r| (r.median_ms, r.relative_l2))
-            .collect();
+    let columns = scenes.len().clamp(1, 3);
+    let panel_rows = scenes.len().div_ceil(columns).max(1);
+    let size = (480 * columns as u32, 400 * panel_rows as u32 + 40);
+    let root = SVGBackend::new(path, size).into_drawing_area();
+    root.fill(&WHITE).map_err(plot_error)?;
+    let root = root
+        .titled(
+            &format!("relight engines: frame time vs Δ error ({adapter})"),
+            ("sans-serif", 20),
+        )
+        .map_err(plot_error)?;
+    let panels = root.split_evenly((panel_rows, columns));
+    for (scene, panel) in scenes.iter().zip(&panels) {
+        let mut chart = ChartBuilder::on(panel)
+            .caption(*scene, ("sans-serif", 16))
+            .margin(12)
+            .x_label_area_size(36)
+            .y_label_area_size(48)
+            .build_cartesian_2d((min_ms..max_ms).log_scale(), 0.0f64..max_err)
+            .map_err(plot_error)?;
         chart
-            .draw_series(points.iter().map(|&p| Circle::new(p, 5, colour.filled())))
-            .map_err(|e| anyhow::anyhow!("{e}"))?
-            .label(*engine)
-            .legend(move |(x, y)| Circle::new((x, y), 5, colour.filled()));
+            .configure_mesh()
+            .x_desc("median frame time (ms, log)")
+            .y_desc("relative L2 of Δ (real pixels)")
+            .draw()
+            .map_err(plot_error)?;
+        chart
+            .draw_series(LineSeries::new(
+                [(FRAME_BUDGET_MS, 0.0), (FRAME_BUDGET_MS, max_err)],
+                RED.stroke_width(1),
+            ))
+            .map_err(plot_error)?
+            .label("33 ms (30 Hz)")
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], RED));
+        for (i, engine) in engines.iter().enumerate() {
+            let colour = Palette99::pick(i).to_rgba();
+            let points: Vec<(f64, f64, String)> = finite
+                .iter()
+                .filter(|r| r.scene == *scene && r.engine == *engine)
+                .map(|r| {
+                    let setting = r.setting.strip_prefix(engine).unwrap_or(&r.setting).trim();
+                    let label = if setting.is_empty() {
+                        "defaults"
+                    } else {
+                        setting
+                    };
+                    (r.median_ms, r.relative_l2, label.to_owned())
+                })
+                .collect();
+            chart
+                .draw_series(points.iter().map(|(ms, error, label)| {
+                    EmptyElement::at((*ms, *error))
+                        + Circle::new((0, 0), 4, colour.filled())
+                        + Text::new(label.clone(), (6, -4), ("sans-serif", 9))
+                }))
+                .map_err(plot_error)?
+                .label(*engine)
+                .legend(move |(x, y)| Circle::new((x + 8, y), 4, colour.filled()));
+        }
+        chart
+            .configure_series_labels()
+            .border_style(BLACK)
+            .background_style(WHITE.mix(0.8))
+            .draw()
+            .map_err(plot_error)?;
     }
-    chart
-        .configure_series_labels()
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
-    root.present().map_err(|e| anyhow::anyhow!("{e}"))?;
+    root.present().map_err(plot_error)?;
     Ok(())
 }
 

@@ -103,7 +103,11 @@ fn relighting_engines_render_offline_scenes_and_bad_requests_are_refused() {
     }
     let unknown = render(&["--engine", "dlvp"]);
     assert!(!unknown.status.success());
-    assert!(String::from_utf8_lossy(&unknown.stderr).contains("known engines"));
+    let stderr = String::from_utf8_lossy(&unknown.stderr);
+    assert!(
+        stderr.contains("possible values") && stderr.contains("dlpv"),
+        "the error lists the engines: {stderr}"
+    );
     let bad = render(&["--engine", "dlpv", "--param", "steps=-3"]);
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("steps"));
