@@ -58,9 +58,25 @@ pub fn run(config: Config, options: PipelineOptions, serve_socket: bool) -> Resu
     let started = Instant::now();
     let mut last_ping = Instant::now();
     let mut last_status = Instant::now();
+    // On a terminal, what is happening (a fast replay used to be silent until its end); hidden
+    // on a pipe and under systemd, whose status line says the same.
+    let spinner = indicatif::ProgressBar::new_spinner().with_style(
+        indicatif::ProgressStyle::with_template("{spinner} {elapsed}  {msg}")
+            .expect("a valid template"),
+    );
+    let mut last_shown = Instant::now();
     let done = || term.load(Ordering::Acquire) || (exit_at_end && pipeline.is_finished());
     while !done() {
         std::thread::sleep(Duration::from_millis(20));
+        if !spinner.is_hidden() && last_shown.elapsed() >= Duration::from_millis(250) {
+            let status = pipeline.status();
+            spinner.set_message(format!(
+                "{} frame sets rendered; {}",
+                status.frames_rendered,
+                status_line(&status)
+            ));
+            last_shown = Instant::now();
+        }
         if under_systemd && last_status.elapsed() >= STATUS_INTERVAL {
             let line = status_line(&pipeline.status());
             notify_systemd(sd_notify::NotifyState::Status(&line));
@@ -78,6 +94,7 @@ pub fn run(config: Config, options: PipelineOptions, serve_socket: bool) -> Resu
             last_ping = Instant::now();
         }
     }
+    spinner.finish_and_clear();
     notify_systemd(sd_notify::NotifyState::Stopping);
     let status = pipeline.status();
     pipeline.shutdown();
