@@ -22,7 +22,8 @@ use relight_engines::offline::{
     background, delta_error, delta_pixels, object_error, reference_noise, reference_renderer,
     scene_frame,
 };
-use relight_engines::reference::ReferenceImages;
+use relight_engines::reference::{ReferenceImages, ReferenceRenderer};
+use relight_engines::reference_cache::ReferenceCache;
 use relight_engines::{EngineRegistry, RelitFrame, SceneFrame};
 use serde::Serialize;
 use serde_json::{Map, Value, json};
@@ -35,7 +36,8 @@ pub struct BenchCase {
 }
 
 impl BenchCase {
-    fn new(engine: &str, params: Value) -> Self {
+    /// `engine` with `params` (a JSON object; anything else is no parameters).
+    pub fn new(engine: &str, params: Value) -> Self {
         Self {
             engine: engine.into(),
             params: params.as_object().cloned().unwrap_or_default(),
@@ -120,6 +122,8 @@ pub struct BenchSettings {
     pub reference_spp: u32,
     /// The most it is refined to (see [`run`]); at most `reference_spp` turns refining off.
     pub max_reference_spp: u32,
+    /// Where references are kept between runs ([`ReferenceCache`]); `None`: always render.
+    pub reference_cache: Option<PathBuf>,
     pub frames: u32,
     pub cases: Vec<BenchCase>,
 }
@@ -174,8 +178,13 @@ impl BenchRow {
 /// What [`run`] is doing, for a progress display.
 #[derive(Debug)]
 pub enum BenchProgress<'a> {
-    /// Rendering (or refining) `scene`'s reference to `spp` samples per pixel.
-    Reference { scene: &'a str, spp: u32 },
+    /// Rendering (or refining) `scene`'s reference to `spp` samples per pixel, or, `cached`,
+    /// reading one of `spp` from the reference cache.
+    Reference {
+        scene: &'a str,
+        spp: u32,
+        cached: bool,
+    },
     /// Measuring case `done + 1` of `total` (over all scenes).
     Case {
         scene: &'a str,
@@ -203,14 +212,36 @@ pub fn run(
     let mut rows = Vec::new();
     for (scene_index, dir) in settings.scenes.iter().enumerate() {
         let scene = Arc::new(Scene::load(dir)?);
-        let mut renderer = reference_renderer(&scene, w, h)?;
         let spp = settings.reference_spp.max(2);
-        progress(BenchProgress::Reference {
-            scene: &scene.name,
-            spp,
+        let cache = settings.reference_cache.as_ref().and_then(|dir_of_cache| {
+            let key = ReferenceCache::key(dir, w, h).ok()?;
+            Some((ReferenceCache::new(dir_of_cache), key))
         });
-        renderer.add_samples(spp);
-        let mut reference = renderer.images();
+        let cached = cache
+            .as_ref()
+            .and_then(|(cache, key)| cache.load(*key))
+            .filter(|r| r.spp >= spp && (r.width, r.height) == (w, h));
+        let mut renderer: Option<ReferenceRenderer> = None;
+        let mut reference = match cached {
+            Some(reference) => {
+                progress(BenchProgress::Reference {
+                    scene: &scene.name,
+                    spp: reference.spp,
+                    cached: true,
+                });
+                reference
+            }
+            None => {
+                progress(BenchProgress::Reference {
+                    scene: &scene.name,
+                    spp,
+                    cached: false,
+                });
+                let fresh = renderer.insert(reference_renderer(&scene, w, h)?);
+                fresh.add_samples(spp);
+                fresh.images()
+            }
+        };
         let frame = scene_frame(scene.clone(), background(&reference));
         let mut scene_rows: Vec<(BenchRow, Rendered)> = Vec::new();
         for (case_index, case) in settings.cases.iter().enumerate() {
@@ -241,20 +272,34 @@ pub fn run(
                 .fold(f64::INFINITY, f64::min)
         };
         while reference_noise(&reference) > best(&scene_rows) / 3.0
-            && renderer.spp() < settings.max_reference_spp
+            && reference.spp < settings.max_reference_spp
         {
-            let more = renderer
-                .spp()
-                .min(settings.max_reference_spp - renderer.spp());
+            let target = reference
+                .spp
+                .saturating_mul(2)
+                .min(settings.max_reference_spp);
             progress(BenchProgress::Reference {
                 scene: &scene.name,
-                spp: renderer.spp() + more,
+                spp: target,
+                cached: false,
             });
-            renderer.add_samples(more);
-            reference = renderer.images();
+            // A cached reference cannot be resumed: its refinement starts a renderer afresh.
+            let current = match renderer.take() {
+                Some(current) => current,
+                None => reference_renderer(&scene, w, h)?,
+            };
+            let current = renderer.insert(current);
+            current.add_samples(target.saturating_sub(current.spp()));
+            reference = current.images();
             for (row, rendered) in &mut scene_rows {
                 row.score(rendered, &reference);
             }
+        }
+        if renderer.is_some()
+            && let Some((cache, key)) = &cache
+            && let Err(error) = cache.store(*key, &reference)
+        {
+            tracing::warn!(%error, "{}: reference not cached", scene.name);
         }
         for (row, _) in scene_rows {
             progress(BenchProgress::Row(&row));

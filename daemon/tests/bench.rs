@@ -14,6 +14,7 @@ fn bench_measures_every_case_and_writes_its_outputs() {
         height: 36,
         reference_spp: 16,
         max_reference_spp: 64,
+        reference_cache: None,
         frames: 1,
         cases: default_cases(false),
     };
@@ -79,4 +80,38 @@ fn an_unknown_engine_is_an_error_that_lists_the_benched_ones() {
         "{}",
         String::from_utf8_lossy(&out.stdout)
     );
+}
+
+/// A reference rendered once is read from the cache on the next run, and scores the same.
+#[test]
+fn a_cached_reference_is_read_back_on_the_next_run() {
+    use relight_daemon::bench::{BenchCase, BenchProgress};
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/spot_bleed");
+    let cache = tempfile::tempdir().unwrap();
+    let settings = BenchSettings {
+        scenes: vec![scene],
+        width: 32,
+        height: 24,
+        reference_spp: 8,
+        max_reference_spp: 8,
+        reference_cache: Some(cache.path().to_owned()),
+        frames: 1,
+        cases: vec![BenchCase::new("differential", serde_json::json!({}))],
+    };
+    let run_once = || {
+        let mut cached = Vec::new();
+        let rows = run(&settings, |event| {
+            if let BenchProgress::Reference { cached: c, .. } = event {
+                cached.push(c);
+            }
+        })
+        .unwrap();
+        (rows, cached)
+    };
+    let (first, cached) = run_once();
+    assert_eq!(cached, [false]);
+    let (second, cached) = run_once();
+    assert_eq!(cached, [true], "the second run reads the cache");
+    assert_eq!(first[0].relative_l2, second[0].relative_l2);
+    assert_eq!(second[0].reference_spp, 8);
 }

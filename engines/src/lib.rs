@@ -19,6 +19,7 @@ pub mod live_scene;
 pub mod offline;
 pub mod params;
 pub mod recon_gpu;
+pub mod reference_cache;
 pub mod registry;
 pub mod shaders;
 pub mod surface_albedo;

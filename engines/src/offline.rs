@@ -34,7 +34,7 @@ pub fn reference_renderer(
     ReferenceRenderer::new(scene, reference_settings(width, height, 0))
 }
 
-fn reference_settings(width: u32, height: u32, spp: u32) -> ReferenceSettings {
+pub(crate) fn reference_settings(width: u32, height: u32, spp: u32) -> ReferenceSettings {
     ReferenceSettings {
         spp,
         pixel_jitter: false,

@@ -48,6 +48,11 @@ use self::accel::Geometry;
 use self::integrator::{PathContext, radiance};
 use self::sampling::SampleRng;
 
+/// Changes whenever what the estimator converges to changes (a fix in the integrator, a new
+/// BRDF): references cached on disk are keyed by it, so a stale one is never read as truth.
+/// 2: the last vertex counts both halves of the environment's MIS.
+pub const REVISION: u32 = 2;
+
 /// How the reference renders.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ReferenceSettings {

@@ -22,6 +22,13 @@ pub struct Args {
     /// third of the best engine's error (each row reports the noise and the samples).
     #[arg(long, default_value_t = 4096)]
     max_reference_spp: u32,
+    /// Where references are kept between runs, keyed by the scene's files, the size and the
+    /// reference's revision.
+    #[arg(long, default_value = "target/bench/references")]
+    reference_cache: PathBuf,
+    /// Render every reference afresh (and keep none).
+    #[arg(long)]
+    no_reference_cache: bool,
     /// Timed frames per case (after two warm-up frames); the median is reported.
     #[arg(long, default_value_t = 5)]
     frames: u32,
@@ -97,6 +104,7 @@ pub fn run(args: Args) -> Result<()> {
         height: args.height,
         reference_spp: args.reference_spp,
         max_reference_spp: args.max_reference_spp,
+        reference_cache: (!args.no_reference_cache).then_some(args.reference_cache),
         frames: args.frames,
         cases,
     };
@@ -117,9 +125,13 @@ pub fn run(args: Args) -> Result<()> {
         }
     };
     let rows = bench::run(&settings, |event| match event {
-        bench::BenchProgress::Reference { scene, spp } => {
+        bench::BenchProgress::Reference { scene, spp, cached } => {
             bar.set_message(format!("{scene}: reference at {spp} spp"));
-            say(format!("{scene}: rendering the reference to {spp} spp"));
+            say(if cached {
+                format!("{scene}: the cached reference ({spp} spp)")
+            } else {
+                format!("{scene}: rendering the reference to {spp} spp")
+            });
         }
         bench::BenchProgress::Case {
             scene,
