@@ -100,7 +100,7 @@ pub struct Deferred {
     environment_lights: bool,
     /// Directional lights cut from the scene's environment map when it has no
     /// `environment_lights` of its own (a scene file's map; the probe path sets them).
-    derived_environment_lights: Vec<Light>,
+    derived_environment_lights: crate::dir::EnvironmentLights,
     timer: Option<GpuTimer>,
 }
 
@@ -142,7 +142,7 @@ impl Deferred {
             extra_lights: Vec::new(),
             extra_role: ExtraLights::Full,
             environment_lights: true,
-            derived_environment_lights: Vec::new(),
+            derived_environment_lights: crate::dir::EnvironmentLights::default(),
             timer: GpuTimer::new(&ctx),
             ctx,
         }
@@ -192,12 +192,12 @@ impl Deferred {
         {
             self.scene = Some((scene.clone(), GpuScene::new(&ctx, scene)));
             self.light = None;
-            self.derived_environment_lights = match &scene.environment {
-                Some(env) if self.environment_lights && scene.environment_lights.is_empty() => {
-                    crate::dir::environment_lights(env, DERIVED_ENVIRONMENT_LIGHTS)
-                }
-                _ => Vec::new(),
-            };
+            let map = scene
+                .environment
+                .as_ref()
+                .filter(|_| self.environment_lights && scene.environment_lights.is_empty());
+            self.derived_environment_lights
+                .update(map, DERIVED_ENVIRONMENT_LIGHTS);
         }
         let Some((_, gpu_scene)) = &self.scene else {
             unreachable!("uploaded above")
@@ -213,7 +213,7 @@ impl Deferred {
         let environment_lights: &[Light] = if !self.environment_lights {
             &[]
         } else if scene.environment_lights.is_empty() {
-            &self.derived_environment_lights
+            self.derived_environment_lights.lights()
         } else {
             &scene.environment_lights
         };

@@ -31,10 +31,61 @@ pub fn environment_lights(env: &EnvironmentMap, count: u32) -> Vec<Light> {
         .collect()
 }
 
+/// [`environment_lights`] kept with the map and count they were cut from, and cut again only
+/// when either changes: a live scene is a new `Arc<Scene>` every frame (a new depth mesh), while
+/// its environment map rarely changes, so keying by the scene would re-cut it every frame.
+#[derive(Debug, Default)]
+pub struct EnvironmentLights {
+    source: Option<(EnvironmentMap, u32)>,
+    lights: Vec<Light>,
+}
+
+impl EnvironmentLights {
+    /// `count` lights for `env` (none without a map). Returns whether they changed.
+    pub fn update(&mut self, env: Option<&EnvironmentMap>, count: u32) -> bool {
+        let unchanged = match (&self.source, env) {
+            (Some((map, n)), Some(env)) => *n == count && map == env,
+            (None, None) => true,
+            _ => false,
+        };
+        if !unchanged {
+            self.lights = env.map_or_else(Vec::new, |env| environment_lights(env, count));
+            self.source = env.map(|env| (env.clone(), count));
+        }
+        !unchanged
+    }
+
+    pub fn lights(&self) -> &[Light] {
+        &self.lights
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use glam::Vec3;
+
+    #[test]
+    fn lights_are_cut_again_only_when_the_map_or_the_count_changes() {
+        let sky = |l: f32| EnvironmentMap {
+            width: 8,
+            height: 4,
+            radiance: vec![Vec3::splat(l); 32],
+        };
+        let mut cache = EnvironmentLights::default();
+        assert!(!cache.update(None, 8), "nothing to nothing");
+        assert!(cache.update(Some(&sky(1.0)), 8));
+        assert_eq!(cache.lights(), environment_lights(&sky(1.0), 8).as_slice());
+        assert!(
+            !cache.update(Some(&sky(1.0)), 8),
+            "an equal map in a new scene"
+        );
+        assert!(cache.update(Some(&sky(2.0)), 8));
+        assert!(cache.update(Some(&sky(2.0)), 4));
+        assert_eq!(cache.lights().len(), 4);
+        assert!(cache.update(None, 4));
+        assert!(cache.lights().is_empty());
+    }
 
     /// A uniform sky of radiance L gives a horizontal surface E = π L: the lights' irradiance
     /// projected on +Y over the upper hemisphere must sum to that.

@@ -28,7 +28,7 @@
 mod environment;
 mod points;
 
-pub use environment::environment_lights;
+pub use environment::{EnvironmentLights, environment_lights};
 pub use points::surface_points;
 
 use std::sync::Arc;
@@ -107,7 +107,7 @@ pub struct Dir {
     /// The surface points of the scene they were sampled from, and how many were asked for.
     points: Option<(Arc<Scene>, u32, u32, wgpu::Buffer)>,
     /// The scene and light count the environment lights were sampled for.
-    environment: Option<(Arc<Scene>, u32)>,
+    environment: EnvironmentLights,
     buffers: Option<VplBuffers>,
 }
 
@@ -192,7 +192,7 @@ impl Dir {
             deferred: Deferred::sampling_the_environment(ctx),
             settings: DirSettings::default(),
             points: None,
-            environment: None,
+            environment: EnvironmentLights::default(),
             buffers: None,
         })
     }
@@ -273,18 +273,12 @@ impl Engine for Dir {
     fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
         let s = self.settings;
         if let Some(scene) = &frame.scene
-            && !self
+            && self
                 .environment
-                .as_ref()
-                .is_some_and(|(e, n)| Arc::ptr_eq(e, scene) && *n == s.env_lights)
+                .update(scene.environment.as_ref(), s.env_lights)
         {
-            let lights = scene
-                .environment
-                .as_ref()
-                .map(|env| environment_lights(env, s.env_lights))
-                .unwrap_or_default();
-            self.deferred.set_extra_lights(lights, ExtraLights::Full);
-            self.environment = Some((scene.clone(), s.env_lights));
+            self.deferred
+                .set_extra_lights(self.environment.lights().to_vec(), ExtraLights::Full);
         }
         let (width, height) = self.deferred.prepare(Self::NAME, frame, out, s.rsm_size)?;
         let started = Instant::now();
