@@ -142,6 +142,18 @@ mod tests {
     use super::*;
     use std::io::Write as _;
 
+    fn mkfifo(path: &Path) -> PathBuf {
+        rustix::fs::mknodat(
+            rustix::fs::CWD,
+            path,
+            FileType::Fifo,
+            Mode::from_raw_mode(0o644),
+            0,
+        )
+        .unwrap();
+        path.to_owned()
+    }
+
     #[test]
     fn writes_regular_files_and_refuses_links_fifos_and_devices() {
         let dir = tempfile::tempdir().unwrap();
@@ -165,15 +177,7 @@ mod tests {
             "the link's target is untouched"
         );
 
-        let fifo = dir.path().join("fifo.png");
-        rustix::fs::mknodat(
-            rustix::fs::CWD,
-            &fifo,
-            FileType::Fifo,
-            Mode::from_raw_mode(0o644),
-            0,
-        )
-        .unwrap();
+        let fifo = mkfifo(&dir.path().join("fifo.png"));
         let error = create_regular(&fifo, Existing::Replace)
             .unwrap_err()
             .to_string();
@@ -204,15 +208,7 @@ mod tests {
         assert!(error.to_string().contains("symbolic link"), "{error}");
         assert!(!target.exists(), "a dangling link's target is not created");
 
-        let fifo = dir.path().join("fifo.mcap");
-        rustix::fs::mknodat(
-            rustix::fs::CWD,
-            &fifo,
-            FileType::Fifo,
-            Mode::from_raw_mode(0o644),
-            0,
-        )
-        .unwrap();
+        let fifo = mkfifo(&dir.path().join("fifo.mcap"));
         let error = create_regular(&fifo, Existing::Refuse).unwrap_err();
         assert!(error.to_string().contains("FIFO"), "{error}");
     }
