@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use relight_daemon::config::{self, Config};
 use relight_daemon::control::ControlServer;
-use relight_daemon::control::types::StatusReport;
+use relight_daemon::control::types::{DeviceState, StatusReport};
 use relight_daemon::pipeline::{Pipeline, PipelineOptions};
 
 /// SIGTERM and SIGINT set the returned flag.
@@ -118,7 +118,7 @@ pub fn status_line(status: &StatusReport) -> String {
     let running = status
         .devices
         .iter()
-        .filter(|d| d.state.name() == "running")
+        .filter(|d| d.state == DeviceState::Running)
         .count();
     let mut line = format!(
         "{}: {:.1} fps, latency p50 {:.0} ms, devices {running}/{} running",
