@@ -18,6 +18,7 @@
 
 use std::collections::BTreeMap;
 use std::fmt;
+use std::net::SocketAddr;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -27,6 +28,7 @@ mod print;
 use crate::pipeline::tracking::{TrackingConfig, TrackingSource};
 use relight_core::StreamKind;
 use relight_engines::live_scene::{LightSource, RealGeometry};
+pub use relight_live::{ImageEncoding, LiveViewSettings};
 use serde::Deserialize;
 use toml::de::{DeTable, DeValue};
 
@@ -73,6 +75,8 @@ pub struct Config {
     pub output: OutputConfig,
     pub rig: RigConfig,
     pub tracking: TrackingConfig,
+    /// `[live_view]`: the Foxglove WebSocket server and the browser page; both off by default.
+    pub live_view: LiveViewSettings,
 }
 
 /// `[rig]`: the rig's calibration file, written by `relight-calibrate`.
@@ -337,6 +341,7 @@ impl Default for Config {
             output: OutputConfig::default(),
             rig: RigConfig::default(),
             tracking: TrackingConfig::default(),
+            live_view: LiveViewSettings::default(),
         }
     }
 }
@@ -609,6 +614,17 @@ struct RawConfig {
     output: RawOutput,
     rig: RawRig,
     tracking: RawTracking,
+    live_view: RawLiveView,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RawLiveView {
+    bind: Option<String>,
+    page: Option<String>,
+    image: Option<String>,
+    jpeg_quality: Option<i64>,
+    max_rate_hz: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -802,6 +818,61 @@ impl Validator<'_> {
             output: self.output(raw.output),
             rig: self.rig(raw.rig),
             tracking: self.tracking(raw.tracking),
+            live_view: self.live_view(raw.live_view),
+        }
+    }
+
+    fn live_view(&mut self, raw: RawLiveView) -> LiveViewSettings {
+        let mut live = LiveViewSettings {
+            foxglove: self.socket_addr("live_view.bind", raw.bind),
+            page: self.socket_addr("live_view.page", raw.page),
+            ..LiveViewSettings::default()
+        };
+        match raw.image.as_deref() {
+            None => {}
+            Some("jpeg") => live.image = ImageEncoding::Jpeg,
+            Some("raw") => live.image = ImageEncoding::Raw,
+            Some(other) => self.error(
+                "live_view.image",
+                format!("must be \"jpeg\" or \"raw\", got {other:?}"),
+            ),
+        }
+        if let Some(quality) = raw.jpeg_quality {
+            match u8::try_from(quality) {
+                Ok(q) if (1..=100).contains(&q) => live.jpeg_quality = q,
+                _ => self.error(
+                    "live_view.jpeg_quality",
+                    format!("must be in 1..=100, got {quality}"),
+                ),
+            }
+        }
+        if let Some(hz) = raw.max_rate_hz {
+            if hz.is_finite() && (0.1..=1000.0).contains(&hz) {
+                live.max_rate_hz = hz;
+            } else {
+                self.error(
+                    "live_view.max_rate_hz",
+                    format!("must be in 0.1..=1000, got {hz}"),
+                );
+            }
+        }
+        live
+    }
+
+    /// `host:port` (an IP address; port 0 picks a free one).
+    fn socket_addr(&mut self, key: &str, value: Option<String>) -> Option<SocketAddr> {
+        let value = value?;
+        match value.parse() {
+            Ok(addr) => Some(addr),
+            Err(_) => {
+                self.error(
+                    key,
+                    format!(
+                        "must be an IP address and port such as \"127.0.0.1:8765\", got {value:?}"
+                    ),
+                );
+                None
+            }
         }
     }
 

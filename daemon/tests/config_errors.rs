@@ -367,6 +367,25 @@ fn numeric_limits_are_checked() {
 }
 
 #[test]
+fn live_view_section_is_validated() {
+    let config = parse("[live_view]\nbind = \"127.0.0.1:8765\"\nimage = \"raw\"\n").expect("valid");
+    assert_eq!(
+        config.live_view.foxglove,
+        Some("127.0.0.1:8765".parse().unwrap())
+    );
+    assert_eq!(
+        config.live_view.page, None,
+        "the page is off unless asked for"
+    );
+    let d = only_error("[live_view]\nbind = \"localhost\"\n");
+    assert_at(&d, 2, "live_view.bind", "IP address and port");
+    let d = only_error("[live_view]\npage = \"127.0.0.1:8766\"\nimage = \"png\"\n");
+    assert_at(&d, 3, "live_view.image", "\"jpeg\" or \"raw\"");
+    let d = only_error("[live_view]\njpeg_quality = 0\n");
+    assert_at(&d, 2, "live_view.jpeg_quality", "1..=100");
+}
+
+#[test]
 fn replay_section_is_validated() {
     let d = only_error("[replay]\nmode = \"fast\"\n");
     assert_at(&d, 1, "replay.path", "missing");
@@ -743,6 +762,7 @@ proptest::proptest! {
             ("daemon", "max_request_bytes"), ("scene", "real_albedo"), ("scene", "albedo_every"),
             ("scene", "depth_stride"), ("scene", "probe_lights"), ("output", "every_n"),
             ("tracking", "max_age_ms"), ("tracking", "max_rms_px"),
+            ("live_view", "jpeg_quality"), ("live_view", "max_rate_hz"),
         ]),
         value in proptest::prop_oneof![
             proptest::strategy::Strategy::prop_map(proptest::prelude::any::<i64>(), |v| v.to_string()),
@@ -814,6 +834,11 @@ fn config_line() -> impl proptest::strategy::Strategy<Value = (&'static str, Str
         number("tracking", "max_rms_px", 0.01..100.0),
         number("tracking.smoothing", "beta", 0.0..100.0),
         flag("tracking.smoothing", "enabled"),
+        word("live_view", "bind", &["127.0.0.1:8765", "[::1]:0"]),
+        word("live_view", "page", &["0.0.0.0:8766"]),
+        word("live_view", "image", &["jpeg", "raw"]),
+        count("live_view", "jpeg_quality", 1..=100),
+        number("live_view", "max_rate_hz", 0.1..1000.0),
     ]
 }
 

@@ -195,7 +195,9 @@ impl Channels {
                     .log(&camera_calibration(&scene.camera, timestamp));
             }
             if self.scene.has_sinks()
-                && self.last_scene.is_none_or(|t| t.elapsed() >= SCENE_INTERVAL)
+                && self
+                    .last_scene
+                    .is_none_or(|t| t.elapsed() >= SCENE_INTERVAL)
             {
                 self.last_scene = Some(Instant::now());
                 self.scene.log(&scene_update(scene, timestamp));
@@ -245,9 +247,12 @@ impl Channels {
             world(frames::LAMP, at(lamp.position_in_world));
         }
         if let Some(scene) = &frame.scene {
-            for (index, position) in scene.lights.iter().enumerate().filter_map(|(i, light)| {
-                light_position(light).map(|p| (i, p))
-            }) {
+            for (index, position) in scene
+                .lights
+                .iter()
+                .enumerate()
+                .filter_map(|(i, light)| light_position(light).map(|p| (i, p)))
+            {
                 world(&frames::light(index), at(position));
             }
             if let Some(centre) = virtual_centre(scene) {

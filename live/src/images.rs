@@ -56,7 +56,9 @@ pub fn delta_false_colour(delta: &Image, scale: Option<f32>) -> Option<(Image, f
         .map(|p| luminance(f(4 * p), f(4 * p + 1), f(4 * p + 2)))
         .map(|l| if l.is_finite() { l } else { 0.0 })
         .collect();
-    let scale = scale.unwrap_or_else(|| percentile_abs(&lum, 0.99)).max(1e-6);
+    let scale = scale
+        .unwrap_or_else(|| percentile_abs(&lum, 0.99))
+        .max(1e-6);
     let mut out = Image::new(delta.width(), delta.height(), PixelFormat::Rgb8);
     let rgb = out.as_u8_mut()?;
     for (px, l) in rgb.chunks_exact_mut(3).zip(&lum) {
@@ -91,14 +93,24 @@ pub fn depth_raw(depth: &Image) -> Option<(&'static str, Vec<u8>)> {
     match depth.format() {
         PixelFormat::DepthU16Mm => Some((
             "16UC1",
-            depth.as_u16()?.iter().flat_map(|v| v.to_le_bytes()).collect(),
+            depth
+                .as_u16()?
+                .iter()
+                .flat_map(|v| v.to_le_bytes())
+                .collect(),
         )),
         PixelFormat::DepthF32M => Some((
             "32FC1",
             depth
                 .as_f32()?
                 .iter()
-                .map(|&m| if m > 0.0 && m.is_finite() { m } else { f32::NAN })
+                .map(|&m| {
+                    if m > 0.0 && m.is_finite() {
+                        m
+                    } else {
+                        f32::NAN
+                    }
+                })
                 .flat_map(f32::to_le_bytes)
                 .collect(),
         )),
@@ -124,7 +136,12 @@ mod tests {
     #[test]
     fn shadow_is_red_bleeding_is_blue_and_zero_is_black() {
         let delta = delta_of(
-            &[[-0.5, -0.5, -0.5], [0.0, 0.0, 0.0], [0.25, 0.25, 0.25], [1.0, 1.0, 1.0]],
+            &[
+                [-0.5, -0.5, -0.5],
+                [0.0, 0.0, 0.0],
+                [0.25, 0.25, 0.25],
+                [1.0, 1.0, 1.0],
+            ],
             4,
         );
         let (image, scale) = delta_false_colour(&delta, Some(0.5)).unwrap();

@@ -1,8 +1,8 @@
 //! Watching the rig live: the relit video and everything behind it, while it runs.
 //!
 //! Two read-only views of the same frames, both off by default:
-//! - a **Foxglove WebSocket server** (the official `foxglove` SDK, protocol
-//!   `foxglove.websocket.v1`) with the composite, the camera image, Δ in false colour, depth,
+//! - a **Foxglove WebSocket server** (the official `foxglove` SDK, protocol `foxglove.sdk.v1`,
+//!   the successor of `foxglove.websocket.v1` that the Foxglove app speaks) with the composite, the camera image, Δ in false colour, depth,
 //!   the camera's calibration, the transforms of every frame the rig knows, a 3D scene of the
 //!   virtual object and the lights, the lighting estimate and the status ([`channels`]);
 //! - a **browser page** for a quick look without Foxglove: one HTML page that shows the live
@@ -129,6 +129,8 @@ pub enum LiveViewError {
 
 /// The running views. Dropping it stops the publisher and both servers.
 pub struct LiveView {
+    /// The channels' and the server's context: they hold it weakly, so it lives here.
+    context: Option<Arc<foxglove::Context>>,
     frames: Option<Sender<ViewFrame>>,
     publisher: Option<JoinHandle<()>>,
     foxglove: Option<foxglove::WebSocketServerHandle>,
@@ -199,6 +201,7 @@ impl LiveView {
             (None, None)
         };
         Ok(Self {
+            context: Some(context),
             frames,
             publisher,
             foxglove,
@@ -212,6 +215,7 @@ impl LiveView {
     /// A view that publishes nothing.
     pub fn disabled() -> Self {
         Self {
+            context: None,
             frames: None,
             publisher: None,
             foxglove: None,
@@ -276,6 +280,7 @@ impl Drop for LiveView {
             // The handle's runner finishes closing the clients in the background.
             drop(foxglove.stop());
         }
+        self.context = None;
     }
 }
 
@@ -299,7 +304,10 @@ impl Publisher {
                 Err(crossbeam_channel::RecvTimeoutError::Timeout) => {}
                 Err(crossbeam_channel::RecvTimeoutError::Disconnected) => return,
             }
-            if self.last_report.is_none_or(|t| t.elapsed() >= REPORT_INTERVAL) {
+            if self
+                .last_report
+                .is_none_or(|t| t.elapsed() >= REPORT_INTERVAL)
+            {
                 self.last_report = Some(Instant::now());
                 let status = self.reports.status();
                 let lighting = self.reports.lighting();

@@ -178,7 +178,10 @@ mod tests {
         state.set_composite(7, vec![0xFF, 0xD8, 0xFF, 0xD9]);
         state.set_reports(json!({"engine": "differential"}), None);
         let image = get(addr, &format!("GET /composite.jpg?t=1 HTTP/1.1\r\n{close}"));
-        assert!(image.contains(" 200 ") && image.contains("X-Relight-Seq: 7"), "{image}");
+        assert!(
+            image.contains(" 200 ") && image.contains("X-Relight-Seq: 7"),
+            "{image}"
+        );
         let status = get(addr, &format!("GET /status.json HTTP/1.1\r\n{close}"));
         assert!(status.contains(r#""engine":"differential""#) && status.contains(r#""seq":7"#));
         let page = get(addr, &format!("GET / HTTP/1.1\r\n{close}"));

@@ -11,7 +11,7 @@ use std::time::Duration;
 use relight_engines::live_scene::{LightSource, RealGeometry};
 use toml::{Table, Value};
 
-use super::{Config, GroupSpec, SourceConfig};
+use super::{Config, GroupSpec, ImageEncoding, SourceConfig};
 
 fn path(p: &Path) -> Value {
     Value::String(p.to_string_lossy().into_owned())
@@ -207,6 +207,26 @@ impl Config {
                         .and_then(|b| Value::try_from(b).ok()),
                 ),
                 ("smoothing", Value::try_from(tracking.smoothing).ok()),
+            ]),
+        );
+        let live = &self.live_view;
+        file.insert(
+            "live_view".into(),
+            section([
+                ("bind", live.foxglove.map(|a| Value::String(a.to_string()))),
+                ("page", live.page.map(|a| Value::String(a.to_string()))),
+                (
+                    "image",
+                    Some(Value::String(
+                        match live.image {
+                            ImageEncoding::Jpeg => "jpeg",
+                            ImageEncoding::Raw => "raw",
+                        }
+                        .into(),
+                    )),
+                ),
+                ("jpeg_quality", Some(integer(live.jpeg_quality))),
+                ("max_rate_hz", Some(Value::Float(live.max_rate_hz))),
             ]),
         );
         toml::to_string(&file).expect("a table of strings, numbers, booleans and tables")

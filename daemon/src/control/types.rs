@@ -211,6 +211,18 @@ pub struct StatusReport {
     /// `[scene] albedo = "fixed"`, no colour response, no depth surface).
     #[serde(default)]
     pub albedo: Option<AlbedoStatus>,
+    /// Where the live view listens (`[live_view]`, `--live-view`); none when it is off.
+    #[serde(default)]
+    pub live_view: Option<LiveViewStatus>,
+}
+
+/// The live view's addresses, as a viewer opens them.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct LiveViewStatus {
+    /// The Foxglove WebSocket server, `ws://host:port`.
+    pub foxglove: Option<String>,
+    /// The browser page, `http://host:port/`.
+    pub page: Option<String>,
 }
 
 /// What the live surface's albedo measurement (DLPV eq. 1) did on the last frame set.

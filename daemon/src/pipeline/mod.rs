@@ -38,7 +38,7 @@ pub mod tracking;
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -49,13 +49,16 @@ use relight_backends::{DeviceRunner, DeviceState};
 use relight_core::StreamMessage;
 use relight_core::bus::Bus;
 use relight_core::frame::host_now_ns;
+use relight_core::rig::RigCalibration;
+use relight_core::sync::FrameSet;
 use relight_core::sync::{SyncConfig as CoreSyncConfig, Synchronizer};
-use relight_engines::EngineRegistry;
+use relight_engines::{EngineRegistry, RelitFrame};
+use relight_live::{LiveView, Reports, RigFrames, ViewFrame};
 use serde_json::{Map, Value};
 
 use crate::config::Config;
 use crate::control::lights::LightsBoard;
-use crate::control::types::{ControlTarget, StatusReport};
+use crate::control::types::{ControlTarget, LiveViewStatus, StatusReport};
 use crate::lock;
 use crate::sinks::recorder::Recorder;
 use crate::sinks::safe_file::Existing;
@@ -104,6 +107,8 @@ struct Shared {
     writer: ImageWriter,
     stop: AtomicBool,
     finished: AtomicBool,
+    /// The live view's addresses, once it listens.
+    live_view: OnceLock<LiveViewStatus>,
 }
 
 /// The running pipeline. Dropping it stops every thread.
@@ -177,7 +182,9 @@ impl Pipeline {
             writer: ImageWriter::spawn()?,
             stop: AtomicBool::new(false),
             finished: AtomicBool::new(false),
+            live_view: OnceLock::new(),
         });
+        let live_view = start_live_view(&shared, sources.meta.calibration.as_ref())?;
         if let Some(dir) = autostart {
             shared
                 .recorder
@@ -212,6 +219,7 @@ impl Pipeline {
                         live_timers,
                         render: render_stage,
                         outputs,
+                        live_view,
                         exit_at_end: options.exit_at_end,
                     }
                     .run()
@@ -279,6 +287,70 @@ impl Drop for Pipeline {
     }
 }
 
+/// What the live view shows besides frames: the status report and the lighting estimate,
+/// read through a weak reference, so the view never keeps a stopped pipeline alive.
+struct PipelineReports(Weak<Shared>);
+
+impl Reports for PipelineReports {
+    fn status(&self) -> Value {
+        self.0
+            .upgrade()
+            .and_then(|shared| serde_json::to_value(status::report(&shared)).ok())
+            .unwrap_or(Value::Null)
+    }
+
+    fn lighting(&self) -> Option<Value> {
+        let estimate = self.0.upgrade()?.lights.latest()?;
+        serde_json::to_value(&*estimate).ok()
+    }
+}
+
+/// Start the `[live_view]` servers the configuration asks for, and note where they listen.
+fn start_live_view(
+    shared: &Arc<Shared>,
+    calibration: Option<&RigCalibration>,
+) -> anyhow::Result<LiveView> {
+    let settings = lock(&shared.config).live_view.clone();
+    if settings.foxglove.is_none() && settings.page.is_none() {
+        return Ok(LiveView::disabled());
+    }
+    let rig = RigFrames {
+        world_from_board: calibration.map(|c| c.world_from_board),
+        world_from_probe: calibration
+            .filter(|c| c.probe.is_some())
+            .map(|c| c.world_from_probe),
+    };
+    let view = LiveView::start(
+        &settings,
+        rig,
+        Arc::new(PipelineReports(Arc::downgrade(shared))),
+    )
+    .context("[live_view]")?;
+    // Set once, here, before the render thread starts.
+    drop(shared.live_view.set(LiveViewStatus {
+        foxglove: view.foxglove_addr().map(|a| format!("ws://{a}")),
+        page: view.page_addr().map(|a| format!("http://{a}/")),
+    }));
+    Ok(view)
+}
+
+/// A rendered frame for the live view: images are copied (the render thread reuses its own),
+/// streams and the scene shared.
+fn view_frame(set: &FrameSet, frame: &LiveFrame, relit: &RelitFrame) -> ViewFrame {
+    ViewFrame {
+        seq: relit.seq,
+        host_ns: set.stamp.host_ns,
+        composite: relit.composite.clone(),
+        delta: relit.delta.clone(),
+        color: frame.scene.color.clone(),
+        depth: frame.scene.depth.clone(),
+        scene: frame.scene.scene.clone(),
+        world_from_camera: frame.tracking.world_from_camera,
+        markers: set.markers.clone(),
+        lamp: set.lamp.as_ref().map(|lamp| lamp.payload),
+    }
+}
+
 /// The live path's stage timers, filled from each frame's [`LiveTimings`].
 struct LiveTimers {
     tracking: StageTimer,
@@ -320,6 +392,8 @@ struct RenderLoop<'a> {
     live_timers: LiveTimers,
     render: RenderStage,
     outputs: Outputs,
+    /// Owned by the render thread, so its publisher stops before the thread ends.
+    live_view: LiveView,
     exit_at_end: bool,
 }
 
@@ -418,6 +492,10 @@ impl RenderLoop<'_> {
         }
         self.outputs
             .composite(&shared.config, &shared.writer, seq, self.render.relit());
+        if self.live_view.wants_frame() {
+            self.live_view
+                .offer(view_frame(&set, &frame, self.render.relit()));
+        }
         shared
             .counters
             .composite(&set, arrived, self.ingest.is_lossless());

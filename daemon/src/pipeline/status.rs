@@ -257,5 +257,6 @@ pub(super) fn report(shared: &Shared) -> StatusReport {
                 skipped_cells: c.saturated + c.unlit + c.shadowed + c.highlight + c.above_one,
             }
         }),
+        live_view: shared.live_view.get().cloned(),
     }
 }

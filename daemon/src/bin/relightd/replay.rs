@@ -1,5 +1,6 @@
 //! `relightd replay`: a recording through the pipeline without a configuration file (the demo).
 
+use std::net::SocketAddr;
 use std::path::PathBuf;
 
 use anyhow::Result;
@@ -44,6 +45,13 @@ pub struct Args {
     /// real surface comes from the recording's depth).
     #[arg(long)]
     scene: Option<PathBuf>,
+    /// Serve the live view to Foxglove on this address (`127.0.0.1:8765`; port 0 picks one,
+    /// which `relightctl status` shows): open it in Foxglove as a WebSocket connection.
+    #[arg(long, value_name = "ADDR")]
+    live_view: Option<SocketAddr>,
+    /// Serve the read-only browser page on this address (`127.0.0.1:8766`).
+    #[arg(long, value_name = "ADDR")]
+    live_page: Option<SocketAddr>,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -67,6 +75,8 @@ pub fn run(args: Args) -> Result<()> {
     };
     config.engine.name = args.engine;
     config.scene.dir = args.scene;
+    config.live_view.foxglove = args.live_view;
+    config.live_view.page = args.live_page;
     if let Some(socket) = args.socket {
         config.daemon.socket = socket;
     }
