@@ -470,3 +470,70 @@ pub fn scene_update(scene: &Scene, timestamp: Timestamp) -> SceneUpdate {
         ],
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TOPICS: [&str; 9] = [
+        COMPOSITE,
+        COLOR,
+        DELTA,
+        DEPTH,
+        CAMERA_CALIBRATION,
+        TF,
+        SCENE,
+        LIGHTING,
+        STATUS,
+    ];
+
+    /// Every string in the layout that names a topic.
+    fn topics_in(value: &Value, out: &mut Vec<String>) {
+        match value {
+            Value::Object(map) => {
+                for (key, v) in map {
+                    if key.starts_with('/') {
+                        out.push(key.clone());
+                    }
+                    match (key.as_str(), v) {
+                        ("imageTopic" | "calibrationTopic" | "topicPath", Value::String(s)) => {
+                            // A message path: the topic, then `.field`s.
+                            out.push(s.split('.').next().unwrap_or(s).to_owned());
+                        }
+                        _ => topics_in(v, out),
+                    }
+                }
+            }
+            Value::Array(items) => items.iter().for_each(|v| topics_in(v, out)),
+            _ => {}
+        }
+    }
+
+    #[test]
+    fn the_shipped_foxglove_layout_names_only_published_topics() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../docs/foxglove-layout.json");
+        let layout: Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+        let mut topics = Vec::new();
+        topics_in(&layout, &mut topics);
+        assert!(topics.len() >= 5, "{topics:?}");
+        for topic in topics {
+            assert!(TOPICS.contains(&topic.as_str()), "{topic} is not published");
+        }
+    }
+
+    #[test]
+    fn the_calibration_projects_the_image_centre_and_the_field_of_view_edge() {
+        let camera = SceneCamera {
+            world_from_camera: Pose::IDENTITY,
+            yfov_rad: 60f32.to_radians(),
+            width: 160,
+            height: 120,
+        };
+        let calibration = camera_calibration(&camera, Timestamp::new(0, 0));
+        let k = &calibration.k;
+        // A ray at half the vertical field of view lands on the top edge (pixel −0.5).
+        let v = k[4] * -(30f64.to_radians().tan()) + k[5];
+        assert!((v + 0.5).abs() < 1e-3, "{v}");
+        assert_eq!((k[2], k[5]), (79.5, 59.5));
+    }
+}

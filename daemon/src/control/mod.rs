@@ -20,6 +20,6 @@ pub use server::{
 };
 pub use types::{
     AlbedoStatus, ControlError, ControlTarget, DeviceState, DeviceStatus, EngineInfo,
-    FramesSkipped, OutputRequest, Percentiles, RecordingStatus, StageTiming, StatusReport,
-    SyncStreamStatus, TrackingStatus, codes,
+    FramesSkipped, LiveViewStatus, OutputRequest, Percentiles, RecordingStatus, StageTiming,
+    StatusReport, SyncStreamStatus, TrackingStatus, codes,
 };
