@@ -17,7 +17,7 @@ use std::sync::{Arc, Condvar, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 use relight_core::frame::host_now_ns;
-use relight_core::recording::RecordingReader;
+use relight_core::recording::{RecordingReader, TopicMap};
 use relight_core::{StreamKind, StreamMessage, Timestamp};
 
 use crate::device::{Device, DeviceContext, DeviceError, RunEnd};
@@ -103,6 +103,7 @@ impl Backpressure {
 pub struct Replay {
     config: ReplayConfig,
     reader: Option<RecordingReader>,
+    topics: TopicMap,
     streams: Vec<StreamKind>,
     backpressure: Option<Arc<Backpressure>>,
 }
@@ -122,6 +123,7 @@ impl Replay {
         let mut replay = Self {
             config,
             reader: None,
+            topics: TopicMap::default(),
             streams: Vec::new(),
             backpressure: None,
         };
@@ -145,6 +147,16 @@ impl Replay {
 
     pub fn reader(&self) -> Option<&RecordingReader> {
         self.reader.as_ref()
+    }
+
+    /// Read the streams from other topics than relight's own (a bag another tool recorded).
+    pub fn with_topics(mut self, topics: TopicMap) -> Self {
+        if topics != self.topics {
+            self.reader = self.reader.take().map(|r| r.with_topics(topics.clone()));
+            self.topics = topics;
+            self.streams = self.scan_streams();
+        }
+        self
     }
 
     /// In fast mode, publish no further ahead of the consumer than `backpressure` allows.
@@ -210,10 +222,7 @@ impl Device for Replay {
             device: "replay".into(),
             reason: format!("cannot read recording {}: {error}", path.display()),
         })?;
-        for warning in reader.warnings() {
-            tracing::warn!(path = %path.display(), "{warning}");
-        }
-        self.reader = Some(reader);
+        self.reader = Some(reader.with_topics(self.topics.clone()));
         Ok(())
     }
 

@@ -27,6 +27,7 @@ mod print;
 
 use crate::pipeline::tracking::{TrackingConfig, TrackingSource};
 use relight_core::StreamKind;
+use relight_core::recording::{RecordingReader, TopicMap};
 use relight_engines::live_scene::{LightSource, RealGeometry};
 pub use relight_live::{ImageEncoding, LiveViewSettings};
 use serde::Deserialize;
@@ -171,6 +172,9 @@ pub struct ReplayConfig {
     pub loop_playback: bool,
     /// Playback speed factor for `realtime` mode (1.0 = recorded speed).
     pub speed: f64,
+    /// Streams read from another topic than relight's own (`[replay] topics`), for bags other
+    /// tools recorded.
+    pub topics: BTreeMap<StreamKind, String>,
 }
 
 /// How a recording is paced.
@@ -661,6 +665,7 @@ struct RawReplay {
     #[serde(rename = "loop")]
     loop_playback: Option<bool>,
     speed: Option<f64>,
+    topics: Option<BTreeMap<String, String>>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -764,12 +769,24 @@ impl Validator<'_> {
         }
         match &config.source {
             SourceConfig::Replay(replay) => {
-                match relight_core::recording::RecordingReader::open(&replay.path) {
-                    Ok(reader) if reader.messages().next().is_none() => self.error(
-                        "replay.path",
-                        format!("{}: the recording holds no messages", replay.path.display()),
-                    ),
-                    Ok(_) => {}
+                let topics = TopicMap::new(replay.topics.clone());
+                match RecordingReader::open(&replay.path) {
+                    Ok(reader) => {
+                        let reader = reader.with_topics(topics.clone());
+                        if reader.messages().next().is_none() {
+                            let read: Vec<&str> =
+                                StreamKind::ALL.map(|kind| topics.topic(kind)).to_vec();
+                            self.error(
+                                "replay.path",
+                                format!(
+                                    "{}: the recording holds no messages on the streams' topics ({}); its topics are {} (map them to streams with [replay] topics)",
+                                    replay.path.display(),
+                                    read.join(", "),
+                                    reader.topics().join(", "),
+                                ),
+                            );
+                        }
+                    }
                     Err(error) => self.error("replay.path", error.to_string()),
                 }
             }
@@ -1117,11 +1134,42 @@ impl Validator<'_> {
             self.error("replay.speed", format!("must be > 0, got {speed}"));
             ok = false;
         }
+        let mut topics = BTreeMap::new();
+        for (stream, topic) in raw.topics.iter().flatten() {
+            let key = format!("replay.topics.{stream}");
+            match StreamKind::from_name(stream) {
+                None => {
+                    self.error(
+                        &key,
+                        format!(
+                            "not a stream; the streams are {}",
+                            StreamKind::ALL.map(StreamKind::name).join(", ")
+                        ),
+                    );
+                    ok = false;
+                }
+                Some(_) if topic.is_empty() => {
+                    self.error(&key, "must name a topic".to_owned());
+                    ok = false;
+                }
+                Some(kind) => {
+                    if let Some((other, _)) = topics.iter().find(|(_, t)| *t == topic) {
+                        self.error(
+                            &key,
+                            format!("{topic:?} is already the {other} stream's topic"),
+                        );
+                        ok = false;
+                    }
+                    topics.insert(kind, topic.clone());
+                }
+            }
+        }
         Some(ReplayConfig {
             path: path?,
             mode,
             loop_playback: raw.loop_playback.unwrap_or(false),
             speed,
+            topics,
         })
         .filter(|_| ok)
     }

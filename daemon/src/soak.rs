@@ -104,6 +104,7 @@ pub fn run(
         mode: config::ReplayMode::Fast,
         loop_playback: true,
         speed: 1.0,
+        topics: Default::default(),
     });
     config.engine.name.clone_from(first);
     config.scene.dir.clone_from(&settings.scene);

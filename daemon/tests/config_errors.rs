@@ -393,6 +393,39 @@ fn replay_section_is_validated() {
     assert_at(&d, 3, "replay.mode", "\"realtime\", \"fast\", \"stepped\"");
     let d = only_error("[replay]\npath = \"a.mcap\"\nspeed = 0\n");
     assert_at(&d, 3, "replay.speed", "must be > 0, got 0");
+    let d = only_error(
+        "[replay]\npath = \"a.mcap\"\n[replay.topics]\ncolour = \"/camera/color/image_raw\"\n",
+    );
+    assert_at(
+        &d,
+        4,
+        "replay.topics.colour",
+        "not a stream; the streams are depth, color",
+    );
+    let d =
+        only_error("[replay]\npath = \"a.mcap\"\ntopics = { color = \"/c\", depth = \"/c\" }\n");
+    assert!(
+        d.message.contains("already the color stream's topic"),
+        "{d:?}"
+    );
+}
+
+#[test]
+fn replay_topics_map_streams_to_a_bag_s_topics() {
+    let config = parse(
+        "[replay]\npath = \"a.mcap\"\ntopics = { color = \"/camera/color/image_raw\", depth = \"/camera/depth/image_rect_raw\" }\n",
+    )
+    .expect("valid");
+    let SourceConfig::Replay(replay) = &config.source else {
+        panic!("expected a replay");
+    };
+    assert_eq!(
+        replay.topics.get(&StreamKind::Depth).map(String::as_str),
+        Some("/camera/depth/image_rect_raw")
+    );
+    let printed = config.to_toml();
+    let again = parse(&printed).expect("the printed configuration parses");
+    assert_eq!(again.source, config.source, "{printed}");
 }
 
 #[test]

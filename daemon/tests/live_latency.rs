@@ -23,6 +23,7 @@ fn replay_config(mode: ReplayMode) -> Config {
             mode,
             loop_playback: false,
             speed: 1.0,
+            topics: Default::default(),
         }),
         ..Config::default()
     }

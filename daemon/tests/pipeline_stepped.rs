@@ -15,6 +15,7 @@ fn stepped_config(dir: &Path) -> Config {
             mode: ReplayMode::Stepped,
             loop_playback: false,
             speed: 1.0,
+            topics: Default::default(),
         }),
         ..Config::default()
     };

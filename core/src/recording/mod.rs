@@ -64,6 +64,16 @@
 //! `relight.calibration` metadata record (and in the `calibration.toml` attachment), so
 //! `mcap get metadata --name relight.calibration` recovers it.
 //!
+//! # Reading other tools' bags
+//!
+//! A file without the `relight.recording` metadata is another tool's bag (rosbag2, a driver's
+//! recorder). Its streams are found by topic through a [`TopicMap`]
+//! ([`RecordingReader::with_topics`]); its images may also be `bgr8`, `rgba8` or `bgra8`
+//! (read as `rgb8`); the device time comes from each image's `header.stamp`, and messages are
+//! numbered per channel in log-time order, since such bags leave MCAP's `sequence` at 0. Its
+//! cameras come from the `sensor_msgs/msg/CameraInfo` topics beside the images
+//! ([`camera_info`], [`RecordingReader::calibration_from_camera_info`]).
+//!
 //! # Reading damaged files
 //!
 //! [`RecordingReader`] loads the whole file with `std::fs::read` (no memory map) and walks its
@@ -72,6 +82,7 @@
 //! [`RecordingError::CorruptChunk`], and a file cut off mid-write yields every message of every
 //! complete chunk plus a warning saying where it was cut.
 
+pub mod camera_info;
 mod reader;
 pub mod salvage;
 pub mod schema;
@@ -81,7 +92,7 @@ mod writer;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-pub use reader::{ChunkInfo, Messages, Recorded, RecordingReader};
+pub use reader::{CameraInfoMessage, ChunkInfo, Messages, Recorded, RecordingReader};
 pub use writer::{RecordingCompression, RecordingOptions, RecordingWriter};
 
 use crate::rig::{RigCalibration, RigCalibrationError};
@@ -110,11 +121,35 @@ pub fn topic(kind: StreamKind) -> &'static str {
     }
 }
 
-/// The stream recorded on an MCAP topic, if it is one of relight's.
-pub fn stream_of_topic(topic: &str) -> Option<StreamKind> {
-    StreamKind::ALL
-        .into_iter()
-        .find(|&kind| self::topic(kind) == topic)
+/// Which topic each stream is read from: relight's own ([`topic`]) unless remapped, as for a
+/// bag another rig recorded (`[replay] topics = { color = "/camera/color/image_raw" }`). A
+/// remapped stream is read only from its new topic.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct TopicMap {
+    remapped: BTreeMap<StreamKind, String>,
+}
+
+impl TopicMap {
+    pub fn new(remapped: BTreeMap<StreamKind, String>) -> Self {
+        Self { remapped }
+    }
+
+    /// The topic `kind` is read from.
+    pub fn topic(&self, kind: StreamKind) -> &str {
+        self.remapped.get(&kind).map_or(topic(kind), String::as_str)
+    }
+
+    /// The stream read from `topic`, if any.
+    pub fn stream_of(&self, topic: &str) -> Option<StreamKind> {
+        StreamKind::ALL
+            .into_iter()
+            .find(|&kind| self.topic(kind) == topic)
+    }
+
+    /// The streams whose topic is not relight's own.
+    pub fn remapped(&self) -> &BTreeMap<StreamKind, String> {
+        &self.remapped
+    }
 }
 
 /// The fixed MCAP channel ID of a stream (1 to 5, in [`StreamKind::ALL`] order).

@@ -15,12 +15,14 @@ use std::sync::Arc;
 use mcap::records::{ChunkHeader, MessageHeader, Record, op};
 use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
+use super::camera_info::{camera_info_topic, decode_camera_info};
 use super::schema::{self, CDR_MESSAGE_ENCODING, JSON_MESSAGE_ENCODING};
 use super::truth::{self, TruthKind, TruthMessage};
 use super::{
     CALIBRATION_ATTACHMENT, CALIBRATION_KEY, CALIBRATION_METADATA, RECORDING_METADATA,
-    RecordingError, RecordingMeta, channel_id, stream_of_topic, topic,
+    RecordingError, RecordingMeta, TopicMap, channel_id, topic,
 };
+use crate::camera::CameraModel;
 use crate::frame::{Frame, Timestamp};
 use crate::rig::RigCalibration;
 use crate::stream::{ProbeImage, StreamKind, StreamMessage};
@@ -55,6 +57,9 @@ pub struct ChannelInfo {
     topic: String,
     message_encoding: String,
     stream: Option<StreamKind>,
+    /// Written by another tool than relight: `header.stamp` is the device clock, and MCAP's
+    /// `sequence` means nothing (rosbag2 writes 0).
+    foreign: bool,
 }
 
 /// A unit the message iterator loads at once: a chunk, a chunk whose header did not parse, or a
@@ -121,6 +126,9 @@ pub struct RecordingReader {
     blocks: Vec<Block>,
     channels: HashMap<u16, ChannelInfo>,
     summary_present: bool,
+    topics: TopicMap,
+    /// Whether relight wrote the file (its `relight.recording` metadata is there).
+    relight_layout: bool,
 }
 
 impl fmt::Debug for RecordingReader {
@@ -159,9 +167,75 @@ impl RecordingReader {
             blocks: Vec::new(),
             channels: HashMap::new(),
             summary_present: false,
+            topics: TopicMap::default(),
+            relight_layout: false,
         };
         reader.index()?;
         Ok(reader)
+    }
+
+    /// Read the streams from the topics `topics` names instead of relight's own.
+    pub fn with_topics(mut self, topics: TopicMap) -> Self {
+        self.topics = topics;
+        for info in self.channels.values_mut() {
+            info.stream = self.topics.stream_of(&info.topic);
+        }
+        self
+    }
+
+    /// Every channel's topic, sorted, once each.
+    pub fn topics(&self) -> Vec<String> {
+        let mut topics: Vec<String> = self.channels.values().map(|c| c.topic.clone()).collect();
+        topics.sort();
+        topics.dedup();
+        topics
+    }
+
+    /// Whether relight wrote the recording (else it is another tool's bag, read by topic).
+    pub fn is_relight_recording(&self) -> bool {
+        self.relight_layout
+    }
+
+    /// The camera that `kind`'s image topic's `sensor_msgs/msg/CameraInfo` describes (its
+    /// first decodable message on [`camera_info_topic`]), as ROS drivers publish beside each
+    /// image; `None` when the recording has none. Reads up to that message.
+    pub fn camera_info(&self, kind: StreamKind) -> Option<Result<CameraModel, RecordingError>> {
+        let wanted = camera_info_topic(self.topics.topic(kind));
+        self.iterate::<CameraInfoMessage>()
+            .filter(|message| match message {
+                Ok(message) => message.topic == wanted,
+                Err(RecordingError::Decode { channel, .. }) => *channel == wanted,
+                Err(_) => false,
+            })
+            .map(|message| message.map(|m| m.camera))
+            .next()
+    }
+
+    /// For a bag without relight's calibration: the colour and depth cameras from their
+    /// camera-info topics ([`camera_info`](Self::camera_info)); `None` when it has neither.
+    /// Nothing else of a rig is in such a bag, so the depth is taken as registered to the colour
+    /// camera (`color_from_depth` identity), and there is no probe, board or response.
+    pub fn calibration_from_camera_info(&self) -> Result<Option<RigCalibration>, RecordingError> {
+        let color = self.camera_info(StreamKind::Color).transpose()?;
+        let depth = self.camera_info(StreamKind::Depth).transpose()?;
+        if color.is_none() && depth.is_none() {
+            return Ok(None);
+        }
+        Ok(Some(RigCalibration {
+            name: "camera_info".into(),
+            color,
+            depth,
+            ..RigCalibration::default()
+        }))
+    }
+
+    fn channel_info(&self, topic: &str, message_encoding: &str) -> ChannelInfo {
+        ChannelInfo {
+            topic: topic.to_owned(),
+            message_encoding: message_encoding.to_owned(),
+            stream: self.topics.stream_of(topic),
+            foreign: !self.relight_layout,
+        }
     }
 
     pub fn meta(&self) -> &RecordingMeta {
@@ -217,6 +291,7 @@ impl RecordingReader {
             pending: BinaryHeap::new(),
             channels: self.channels.clone(),
             serial: 0,
+            foreign_seq: HashMap::new(),
             decoded: std::marker::PhantomData,
         }
     }
@@ -278,6 +353,7 @@ impl RecordingReader {
         pos = header_body.end;
 
         let mut metadata: BTreeMap<String, BTreeMap<String, String>> = BTreeMap::new();
+        let mut channels: BTreeMap<u16, (String, String)> = BTreeMap::new();
         let mut calibration_attachment: Option<Range<usize>> = None;
         let mut chunk_count = 0usize;
         let mut data_end_seen = false;
@@ -343,9 +419,9 @@ impl RecordingReader {
                 },
                 op::CHANNEL => match parse_record(opcode, body) {
                     Ok(Record::Channel(channel)) => {
-                        self.channels.entry(channel.id).or_insert_with(|| {
-                            channel_info(&channel.topic, &channel.message_encoding)
-                        });
+                        channels
+                            .entry(channel.id)
+                            .or_insert((channel.topic, channel.message_encoding));
                     }
                     Ok(_) => {}
                     Err(e) => corrupt(e.to_string()),
@@ -407,14 +483,18 @@ impl RecordingReader {
             }
         }
 
+        self.relight_layout = metadata.contains_key(RECORDING_METADATA);
+        for (id, (topic, encoding)) in channels {
+            let info = self.channel_info(&topic, &encoding);
+            self.channels.insert(id, info);
+        }
         // A relight recording uses fixed channel IDs, so its messages stay readable when the
         // chunk holding the Channel records is lost.
-        if metadata.contains_key(RECORDING_METADATA) {
+        if self.relight_layout {
             for kind in StreamKind::ALL {
                 let schema = schema::channel_schema(kind);
-                self.channels
-                    .entry(channel_id(kind))
-                    .or_insert_with(|| channel_info(topic(kind), schema.message_encoding));
+                let info = self.channel_info(topic(kind), schema.message_encoding);
+                self.channels.entry(channel_id(kind)).or_insert(info);
             }
             for kind in TruthKind::ALL {
                 let encoding = if kind == TruthKind::State {
@@ -422,9 +502,8 @@ impl RecordingReader {
                 } else {
                     CDR_MESSAGE_ENCODING
                 };
-                self.channels
-                    .entry(kind.channel_id())
-                    .or_insert_with(|| channel_info(kind.topic(), encoding));
+                let info = self.channel_info(kind.topic(), encoding);
+                self.channels.entry(kind.channel_id()).or_insert(info);
             }
         }
 
@@ -682,14 +761,6 @@ fn opcode_name(opcode: u8) -> &'static str {
     }
 }
 
-fn channel_info(topic: &str, message_encoding: &str) -> ChannelInfo {
-    ChannelInfo {
-        topic: topic.to_owned(),
-        message_encoding: message_encoding.to_owned(),
-        stream: stream_of_topic(topic),
-    }
-}
-
 fn chunk_info(index: usize, offset: usize, end_offset: usize, header: &ChunkHeader) -> ChunkInfo {
     // Chunk body: start, end, uncompressed size (3 × u64), crc (u32), compression (u32 length
     // + bytes), compressed size (u64), then the compressed bytes.
@@ -900,6 +971,8 @@ pub struct Messages<'a, T = StreamMessage> {
     pending: BinaryHeap<Pending>,
     channels: HashMap<u16, ChannelInfo>,
     serial: u64,
+    /// Per channel of a foreign bag: the messages handed out so far, their sequence numbers.
+    foreign_seq: HashMap<u16, u32>,
     decoded: std::marker::PhantomData<T>,
 }
 
@@ -985,8 +1058,9 @@ impl<'a, T: Recorded> Messages<'a, T> {
                 for record in records {
                     match record {
                         Record::Channel(channel) => {
+                            let reader = self.reader;
                             self.channels.entry(channel.id).or_insert_with(|| {
-                                channel_info(&channel.topic, &channel.message_encoding)
+                                reader.channel_info(&channel.topic, &channel.message_encoding)
                             });
                         }
                         Record::Message { header, data } => {
@@ -1001,8 +1075,8 @@ impl<'a, T: Recorded> Messages<'a, T> {
     }
 
     /// Decode one message; `None` for messages on topics this iterator does not read.
-    fn decode(&self, pending: Pending) -> Option<Result<T, RecordingError>> {
-        let header = pending.header;
+    fn decode(&mut self, pending: Pending) -> Option<Result<T, RecordingError>> {
+        let mut header = pending.header;
         let data: &[u8] = match &pending.data {
             PendingData::Owned(data) => data,
             PendingData::InFile(range) => self.reader.bytes.get(range.clone()).unwrap_or_default(),
@@ -1014,6 +1088,11 @@ impl<'a, T: Recorded> Messages<'a, T> {
                 reason: "no Channel record describes this channel".into(),
             }));
         };
+        if channel.foreign {
+            let count = self.foreign_seq.entry(header.channel_id).or_insert(0);
+            header.sequence = *count;
+            *count = count.wrapping_add(1);
+        }
         let decoded = T::decode(channel, &header, data)?;
         Some(decoded.map_err(|reason| RecordingError::Decode {
             channel: channel.topic.clone(),
@@ -1044,12 +1123,33 @@ impl Recorded for StreamMessage {
             tracing::trace!(topic = %channel.topic, "skipping message of another topic");
             return None;
         };
-        Some(decode_message(
-            stream,
-            &channel.message_encoding,
-            header,
-            data,
-        ))
+        Some(decode_message(stream, channel, header, data))
+    }
+}
+
+/// A `sensor_msgs/msg/CameraInfo` message, on a topic ending in `camera_info`
+/// ([`RecordingReader::camera_info`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraInfoMessage {
+    pub topic: String,
+    pub camera: CameraModel,
+}
+
+impl Recorded for CameraInfoMessage {
+    fn decode(
+        channel: &ChannelInfo,
+        _header: &MessageHeader,
+        data: &[u8],
+    ) -> Option<Result<Self, String>> {
+        if !channel.topic.ends_with("camera_info")
+            || channel.message_encoding != CDR_MESSAGE_ENCODING
+        {
+            return None;
+        }
+        Some(decode_camera_info(data).map(|camera| CameraInfoMessage {
+            topic: channel.topic.clone(),
+            camera,
+        }))
     }
 }
 
@@ -1085,13 +1185,15 @@ impl Recorded for TruthMessage {
 }
 
 /// Turn one message back into a [`StreamMessage`] (inverse of the writer; see the module docs).
+/// A foreign bag's image takes its device time from `header.stamp`, the driver's clock.
 fn decode_message(
     stream: StreamKind,
-    message_encoding: &str,
+    channel: &ChannelInfo,
     header: &MessageHeader,
     data: &[u8],
 ) -> Result<StreamMessage, String> {
-    let stamp = Timestamp::new(header.publish_time, header.log_time);
+    let message_encoding = channel.message_encoding.as_str();
+    let mut stamp = Timestamp::new(header.publish_time, header.log_time);
     let short_seq = u64::from(header.sequence);
     let expect_encoding = |expected: &str| {
         if message_encoding == expected {
@@ -1106,7 +1208,12 @@ fn decode_message(
         StreamKind::Depth | StreamKind::Color | StreamKind::Probe => {
             expect_encoding(CDR_MESSAGE_ENCODING)?;
             let decoded = schema::decode_image(data)?;
-            let (_, extras) = schema::parse_frame_id(&decoded.frame_id)?;
+            let extras = if channel.foreign {
+                stamp.device_ns = decoded.stamp_ns;
+                schema::FrameIdExtras::default()
+            } else {
+                schema::parse_frame_id(&decoded.frame_id)?.1
+            };
             let seq = extras.seq.unwrap_or(short_seq);
             Ok(match stream {
                 StreamKind::Depth => {

@@ -223,13 +223,13 @@ pub fn parse_frame_id(frame_id: &str) -> Result<(&str, FrameIdExtras), String> {
 const CDR_LE_HEADER: [u8; 4] = [0x00, 0x01, 0x00, 0x00];
 
 /// Appends CDR fields, aligning each to its size relative to the end of the encapsulation header.
-struct CdrWriter<'a> {
+pub(super) struct CdrWriter<'a> {
     out: &'a mut Vec<u8>,
     body_start: usize,
 }
 
 impl<'a> CdrWriter<'a> {
-    fn new(out: &'a mut Vec<u8>) -> Self {
+    pub(super) fn new(out: &'a mut Vec<u8>) -> Self {
         out.extend_from_slice(&CDR_LE_HEADER);
         let body_start = out.len();
         Self { out, body_start }
@@ -241,22 +241,35 @@ impl<'a> CdrWriter<'a> {
         self.out.resize(self.out.len() + padding, 0);
     }
 
-    fn u8(&mut self, value: u8) {
+    pub(super) fn u8(&mut self, value: u8) {
         self.out.push(value);
     }
 
-    fn u32(&mut self, value: u32) {
+    pub(super) fn u32(&mut self, value: u32) {
         self.align(4);
         self.out.extend_from_slice(&value.to_le_bytes());
     }
 
-    fn i32(&mut self, value: i32) {
+    pub(super) fn i32(&mut self, value: i32) {
         self.align(4);
         self.out.extend_from_slice(&value.to_le_bytes());
+    }
+
+    pub(super) fn f64(&mut self, value: f64) {
+        self.align(8);
+        self.out.extend_from_slice(&value.to_le_bytes());
+    }
+
+    /// `header.stamp` (seconds saturating at `i32::MAX`, nanoseconds) and `header.frame_id`.
+    pub(super) fn header(&mut self, stamp_ns: u64, frame_id: &str) -> Result<(), String> {
+        let sec = i32::try_from(stamp_ns / 1_000_000_000).unwrap_or(i32::MAX);
+        self.i32(sec);
+        self.u32((stamp_ns % 1_000_000_000) as u32);
+        self.string(frame_id)
     }
 
     /// A CDR string: length including the terminating NUL, bytes, NUL.
-    fn string(&mut self, value: &str) -> Result<(), String> {
+    pub(super) fn string(&mut self, value: &str) -> Result<(), String> {
         let len = u32::try_from(value.len() + 1)
             .map_err(|_| format!("string of {} bytes is too long for CDR", value.len()))?;
         self.u32(len);
@@ -267,13 +280,13 @@ impl<'a> CdrWriter<'a> {
 }
 
 /// Reads CDR fields with bounds checks; every failure is a reason string.
-struct CdrReader<'a> {
+pub(super) struct CdrReader<'a> {
     body: &'a [u8],
     pos: usize,
 }
 
 impl<'a> CdrReader<'a> {
-    fn new(data: &'a [u8]) -> Result<Self, String> {
+    pub(super) fn new(data: &'a [u8]) -> Result<Self, String> {
         let (header, body) = data
             .split_first_chunk::<4>()
             .ok_or_else(|| format!("{} bytes is too short for a CDR header", data.len()))?;
@@ -305,23 +318,39 @@ impl<'a> CdrReader<'a> {
         self.pos += (size - self.pos % size) % size;
     }
 
-    fn u8(&mut self) -> Result<u8, String> {
+    pub(super) fn u8(&mut self) -> Result<u8, String> {
         let bytes = self.take(1)?;
         Ok(bytes.first().copied().unwrap_or_default())
     }
 
-    fn u32(&mut self) -> Result<u32, String> {
+    pub(super) fn u32(&mut self) -> Result<u32, String> {
         self.align(4);
         let bytes = self.take(4)?;
         let array: [u8; 4] = bytes.try_into().map_err(|_| "short u32".to_string())?;
         Ok(u32::from_le_bytes(array))
     }
 
-    fn i32(&mut self) -> Result<i32, String> {
+    pub(super) fn i32(&mut self) -> Result<i32, String> {
         self.u32().map(|v| v as i32)
     }
 
-    fn string(&mut self, field: &str) -> Result<&'a str, String> {
+    pub(super) fn f64(&mut self) -> Result<f64, String> {
+        self.align(8);
+        let bytes = self.take(8)?;
+        let array: [u8; 8] = bytes.try_into().map_err(|_| "short f64".to_string())?;
+        Ok(f64::from_le_bytes(array))
+    }
+
+    /// `header.stamp` in ns (negative seconds clamp to 0) and `header.frame_id`.
+    pub(super) fn header(&mut self) -> Result<(u64, &'a str), String> {
+        let sec = self.i32()?;
+        let nanosec = self.u32()?;
+        let frame_id = self.string("header.frame_id")?;
+        let stamp_ns = u64::try_from(sec).unwrap_or(0) * 1_000_000_000 + u64::from(nanosec);
+        Ok((stamp_ns, frame_id))
+    }
+
+    pub(super) fn string(&mut self, field: &str) -> Result<&'a str, String> {
         let len = self.u32()? as usize;
         let bytes = self.take(len)?;
         let text = match bytes.split_last() {
@@ -351,10 +380,7 @@ pub fn encode_image(
     out.reserve(data_len + 64 + frame_id.len());
 
     let mut cdr = CdrWriter::new(out);
-    let sec = i32::try_from(stamp_ns / 1_000_000_000).unwrap_or(i32::MAX);
-    cdr.i32(sec);
-    cdr.u32((stamp_ns % 1_000_000_000) as u32);
-    cdr.string(frame_id)?;
+    cdr.header(stamp_ns, frame_id)?;
     cdr.u32(image.height());
     cdr.u32(image.width());
     cdr.string(format.ros_encoding())?;
@@ -397,12 +423,13 @@ pub struct DecodedImage {
 }
 
 /// Decode a CDR `sensor_msgs/msg/Image`. Rows padded beyond the packed width (`step` larger than
-/// width × bytes per pixel, as some drivers write) are repacked.
+/// width × bytes per pixel, as some drivers write) are repacked. Besides relight's own
+/// encodings ([`PixelFormat::ros_encoding`]) it reads the colour encodings other ROS drivers
+/// write, `bgr8`, `rgba8` and `bgra8`, as [`PixelFormat::Rgb8`] (alpha dropped).
 pub fn decode_image(data: &[u8]) -> Result<DecodedImage, String> {
     let mut cdr = CdrReader::new(data)?;
-    let sec = cdr.i32()?;
-    let nanosec = cdr.u32()?;
-    let frame_id = cdr.string("header.frame_id")?.to_owned();
+    let (stamp_ns, frame_id) = cdr.header()?;
+    let frame_id = frame_id.to_owned();
     let height = cdr.u32()?;
     let width = cdr.u32()?;
     let encoding = cdr.string("encoding")?;
@@ -411,12 +438,21 @@ pub fn decode_image(data: &[u8]) -> Result<DecodedImage, String> {
     let data_len = cdr.u32()? as usize;
     let pixel_bytes = cdr.take(data_len)?;
 
-    let format = PixelFormat::from_ros_encoding(encoding)
-        .ok_or_else(|| format!("unsupported image encoding `{encoding}`"))?;
+    let (format, source) = match PixelFormat::from_ros_encoding(encoding) {
+        Some(format) => (format, None),
+        None => (
+            PixelFormat::Rgb8,
+            Some(
+                ForeignColour::of(encoding)
+                    .ok_or_else(|| format!("unsupported image encoding `{encoding}`"))?,
+            ),
+        ),
+    };
     if is_bigendian != 0 && format.bytes_per_pixel() > 1 {
         return Err("big-endian pixel data is not supported".into());
     }
-    let stride = width as usize * format.bytes_per_pixel();
+    let source_bpp = source.map_or(format.bytes_per_pixel(), |s| s.bytes_per_pixel);
+    let stride = width as usize * source_bpp;
     let rows = height as usize;
     let needed = step
         .checked_mul(rows.saturating_sub(1))
@@ -428,30 +464,61 @@ pub fn decode_image(data: &[u8]) -> Result<DecodedImage, String> {
             pixel_bytes.len()
         ));
     }
-    let image = if step == stride {
-        Image::from_bytes(
+    let row_bytes = || {
+        pixel_bytes
+            .chunks(step.max(1))
+            .take(rows)
+            .map(|row| row.get(..stride).unwrap_or_default())
+    };
+    let image = match source {
+        Some(colour) => {
+            let packed: Vec<u8> = row_bytes()
+                .flat_map(|row| row.chunks_exact(colour.bytes_per_pixel))
+                .flat_map(|pixel| colour.rgb.map(|c| pixel.get(c).copied().unwrap_or(0)))
+                .collect();
+            Image::from_bytes(width, height, format, &packed)
+        }
+        None if step == stride => Image::from_bytes(
             width,
             height,
             format,
             pixel_bytes.get(..needed).unwrap_or_default(),
-        )
-    } else {
-        let packed: Vec<u8> = pixel_bytes
-            .chunks(step)
-            .take(rows)
-            .flat_map(|row| row.get(..stride).unwrap_or_default())
-            .copied()
-            .collect();
-        Image::from_bytes(width, height, format, &packed)
+        ),
+        None => {
+            let packed: Vec<u8> = row_bytes().flatten().copied().collect();
+            Image::from_bytes(width, height, format, &packed)
+        }
     }
     .map_err(|e| e.to_string())?;
 
-    let stamp_ns = u64::try_from(sec).unwrap_or(0) * 1_000_000_000 + u64::from(nanosec);
     Ok(DecodedImage {
         stamp_ns,
         frame_id,
         image,
     })
+}
+
+/// An 8-bit colour encoding of other ROS drivers, read into `rgb8`.
+#[derive(Debug, Clone, Copy)]
+struct ForeignColour {
+    bytes_per_pixel: usize,
+    /// Where red, green and blue lie in a pixel.
+    rgb: [usize; 3],
+}
+
+impl ForeignColour {
+    fn of(encoding: &str) -> Option<Self> {
+        let (bytes_per_pixel, rgb) = match encoding {
+            "bgr8" => (3, [2, 1, 0]),
+            "rgba8" => (4, [0, 1, 2]),
+            "bgra8" => (4, [2, 1, 0]),
+            _ => return None,
+        };
+        Some(Self {
+            bytes_per_pixel,
+            rgb,
+        })
+    }
 }
 
 #[derive(Serialize)]
@@ -631,6 +698,42 @@ mod tests {
                 "prefix of {len} bytes decoded"
             );
         }
+    }
+
+    /// Other drivers' colour encodings, with rows padded past the packed width, read as rgb8.
+    #[test]
+    fn foreign_colour_encodings_read_as_rgb8() {
+        let (width, height) = (2u32, 2u32);
+        for (encoding, bytes_per_pixel, rgb) in [
+            ("bgr8", 3, [2, 1, 0]),
+            ("rgba8", 4, [0, 1, 2]),
+            ("bgra8", 4, [2, 1, 0]),
+        ] {
+            let step = width as usize * bytes_per_pixel + 3;
+            let pixels: Vec<u8> = (0..step * height as usize).map(|i| i as u8).collect();
+            let mut out = Vec::new();
+            let mut cdr = CdrWriter::new(&mut out);
+            cdr.header(5, "camera_color_optical_frame").unwrap();
+            cdr.u32(height);
+            cdr.u32(width);
+            cdr.string(encoding).unwrap();
+            cdr.u8(0);
+            cdr.u32(step as u32);
+            cdr.u32(pixels.len() as u32);
+            out.extend_from_slice(&pixels);
+            let decoded = decode_image(&out).unwrap();
+            assert_eq!(decoded.image.format(), PixelFormat::Rgb8);
+            let expected: Vec<u8> = (0..height as usize)
+                .flat_map(|y| (0..width as usize).map(move |x| y * step + x * bytes_per_pixel))
+                .flat_map(|at| rgb.map(|c| (at + c) as u8))
+                .collect();
+            assert_eq!(decoded.image.as_u8().unwrap(), expected, "{encoding}");
+        }
+        let mut out = Vec::new();
+        encode_image(&mut out, 0, "c", &Image::new(1, 1, PixelFormat::Rgb8)).unwrap();
+        let at = out.windows(4).position(|w| w == b"rgb8").unwrap();
+        out[at..at + 4].copy_from_slice(b"yuv8");
+        assert!(decode_image(&out).unwrap_err().contains("`yuv8`"));
     }
 
     #[test]

@@ -76,6 +76,20 @@ impl Config {
                         ("mode", Some(Value::String(replay.mode.name().into()))),
                         ("loop", Some(Value::Boolean(replay.loop_playback))),
                         ("speed", Some(Value::Float(replay.speed))),
+                        (
+                            "topics",
+                            (!replay.topics.is_empty()).then(|| {
+                                Value::Table(
+                                    replay
+                                        .topics
+                                        .iter()
+                                        .map(|(stream, topic)| {
+                                            (stream.name().to_owned(), Value::String(topic.clone()))
+                                        })
+                                        .collect(),
+                                )
+                            }),
+                        ),
                     ]),
                 );
             }

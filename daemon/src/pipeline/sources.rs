@@ -9,7 +9,9 @@ use relight_backends::device::{Backoff, Stepper};
 use relight_backends::{Backpressure, Device as _, DeviceRunner, Replay, ReplayConfig, ReplayMode};
 use relight_core::StreamKind;
 use relight_core::bus::Bus;
-use relight_core::recording::RecordingMeta;
+use relight_core::camera::CameraModel;
+use relight_core::recording::{RecordingMeta, RecordingReader, TopicMap};
+use relight_core::rig::RigCalibration;
 use relight_core::sync::SyncConfig as CoreSyncConfig;
 use relight_sim::device::{SimDevice, SimSourceConfig};
 use std::sync::Arc;
@@ -75,6 +77,33 @@ pub fn expect_only_recorded_streams(
     }
 }
 
+/// The rig calibration a recording carries: relight's own, or for another tool's bag the
+/// cameras its `camera_info` topics describe (depth taken as registered to colour).
+fn recording_calibration(reader: &RecordingReader, path: &Path) -> Option<RigCalibration> {
+    if let Some(calibration) = &reader.meta().calibration {
+        return Some(calibration.clone());
+    }
+    match reader.calibration_from_camera_info() {
+        Ok(Some(calibration)) => {
+            tracing::info!(path = %path.display(), "no relight calibration in the recording: the cameras are its camera_info topics'");
+            let sizes = |c: &Option<CameraModel>| c.map(|c| (c.width(), c.height()));
+            if calibration.depth.is_some() && sizes(&calibration.depth) != sizes(&calibration.color)
+            {
+                tracing::warn!(path = %path.display(), "depth and colour differ in size: relight takes depth as registered to the colour camera; replay an aligned depth topic or give [rig] calibration");
+            }
+            Some(calibration)
+        }
+        Ok(None) => {
+            tracing::warn!(path = %path.display(), "the recording has no calibration and no camera_info topics: give [rig] calibration");
+            None
+        }
+        Err(error) => {
+            tracing::warn!(path = %path.display(), %error, "camera_info does not decode: give [rig] calibration");
+            None
+        }
+    }
+}
+
 /// Open and start what `config` names, publishing to `bus`.
 pub fn start(config: &Config, bus: &Arc<Bus>) -> anyhow::Result<Sources> {
     let mut meta = RecordingMeta {
@@ -98,7 +127,8 @@ pub fn start(config: &Config, bus: &Arc<Bus>) -> anyhow::Result<Sources> {
                 },
                 looping: replay.loop_playback,
             })
-            .with_context(|| format!("{}: [replay]", config.path.display()))?;
+            .with_context(|| format!("{}: [replay]", config.path.display()))?
+            .with_topics(TopicMap::new(replay.topics.clone()));
             let device = match replay.mode {
                 config::ReplayMode::Fast => {
                     let gate = Backpressure::new(config.sync.reference, FAST_REPLAY_WINDOW);
@@ -107,7 +137,12 @@ pub fn start(config: &Config, bus: &Arc<Bus>) -> anyhow::Result<Sources> {
                 }
                 _ => device,
             };
-            meta.calibration = device.reader().and_then(|r| r.meta().calibration.clone());
+            meta.calibration = match device.reader() {
+                Some(reader) if config.rig.calibration.is_none() => {
+                    recording_calibration(reader, &replay.path)
+                }
+                _ => None,
+            };
             expect_only_recorded_streams(&mut sync, &device.streams(), &replay.path);
             runners.push(DeviceRunner::spawn(
                 "replay",

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::ValueEnum;
+use relight_core::StreamKind;
 use relight_daemon::config::{self, Config, OutputConfig, ReplayConfig, SourceConfig};
 use relight_daemon::pipeline::PipelineOptions;
 
@@ -52,6 +53,26 @@ pub struct Args {
     /// Serve the read-only browser page on this address (`127.0.0.1:8766`).
     #[arg(long, value_name = "ADDR")]
     live_page: Option<SocketAddr>,
+    /// Read a stream from another topic, for a bag another tool recorded (repeatable):
+    /// `--topic color=/camera/color/image_raw --topic depth=/camera/depth/image_rect_raw`.
+    #[arg(long = "topic", value_name = "STREAM=TOPIC", value_parser = stream_topic)]
+    topics: Vec<(StreamKind, String)>,
+}
+
+fn stream_topic(text: &str) -> Result<(StreamKind, String), String> {
+    let (stream, topic) = text
+        .split_once('=')
+        .ok_or_else(|| format!("`{text}` is not STREAM=TOPIC"))?;
+    let kind = StreamKind::from_name(stream).ok_or_else(|| {
+        format!(
+            "`{stream}` is not a stream; the streams are {}",
+            StreamKind::ALL.map(StreamKind::name).join(", ")
+        )
+    })?;
+    if topic.is_empty() {
+        return Err(format!("`{text}` names no topic"));
+    }
+    Ok((kind, topic.to_owned()))
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -66,6 +87,7 @@ pub fn run(args: Args) -> Result<()> {
             },
             loop_playback: args.looping,
             speed: args.speed,
+            topics: args.topics.into_iter().collect(),
         }),
         output: OutputConfig {
             dir: args.output,
