@@ -11,8 +11,9 @@ use relight_core::StreamKind;
 use relight_daemon::control::{
     AlbedoStatus, Client, ClientError, ControlError, ControlServer, ControlServerHandle,
     ControlTarget, DeviceState, DeviceStatus, EngineInfo, FramesSkipped, LightsBoard,
-    OutputRequest, PeerCred, Percentiles, RecordingStatus, ServerError, ServerOptions, StageTiming,
-    StatusReport, SyncStreamStatus, TrackingStatus, codes, peer_allowed,
+    LiveViewStatus, OutputRequest, PeerCred, Percentiles, RecordingStatus, ServerError,
+    ServerOptions, StageTiming, StatusReport, SyncStreamStatus, TrackingStatus, codes,
+    peer_allowed,
 };
 use relight_daemon::pipeline::tracking::TrackingState;
 use serde_json::{Map, Value, json};
@@ -102,6 +103,10 @@ fn sample_status(engine: &str, recording: Option<PathBuf>) -> StatusReport {
             measured_vertices: 3667,
             vertices: 4494,
             skipped_cells: 827,
+        }),
+        live_view: Some(LiveViewStatus {
+            foxglove: Some("ws://127.0.0.1:8765".into()),
+            page: Some("http://127.0.0.1:8080/".into()),
         }),
     }
 }
@@ -896,6 +901,10 @@ fn relightctl_exit_codes_and_output() {
         stage_row.contains("4.25") && stage_row.contains("7.50"),
         "{out}"
     );
+    assert!(
+        out.contains("live view   ws://127.0.0.1:8765, http://127.0.0.1:8080/"),
+        "{out}"
+    );
 
     let (code, out, err) = relightctl(&fx.socket, &["--json", "engine", "list"]);
     assert_eq!(code, 0, "{err}");
@@ -994,6 +1003,7 @@ fn lamp_estimate(intensity: f32, extra: usize) -> relight_recon::estimate::Light
     lights.extend(std::iter::repeat_n(dim, extra));
     relight_recon::estimate::LightingEstimate::from_lights(
         lights,
+        0,
         relight_core::sh::Sh9Rgb::ZERO,
         None,
         glam::Vec3::ZERO,
@@ -1210,6 +1220,35 @@ fn relightctl_lights_get_and_watch() {
         "{out}"
     );
     assert!(out.contains(r#""type":"point""#), "{out}");
+
+    // For Unity: the lamp 1 m above, 2 W/m², is the main light, travelling down (x mirrored,
+    // nothing to mirror), `color · intensity` = E / π; with it taken out, the ambient probe is
+    // empty. For three.js: the intensity is the irradiance, the probe 27 floats.
+    let (code, out, err) = relightctl(&fx.socket, &["lights", "get", "--as", "unity"]);
+    assert_eq!(code, 0, "{err}");
+    let unity: Value = serde_json::from_str(&out).expect("JSON");
+    let intensity = unity["main_light"]["intensity"].as_f64().unwrap();
+    assert!(
+        (intensity - 2.0 / std::f64::consts::PI).abs() < 1e-6,
+        "{unity}"
+    );
+    assert_eq!(unity["main_light"]["direction"][1].as_f64(), Some(-1.0));
+    let ambient = unity["ambient_probe"].as_array().unwrap();
+    assert_eq!(ambient.len(), 3);
+    assert!(
+        ambient
+            .iter()
+            .flat_map(|row| row.as_array().unwrap())
+            .all(|c| c.as_f64().unwrap().abs() < 1e-6),
+        "{unity}"
+    );
+    let total_dc = unity["total_probe"][0][0].as_f64().unwrap();
+    assert!(total_dc > 0.1, "{unity}");
+    let (code, out, err) = relightctl(&fx.socket, &["lights", "get", "--as", "threejs"]);
+    assert_eq!(code, 0, "{err}");
+    let three: Value = serde_json::from_str(&out).expect("JSON");
+    assert_eq!(three["main_light"]["intensity"].as_f64(), Some(2.0));
+    assert_eq!(three["total_probe"].as_array().map(Vec::len), Some(27));
 
     let mut watch = Command::new(env!("CARGO_BIN_EXE_relightctl"))
         .arg("--socket")

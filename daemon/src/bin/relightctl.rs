@@ -17,6 +17,7 @@ use relight_daemon::config::DEFAULT_SOCKET_PATH;
 use relight_daemon::control::rpc::LIGHTS_UPDATE;
 use relight_daemon::control::{Client, ClientError, EngineInfo, StatusReport};
 use relight_recon::estimate::LightingEstimate;
+use relight_recon::sh_conventions;
 use serde_json::{Map, Value, json};
 
 #[derive(Debug, Parser)]
@@ -102,9 +103,22 @@ enum ParamsAction {
 #[derive(Debug, Subcommand)]
 enum LightsAction {
     /// Show the current estimate (`null` with --json before the first).
-    Get,
+    Get {
+        /// Print it as JSON in a renderer's conventions instead: `unity` (SphericalHarmonicsL2
+        /// coefficients `[channel][i]` and a directional light, Unity's frame and units) or
+        /// `threejs` (`LightProbe.sh.fromArray` coefficients and a DirectionalLight); see
+        /// docs/lighting-estimate.md.
+        #[arg(long = "as", value_enum, value_name = "RENDERER")]
+        renderer: Option<Renderer>,
+    },
     /// Print every update as one JSON line (the first is the current estimate) until interrupted.
     Watch,
+}
+
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum Renderer {
+    Unity,
+    Threejs,
 }
 
 #[derive(Debug, Subcommand)]
@@ -155,10 +169,15 @@ fn main() -> ExitCode {
     let result = Client::connect(&cli.socket, timeout)
         .and_then(|mut client| client.call(method, params))
         .map(|result| {
-            let text = if cli.json {
-                format!("{result}\n")
-            } else {
-                render(&cli.command, &result)
+            let text = match &cli.command {
+                Command::Lights {
+                    action:
+                        LightsAction::Get {
+                            renderer: Some(renderer),
+                        },
+                } => for_renderer(*renderer, &result),
+                _ if cli.json => format!("{result}\n"),
+                _ => render(&cli.command, &result),
             };
             // A closed stdout (`| head`) is not the daemon's fault; nothing more to say.
             let _ = std::io::stdout().lock().write_all(text.as_bytes());
@@ -245,7 +264,7 @@ fn request(command: &Command) -> (&str, Option<Value>) {
         Command::Reload => ("config.reload", None),
         Command::Step { frames } => ("replay.step", frames.map(|n| json!({ "frames": n }))),
         Command::Lights { action } => match action {
-            LightsAction::Get => ("lights.get", None),
+            LightsAction::Get { .. } => ("lights.get", None),
             LightsAction::Watch => ("lights.subscribe", None),
         },
         Command::Call { method, params } => (method.as_str(), params.clone()),
@@ -331,10 +350,10 @@ fn render(command: &Command, result: &Value) -> String {
             None => readable(result, &[]),
         },
         Command::Lights {
-            action: LightsAction::Get,
+            action: LightsAction::Get { .. },
         } if result.is_null() => "no lighting estimate yet\n".to_owned(),
         Command::Lights {
-            action: LightsAction::Get,
+            action: LightsAction::Get { .. },
         } => match serde_json::from_value::<LightingEstimate>(result.clone()) {
             Ok(estimate) => render_lights(&estimate),
             Err(_) => readable(result, &[]),
@@ -416,6 +435,22 @@ fn round(x: f64) -> String {
     }
 }
 
+/// `lights get --as RENDERER`: the estimate converted, as one JSON document (`null` before the
+/// first estimate).
+fn for_renderer(renderer: Renderer, result: &Value) -> String {
+    let converted = serde_json::from_value::<Option<LightingEstimate>>(result.clone())
+        .ok()
+        .flatten()
+        .map(|estimate| match renderer {
+            Renderer::Unity => serde_json::to_value(sh_conventions::unity_lighting(&estimate)),
+            Renderer::Threejs => serde_json::to_value(sh_conventions::threejs_lighting(&estimate)),
+        });
+    match converted {
+        Some(Ok(value)) => format!("{value}\n"),
+        _ => "null\n".to_owned(),
+    }
+}
+
 fn render_lights(estimate: &LightingEstimate) -> String {
     let vector = |v: glam::Vec3| format!("[{:.3}, {:.3}, {:.3}]", v.x, v.y, v.z);
     let main = match &estimate.main_light {
@@ -432,8 +467,10 @@ fn render_lights(estimate: &LightingEstimate) -> String {
         None => "no probe".to_owned(),
     };
     let mut out = format!(
-        "main light   {main}\nenvironment  {environment}; SH9 DC {}\nlights       {}\n",
+        "main light   {main}\nenvironment  {environment}; SH9 DC {}\nall light    SH9 DC {} total, {} without the main light\nlights       {}\n",
         vector(estimate.sh9.coeffs[0]),
+        vector(estimate.sh9_total.coeffs[0]),
+        vector(estimate.sh9_ambient.coeffs[0]),
         estimate.lights.len()
     );
     for light in &estimate.lights {
@@ -492,6 +529,14 @@ fn render_status(status: &StatusReport) -> String {
             a.vertices,
             a.skipped_cells,
         ));
+    }
+    if let Some(live) = &status.live_view {
+        let urls: Vec<&str> = [&live.foxglove, &live.page]
+            .into_iter()
+            .flatten()
+            .map(String::as_str)
+            .collect();
+        out.push_str(&format!("live view   {}\n", urls.join(", ")));
     }
     if !status.devices.is_empty() {
         out.push('\n');

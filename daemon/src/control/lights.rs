@@ -206,6 +206,7 @@ mod tests {
                 position_in_world: Vec3::Y,
                 intensity: Vec3::splat(intensity),
             }],
+            0,
             Sh9Rgb::ZERO,
             None,
             Vec3::ZERO,

@@ -121,25 +121,31 @@ impl SceneLights {
 
     /// Publish what `live` is lit by now, if it changed since the last time.
     pub fn publish_if_changed(&mut self, live: &LiveScene, board: &LightsBoard) {
-        let (lights, sh9, stamp) = match &self.probe_estimate {
+        let (lights, lights_in_sh9, sh9, stamp) = match &self.probe_estimate {
             Some(probe) => {
-                // The probe sees every other light; the lamp's disc is masked out of its map.
+                // The probe sees every other light (its median cut is its map, `sh9`); the
+                // lamp's disc is masked out of the map.
                 let lights: Vec<Light> = probe
                     .lights
                     .iter()
                     .copied()
                     .chain(live.lamp_light())
                     .collect();
-                (lights, probe.sh9, Some(probe.stamp))
+                (lights, probe.lights.len(), probe.sh9, Some(probe.stamp))
             }
-            None => (live.lights(), self.scene_sh9, None),
+            None => (live.lights(), 0, self.scene_sh9, None),
         };
         let key = (lights, stamp);
         if self.published.as_ref() == Some(&key) {
             return;
         }
-        let mut estimate =
-            LightingEstimate::from_lights(key.0.clone(), sh9, stamp, self.reference_point);
+        let mut estimate = LightingEstimate::from_lights(
+            key.0.clone(),
+            lights_in_sh9,
+            sh9,
+            stamp,
+            self.reference_point,
+        );
         estimate.relative_units = self.probe_estimate.as_ref().is_some_and(|p| !p.absolute);
         self.published = Some(key);
         if board.publish(estimate) {

@@ -59,6 +59,18 @@ pub struct LightingEstimate {
     /// Radiance of the environment as L2 SH, world directions: from the probe, else the scene
     /// file's environment map; zero without either.
     pub sh9: Sh9Rgb,
+    /// Radiance of everything that lights the reference point, as L2 SH: `sh9`, the
+    /// environment lights, and every other light as a distant light from where it stands (the
+    /// projection `E · Y_lm(ω)` of its irradiance `E` from the direction `ω` towards it).
+    /// XR_ANDROID_light_estimation's `TOTAL` spherical harmonics.
+    #[serde(default)]
+    pub sh9_total: Sh9Rgb,
+    /// `sh9_total` without the main light: `sh9_ambient` plus `main_light` (projected as above)
+    /// is `sh9_total`, so a renderer that draws the main light as a directional light with
+    /// shadows and the rest from SH counts every light once. XR_ANDROID_light_estimation's
+    /// `AMBIENT` spherical harmonics, ARCore's ambient spherical harmonics.
+    #[serde(default)]
+    pub sh9_ambient: Sh9Rgb,
     /// The lights: one directional light per median-cut region of the probe's environment (or
     /// the scene file's lights without a probe), then the lamp.
     pub lights: Vec<Light>,
@@ -83,8 +95,12 @@ impl LightingEstimate {
     /// Lights that deliver nothing there (outside a spot's cone, exactly at the point, zero or
     /// non-finite intensity) are never the main light; `main_light` is `None` when nothing
     /// lights the point. Ties go to the first candidate, `sh9` last.
+    ///
+    /// The first `lights_in_sh9` of `lights` are `sh9` cut into lights (the probe's median
+    /// cut): they count once in `sh9_total`, through `sh9`.
     pub fn from_lights(
         lights: Vec<Light>,
+        lights_in_sh9: usize,
         sh9: Sh9Rgb,
         environment_stamp: Option<Timestamp>,
         reference_point: Vec3,
@@ -111,10 +127,32 @@ impl LightingEstimate {
                 Some(best) if best.luminance() >= candidate.luminance() => Some(best),
                 _ => Some(candidate),
             });
+        let mut sh9_total = sh9;
+        for light in lights.iter().skip(lights_in_sh9) {
+            match *light {
+                Light::Environment {
+                    sh,
+                    intensity_scale,
+                } => sh9_total += sh.scaled(intensity_scale),
+                _ => {
+                    if let Some(incident) = light.incident(reference_point)
+                        && incident.irradiance.is_finite()
+                    {
+                        sh9_total.add_sample(incident.direction_to_light, incident.irradiance, 1.0);
+                    }
+                }
+            }
+        }
+        let mut sh9_ambient = sh9_total;
+        if let Some(main) = &main_light {
+            sh9_ambient.add_sample(-main.direction_in_world, main.irradiance(), -1.0);
+        }
         Self {
             environment_stamp,
             main_light,
             sh9,
+            sh9_total,
+            sh9_ambient,
             lights,
             relative_units: false,
         }
@@ -162,8 +200,13 @@ mod tests {
             direction_in_world: Vec3::X,
             irradiance: Vec3::splat(1.0),
         };
-        let estimate =
-            LightingEstimate::from_lights(vec![window, lamp], Sh9Rgb::ZERO, None, reference_point);
+        let estimate = LightingEstimate::from_lights(
+            vec![window, lamp],
+            0,
+            Sh9Rgb::ZERO,
+            None,
+            reference_point,
+        );
         let main = estimate.main_light.expect("a main light");
         // 1 m below the lamp: E = I / 1², luminance 2.37 against the window's 1.
         assert_close(main.direction_in_world, Vec3::NEG_Y);
@@ -175,6 +218,7 @@ mod tests {
         // 3 m below, the lamp gives a ninth: the window wins.
         let far = LightingEstimate::from_lights(
             vec![window, lamp],
+            0,
             Sh9Rgb::ZERO,
             None,
             Vec3::new(0.0, -1.5, 0.0),
@@ -199,7 +243,7 @@ mod tests {
             irradiance: Vec3::splat(0.01),
         };
         let estimate =
-            LightingEstimate::from_lights(vec![spot, dim], Sh9Rgb::ZERO, None, Vec3::ZERO);
+            LightingEstimate::from_lights(vec![spot, dim], 0, Sh9Rgb::ZERO, None, Vec3::ZERO);
         assert_close(
             estimate
                 .main_light
@@ -215,7 +259,7 @@ mod tests {
         let towards = Vec3::new(0.3, 1.0, 0.0).normalize();
         let sh9 = cap_sh(towards, 0.4, Vec3::new(2.0, 1.0, 1.0));
         let stamp = Timestamp::new(5, 6);
-        let estimate = LightingEstimate::from_lights(Vec::new(), sh9, Some(stamp), Vec3::ZERO);
+        let estimate = LightingEstimate::from_lights(Vec::new(), 0, sh9, Some(stamp), Vec3::ZERO);
         let main = estimate.main_light.expect("the environment's light");
         assert!(
             main.direction_in_world.dot(-towards) > 0.99,
@@ -236,7 +280,7 @@ mod tests {
             position_in_world: Vec3::new(1.0, 0.0, 0.0),
             intensity: Vec3::splat(0.1),
         };
-        let estimate = LightingEstimate::from_lights(vec![candle], sh9, None, Vec3::ZERO);
+        let estimate = LightingEstimate::from_lights(vec![candle], 0, sh9, None, Vec3::ZERO);
         let main = estimate.main_light.expect("a main light");
         assert!(main.direction_in_world.dot(Vec3::NEG_Y) > 0.99, "{main:?}");
 
@@ -245,15 +289,20 @@ mod tests {
             sh: sh9,
             intensity_scale: 1e-4,
         };
-        let estimate =
-            LightingEstimate::from_lights(vec![as_light, candle], Sh9Rgb::ZERO, None, Vec3::ZERO);
+        let estimate = LightingEstimate::from_lights(
+            vec![as_light, candle],
+            0,
+            Sh9Rgb::ZERO,
+            None,
+            Vec3::ZERO,
+        );
         let main = estimate.main_light.expect("a main light");
         assert_close(main.direction_in_world, Vec3::NEG_X);
     }
 
     #[test]
     fn no_lights_no_main_light() {
-        let estimate = LightingEstimate::from_lights(Vec::new(), Sh9Rgb::ZERO, None, Vec3::ZERO);
+        let estimate = LightingEstimate::from_lights(Vec::new(), 0, Sh9Rgb::ZERO, None, Vec3::ZERO);
         assert_eq!(estimate.main_light, None);
         let black = Light::Point {
             position_in_world: Vec3::Y,
@@ -261,7 +310,7 @@ mod tests {
         };
         // A uniform environment has no direction.
         let uniform = Sh9Rgb::project_fn(|_| Vec3::ONE, 200);
-        let estimate = LightingEstimate::from_lights(vec![black], uniform, None, Vec3::ZERO);
+        let estimate = LightingEstimate::from_lights(vec![black], 0, uniform, None, Vec3::ZERO);
         assert_eq!(estimate.main_light, None);
     }
 
@@ -280,11 +329,13 @@ mod tests {
         };
         let estimate = LightingEstimate::from_lights(
             vec![at_point, spot_at_point],
+            0,
             Sh9Rgb::ZERO,
             None,
             Vec3::new(1.0, 2.0, 3.0),
         );
         assert_eq!(estimate.main_light, None);
+        assert!(estimate.sh9_total.is_finite() && estimate.sh9_ambient.is_finite());
 
         // Next to another light, the other light is the main light, and everything is finite.
         let other = Light::Directional {
@@ -293,6 +344,7 @@ mod tests {
         };
         let estimate = LightingEstimate::from_lights(
             vec![at_point, other],
+            0,
             Sh9Rgb::ZERO,
             None,
             Vec3::new(1.0, 2.0, 3.0),
@@ -307,11 +359,76 @@ mod tests {
         // A non-finite reference point lights nothing rather than producing NaN.
         let estimate = LightingEstimate::from_lights(
             vec![at_point],
+            0,
             Sh9Rgb::ZERO,
             None,
             Vec3::splat(f32::NAN),
         );
         assert_eq!(estimate.main_light, None);
+    }
+
+    /// Irradiance a surface facing a distant light of irradiance `E` gets from its L2
+    /// projection: `E Σ_l Â_l (2l + 1) / 4π = 17/16 E` (the truncated delta overshoots).
+    const L2_DELTA_PEAK: f32 = 17.0 / 16.0;
+
+    #[test]
+    fn total_sh_holds_each_light_once_and_ambient_is_total_without_the_main_light() {
+        // A window (directional) alone: the total is its delta, the ambient nothing.
+        let window = Light::Directional {
+            direction_in_world: Vec3::NEG_Y,
+            irradiance: Vec3::new(2.0, 1.0, 0.5),
+        };
+        let alone = LightingEstimate::from_lights(vec![window], 0, Sh9Rgb::ZERO, None, Vec3::ZERO);
+        assert_close(
+            alone.sh9_total.irradiance(Vec3::Y),
+            Vec3::new(2.0, 1.0, 0.5) * L2_DELTA_PEAK,
+        );
+        assert!(
+            alone
+                .sh9_ambient
+                .coeffs
+                .iter()
+                .all(|c| c.abs().max_element() < 1e-6),
+            "{:?}",
+            alone.sh9_ambient
+        );
+
+        // A probe's sky (a bright cap above, a dim rest) cut into one light, plus the lamp,
+        // which the probe's map does not hold: the total is the sky plus the lamp.
+        let sky =
+            cap_sh(Vec3::Y, 0.4, Vec3::splat(5.0)) + Sh9Rgb::project_fn(|_| Vec3::splat(0.05), 400);
+        let cut = Light::Directional {
+            direction_in_world: Vec3::NEG_Y,
+            irradiance: sky.irradiance(Vec3::Y),
+        };
+        let lamp = Light::Point {
+            position_in_world: Vec3::new(1.0, 0.0, 0.0),
+            intensity: Vec3::splat(0.5),
+        };
+        let probe = LightingEstimate::from_lights(vec![cut, lamp], 1, sky, None, Vec3::ZERO);
+        let lamp_only =
+            LightingEstimate::from_lights(vec![lamp], 0, Sh9Rgb::ZERO, None, Vec3::ZERO);
+        let total_minus_sky = probe.sh9_total - sky;
+        for (a, b) in total_minus_sky
+            .coeffs
+            .iter()
+            .zip(lamp_only.sh9_total.coeffs)
+        {
+            assert_close(*a, b);
+        }
+        // The sky's cut is the main light; taking it out leaves the lamp and the dim rest:
+        // facing the lamp the ambient gets the lamp's 0.5 W/m² (and the rest's), facing down
+        // little but the rest's π · 0.05.
+        let main = probe.main_light.expect("the sky's cut");
+        assert_close(main.direction_in_world, Vec3::NEG_Y);
+        let mut rebuilt = probe.sh9_ambient;
+        rebuilt.add_sample(-main.direction_in_world, main.irradiance(), 1.0);
+        for (a, b) in rebuilt.coeffs.iter().zip(probe.sh9_total.coeffs) {
+            assert_close(*a, b);
+        }
+        let below = probe.sh9_ambient.irradiance(Vec3::NEG_Y);
+        assert!(below.x < 0.3, "{below}");
+        assert!(probe.sh9_ambient.irradiance(Vec3::X).x > 0.5, "{probe:?}");
     }
 
     #[test]
@@ -321,6 +438,7 @@ mod tests {
                 position_in_world: Vec3::new(0.0, 1.0, 0.0),
                 intensity: Vec3::splat(2.0),
             }],
+            0,
             cap_sh(Vec3::Y, 0.5, Vec3::ONE),
             Some(Timestamp::new(1, 2)),
             Vec3::ZERO,

@@ -8,7 +8,7 @@
 //! - Light: [`hdr`] (Robertson response recovery and HDR merge of brackets), [`envmap`]
 //!   (fish-eye → equirectangular map through the Kannala–Brandt model), [`median_cut`] (median
 //!   cut and variance-minimising median cut), [`irradiance`] (SH9 of a map), and the published
-//!   [`estimate::LightingEstimate`].
+//!   [`estimate::LightingEstimate`], also in Unity's and three.js's conventions ([`sh_conventions`]).
 //!
 //! The per-frame depth work also runs on the GPU (`relight_engines::recon_gpu`); this crate is
 //! its test oracle.
@@ -23,5 +23,6 @@ pub mod irradiance;
 pub mod median_cut;
 pub mod normals;
 pub mod probe;
+pub mod sh_conventions;
 pub mod temporal;
 pub mod vignetting;
