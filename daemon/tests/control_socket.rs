@@ -1098,6 +1098,12 @@ fn lights_methods_reject_params_and_the_connection_goes_on() {
         ("lights.subscribe", json!([1])),
         ("lights.get", json!({ "verbose": true })),
         ("lights.unsubscribe", json!(["now"])),
+        ("lights.export", json!({})),
+        ("lights.export", json!({ "path": 7 })),
+        (
+            "lights.export",
+            json!({ "path": "env.exr", "format": "hdr" }),
+        ),
     ] {
         let error = rpc_error(c.call(method, Some(params.clone())));
         assert_eq!(
@@ -1118,7 +1124,15 @@ fn lights_methods_reject_params_and_the_connection_goes_on() {
     let error = rpc_error(c.call("lights.sub", None));
     assert_eq!(error.code, codes::METHOD_NOT_FOUND);
     let methods = error.data.expect("method list")["methods"].clone();
-    for method in ["lights.get", "lights.subscribe", "lights.unsubscribe"] {
+    // A target that does not export says so rather than writing anything.
+    let error = rpc_error(c.call("lights.export", Some(json!({ "path": "env.exr" }))));
+    assert_eq!(error.code, codes::FAILED, "{error:?}");
+    for method in [
+        "lights.get",
+        "lights.export",
+        "lights.subscribe",
+        "lights.unsubscribe",
+    ] {
         assert!(
             methods
                 .as_array()

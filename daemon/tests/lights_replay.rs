@@ -39,12 +39,41 @@ name = "passthrough"
 [scene]
 dir = "{scene}"
 depth_stride = 4
+
+[snapshot]
+dir = "{snapshots}"
 "#,
+        snapshots = dir.join("snapshots").display(),
         socket = socket.display(),
         recording = root.join("tests/fixtures/demo.mcap").display(),
         scene = root.join("tests/scenes/desk_box").display(),
     );
     support::start(dir, &config, socket, "warn", &[])
+}
+
+/// An EXR the daemon wrote, as the environment map it was.
+fn read_exr_map(path: &Path) -> relight_core::scene::EnvironmentMap {
+    let image = exr::prelude::read_first_rgba_layer_from_file(
+        path,
+        |resolution, _| {
+            (
+                resolution.width(),
+                vec![glam::Vec3::ZERO; resolution.width() * resolution.height()],
+            )
+        },
+        |(width, pixels): &mut (usize, Vec<glam::Vec3>),
+         position,
+         (r, g, b, _a): (f32, f32, f32, f32)| {
+            pixels[position.y() * *width + position.x()] = glam::Vec3::new(r, g, b);
+        },
+    )
+    .expect("an EXR");
+    let size = image.layer_data.size;
+    relight_core::scene::EnvironmentMap {
+        width: size.width() as u32,
+        height: size.height() as u32,
+        radiance: image.layer_data.channel_data.pixels.1,
+    }
 }
 
 /// The lamp's light in `estimate`, if the lamp is on.
@@ -123,6 +152,32 @@ fn replay_with_a_lamp_publishes_its_light_to_subscribers() {
     let current = other.call("lights.get", None).expect("lights.get");
     let current: LightingEstimate = serde_json::from_value(current).expect("an estimate");
     assert!(current.main_light.is_some(), "{current:?}");
+
+    // `lights.export` writes the probe's HDR map it came from, into the snapshot directory; its
+    // SH projection is the estimate's `sh9` (a later bracket may have replaced it in between:
+    // the simulated probe of a still scene repeats itself to within its noise).
+    let exported = other
+        .call("lights.export", Some(json!({ "path": "env.exr" })))
+        .expect("lights.export");
+    let path = dir.path().join("snapshots/env.exr");
+    assert_eq!(exported["path"], json!(path), "{exported}");
+    let map = read_exr_map(&path);
+    assert_eq!((map.width, map.height), (128, 64), "{exported}");
+    assert!(
+        map.radiance
+            .iter()
+            .all(|r| r.is_finite() && r.min_element() >= 0.0)
+    );
+    let projected = relight_recon::irradiance::project_sh9(&map).expect("projects");
+    let (dc, expected) = (projected.coeffs[0], current.sh9.coeffs[0]);
+    assert!(
+        ((dc - expected).abs() / expected).max_element() < 0.05,
+        "exported map's DC {dc} vs the estimate's {expected}"
+    );
+    match other.call("lights.export", Some(json!({ "path": "env.exr" }))) {
+        Err(ClientError::Rpc(error)) => assert_eq!(error.code, codes::IO, "{error:?}"),
+        other => panic!("an existing file is refused, got {other:?}"),
+    }
 
     // Bad input: JSON-RPC errors, and both connections keep working.
     for (params, code) in [

@@ -113,6 +113,16 @@ enum LightsAction {
     },
     /// Print every update as one JSON line (the first is the current estimate) until interrupted.
     Watch,
+    /// Write the HDR environment the estimate comes from (equirectangular, linear RGB radiance,
+    /// +y up, u from −z towards +x) as an OpenEXR file, relative to the daemon's snapshot
+    /// directory (/var/lib/relightd/snapshots under the service).
+    Export {
+        /// The .exr file to write.
+        path: PathBuf,
+        /// Replace PATH if it exists (it is refused otherwise).
+        #[arg(long)]
+        overwrite: bool,
+    },
 }
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -266,6 +276,9 @@ fn request(command: &Command) -> (&str, Option<Value>) {
         Command::Lights { action } => match action {
             LightsAction::Get { .. } => ("lights.get", None),
             LightsAction::Watch => ("lights.subscribe", None),
+            LightsAction::Export { path, overwrite } => {
+                ("lights.export", output_params(Some(path), *overwrite))
+            }
         },
         Command::Call { method, params } => (method.as_str(), params.clone()),
     }
@@ -349,6 +362,14 @@ fn render(command: &Command, result: &Value) -> String {
             Some(n) => format!("stepped {n} frame set{}\n", if n == 1 { "" } else { "s" }),
             None => readable(result, &[]),
         },
+        Command::Lights {
+            action: LightsAction::Export { .. },
+        } => format!(
+            "wrote {} ({}×{} linear RGB radiance, equirectangular)\n",
+            result["path"].as_str().unwrap_or("?"),
+            result["width"],
+            result["height"]
+        ),
         Command::Lights {
             action: LightsAction::Get { .. },
         } if result.is_null() => "no lighting estimate yet\n".to_owned(),

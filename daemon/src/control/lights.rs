@@ -15,6 +15,7 @@ use std::sync::{Arc, Condvar, Mutex, PoisonError, Weak};
 use std::time::{Duration, Instant};
 
 use crate::lock;
+use relight_core::scene::EnvironmentMap;
 use relight_recon::estimate::LightingEstimate;
 
 /// The latest lighting estimate and the subscribers to be told about the next one.
@@ -24,6 +25,8 @@ pub struct LightsBoard {
     latest: Mutex<Option<Arc<LightingEstimate>>>,
     subscribers: Mutex<Vec<Weak<Slot>>>,
     published: AtomicU64,
+    /// The HDR environment the estimate was made from (`lights.export`).
+    environment: Mutex<Option<Arc<EnvironmentMap>>>,
 }
 
 /// One subscriber's mailbox.
@@ -44,6 +47,17 @@ struct SlotState {
 impl LightsBoard {
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// The HDR environment map the current estimate comes from (the probe's merged map, else
+    /// the scene file's); `None` without either.
+    pub fn environment(&self) -> Option<Arc<EnvironmentMap>> {
+        lock(&self.environment).clone()
+    }
+
+    /// Replaces the environment [`Self::environment`] returns.
+    pub fn publish_environment(&self, environment: Option<Arc<EnvironmentMap>>) {
+        *lock(&self.environment) = environment;
     }
 
     /// The current estimate; `None` before the first [`Self::publish`].

@@ -18,6 +18,7 @@
 //! | `rpc.ping`          | —                              | `"pong"`                       |
 //! | `version`           | —                              | `{"name", "version", "protocol"}` |
 //! | `lights.get`        | —                              | [`LightingEstimate`] or `null` |
+//! | `lights.export`     | `{path, overwrite?}`           | `{path, width, height}`: the HDR environment as EXR |
 //! | `lights.subscribe`  | —                              | `null`, then notifications     |
 //! | `lights.unsubscribe`| —                              | `null`                         |
 //!
@@ -59,7 +60,7 @@ use relight_recon::estimate::LightingEstimate;
 pub const LIGHTS_UPDATE: &str = "lights.update";
 
 /// Every method the server answers, for `method not found` hints.
-pub const METHODS: [&str; 15] = [
+pub const METHODS: [&str; 16] = [
     "status",
     "engine.list",
     "engine.set",
@@ -73,6 +74,7 @@ pub const METHODS: [&str; 15] = [
     "rpc.ping",
     "version",
     "lights.get",
+    "lights.export",
     "lights.subscribe",
     "lights.unsubscribe",
 ];
@@ -507,6 +509,15 @@ fn dispatch(
                     .map_err(|err| ControlError::internal(format!("cannot encode result: {err}"))),
                 None => Ok(Value::Null),
             }
+        }
+        "lights.export" => {
+            let request = output_request(method, params)?;
+            if request.path.is_none() {
+                return Err(ControlError::invalid_params(format!(
+                    "{method}: `path` is required (an .exr file, relative to the snapshot directory)"
+                )));
+            }
+            target.lights_export(request)
         }
         "lights.subscribe" => {
             no_params(method, params)?;

@@ -66,6 +66,15 @@ pub trait ControlTarget: Send + Sync + 'static {
     fn lights(&self) -> Option<&LightsBoard> {
         None
     }
+
+    /// Writes the HDR environment the estimate comes from to `request.path` (relative to the
+    /// snapshot directory) as an EXR; returns the file and its size.
+    fn lights_export(&self, request: OutputRequest) -> Result<Value, ControlError> {
+        let _ = request;
+        Err(ControlError::failed(
+            "this daemon publishes no lighting estimate",
+        ))
+    }
 }
 
 /// Where a client asked a file to go (`record.start`, `snapshot`).

@@ -17,6 +17,7 @@ use crate::config::Config;
 use crate::control::lights::LightsBoard;
 use crate::control::types::{ControlError, ControlTarget, EngineInfo, OutputRequest, StatusReport};
 use crate::lock;
+use crate::sinks::exr_out::write_exr_as;
 use crate::sinks::recorder::RecorderError;
 use crate::sinks::safe_file::{Existing, resolve_output};
 use crate::sinks::writer::WriteFailure;
@@ -76,6 +77,40 @@ impl ControlTarget for PipelineControl {
 
     fn lights(&self) -> Option<&LightsBoard> {
         Some(&self.shared.lights)
+    }
+
+    /// Written on the control connection's own thread (a 128 × 64 map is 100 kB), never the
+    /// render thread's.
+    fn lights_export(&self, request: OutputRequest) -> Result<Value, ControlError> {
+        let environment = self.shared.lights.environment().ok_or_else(|| {
+            ControlError::failed(
+                "no HDR environment yet: the probe has not merged a bracket and the scene file has no environment map",
+            )
+        })?;
+        let base = lock(&self.shared.config).snapshot.dir.clone();
+        let Some(path) = resolve(request.path.as_deref(), &base)? else {
+            return Err(ControlError::invalid_params(
+                "lights.export: `path` is required",
+            ));
+        };
+        if path.starts_with(&base) {
+            std::fs::create_dir_all(&base).map_err(|e| {
+                ControlError::file(&base, format!("cannot create {}: {e}", base.display()))
+            })?;
+        }
+        write_exr_as(
+            &path,
+            environment.width,
+            environment.height,
+            &environment.radiance,
+            Existing::from_overwrite(request.overwrite),
+        )
+        .map_err(|error| ControlError::file(&path, error.to_string()))?;
+        Ok(json!({
+            "path": path,
+            "width": environment.width,
+            "height": environment.height,
+        }))
     }
 
     fn engine_list(&self) -> Vec<EngineInfo> {

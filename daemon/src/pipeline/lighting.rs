@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use glam::Vec3;
 use relight_core::light::Light;
-use relight_core::scene::Scene;
+use relight_core::scene::{EnvironmentMap, Scene};
 use relight_core::sh::Sh9Rgb;
 use relight_core::{Frame, ProbeImage, Timestamp};
 use relight_engines::live_scene::LiveScene;
@@ -28,6 +28,7 @@ pub struct SceneLights {
     reference_point: Vec3,
     /// The scene file's environment map as SH (zero without one).
     scene_sh9: Sh9Rgb,
+    scene_environment: Option<Arc<EnvironmentMap>>,
     /// The probe's estimate of the live scene (with a probe in the rig's calibration).
     probe: Option<ProbeRunner>,
     probe_estimate: Option<ProbeEstimate>,
@@ -58,6 +59,7 @@ impl SceneLights {
                 .as_ref()
                 .and_then(|env| project_sh9(env).ok())
                 .unwrap_or(Sh9Rgb::ZERO),
+            scene_environment: scene.environment.clone().map(Arc::new),
             probe: probe.map(|p| ProbeRunner::Inline(Box::new(p))),
             probe_estimate: None,
             new_estimate_ms: None,
@@ -148,6 +150,10 @@ impl SceneLights {
         );
         estimate.relative_units = self.probe_estimate.as_ref().is_some_and(|p| !p.absolute);
         self.published = Some(key);
+        board.publish_environment(match &self.probe_estimate {
+            Some(probe) => Some(Arc::clone(&probe.environment)),
+            None => self.scene_environment.clone(),
+        });
         if board.publish(estimate) {
             tracing::trace!("lighting estimate published");
         }

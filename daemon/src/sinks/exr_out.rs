@@ -1,8 +1,12 @@
 //! OpenEXR output of linear HDR images (Δ may be negative; EXR keeps it).
 
+use std::io::BufWriter;
 use std::path::Path;
 
+use exr::prelude::{Image, SpecificChannels, Vec2, WritableImage as _};
 use glam::Vec3;
+
+use super::safe_file::{Existing, create_regular};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ExrError {
@@ -14,6 +18,11 @@ pub enum ExrError {
         expected: usize,
         actual: usize,
     },
+    #[error("cannot create {path}: {source}")]
+    Create {
+        path: String,
+        source: std::io::Error,
+    },
     #[error("cannot write {path}: {source}")]
     Write {
         path: String,
@@ -21,8 +30,20 @@ pub enum ExrError {
     },
 }
 
-/// Write row-major linear RGB pixels as a 32-bit float EXR.
+/// Write row-major linear RGB pixels as a 32-bit float EXR, replacing a file already there.
 pub fn write_exr(path: &Path, width: u32, height: u32, pixels: &[Vec3]) -> Result<(), ExrError> {
+    write_exr_as(path, width, height, pixels, Existing::Replace)
+}
+
+/// [`write_exr`] into a file created as [`create_regular`] creates it: a regular file only,
+/// no final symbolic link followed, an existing one refused unless `existing` says replace.
+pub fn write_exr_as(
+    path: &Path,
+    width: u32,
+    height: u32,
+    pixels: &[Vec3],
+    existing: Existing,
+) -> Result<(), ExrError> {
     let name = path.display().to_string();
     let expected = width as usize * height as usize;
     if pixels.len() != expected {
@@ -34,12 +55,19 @@ pub fn write_exr(path: &Path, width: u32, height: u32, pixels: &[Vec3]) -> Resul
             actual: pixels.len(),
         });
     }
+    let file = create_regular(path, existing).map_err(|source| ExrError::Create {
+        path: name.clone(),
+        source,
+    })?;
     let w = width as usize;
-    exr::prelude::write_rgb_file(path, w, height as usize, |x, y| {
-        let p = pixels[y * w + x];
+    let channels = SpecificChannels::rgb(|position: Vec2<usize>| {
+        let p = pixels[position.y() * w + position.x()];
         (p.x, p.y, p.z)
-    })
-    .map_err(|source| ExrError::Write { path: name, source })
+    });
+    Image::from_channels((w, height as usize), channels)
+        .write()
+        .to_buffered(BufWriter::new(file))
+        .map_err(|source| ExrError::Write { path: name, source })
 }
 
 #[cfg(test)]
@@ -61,6 +89,17 @@ mod tests {
         )
         .unwrap();
         assert_eq!(image.layer_data.channel_data.pixels, pixels);
+    }
+
+    #[test]
+    fn an_existing_file_is_refused_unless_replacing() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("env.exr");
+        let pixels = [Vec3::ONE];
+        write_exr_as(&path, 1, 1, &pixels, Existing::Refuse).unwrap();
+        let err = write_exr_as(&path, 1, 1, &pixels, Existing::Refuse).unwrap_err();
+        assert!(matches!(err, ExrError::Create { .. }), "{err}");
+        write_exr_as(&path, 1, 1, &pixels, Existing::Replace).unwrap();
     }
 
     #[test]
