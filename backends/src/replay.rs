@@ -29,7 +29,8 @@ pub enum ReplayMode {
     Realtime { speed: f64 },
     /// As fast as possible; with [`Replay::with_backpressure`], as fast as the consumer takes it.
     Fast,
-    /// Only when [`crate::DeviceRunner::step`] asks, that many messages at a time.
+    /// Only when [`crate::DeviceRunner::step`] asks, that many messages at a time (or, with
+    /// [`Replay::stepping_by`], that many messages of one stream: frame sets).
     Stepped,
 }
 
@@ -106,6 +107,8 @@ pub struct Replay {
     topics: TopicMap,
     streams: Vec<StreamKind>,
     backpressure: Option<Arc<Backpressure>>,
+    /// In stepped mode, the stream whose messages the steps count.
+    step_stream: Option<StreamKind>,
 }
 
 impl Replay {
@@ -126,6 +129,7 @@ impl Replay {
             topics: TopicMap::default(),
             streams: Vec::new(),
             backpressure: None,
+            step_stream: None,
         };
         replay.open()?;
         replay.streams = replay.scan_streams();
@@ -156,6 +160,14 @@ impl Replay {
             self.topics = topics;
             self.streams = self.scan_streams();
         }
+        self
+    }
+
+    /// In stepped mode, count steps in messages of `stream` (the synchroniser's reference): a
+    /// step publishes one of them and every other message up to the next one, so `step(n)`
+    /// completes `n` frame sets. Messages before the first are published at the start.
+    pub fn stepping_by(mut self, stream: StreamKind) -> Self {
+        self.step_stream = Some(stream);
         self
     }
 
@@ -268,13 +280,15 @@ impl Device for Replay {
                         restamp.apply(&mut msg, offset_ns);
                     }
                     ReplayMode::Stepped => {
-                        while steps_left == 0 {
-                            match ctx.wait_step() {
-                                Some(n) => steps_left = n,
-                                None => return Ok(RunEnd::StopRequested),
+                        if self.step_stream.is_none_or(|kind| kind == msg.kind()) {
+                            while steps_left == 0 {
+                                match ctx.wait_step() {
+                                    Some(n) => steps_left = n,
+                                    None => return Ok(RunEnd::StopRequested),
+                                }
                             }
+                            steps_left -= 1;
                         }
-                        steps_left -= 1;
                         restamp.apply(&mut msg, offset_ns);
                     }
                 }
@@ -486,6 +500,37 @@ mod tests {
         assert!(
             sub.recv_timeout(Duration::from_millis(200)).is_none(),
             "exactly four"
+        );
+        runner.stop();
+    }
+
+    /// Stepping by depth frames: each step publishes a depth frame and the colour frame that
+    /// follows it, nothing of the next pair.
+    #[test]
+    fn stepping_by_a_stream_publishes_whole_frame_sets() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, _) = write_recording(dir.path(), 5);
+        let bus = Arc::new(Bus::new());
+        let depth = bus.depth.subscribe(16);
+        let colour = bus.color.subscribe(16);
+        let config = ReplayConfig {
+            path,
+            mode: ReplayMode::Stepped,
+            looping: false,
+        };
+        let replay = Replay::new(config).unwrap().stepping_by(StreamKind::Depth);
+        let mut runner =
+            DeviceRunner::spawn("replay", Box::new(replay), bus, Backoff::default()).unwrap();
+        runner.stepper().step(2);
+        for seq in 0..2 {
+            let d = depth.recv_timeout(Duration::from_secs(5)).expect("depth");
+            let c = colour.recv_timeout(Duration::from_secs(5)).expect("colour");
+            assert_eq!((d.seq, c.seq), (seq, seq));
+        }
+        assert!(
+            depth.recv_timeout(Duration::from_millis(200)).is_none()
+                && colour.recv_timeout(Duration::from_millis(50)).is_none(),
+            "two frame sets, nothing of the third"
         );
         runner.stop();
     }

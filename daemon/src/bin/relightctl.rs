@@ -60,7 +60,8 @@ enum Command {
     },
     /// Re-read the configuration file.
     Reload,
-    /// Advance a stepped replay by FRAMES messages (default 1).
+    /// Advance a stepped replay by FRAMES frame sets (default 1): each a reference-stream frame
+    /// (`[sync] reference`, depth by default) and the other streams' messages up to the next.
     Step { frames: Option<u32> },
     /// The lighting estimate: main light, SH9, extracted lights.
     Lights {

@@ -55,7 +55,8 @@ pub trait ControlTarget: Send + Sync + 'static {
     /// Re-reads the configuration file and applies what can change at run time; returns what
     /// changed.
     fn config_reload(&self) -> Result<Value, ControlError>;
-    /// Advances a stepped replay by `frames` messages; an error when no source is stepped.
+    /// Advances a stepped replay by `frames` frame sets (messages of the synchroniser's reference
+    /// stream, with the others up to the next one); an error when no source is stepped.
     fn replay_step(&self, frames: u32) -> Result<Value, ControlError> {
         let _ = frames;
         Err(ControlError::failed("no stepped replay is running"))

@@ -135,7 +135,8 @@ pub fn start(config: &Config, bus: &Arc<Bus>) -> anyhow::Result<Sources> {
                     backpressure = Some(gate.clone());
                     device.with_backpressure(gate)
                 }
-                _ => device,
+                config::ReplayMode::Stepped => device.stepping_by(config.sync.reference),
+                config::ReplayMode::Realtime => device,
             };
             meta.calibration = match device.reader() {
                 Some(reader) if config.rig.calibration.is_none() => {
