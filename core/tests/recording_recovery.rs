@@ -281,3 +281,65 @@ fn fuzz_regressions_read_without_panicking() {
     }
     assert!(inputs > 0, "no inputs in {}", dir.display());
 }
+
+/// What a reader makes of a file: its chunks, warnings, summary, and every item of its
+/// message iterator (errors by their text).
+fn reading(reader: &RecordingReader) -> (Vec<ChunkInfo>, Vec<String>, bool, Vec<String>) {
+    let items = reader
+        .messages()
+        .map(|item| match item {
+            Ok(message) => format!("{message:?}"),
+            Err(error) => error.to_string(),
+        })
+        .collect();
+    (
+        reader.chunks(),
+        reader.warnings(),
+        reader.has_summary(),
+        items,
+    )
+}
+
+/// `open` reads the file as it needs it instead of loading it; on whole, cut and damaged files
+/// alike it reads exactly what `from_bytes` reads from the same bytes.
+#[test]
+fn a_file_read_on_demand_reads_as_the_same_bytes_in_memory() {
+    let (bytes, messages, chunks) = fixture();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("damaged.mcap");
+    std::fs::write(&path, &bytes).unwrap();
+    let whole: Vec<StreamMessage> = RecordingReader::open(&path)
+        .unwrap()
+        .messages()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert_eq!(whole, messages);
+    let mut variants = vec![bytes.clone(), bytes[..bytes.len() / 2].to_vec()];
+    let chunk = message_chunks(&chunks)[1];
+    let mut bad_length = bytes.clone();
+    let at = chunk.offset as usize + 1;
+    bad_length[at..at + 8].copy_from_slice(&u64::MAX.to_le_bytes());
+    variants.push(bad_length);
+    let mut bad_crc = bytes.clone();
+    bad_crc[chunk.data_offset as usize + 5] ^= 0xff;
+    variants.push(bad_crc);
+    let mut rng = Rng::new(7);
+    for _ in 0..20 {
+        let mut damaged = bytes.clone();
+        for _ in 0..1 + rng.next_u64() % 4 {
+            let at = (rng.next_u64() % damaged.len() as u64) as usize;
+            damaged[at] = rng.next_u64() as u8;
+        }
+        variants.push(damaged);
+    }
+    for (i, variant) in variants.into_iter().enumerate() {
+        std::fs::write(&path, &variant).unwrap();
+        let from_file = RecordingReader::open(&path).map(|r| reading(&r));
+        let in_memory = RecordingReader::from_bytes(variant).map(|r| reading(&r));
+        match (from_file, in_memory) {
+            (Ok(file), Ok(memory)) => assert_eq!(file, memory, "variant {i}"),
+            (Err(file), Err(memory)) => assert_eq!(file.to_string(), memory.to_string()),
+            (file, memory) => panic!("variant {i}: {:?} vs {:?}", file.err(), memory.err()),
+        }
+    }
+}

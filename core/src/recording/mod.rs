@@ -76,8 +76,9 @@
 //!
 //! # Reading damaged files
 //!
-//! [`RecordingReader`] loads the whole file with `std::fs::read` (no memory map) and walks its
-//! records linearly from the start; it never needs the summary section. Each chunk is
+//! [`RecordingReader`] reads the file with positioned reads as it needs it (no memory map, and
+//! never the whole file at once: a chunk at a time) and walks its records linearly from the
+//! start; it never needs the summary section. Each chunk is
 //! decompressed and CRC-checked on its own, so a corrupt chunk costs its own messages and one
 //! [`RecordingError::CorruptChunk`], and a file cut off mid-write yields every message of every
 //! complete chunk plus a warning saying where it was cut.
@@ -86,6 +87,7 @@ pub mod camera_info;
 mod reader;
 pub mod salvage;
 pub mod schema;
+mod source;
 pub mod truth;
 mod writer;
 

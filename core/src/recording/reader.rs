@@ -5,6 +5,7 @@
 //! are decompressed and CRC-checked one at a time with [`mcap::sans_io::LinearReader`], so a bad
 //! chunk is one error and the next chunk reads normally.
 
+use std::borrow::Cow;
 use std::cmp::Ordering;
 use std::collections::{BTreeMap, BinaryHeap, HashMap};
 use std::fmt;
@@ -17,6 +18,7 @@ use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
 use super::camera_info::{camera_info_topic, decode_camera_info};
 use super::schema::{self, CDR_MESSAGE_ENCODING, JSON_MESSAGE_ENCODING};
+use super::source::{MAX_READ_BYTES, Source};
 use super::truth::{self, TruthKind, TruthMessage};
 use super::{
     CALIBRATION_ATTACHMENT, CALIBRATION_KEY, CALIBRATION_METADATA, RECORDING_METADATA,
@@ -115,12 +117,14 @@ enum WalkEnd {
     },
 }
 
-/// A recording loaded into memory (`std::fs::read`, no memory map).
+/// A recording, read from its file as needed (no memory map: a file cut shorter under it is a
+/// read error, not a signal).
 ///
-/// Opening walks the records once without decompressing chunks; [`messages`](Self::messages)
-/// decompresses chunk by chunk as it goes.
+/// Opening walks the records once, reading each chunk's header but not its messages;
+/// [`messages`](Self::messages) reads and decompresses chunk by chunk as it goes, so memory
+/// holds the chunks in use, not the file.
 pub struct RecordingReader {
-    bytes: Vec<u8>,
+    source: Source,
     meta: RecordingMeta,
     warnings: Vec<String>,
     blocks: Vec<Block>,
@@ -134,7 +138,7 @@ pub struct RecordingReader {
 impl fmt::Debug for RecordingReader {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("RecordingReader")
-            .field("bytes", &self.bytes.len())
+            .field("bytes", &self.source.len())
             .field("meta", &self.meta)
             .field("warnings", &self.warnings)
             .field("blocks", &self.blocks.len())
@@ -144,13 +148,15 @@ impl fmt::Debug for RecordingReader {
 }
 
 impl RecordingReader {
-    /// Read the file at `path` into memory and index it.
+    /// Open the file at `path` (a regular file only) and index it.
     pub fn open(path: &Path) -> Result<Self, RecordingError> {
-        let bytes = crate::input_file::read_regular(path).map_err(|source| RecordingError::Io {
+        let io = |source| RecordingError::Io {
             path: path.to_owned(),
             source,
-        })?;
-        let reader = Self::from_bytes(bytes)?;
+        };
+        let file = crate::input_file::open_regular(path).map_err(io)?;
+        let len = usize::try_from(file.metadata().map_err(io)?.len()).unwrap_or(usize::MAX);
+        let reader = Self::from_source(Source::File { file, len })?;
         for warning in &reader.warnings {
             tracing::warn!(path = %path.display(), "{warning}");
         }
@@ -160,8 +166,12 @@ impl RecordingReader {
     /// Index a recording held in memory. Fails only when the bytes do not start with an MCAP
     /// magic and header record; any later damage becomes a warning or a per-chunk error.
     pub fn from_bytes(bytes: Vec<u8>) -> Result<Self, RecordingError> {
+        Self::from_source(Source::Memory(bytes))
+    }
+
+    fn from_source(source: Source) -> Result<Self, RecordingError> {
         let mut reader = RecordingReader {
-            bytes,
+            source,
             meta: RecordingMeta::default(),
             warnings: Vec::new(),
             blocks: Vec::new(),
@@ -299,22 +309,25 @@ impl RecordingReader {
     /// Walk every record once: collect chunks, loose messages, channels, metadata and the
     /// calibration attachment, and note how the file ends.
     fn index(&mut self) -> Result<(), RecordingError> {
-        let bytes = std::mem::take(&mut self.bytes);
-        let result = self.index_bytes(&bytes);
-        self.bytes = bytes;
+        let source = std::mem::replace(&mut self.source, Source::Memory(Vec::new()));
+        let result = self.index_bytes(&source);
+        self.source = source;
         result
     }
 
-    fn index_bytes(&mut self, bytes: &[u8]) -> Result<(), RecordingError> {
+    fn index_bytes(&mut self, bytes: &Source) -> Result<(), RecordingError> {
         let len = bytes.len();
-        match bytes.get(..mcap::MAGIC.len()) {
-            Some(magic) if magic == mcap::MAGIC => {}
+        match bytes.get(0..mcap::MAGIC.len()) {
+            Some(magic) if *magic == *mcap::MAGIC => {}
             Some(_) => {
                 return Err(RecordingError::NotMcap {
                     reason: "the file does not start with the MCAP magic bytes".into(),
                 });
             }
-            None if mcap::MAGIC.starts_with(bytes) => {
+            None if bytes
+                .get(0..len)
+                .is_some_and(|start| mcap::MAGIC.starts_with(&start)) =>
+            {
                 return Err(RecordingError::NotMcap {
                     reason: format!("the file is cut off inside the magic bytes ({len} bytes)"),
                 });
@@ -335,7 +348,7 @@ impl RecordingReader {
                 });
             }
         };
-        let library = match body_of(bytes, &header_body).map(|b| parse_record(header_opcode, b)) {
+        let library = match body_of(bytes, &header_body).map(|b| parse_owned(header_opcode, &b)) {
             Some(Ok(Record::Header(header))) => header.library,
             Some(Ok(_)) | None => {
                 return Err(RecordingError::NotMcap {
@@ -371,13 +384,45 @@ impl RecordingReader {
             };
             let record_offset = pos;
             pos = body_range.end;
-            let Some(body) = body_of(bytes, &body_range) else {
-                break WalkEnd::InsideRecord {
-                    offset: record_offset,
-                    opcode: Some(opcode),
-                    length: None,
-                };
+            let cut = WalkEnd::InsideRecord {
+                offset: record_offset,
+                opcode: Some(opcode),
+                length: None,
             };
+            match opcode {
+                op::CHUNK => {
+                    let index = chunk_count;
+                    chunk_count += 1;
+                    match chunk_header(bytes, &body_range) {
+                        None => break cut,
+                        Some(Ok(header)) => self.blocks.push(Block::Chunk {
+                            info: chunk_info(index, record_offset, pos, &header),
+                            body: body_range,
+                        }),
+                        Some(Err(e)) => {
+                            let start_ns = self.blocks.last().map(Block::start_ns).unwrap_or(0);
+                            self.blocks.push(Block::BadChunk {
+                                index,
+                                offset: record_offset as u64,
+                                reason: format!("chunk header does not parse: {e}"),
+                                start_ns,
+                            });
+                        }
+                    }
+                    continue;
+                }
+                op::DATA_END => {
+                    data_end_seen = true;
+                    continue;
+                }
+                op::FOOTER => break WalkEnd::Footer,
+                op::MESSAGE | op::CHANNEL | op::METADATA | op::ATTACHMENT => {}
+                _ => continue,
+            }
+            let Some(body) = body_of(bytes, &body_range) else {
+                break cut;
+            };
+            let body: &[u8] = &body;
             let mut corrupt = |reason: String| {
                 self.warnings.push(
                     RecordingError::CorruptRecord {
@@ -389,26 +434,6 @@ impl RecordingReader {
                 );
             };
             match opcode {
-                op::CHUNK => {
-                    let index = chunk_count;
-                    chunk_count += 1;
-                    match parse_record(opcode, body) {
-                        Ok(Record::Chunk { header, .. }) => self.blocks.push(Block::Chunk {
-                            info: chunk_info(index, record_offset, pos, &header),
-                            body: body_range,
-                        }),
-                        Ok(_) => {}
-                        Err(e) => {
-                            let start_ns = self.blocks.last().map(Block::start_ns).unwrap_or(0);
-                            self.blocks.push(Block::BadChunk {
-                                index,
-                                offset: record_offset as u64,
-                                reason: format!("chunk header does not parse: {e}"),
-                                start_ns,
-                            });
-                        }
-                    }
-                }
                 op::MESSAGE => match parse_record(opcode, body) {
                     Ok(Record::Message { header, .. }) => self.blocks.push(Block::Message {
                         header,
@@ -448,8 +473,6 @@ impl RecordingReader {
                     }
                     Err(reason) => corrupt(reason),
                 },
-                op::DATA_END => data_end_seen = true,
-                op::FOOTER => break WalkEnd::Footer,
                 _ => {}
             }
         };
@@ -465,7 +488,7 @@ impl RecordingReader {
             .map(|toml| (CALIBRATION_METADATA, toml.clone()))
             .or_else(|| {
                 let data = calibration_attachment.and_then(|range| bytes.get(range))?;
-                match std::str::from_utf8(data) {
+                match std::str::from_utf8(&data) {
                     Ok(text) => Some((CALIBRATION_ATTACHMENT, text.to_owned())),
                     Err(e) => {
                         self.warnings
@@ -531,14 +554,14 @@ impl RecordingReader {
         match walk_end {
             WalkEnd::Footer => {
                 self.summary_present = true;
-                let trailer = bytes.get(pos..).unwrap_or_default();
-                if trailer.len() < mcap::MAGIC.len() && mcap::MAGIC.starts_with(trailer) {
+                let trailer = bytes.get(pos..len).unwrap_or_default();
+                if trailer.len() < mcap::MAGIC.len() && mcap::MAGIC.starts_with(&trailer) {
                     let complete = self.count_complete_messages(bytes);
                     self.warnings.push(format!(
                         "recording truncated at byte {len} inside the closing magic bytes: \
                          summary section complete; read {complete} complete messages"
                     ));
-                } else if trailer != mcap::MAGIC {
+                } else if *trailer != *mcap::MAGIC {
                     self.warnings.push(format!(
                         "footer at byte {pos} is followed by {} bytes that are not the closing magic",
                         trailer.len()
@@ -583,7 +606,11 @@ impl RecordingReader {
     /// a corrupt length loses nothing when the chunk's bytes are intact (its CRC decides), and a
     /// walk thrown off its records by one reads no garbage after it. Returns where the damage
     /// was and how many chunks were recovered, or `None` when the file has no readable index.
-    fn resume_at_indexed_chunks(&mut self, bytes: &[u8], stopped: usize) -> Option<(usize, usize)> {
+    fn resume_at_indexed_chunks(
+        &mut self,
+        bytes: &Source,
+        stopped: usize,
+    ) -> Option<(usize, usize)> {
         let entries = summary_chunk_index(bytes)?;
         let damage = self
             .blocks
@@ -600,15 +627,16 @@ impl RecordingReader {
                 continue;
             };
             let end = start.checked_add(length).filter(|&end| end <= bytes.len());
-            let (Some(end), Some(&op::CHUNK)) = (end, bytes.get(start)) else {
+            let opcode = bytes.get(start..start + 1).map(|b| b[0]);
+            let (Some(end), Some(op::CHUNK)) = (end, opcode) else {
                 continue;
             };
             if start < damage || length < RECORD_PREFIX_LEN {
                 continue;
             }
             let body = start + RECORD_PREFIX_LEN..end;
-            match body_of(bytes, &body).map(|b| parse_record(op::CHUNK, b)) {
-                Some(Ok(Record::Chunk { header, .. })) => {
+            match chunk_header(bytes, &body) {
+                Some(Ok(header)) => {
                     self.blocks.push(Block::Chunk {
                         info: chunk_info(index, start, end, &header),
                         body,
@@ -629,7 +657,7 @@ impl RecordingReader {
 
     /// Messages in loose records and in chunks that decompress cleanly. Used only for the
     /// truncation warning, when the summary's statistics are not there.
-    fn count_complete_messages(&self, bytes: &[u8]) -> u64 {
+    fn count_complete_messages(&self, bytes: &Source) -> u64 {
         self.blocks
             .iter()
             .map(|block| match block {
@@ -664,11 +692,11 @@ enum Framed {
     },
 }
 
-fn frame_record(bytes: &[u8], pos: usize) -> Framed {
+fn frame_record(bytes: &Source, pos: usize) -> Framed {
     if pos >= bytes.len() {
         return Framed::End;
     }
-    let opcode = bytes.get(pos).copied();
+    let opcode = bytes.get(pos..pos + 1).map(|b| b[0]);
     let Some(prefix) = bytes.get(pos..pos + RECORD_PREFIX_LEN) else {
         return Framed::Cut {
             opcode,
@@ -701,9 +729,9 @@ const FOOTER_RECORD_LEN: usize = RECORD_PREFIX_LEN + 8 + 8 + 4;
 /// The chunk offsets and record lengths the summary section's Chunk Index records give, found
 /// through the footer at the very end of the file; `None` when the file does not end in a
 /// footer and the magic, or its summary has no chunk index.
-fn summary_chunk_index(bytes: &[u8]) -> Option<Vec<(u64, u64)>> {
+fn summary_chunk_index(bytes: &Source) -> Option<Vec<(u64, u64)>> {
     let magic_start = bytes.len().checked_sub(mcap::MAGIC.len())?;
-    if bytes.get(magic_start..)? != mcap::MAGIC {
+    if *bytes.get(magic_start..bytes.len())? != *mcap::MAGIC {
         return None;
     }
     let footer_start = magic_start.checked_sub(FOOTER_RECORD_LEN)?;
@@ -714,7 +742,7 @@ fn summary_chunk_index(bytes: &[u8]) -> Option<Vec<(u64, u64)>> {
     else {
         return None;
     };
-    let Ok(Record::Footer(footer)) = parse_record(op::FOOTER, body_of(bytes, &body)?) else {
+    let Ok(Record::Footer(footer)) = parse_owned(op::FOOTER, &body_of(bytes, &body)?) else {
         return None;
     };
     let mut pos = usize::try_from(footer.summary_start)
@@ -728,7 +756,7 @@ fn summary_chunk_index(bytes: &[u8]) -> Option<Vec<(u64, u64)>> {
         pos = body.end;
         if opcode == op::CHUNK_INDEX
             && let Some(Ok(Record::ChunkIndex(index))) =
-                body_of(bytes, &body).map(|b| parse_record(opcode, b))
+                body_of(bytes, &body).map(|b| parse_owned(opcode, &b))
         {
             offsets.push((index.chunk_start_offset, index.chunk_length));
         }
@@ -736,8 +764,47 @@ fn summary_chunk_index(bytes: &[u8]) -> Option<Vec<(u64, u64)>> {
     (!offsets.is_empty()).then_some(offsets)
 }
 
-fn body_of<'a>(bytes: &'a [u8], range: &Range<usize>) -> Option<&'a [u8]> {
+fn body_of<'a>(bytes: &'a Source, range: &Range<usize>) -> Option<Cow<'a, [u8]>> {
     bytes.get(range.clone())
+}
+
+/// [`parse_record`] of a record read into a buffer of its own.
+fn parse_owned(opcode: u8, body: &[u8]) -> Result<Record<'static>, String> {
+    parse_record(opcode, body).map(Record::into_owned)
+}
+
+/// The header of the chunk record whose body is `body`, read without the compressed records
+/// after it: `None` when it cannot be read, else the header or why it is corrupt (as
+/// [`mcap::parse_record`] checks it: the compressed size must fit the record).
+fn chunk_header(bytes: &Source, body: &Range<usize>) -> Option<Result<ChunkHeader, String>> {
+    // Times, uncompressed size (3 × u64), CRC (u32), compression (u32 length + name),
+    // compressed size (u64); a name this long is corrupt anyway.
+    let head = bytes.get_up_to(body.start, 4096.min(body.len()))?;
+    Some(parse_chunk_header(&head, body.len()))
+}
+
+fn parse_chunk_header(head: &[u8], body_len: usize) -> Result<ChunkHeader, String> {
+    let u64_at = |at: usize| read_u64(head, at);
+    let name_len = read_u32(head, 28)? as usize;
+    let name = head
+        .get(32..32usize.saturating_add(name_len))
+        .ok_or("compression name runs past the chunk header")?;
+    let compression = String::from_utf8(name.to_vec()).map_err(|e| e.to_string())?;
+    let compressed_size = u64_at(32 + name_len)?;
+    let available = body_len.saturating_sub(32 + name_len + 8) as u64;
+    if compressed_size > available {
+        return Err(format!(
+            "chunk claims {compressed_size} compressed bytes, its record holds {available}"
+        ));
+    }
+    Ok(ChunkHeader {
+        message_start_time: u64_at(0)?,
+        message_end_time: u64_at(8)?,
+        uncompressed_size: u64_at(16)?,
+        uncompressed_crc: read_u32(head, 24)?,
+        compression,
+        compressed_size,
+    })
 }
 
 fn opcode_name(opcode: u8) -> &'static str {
@@ -833,26 +900,23 @@ fn read_u64(body: &[u8], pos: usize) -> Result<u64, String> {
         .ok_or_else(|| format!("u64 at {pos} runs past the record"))
 }
 
-/// Largest record a chunk may hold (beyond the chunk's own compressed size). Bounds what a
-/// corrupt length field can make the reader allocate; a 4096×4096 `Rgba16F` image is 128 MiB.
-const MAX_RECORD_BYTES: usize = 256 << 20;
-
 /// Decompress one chunk record (`opcode..end` in `bytes`) and parse all its records; any failure
-/// (decompression, CRC, framing, a record over [`MAX_RECORD_BYTES`]) fails the whole chunk, so
+/// (decompression, CRC, framing, a record over [`MAX_READ_BYTES`]) fails the whole chunk, so
 /// that no message of a chunk with a bad CRC escapes.
 /// The records of the chunk record at `record`. Its prefix is rebuilt from the range rather
 /// than read from the file, so a chunk framed by the summary's index despite a corrupt length
 /// field reads as what it is.
-fn load_chunk(bytes: &[u8], record: Range<usize>) -> Result<Vec<Record<'static>>, String> {
+fn load_chunk(bytes: &Source, record: Range<usize>) -> Result<Vec<Record<'static>>, String> {
     let body = bytes
         .get(record.start + RECORD_PREFIX_LEN..record.end)
-        .ok_or("chunk record lies outside the file")?;
+        .ok_or("chunk record cannot be read (outside the file, or over the read limit)")?;
+    let body: &[u8] = &body;
     check_uncompressed_records(body)?;
     let mut prefix = [0u8; RECORD_PREFIX_LEN];
     prefix[0] = op::CHUNK;
     prefix[1..].copy_from_slice(&(body.len() as u64).to_le_bytes());
     let mut parts = [&prefix[..], body];
-    let limit = (body.len() + RECORD_PREFIX_LEN).max(MAX_RECORD_BYTES);
+    let limit = (body.len() + RECORD_PREFIX_LEN).max(MAX_READ_BYTES);
     let mut reader = LinearReader::new_with_options(
         LinearReaderOptions::default()
             .with_skip_start_magic(true)
@@ -1049,7 +1113,7 @@ impl<'a, T: Recorded> Messages<'a, T> {
                 reason: reason.clone(),
             }),
             Block::Chunk { info, body } => {
-                let records = load_chunk(&self.reader.bytes, info.offset as usize..body.end)
+                let records = load_chunk(&self.reader.source, info.offset as usize..body.end)
                     .map_err(|reason| RecordingError::CorruptChunk {
                         index: info.index,
                         offset: info.offset,
@@ -1077,9 +1141,13 @@ impl<'a, T: Recorded> Messages<'a, T> {
     /// Decode one message; `None` for messages on topics this iterator does not read.
     fn decode(&mut self, pending: Pending) -> Option<Result<T, RecordingError>> {
         let mut header = pending.header;
+        let in_file: Cow<'_, [u8]>;
         let data: &[u8] = match &pending.data {
             PendingData::Owned(data) => data,
-            PendingData::InFile(range) => self.reader.bytes.get(range.clone()).unwrap_or_default(),
+            PendingData::InFile(range) => {
+                in_file = self.reader.source.get(range.clone()).unwrap_or_default();
+                &in_file
+            }
         };
         let Some(channel) = self.channels.get(&header.channel_id) else {
             return Some(Err(RecordingError::Decode {
