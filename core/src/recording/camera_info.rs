@@ -8,13 +8,14 @@
 //! unrectified image, in pixels, in the optical convention (+z forward, +y down) that relight's
 //! camera models share.
 
-use super::schema::{CdrReader, CdrWriter};
+use super::schema::{CdrReader, CdrWriter, header_definitions};
 use crate::camera::{CameraModel, KannalaBrandt, Pinhole};
 
 /// ROS 2 type name of the camera-info schema.
 pub const CAMERA_INFO_SCHEMA_NAME: &str = "sensor_msgs/msg/CameraInfo";
 /// `sensor_msgs/msg/CameraInfo` with its dependencies, in the concatenated form of ROS 2 bags.
-pub const CAMERA_INFO_SCHEMA: &str = "\
+pub const CAMERA_INFO_SCHEMA: &str = concat!(
+    "\
 std_msgs/Header header
 uint32 height
 uint32 width
@@ -26,14 +27,9 @@ float64[12] p
 uint32 binning_x
 uint32 binning_y
 sensor_msgs/RegionOfInterest roi
-================================================================================
-MSG: std_msgs/Header
-builtin_interfaces/Time stamp
-string frame_id
-================================================================================
-MSG: builtin_interfaces/Time
-int32 sec
-uint32 nanosec
+",
+    header_definitions!(),
+    "\
 ================================================================================
 MSG: sensor_msgs/RegionOfInterest
 uint32 x_offset
@@ -41,7 +37,8 @@ uint32 y_offset
 uint32 height
 uint32 width
 bool do_rectify
-";
+"
+);
 
 /// The topic a ROS driver publishes an image topic's camera info on: the image topic's last
 /// name replaced by `camera_info`.

@@ -19,16 +19,12 @@ pub const IMAGE_SCHEMA_NAME: &str = "sensor_msgs/msg/Image";
 pub const ROS2MSG_SCHEMA_ENCODING: &str = "ros2msg";
 /// MCAP message encoding of ROS 2 CDR.
 pub const CDR_MESSAGE_ENCODING: &str = "cdr";
-/// `sensor_msgs/msg/Image` with its dependencies, in the concatenated form of ROS 2 bags
-/// (`rosbag2` / `mcap-ros2-support`).
-pub const IMAGE_SCHEMA: &str = "\
-std_msgs/Header header
-uint32 height
-uint32 width
-string encoding
-uint8 is_bigendian
-uint32 step
-uint8[] data
+
+/// The definitions of `std_msgs/Header` and `builtin_interfaces/Time` a ROS 2 schema that has
+/// a header appends, as a literal for `concat!`.
+macro_rules! header_definitions {
+    () => {
+        "\
 ================================================================================
 MSG: std_msgs/Header
 builtin_interfaces/Time stamp
@@ -37,7 +33,25 @@ string frame_id
 MSG: builtin_interfaces/Time
 int32 sec
 uint32 nanosec
-";
+"
+    };
+}
+pub(super) use header_definitions;
+
+/// `sensor_msgs/msg/Image` with its dependencies, in the concatenated form of ROS 2 bags
+/// (`rosbag2` / `mcap-ros2-support`).
+pub const IMAGE_SCHEMA: &str = concat!(
+    "\
+std_msgs/Header header
+uint32 height
+uint32 width
+string encoding
+uint8 is_bigendian
+uint32 step
+uint8[] data
+",
+    header_definitions!()
+);
 
 /// MCAP schema encoding of JSON Schema.
 pub const JSON_SCHEMA_ENCODING: &str = "jsonschema";

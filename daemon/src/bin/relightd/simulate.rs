@@ -119,8 +119,16 @@ fn simulate(scene: &Scene, settings: SimSettings, auto_exposure: bool, out: &Pat
         );
     }
     let started = Instant::now();
+    // A bar on a terminal; on a pipe or in a log, a line every 10 frames.
+    let bar = indicatif::ProgressBar::new(u64::from(frames)).with_style(
+        indicatif::ProgressStyle::with_template(
+            "simulating {bar:30} {pos}/{len} frames  {elapsed} (eta {eta})",
+        )
+        .expect("a valid template"),
+    );
     let summary = write_recording(&rig, out, |i| {
-        if (i + 1) % 10 == 0 || i + 1 == frames {
+        bar.set_position(u64::from(i + 1));
+        if bar.is_hidden() && ((i + 1) % 10 == 0 || i + 1 == frames) {
             eprintln!(
                 "simulated {}/{frames} frames ({:.1} s)",
                 i + 1,
@@ -129,6 +137,7 @@ fn simulate(scene: &Scene, settings: SimSettings, auto_exposure: bool, out: &Pat
         }
     })
     .with_context(|| format!("simulating into {}", out.display()))?;
+    bar.finish_and_clear();
     let bytes = std::fs::metadata(out).map(|m| m.len()).unwrap_or(0);
     println!(
         "{}: {} messages ({:?}), {frames} frames of {}×{}, {bytes} bytes, {:.1} s",
