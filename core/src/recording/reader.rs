@@ -419,6 +419,20 @@ impl RecordingReader {
                 op::MESSAGE | op::CHANNEL | op::METADATA | op::ATTACHMENT => {}
                 _ => continue,
             }
+            if body_range.len() > MAX_READ_BYTES {
+                self.warnings.push(
+                    RecordingError::CorruptRecord {
+                        offset: record_offset as u64,
+                        opcode,
+                        reason: format!(
+                            "{} bytes, over the {MAX_READ_BYTES}-byte read limit: skipped",
+                            body_range.len()
+                        ),
+                    }
+                    .to_string(),
+                );
+                continue;
+            }
             let Some(body) = body_of(bytes, &body_range) else {
                 break cut;
             };
