@@ -115,6 +115,12 @@ impl Replay {
     /// Check the configuration and read the recording's channel list. The recording itself
     /// is (re)read on every open.
     pub fn new(config: ReplayConfig) -> Result<Self, DeviceError> {
+        Self::with_topics(config, TopicMap::default())
+    }
+
+    /// [`Replay::new`] reading the streams from other topics than relight's own (a bag another
+    /// tool recorded).
+    pub fn with_topics(config: ReplayConfig, topics: TopicMap) -> Result<Self, DeviceError> {
         if let ReplayMode::Realtime { speed } = config.mode
             && !(speed.is_finite() && speed > 0.0)
         {
@@ -126,7 +132,7 @@ impl Replay {
         let mut replay = Self {
             config,
             reader: None,
-            topics: TopicMap::default(),
+            topics,
             streams: Vec::new(),
             backpressure: None,
             step_stream: None,
@@ -151,16 +157,6 @@ impl Replay {
 
     pub fn reader(&self) -> Option<&RecordingReader> {
         self.reader.as_ref()
-    }
-
-    /// Read the streams from other topics than relight's own (a bag another tool recorded).
-    pub fn with_topics(mut self, topics: TopicMap) -> Self {
-        if topics != self.topics {
-            self.reader = self.reader.take().map(|r| r.with_topics(topics.clone()));
-            self.topics = topics;
-            self.streams = self.scan_streams();
-        }
-        self
     }
 
     /// In stepped mode, count steps in messages of `stream` (the synchroniser's reference): a

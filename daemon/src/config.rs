@@ -1141,10 +1141,7 @@ impl Validator<'_> {
                 None => {
                     self.error(
                         &key,
-                        format!(
-                            "not a stream; the streams are {}",
-                            StreamKind::ALL.map(StreamKind::name).join(", ")
-                        ),
+                        format!("not a stream; the streams are {}", stream_names()),
                     );
                     ok = false;
                 }
@@ -1518,7 +1515,8 @@ fn read_bounded(path: &Path) -> std::io::Result<String> {
     String::from_utf8(bytes).map_err(|_| invalid("not UTF-8 text".into()))
 }
 
-fn stream_names() -> String {
+/// The streams' names, comma-separated, for messages that list them.
+pub fn stream_names() -> String {
     StreamKind::ALL.map(StreamKind::name).join(", ")
 }
 

@@ -206,28 +206,39 @@ impl RecordingReader {
         self.relight_layout
     }
 
-    /// The camera that `kind`'s image topic's `sensor_msgs/msg/CameraInfo` describes (its
-    /// first decodable message on [`camera_info_topic`]), as ROS drivers publish beside each
-    /// image; `None` when the recording has none. Reads up to that message.
-    pub fn camera_info(&self, kind: StreamKind) -> Option<Result<CameraModel, RecordingError>> {
-        let wanted = camera_info_topic(self.topics.topic(kind));
-        self.iterate::<CameraInfoMessage>()
-            .filter(|message| match message {
-                Ok(message) => message.topic == wanted,
-                Err(RecordingError::Decode { channel, .. }) => *channel == wanted,
-                Err(_) => false,
-            })
-            .map(|message| message.map(|m| m.camera))
-            .next()
-    }
-
-    /// For a bag without relight's calibration: the colour and depth cameras from their
-    /// camera-info topics ([`camera_info`](Self::camera_info)); `None` when it has neither.
-    /// Nothing else of a rig is in such a bag, so the depth is taken as registered to the colour
-    /// camera (`color_from_depth` identity), and there is no probe, board or response.
+    /// For a bag without relight's calibration: the colour and depth cameras that the
+    /// `sensor_msgs/msg/CameraInfo` beside their image topics describe ([`camera_info_topic`],
+    /// as ROS drivers publish them; the first decodable message of each), read in one pass that
+    /// stops once both are found; `None` when the bag has neither. Nothing else of a rig is in
+    /// such a bag, so the depth is taken as registered to the colour camera (`color_from_depth`
+    /// identity), and there is no probe, board or response.
     pub fn calibration_from_camera_info(&self) -> Result<Option<RigCalibration>, RecordingError> {
-        let color = self.camera_info(StreamKind::Color).transpose()?;
-        let depth = self.camera_info(StreamKind::Depth).transpose()?;
+        let wanted = [StreamKind::Color, StreamKind::Depth]
+            .map(|kind| camera_info_topic(self.topics.topic(kind)));
+        let mut found: [Option<CameraModel>; 2] = [None, None];
+        for message in self.iterate::<CameraInfoMessage>() {
+            let message = match message {
+                Ok(message) => message,
+                Err(RecordingError::Decode { ref channel, .. })
+                    if wanted
+                        .iter()
+                        .zip(&found)
+                        .any(|(topic, camera)| topic == channel && camera.is_none()) =>
+                {
+                    return message.map(|_| None);
+                }
+                Err(_) => continue,
+            };
+            for (topic, camera) in wanted.iter().zip(&mut found) {
+                if *topic == message.topic && camera.is_none() {
+                    *camera = Some(message.camera);
+                }
+            }
+            if found.iter().all(Option::is_some) {
+                break;
+            }
+        }
+        let [color, depth] = found;
         if color.is_none() && depth.is_none() {
             return Ok(None);
         }
@@ -419,24 +430,6 @@ impl RecordingReader {
                 op::MESSAGE | op::CHANNEL | op::METADATA | op::ATTACHMENT => {}
                 _ => continue,
             }
-            if body_range.len() > MAX_READ_BYTES {
-                self.warnings.push(
-                    RecordingError::CorruptRecord {
-                        offset: record_offset as u64,
-                        opcode,
-                        reason: format!(
-                            "{} bytes, over the {MAX_READ_BYTES}-byte read limit: skipped",
-                            body_range.len()
-                        ),
-                    }
-                    .to_string(),
-                );
-                continue;
-            }
-            let Some(body) = body_of(bytes, &body_range) else {
-                break cut;
-            };
-            let body: &[u8] = &body;
             let mut corrupt = |reason: String| {
                 self.warnings.push(
                     RecordingError::CorruptRecord {
@@ -447,6 +440,17 @@ impl RecordingReader {
                     .to_string(),
                 );
             };
+            if body_range.len() > MAX_READ_BYTES {
+                corrupt(format!(
+                    "{} bytes, over the {MAX_READ_BYTES}-byte read limit: skipped",
+                    body_range.len()
+                ));
+                continue;
+            }
+            let Some(body) = body_of(bytes, &body_range) else {
+                break cut;
+            };
+            let body: &[u8] = &body;
             match opcode {
                 op::MESSAGE => match parse_record(opcode, body) {
                     Ok(Record::Message { header, .. }) => self.blocks.push(Block::Message {
@@ -1210,7 +1214,7 @@ impl Recorded for StreamMessage {
 }
 
 /// A `sensor_msgs/msg/CameraInfo` message, on a topic ending in `camera_info`
-/// ([`RecordingReader::camera_info`]).
+/// ([`RecordingReader::calibration_from_camera_info`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct CameraInfoMessage {
     pub topic: String,

@@ -512,12 +512,12 @@ fn dispatch(
         }
         "lights.export" => {
             let request = output_request(method, params)?;
-            if request.path.is_none() {
+            let Some(path) = request.path.as_deref() else {
                 return Err(ControlError::invalid_params(format!(
                     "{method}: `path` is required (an .exr file, relative to the snapshot directory)"
                 )));
-            }
-            target.lights_export(request)
+            };
+            target.lights_export(path, request.overwrite)
         }
         "lights.subscribe" => {
             no_params(method, params)?;

@@ -1,7 +1,7 @@
 //! What the control socket talks about: the [`ControlTarget`] the pipeline implements, the reports
 //! it returns, and the errors it raises.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use relight_core::StreamKind;
 use serde::{Deserialize, Serialize};
@@ -68,10 +68,11 @@ pub trait ControlTarget: Send + Sync + 'static {
         None
     }
 
-    /// Writes the HDR environment the estimate comes from to `request.path` (relative to the
-    /// snapshot directory) as an EXR; returns the file and its size.
-    fn lights_export(&self, request: OutputRequest) -> Result<Value, ControlError> {
-        let _ = request;
+    /// Writes the HDR environment the estimate comes from to `path` (relative to the snapshot
+    /// directory) as an EXR, replacing a file there only with `overwrite`; returns the file and
+    /// its size.
+    fn lights_export(&self, path: &Path, overwrite: bool) -> Result<Value, ControlError> {
+        let _ = (path, overwrite);
         Err(ControlError::failed(
             "this daemon publishes no lighting estimate",
         ))
@@ -156,7 +157,7 @@ impl ControlError {
 
     /// A file that could not be created or written; `message` says why (the OS reason, or what
     /// was refused) and `data.path` names the file.
-    pub fn file(path: &std::path::Path, message: impl Into<String>) -> Self {
+    pub fn file(path: &Path, message: impl Into<String>) -> Self {
         Self::new(codes::IO, message).with_data(serde_json::json!({ "path": path }))
     }
 

@@ -35,9 +35,22 @@ fn recorder_error(error: RecorderError) -> ControlError {
 
 /// A client's output path, resolved under `base` ([`resolve_output`]); a refusal is −32003.
 fn resolve(requested: Option<&Path>, base: &Path) -> Result<Option<PathBuf>, ControlError> {
-    requested
-        .map(|path| resolve_output(path, base).map_err(|e| ControlError::file(path, e.to_string())))
-        .transpose()
+    requested.map(|path| resolve_one(path, base)).transpose()
+}
+
+fn resolve_one(requested: &Path, base: &Path) -> Result<PathBuf, ControlError> {
+    resolve_output(requested, base).map_err(|e| ControlError::file(requested, e.to_string()))
+}
+
+/// Creates `base`, the daemon's own output directory, when `path` lies in it (a path elsewhere
+/// must name a directory that exists).
+fn create_base_for(path: &Path, base: &Path) -> Result<(), ControlError> {
+    if path.starts_with(base) {
+        std::fs::create_dir_all(base).map_err(|e| {
+            ControlError::file(base, format!("cannot create {}: {e}", base.display()))
+        })?;
+    }
+    Ok(())
 }
 
 /// The pipeline as the control socket sees it.
@@ -81,29 +94,21 @@ impl ControlTarget for PipelineControl {
 
     /// Written on the control connection's own thread (a 128 × 64 map is 100 kB), never the
     /// render thread's.
-    fn lights_export(&self, request: OutputRequest) -> Result<Value, ControlError> {
+    fn lights_export(&self, path: &Path, overwrite: bool) -> Result<Value, ControlError> {
         let environment = self.shared.lights.environment().ok_or_else(|| {
             ControlError::failed(
                 "no HDR environment yet: the probe has not merged a bracket and the scene file has no environment map",
             )
         })?;
         let base = lock(&self.shared.config).snapshot.dir.clone();
-        let Some(path) = resolve(request.path.as_deref(), &base)? else {
-            return Err(ControlError::invalid_params(
-                "lights.export: `path` is required",
-            ));
-        };
-        if path.starts_with(&base) {
-            std::fs::create_dir_all(&base).map_err(|e| {
-                ControlError::file(&base, format!("cannot create {}: {e}", base.display()))
-            })?;
-        }
+        let path = resolve_one(path, &base)?;
+        create_base_for(&path, &base)?;
         write_exr_as(
             &path,
             environment.width,
             environment.height,
             &environment.radiance,
-            Existing::from_overwrite(request.overwrite),
+            Existing::from_overwrite(overwrite),
         )
         .map_err(|error| ControlError::file(&path, error.to_string()))?;
         Ok(json!({
@@ -175,13 +180,8 @@ impl ControlTarget for PipelineControl {
 
     fn record_start(&self, request: OutputRequest) -> Result<PathBuf, ControlError> {
         let dir = lock(&self.shared.config).recorder.dir.clone();
-        let path = resolve(request.path.as_deref(), &dir)?;
-        if path.as_ref().is_none_or(|path| path.starts_with(&dir)) {
-            std::fs::create_dir_all(&dir).map_err(|e| {
-                ControlError::file(&dir, format!("cannot create {}: {e}", dir.display()))
-            })?;
-        }
-        let path = path.unwrap_or_else(|| recording_path(&dir));
+        let path = resolve(request.path.as_deref(), &dir)?.unwrap_or_else(|| recording_path(&dir));
+        create_base_for(&path, &dir)?;
         self.shared
             .recorder
             .start(path, Existing::from_overwrite(request.overwrite))

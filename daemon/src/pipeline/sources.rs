@@ -116,19 +116,21 @@ pub fn start(config: &Config, bus: &Arc<Bus>) -> anyhow::Result<Sources> {
     let mut sync = core_sync_config(&config.sync);
     match &config.source {
         SourceConfig::Replay(replay) => {
-            let device = Replay::new(ReplayConfig {
-                path: replay.path.clone(),
-                mode: match replay.mode {
-                    config::ReplayMode::Realtime => ReplayMode::Realtime {
-                        speed: replay.speed,
+            let device = Replay::with_topics(
+                ReplayConfig {
+                    path: replay.path.clone(),
+                    mode: match replay.mode {
+                        config::ReplayMode::Realtime => ReplayMode::Realtime {
+                            speed: replay.speed,
+                        },
+                        config::ReplayMode::Fast => ReplayMode::Fast,
+                        config::ReplayMode::Stepped => ReplayMode::Stepped,
                     },
-                    config::ReplayMode::Fast => ReplayMode::Fast,
-                    config::ReplayMode::Stepped => ReplayMode::Stepped,
+                    looping: replay.loop_playback,
                 },
-                looping: replay.loop_playback,
-            })
-            .with_context(|| format!("{}: [replay]", config.path.display()))?
-            .with_topics(TopicMap::new(replay.topics.clone()));
+                TopicMap::new(replay.topics.clone()),
+            )
+            .with_context(|| format!("{}: [replay]", config.path.display()))?;
             let device = match replay.mode {
                 config::ReplayMode::Fast => {
                     let gate = Backpressure::new(config.sync.reference, FAST_REPLAY_WINDOW);

@@ -66,7 +66,7 @@ fn stream_topic(text: &str) -> Result<(StreamKind, String), String> {
     let kind = StreamKind::from_name(stream).ok_or_else(|| {
         format!(
             "`{stream}` is not a stream; the streams are {}",
-            StreamKind::ALL.map(StreamKind::name).join(", ")
+            config::stream_names()
         )
     })?;
     if topic.is_empty() {
