@@ -11,6 +11,7 @@ pub mod light;
 pub mod pose;
 pub mod recording;
 pub mod rig;
+pub mod ros_frames;
 pub mod scene;
 pub mod sh;
 pub mod srgb;

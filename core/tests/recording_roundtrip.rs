@@ -9,8 +9,8 @@ use std::sync::Arc;
 use glam::{Vec2, Vec3};
 use recording_support::{calibration, meta, record, small_chunks, traffic};
 use relight_core::recording::{
-    RecordingCompression, RecordingError, RecordingMeta, RecordingOptions, RecordingReader,
-    RecordingWriter,
+    ColorEncoding, OutputMessage, RecordingCompression, RecordingError, RecordingMeta,
+    RecordingOptions, RecordingReader, RecordingWriter,
 };
 use relight_core::{
     Frame, Image, LampState, MarkerDetection, MarkerSet, PixelFormat, Pose, StreamKind,
@@ -211,19 +211,38 @@ fn channels_use_documented_topics_and_schemas() {
         })
         .collect();
     channels.sort();
-    let row = |t: &str, m: &str, s: &str, e: &str| (t.into(), m.into(), s.into(), e.into());
+    let row = |t: &str, s: &str| (t.into(), "cdr".into(), s.into(), "ros2msg".into());
+    // Every channel ROS 2 CDR (the `ros2` profile); camera_info only for the cameras the
+    // calibration has (depth and probe here).
     assert_eq!(
         channels,
         vec![
-            row("/color", "cdr", "sensor_msgs/msg/Image", "ros2msg"),
-            row("/depth", "cdr", "sensor_msgs/msg/Image", "ros2msg"),
-            row("/lamp", "json", "relight.LampState", "jsonschema"),
-            row("/markers", "json", "relight.MarkerSet", "jsonschema"),
-            row("/probe", "cdr", "sensor_msgs/msg/Image", "ros2msg"),
+            row("/color/frame_info", "relight_msgs/msg/FrameInfo"),
+            row("/color/image_raw", "sensor_msgs/msg/Image"),
+            row("/depth/camera_info", "sensor_msgs/msg/CameraInfo"),
+            row("/depth/frame_info", "relight_msgs/msg/FrameInfo"),
+            row("/depth/image_raw", "sensor_msgs/msg/Image"),
+            row("/lamp", "relight_msgs/msg/LampState"),
+            row("/markers", "relight_msgs/msg/MarkerSet"),
+            row("/probe/camera_info", "sensor_msgs/msg/CameraInfo"),
+            row("/probe/frame_info", "relight_msgs/msg/FrameInfo"),
+            row("/probe/image_raw", "sensor_msgs/msg/Image"),
+            row("/tf", "tf2_msgs/msg/TFMessage"),
+            row("/tf_static", "tf2_msgs/msg/TFMessage"),
         ]
     );
+    let header = mcap::read::LinearReader::new(&bytes)
+        .unwrap()
+        .find_map(|r| match r.unwrap() {
+            mcap::records::Record::Header(h) => Some(h),
+            _ => None,
+        })
+        .unwrap();
+    assert_eq!(header.profile, "ros2");
+    // Depth and probe: frame_info, camera_info, image; colour: frame_info, image; markers
+    // (none detected, so no /tf); lamp and its /tf; the /tf_static before the first message.
     let stats = summary.stats.unwrap();
-    assert_eq!(stats.message_count, 5);
+    assert_eq!(stats.message_count, 3 + 2 + 3 + 1 + 2 + 1);
     assert!(!summary.chunk_indexes.is_empty());
     let names: Vec<&str> = summary
         .metadata_indexes
@@ -324,4 +343,96 @@ proptest::proptest! {
         proptest::prop_assert!(reader.warnings().is_empty(), "{:?}", reader.warnings());
         proptest::prop_assert_eq!(read_all(&reader), messages);
     }
+}
+
+/// PNG colour reads back exactly, JPEG within its loss; non-8-bit colour stays raw.
+#[test]
+fn compressed_colour_round_trips() {
+    let messages = traffic(6, 40, 30, 12);
+    for (encoding, exact) in [
+        (ColorEncoding::Png, true),
+        (ColorEncoding::Jpeg { quality: 90 }, false),
+    ] {
+        let options = RecordingOptions {
+            color_encoding: encoding,
+            ..small_chunks()
+        };
+        let reader = RecordingReader::from_bytes(record(&messages, &options)).unwrap();
+        let back = read_all(&reader);
+        assert_eq!(back.len(), messages.len());
+        for (written, read) in messages.iter().zip(&back) {
+            match (written, read) {
+                (StreamMessage::Color(w), StreamMessage::Color(r)) => {
+                    assert_eq!((w.seq, w.stamp), (r.seq, r.stamp));
+                    let eight_bit =
+                        matches!(w.payload.format(), PixelFormat::Rgb8 | PixelFormat::Mono8);
+                    if exact || !eight_bit {
+                        assert_eq!(w.payload, r.payload, "{encoding:?}");
+                    } else {
+                        assert_eq!(w.payload.format(), r.payload.format());
+                        // Noise is JPEG's worst case; the mean error stays bounded.
+                        let (a, b) = (w.payload.as_u8().unwrap(), r.payload.as_u8().unwrap());
+                        let mean = a
+                            .iter()
+                            .zip(b)
+                            .map(|(x, y)| f64::from(x.abs_diff(*y)))
+                            .sum::<f64>()
+                            / a.len() as f64;
+                        assert!(mean < 40.0, "mean error {mean}");
+                    }
+                }
+                _ => assert_eq!(written, read),
+            }
+        }
+    }
+}
+
+#[test]
+fn outputs_round_trip_beside_the_streams() {
+    let messages = traffic(2, 8, 6, 3);
+    let stamp = Timestamp::new(42, 1_700_000_000_000_000_000);
+    let mut composite = Image::new(8, 6, PixelFormat::Rgb8);
+    composite
+        .as_u8_mut()
+        .unwrap()
+        .iter_mut()
+        .enumerate()
+        .for_each(|(i, v)| *v = i as u8);
+    let mut delta = Image::new(8, 6, PixelFormat::Rgba16F);
+    delta
+        .as_u16_mut()
+        .unwrap()
+        .iter_mut()
+        .enumerate()
+        .for_each(|(i, v)| *v = half::f16::from_f32(i as f32 * -0.25).to_bits());
+    let outputs = vec![
+        OutputMessage::Composite(Frame::new(7, stamp, composite)),
+        OutputMessage::Delta(Frame::new(7, stamp, delta)),
+        OutputMessage::Lighting(Frame::new(7, stamp, r#"{"lights":[]}"#.to_owned())),
+    ];
+    for encoding in [ColorEncoding::Raw, ColorEncoding::Png] {
+        let options = RecordingOptions {
+            color_encoding: encoding,
+            ..RecordingOptions::default()
+        };
+        let mut writer =
+            RecordingWriter::with_options(Cursor::new(Vec::new()), &meta(), &options).unwrap();
+        for msg in &messages {
+            writer.write(msg).unwrap();
+        }
+        for output in &outputs {
+            writer.write_output(output).unwrap();
+        }
+        let (_, cursor) = writer.finish_into_inner().unwrap();
+        let reader = RecordingReader::from_bytes(cursor.into_inner()).unwrap();
+        let back: Vec<OutputMessage> = reader.outputs().collect::<Result<_, _>>().unwrap();
+        assert_eq!(back, outputs, "{encoding:?}");
+        assert_eq!(read_all(&reader), messages, "the streams are untouched");
+    }
+    let mut writer = RecordingWriter::new(Cursor::new(Vec::new()), &meta()).unwrap();
+    let long = OutputMessage::Lighting(Frame::new(1 << 40, stamp, "{}".into()));
+    assert!(matches!(
+        writer.write_output(&long),
+        Err(RecordingError::Encode { .. })
+    ));
 }

@@ -3,39 +3,7 @@
 
 use relight_core::{Image, PixelFormat};
 
-#[derive(Debug, thiserror::Error)]
-pub enum ImageEncodeError {
-    #[error("a {0:?} image cannot be sent as JPEG")]
-    Format(PixelFormat),
-    #[error("an image of {0}×{1} is too large for JPEG")]
-    Size(u32, u32),
-    #[error("an empty image")]
-    Empty,
-    #[error(transparent)]
-    Jpeg(#[from] jpeg_encoder::EncodingError),
-}
-
-/// An `Rgb8` or `Mono8` image as JPEG at `quality` (1–100).
-pub fn jpeg(image: &Image, quality: u8) -> Result<Vec<u8>, ImageEncodeError> {
-    let color = match image.format() {
-        PixelFormat::Rgb8 => jpeg_encoder::ColorType::Rgb,
-        PixelFormat::Mono8 => jpeg_encoder::ColorType::Luma,
-        other => return Err(ImageEncodeError::Format(other)),
-    };
-    if image.pixel_count() == 0 {
-        return Err(ImageEncodeError::Empty);
-    }
-    let (Ok(width), Ok(height)) = (u16::try_from(image.width()), u16::try_from(image.height()))
-    else {
-        return Err(ImageEncodeError::Size(image.width(), image.height()));
-    };
-    let pixels = image
-        .as_u8()
-        .ok_or(ImageEncodeError::Format(image.format()))?;
-    let mut out = Vec::with_capacity(image.pixel_count() / 4);
-    jpeg_encoder::Encoder::new(&mut out, quality).encode(pixels, width, height, color)?;
-    Ok(out)
-}
+pub use relight_core::recording::compressed::{CompressError as ImageEncodeError, jpeg};
 
 /// Rec. 709 luminance of Δ's linear RGB.
 fn luminance(r: f32, g: f32, b: f32) -> f32 {
@@ -162,27 +130,6 @@ mod tests {
         values[250] = [1e4; 3];
         let (_, scale) = delta_false_colour(&delta_of(&values, 20), None).unwrap();
         assert!((scale - 0.1).abs() < 1e-3, "scale {scale}");
-    }
-
-    #[test]
-    fn a_jpeg_decodes_to_the_image_it_was_made_from() {
-        let mut image = Image::new(32, 16, PixelFormat::Rgb8);
-        for (i, px) in image.as_u8_mut().unwrap().chunks_exact_mut(3).enumerate() {
-            px.copy_from_slice(&[(i % 32 * 8) as u8, 128, 40]);
-        }
-        let bytes = jpeg(&image, 95).unwrap();
-        let decoded = jpeg_decoder::Decoder::new(&bytes[..]).decode().unwrap();
-        let original = image.as_u8().unwrap();
-        assert_eq!(decoded.len(), original.len());
-        let mean_error = decoded
-            .iter()
-            .zip(original)
-            .map(|(a, b)| f64::from(a.abs_diff(*b)))
-            .sum::<f64>()
-            / original.len() as f64;
-        assert!(mean_error < 3.0, "mean error {mean_error} at quality 95");
-        assert!(jpeg(&Image::new(0, 0, PixelFormat::Rgb8), 80).is_err());
-        assert!(jpeg(&Image::new(4, 4, PixelFormat::DepthF32M), 80).is_err());
     }
 
     #[test]

@@ -4,8 +4,9 @@
 Usage: python3 tests/helpers/mcap_check.py FILE.mcap
 
 Proves that a recording is readable without relight: the `mcap` package parses the file
-(validating chunk CRCs) and `mcap-ros2-support` decodes the `sensor_msgs/msg/Image` channels
-from the schema text stored in the file. JSON channels are parsed with the standard library.
+(validating chunk CRCs) and `mcap-ros2-support` decodes every CDR channel (images, camera info,
+relight_msgs, TF) from the schema text stored in the file. JSON channels (format 1) are parsed
+with the standard library.
 
 Prints one JSON object:
   library, profile                  from the header record
@@ -15,7 +16,9 @@ Prints one JSON object:
   metadata: {name: {key: value}}
   attachments: [{name, media_type, size}]
   images: {topic: {width, height, encoding, step, is_bigendian, frame_id, stamp_ns, data_len}}
-          (the first message of each image channel, decoded by mcap-ros2-support)
+          (the first message of each sensor_msgs/msg/Image channel)
+  messages: {topic: the first message of each CDR channel as a JSON object, byte arrays
+             given as their length, times (sec, nanosec) as integer nanoseconds}
   json: {topic: first message of each JSON channel, parsed}
 
 Exit status 3 (and a message naming the pip command) when a package is missing.
@@ -37,6 +40,23 @@ except ImportError as error:
     sys.exit(3)
 
 
+def plain(value):
+    """A decoded ROS message as JSON-able values."""
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return {"bytes": len(value)}
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    slots = getattr(type(value), "__slots__", None)
+    if slots is not None:
+        out = {name: plain(getattr(value, name)) for name in slots}
+        if set(out) == {"sec", "nanosec"}:
+            return out["sec"] * 1_000_000_000 + out["nanosec"]
+        return out
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    return value
+
+
 def main(path: str) -> dict:
     factory = DecoderFactory()
     decoders = {}
@@ -47,15 +67,20 @@ def main(path: str) -> dict:
         counts = {}
         channels = {}
         images = {}
+        decoded_messages = {}
         json_messages = {}
         for schema, channel, message in reader.iter_messages():
             channels[channel.id] = (schema, channel)
             counts[channel.id] = counts.get(channel.id, 0) + 1
             topic = channel.topic
-            if channel.message_encoding == "cdr" and topic not in images:
+            if channel.message_encoding == "cdr" and topic not in decoded_messages:
                 if channel.id not in decoders:
                     decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
-                image = decoders[channel.id](message.data)
+                decoded = decoders[channel.id](message.data)
+                decoded_messages[topic] = plain(decoded)
+                if schema.name != "sensor_msgs/msg/Image":
+                    continue
+                image = decoded
                 stamp = image.header.stamp
                 images[topic] = {
                     "width": image.width,
@@ -107,6 +132,7 @@ def main(path: str) -> dict:
         "metadata": metadata,
         "attachments": attachments,
         "images": images,
+        "messages": decoded_messages,
         "json": json_messages,
     }
 

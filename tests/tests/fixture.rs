@@ -37,6 +37,8 @@ fn demo_rig() -> SimRig {
 fn bundled_recording_is_the_simulated_desk_with_its_truth() {
     let reader = RecordingReader::open(&fixture()).expect("tests/fixtures/demo.mcap reads");
     assert!(reader.warnings().is_empty(), "{:?}", reader.warnings());
+    // Kept in format 1, so that recordings made before format 2 are known to replay.
+    assert_eq!(reader.format_version(), Some("1"));
     let rig = demo_rig();
     assert_eq!(reader.meta().calibration.as_ref(), Some(&rig.calibration()));
     let recorded: Vec<_> = reader.messages().collect::<Result<_, _>>().unwrap();

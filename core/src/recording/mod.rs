@@ -84,24 +84,35 @@
 //! complete chunk plus a warning saying where it was cut.
 
 pub mod camera_info;
+mod channels;
+pub mod compressed;
 mod reader;
+pub mod ros_msgs;
 pub mod salvage;
 pub mod schema;
 mod source;
 pub mod truth;
+pub mod v1;
 mod writer;
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
+pub use channels::{CAMERAS, Channel, ChannelSchema};
+pub use compressed::ColorEncoding;
 pub use reader::{CameraInfoMessage, ChunkInfo, Messages, Recorded, RecordingReader};
 pub use writer::{RecordingCompression, RecordingOptions, RecordingWriter};
 
 use crate::rig::{RigCalibration, RigCalibrationError};
 use crate::stream::StreamKind;
 
-/// Version of the layout described in the module docs, stored in `relight.recording`.
-pub const FORMAT_VERSION: &str = "1";
+/// Version of the layout described in the module docs, stored in `relight.recording`
+/// ([`v1`] describes the previous one, which still reads).
+pub const FORMAT_VERSION: &str = "2";
+
+/// The most bytes of pixels a compressed image may decode to (a lying header cannot make the
+/// reader allocate more).
+pub const MAX_IMAGE_BYTES: usize = source::MAX_READ_BYTES;
 
 /// Name of the metadata record holding [`RecordingMeta::source`] and [`FORMAT_VERSION`].
 pub const RECORDING_METADATA: &str = "relight.recording";
@@ -112,40 +123,59 @@ pub const CALIBRATION_KEY: &str = "toml";
 /// Name of the attachment holding the calibration TOML.
 pub const CALIBRATION_ATTACHMENT: &str = "calibration.toml";
 
-/// The MCAP topic of a stream: `/depth`, `/color`, `/probe`, `/markers`, `/lamp`.
+/// The MCAP topic of a stream: `/depth/image_raw`, `/color/image_raw`, `/probe/image_raw`,
+/// `/markers`, `/lamp` ([`v1::topic`] for format 1).
 pub fn topic(kind: StreamKind) -> &'static str {
     match kind {
-        StreamKind::Depth => "/depth",
-        StreamKind::Color => "/color",
-        StreamKind::Probe => "/probe",
+        StreamKind::Depth => "/depth/image_raw",
+        StreamKind::Color => "/color/image_raw",
+        StreamKind::Probe => "/probe/image_raw",
         StreamKind::Markers => "/markers",
         StreamKind::Lamp => "/lamp",
     }
 }
 
-/// Which topic each stream is read from: relight's own ([`topic`]) unless remapped, as for a
-/// bag another rig recorded (`[replay] topics = { color = "/camera/color/image_raw" }`). A
-/// remapped stream is read only from its new topic.
+/// Which topic each stream is read from: relight's own ([`topic`], or [`v1::topic`] in a
+/// format-1 recording) unless remapped, as for a bag another rig recorded
+/// (`[replay] topics = { color = "/camera/color/image_raw" }`). A remapped stream is read only
+/// from its new topic. An image stream is also read from its `…/compressed` sibling
+/// (image_transport's name for `sensor_msgs/msg/CompressedImage`).
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct TopicMap {
     remapped: BTreeMap<StreamKind, String>,
+    format_1: bool,
 }
 
 impl TopicMap {
     pub fn new(remapped: BTreeMap<StreamKind, String>) -> Self {
-        Self { remapped }
+        Self {
+            remapped,
+            format_1: false,
+        }
+    }
+
+    /// The same remapping, over format 1's topics.
+    pub(crate) fn in_format_1(self, format_1: bool) -> Self {
+        Self { format_1, ..self }
     }
 
     /// The topic `kind` is read from.
     pub fn topic(&self, kind: StreamKind) -> &str {
-        self.remapped.get(&kind).map_or(topic(kind), String::as_str)
+        let own = if self.format_1 {
+            v1::topic(kind)
+        } else {
+            topic(kind)
+        };
+        self.remapped.get(&kind).map_or(own, String::as_str)
     }
 
-    /// The stream read from `topic`, if any.
+    /// The stream read from `topic` (its own or its compressed sibling), if any.
     pub fn stream_of(&self, topic: &str) -> Option<StreamKind> {
-        StreamKind::ALL
-            .into_iter()
-            .find(|&kind| self.topic(kind) == topic)
+        StreamKind::ALL.into_iter().find(|&kind| {
+            let own = self.topic(kind);
+            own == topic
+                || (CAMERAS.contains(&kind) && topic.strip_suffix("/compressed") == Some(own))
+        })
     }
 
     /// The streams whose topic is not relight's own.
@@ -162,6 +192,28 @@ pub fn channel_id(kind: StreamKind) -> u16 {
         StreamKind::Probe => 3,
         StreamKind::Markers => 4,
         StreamKind::Lamp => 5,
+    }
+}
+
+/// What the daemon made of a frame set, recorded beside the streams when the recorder is asked
+/// to (`[recorder] outputs = true`); `seq` and stamp are the frame set's.
+#[derive(Debug, Clone, PartialEq)]
+pub enum OutputMessage {
+    /// The relit composite, 8-bit RGB.
+    Composite(crate::Frame<crate::Image>),
+    /// Δ = L^ρ − L^μ, `Rgba16F`.
+    Delta(crate::Frame<crate::Image>),
+    /// The lighting estimate as `lights.get` returns it, JSON text.
+    Lighting(crate::Frame<String>),
+}
+
+impl OutputMessage {
+    pub fn channel(&self) -> Channel {
+        match self {
+            OutputMessage::Composite(_) => Channel::Composite,
+            OutputMessage::Delta(_) => Channel::Delta,
+            OutputMessage::Lighting(_) => Channel::Lighting,
+        }
     }
 }
 

@@ -17,15 +17,17 @@ use mcap::records::{ChunkHeader, MessageHeader, Record, op};
 use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
 use super::camera_info::{camera_info_topic, decode_camera_info};
+use super::channels::{Channel, ChannelSchema};
+use super::ros_msgs::{self as msgs, FrameInfo};
 use super::schema::{self, CDR_MESSAGE_ENCODING, JSON_MESSAGE_ENCODING};
 use super::source::{MAX_READ_BYTES, Source};
 use super::truth::{self, TruthKind, TruthMessage};
 use super::{
-    CALIBRATION_ATTACHMENT, CALIBRATION_KEY, CALIBRATION_METADATA, RECORDING_METADATA,
-    RecordingError, RecordingMeta, TopicMap, channel_id, topic,
+    CALIBRATION_ATTACHMENT, CALIBRATION_KEY, CALIBRATION_METADATA, FORMAT_VERSION, OutputMessage,
+    RECORDING_METADATA, RecordingError, RecordingMeta, TopicMap, channel_id, compressed, v1,
 };
 use crate::camera::CameraModel;
-use crate::frame::{Frame, Timestamp};
+use crate::frame::{Frame, Image, Timestamp};
 use crate::rig::RigCalibration;
 use crate::stream::{ProbeImage, StreamKind, StreamMessage};
 
@@ -53,15 +55,27 @@ pub struct ChunkInfo {
     pub message_end_ns: u64,
 }
 
+/// Who wrote a file, which decides how its messages read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Layout {
+    /// relight before format 2 ([`v1`]).
+    Format1,
+    /// relight, format 2 (or a later one, read as far as it is the same).
+    Format2,
+    /// Another tool: `header.stamp` is the device clock, and MCAP's `sequence` means nothing
+    /// (rosbag2 writes 0).
+    Foreign,
+}
+
 #[doc(hidden)]
 #[derive(Debug, Clone)]
 pub struct ChannelInfo {
     topic: String,
     message_encoding: String,
     stream: Option<StreamKind>,
-    /// Written by another tool than relight: `header.stamp` is the device clock, and MCAP's
-    /// `sequence` means nothing (rosbag2 writes 0).
-    foreign: bool,
+    /// The format-2 channel the topic is, in a relight recording.
+    channel: Option<Channel>,
+    layout: Layout,
 }
 
 /// A unit the message iterator loads at once: a chunk, a chunk whose header did not parse, or a
@@ -131,8 +145,7 @@ pub struct RecordingReader {
     channels: HashMap<u16, ChannelInfo>,
     summary_present: bool,
     topics: TopicMap,
-    /// Whether relight wrote the file (its `relight.recording` metadata is there).
-    relight_layout: bool,
+    layout: Layout,
 }
 
 impl fmt::Debug for RecordingReader {
@@ -178,7 +191,7 @@ impl RecordingReader {
             channels: HashMap::new(),
             summary_present: false,
             topics: TopicMap::default(),
-            relight_layout: false,
+            layout: Layout::Foreign,
         };
         reader.index()?;
         Ok(reader)
@@ -186,7 +199,7 @@ impl RecordingReader {
 
     /// Read the streams from the topics `topics` names instead of relight's own.
     pub fn with_topics(mut self, topics: TopicMap) -> Self {
-        self.topics = topics;
+        self.topics = topics.in_format_1(self.layout == Layout::Format1);
         for info in self.channels.values_mut() {
             info.stream = self.topics.stream_of(&info.topic);
         }
@@ -203,7 +216,17 @@ impl RecordingReader {
 
     /// Whether relight wrote the recording (else it is another tool's bag, read by topic).
     pub fn is_relight_recording(&self) -> bool {
-        self.relight_layout
+        self.layout != Layout::Foreign
+    }
+
+    /// The relight format the recording is read as (`"1"` or `"2"`); `None` for another
+    /// tool's bag.
+    pub fn format_version(&self) -> Option<&'static str> {
+        match self.layout {
+            Layout::Format1 => Some(v1::FORMAT_VERSION),
+            Layout::Format2 => Some(FORMAT_VERSION),
+            Layout::Foreign => None,
+        }
     }
 
     /// For a bag without relight's calibration: the colour and depth cameras that the
@@ -255,7 +278,10 @@ impl RecordingReader {
             topic: topic.to_owned(),
             message_encoding: message_encoding.to_owned(),
             stream: self.topics.stream_of(topic),
-            foreign: !self.relight_layout,
+            channel: (self.layout == Layout::Format2)
+                .then(|| Channel::of_topic(topic))
+                .flatten(),
+            layout: self.layout,
         }
     }
 
@@ -302,6 +328,12 @@ impl RecordingReader {
         self.iterate()
     }
 
+    /// What the daemon rendered, when the recorder recorded it (`[recorder] outputs`): the
+    /// composites, Δ and lighting estimates, in log-time order.
+    pub fn outputs(&self) -> Messages<'_, OutputMessage> {
+        self.iterate()
+    }
+
     fn iterate<T>(&self) -> Messages<'_, T> {
         let mut order: Vec<usize> = (0..self.blocks.len()).collect();
         order.sort_by_key(|&i| self.blocks.get(i).map(Block::start_ns));
@@ -313,6 +345,7 @@ impl RecordingReader {
             channels: self.channels.clone(),
             serial: 0,
             foreign_seq: HashMap::new(),
+            frame_infos: HashMap::new(),
             decoded: std::marker::PhantomData,
         }
     }
@@ -524,28 +557,51 @@ impl RecordingReader {
             }
         }
 
-        self.relight_layout = metadata.contains_key(RECORDING_METADATA);
+        self.layout = match metadata
+            .get(RECORDING_METADATA)
+            .map(|m| m.get("format_version").map(String::as_str))
+        {
+            None => Layout::Foreign,
+            // Format 1 recordings all carry their version; a missing one is read as format 1.
+            Some(Some(v1::FORMAT_VERSION) | None) => Layout::Format1,
+            Some(Some(FORMAT_VERSION)) => Layout::Format2,
+            Some(Some(other)) => {
+                self.warnings.push(format!(
+                    "recording format {other} is newer than this relight's ({FORMAT_VERSION}); read as format {FORMAT_VERSION}"
+                ));
+                Layout::Format2
+            }
+        };
+        self.topics = std::mem::take(&mut self.topics).in_format_1(self.layout == Layout::Format1);
         for (id, (topic, encoding)) in channels {
             let info = self.channel_info(&topic, &encoding);
             self.channels.insert(id, info);
         }
         // A relight recording uses fixed channel IDs, so its messages stay readable when the
         // chunk holding the Channel records is lost.
-        if self.relight_layout {
-            for kind in StreamKind::ALL {
-                let schema = schema::channel_schema(kind);
-                let info = self.channel_info(topic(kind), schema.message_encoding);
-                self.channels.entry(channel_id(kind)).or_insert(info);
+        match self.layout {
+            Layout::Format1 => {
+                for kind in StreamKind::ALL {
+                    let info = self.channel_info(v1::topic(kind), v1::message_encoding(kind));
+                    self.channels.entry(channel_id(kind)).or_insert(info);
+                }
+                for kind in TruthKind::ALL {
+                    let encoding = if kind == TruthKind::State {
+                        JSON_MESSAGE_ENCODING
+                    } else {
+                        CDR_MESSAGE_ENCODING
+                    };
+                    let info = self.channel_info(kind.topic(), encoding);
+                    self.channels.entry(kind.channel_id()).or_insert(info);
+                }
             }
-            for kind in TruthKind::ALL {
-                let encoding = if kind == TruthKind::State {
-                    JSON_MESSAGE_ENCODING
-                } else {
-                    CDR_MESSAGE_ENCODING
-                };
-                let info = self.channel_info(kind.topic(), encoding);
-                self.channels.entry(kind.channel_id()).or_insert(info);
+            Layout::Format2 => {
+                for channel in Channel::ALL {
+                    let info = self.channel_info(channel.topic(), ChannelSchema::MESSAGE_ENCODING);
+                    self.channels.entry(channel.id()).or_insert(info);
+                }
             }
+            Layout::Foreign => {}
         }
 
         let stopped = match walk_end {
@@ -1055,6 +1111,8 @@ pub struct Messages<'a, T = StreamMessage> {
     serial: u64,
     /// Per channel of a foreign bag: the messages handed out so far, their sequence numbers.
     foreign_seq: HashMap<u16, u32>,
+    /// The latest `frame_info` of each camera, for the image that follows it.
+    frame_infos: HashMap<StreamKind, FrameInfo>,
     decoded: std::marker::PhantomData<T>,
 }
 
@@ -1174,12 +1232,30 @@ impl<'a, T: Recorded> Messages<'a, T> {
                 reason: "no Channel record describes this channel".into(),
             }));
         };
-        if channel.foreign {
+        if channel.layout == Layout::Foreign {
             let count = self.foreign_seq.entry(header.channel_id).or_insert(0);
             header.sequence = *count;
             *count = count.wrapping_add(1);
         }
-        let decoded = T::decode(channel, &header, data)?;
+        if let Some(Channel::FrameInfo(kind)) = channel.channel {
+            return match msgs::decode_frame_info(data) {
+                Ok(info) => {
+                    self.frame_infos.insert(kind, info);
+                    None
+                }
+                Err(reason) => Some(Err(RecordingError::Decode {
+                    channel: channel.topic.clone(),
+                    seq: u64::from(header.sequence),
+                    reason,
+                })),
+            };
+        }
+        // The frame_info written just before this image, if it survived.
+        let info = channel
+            .stream
+            .and_then(|kind| self.frame_infos.get(&kind))
+            .filter(|info| info.seq as u32 == header.sequence);
+        let decoded = T::decode(channel, &header, data, info)?;
         Some(decoded.map_err(|reason| RecordingError::Decode {
             channel: channel.topic.clone(),
             seq: u64::from(header.sequence),
@@ -1190,12 +1266,14 @@ impl<'a, T: Recorded> Messages<'a, T> {
 
 /// A kind of message the reader hands out: the sensor streams, or the ground truth.
 pub trait Recorded: Sized {
-    /// `None` when the channel is not one of this kind's.
+    /// `None` when the channel is not one of this kind's. `info` is the image's `frame_info`
+    /// (format 2) when it was read.
     #[doc(hidden)]
     fn decode(
         channel: &ChannelInfo,
         header: &MessageHeader,
         data: &[u8],
+        info: Option<&FrameInfo>,
     ) -> Option<Result<Self, String>>;
 }
 
@@ -1204,12 +1282,13 @@ impl Recorded for StreamMessage {
         channel: &ChannelInfo,
         header: &MessageHeader,
         data: &[u8],
+        info: Option<&FrameInfo>,
     ) -> Option<Result<Self, String>> {
         let Some(stream) = channel.stream else {
             tracing::trace!(topic = %channel.topic, "skipping message of another topic");
             return None;
         };
-        Some(decode_message(stream, channel, header, data))
+        Some(decode_message(stream, channel, header, data, info))
     }
 }
 
@@ -1226,6 +1305,7 @@ impl Recorded for CameraInfoMessage {
         channel: &ChannelInfo,
         _header: &MessageHeader,
         data: &[u8],
+        _info: Option<&FrameInfo>,
     ) -> Option<Result<Self, String>> {
         if !channel.topic.ends_with("camera_info")
             || channel.message_encoding != CDR_MESSAGE_ENCODING
@@ -1244,15 +1324,24 @@ impl Recorded for TruthMessage {
         channel: &ChannelInfo,
         header: &MessageHeader,
         data: &[u8],
+        _info: Option<&FrameInfo>,
     ) -> Option<Result<Self, String>> {
         let kind = TruthKind::of_topic(&channel.topic)?;
         let stamp = Timestamp::new(header.publish_time, header.log_time);
         let short_seq = u64::from(header.sequence);
+        let format_1 = channel.layout == Layout::Format1;
         Some(match kind {
-            TruthKind::State => truth::decode_state(data)
+            TruthKind::State if format_1 => truth::decode_state(data)
+                .map(|state| TruthMessage::State(Frame::new(short_seq, stamp, state))),
+            TruthKind::State => msgs::decode_string(data)
+                .and_then(|json| truth::decode_state(json.as_bytes()))
                 .map(|state| TruthMessage::State(Frame::new(short_seq, stamp, state))),
             _ => schema::decode_image(data).and_then(|decoded| {
-                let (_, extras) = schema::parse_frame_id(&decoded.frame_id)?;
+                let seq = if format_1 {
+                    v1::parse_frame_id(&decoded.frame_id)?.1.seq
+                } else {
+                    None
+                };
                 if Some(decoded.image.format()) != kind.pixel_format() {
                     return Err(format!(
                         "{:?} image on {}",
@@ -1260,85 +1349,156 @@ impl Recorded for TruthMessage {
                         kind.topic()
                     ));
                 }
-                let seq = extras.seq.unwrap_or(short_seq);
                 Ok(TruthMessage::Image(
                     kind,
-                    Frame::new(seq, stamp, decoded.image),
+                    Frame::new(seq.unwrap_or(short_seq), stamp, decoded.image),
                 ))
             }),
         })
     }
 }
 
+impl Recorded for OutputMessage {
+    fn decode(
+        channel: &ChannelInfo,
+        header: &MessageHeader,
+        data: &[u8],
+        _info: Option<&FrameInfo>,
+    ) -> Option<Result<Self, String>> {
+        let stamp = Timestamp::new(header.publish_time, header.log_time);
+        let seq = u64::from(header.sequence);
+        let frame = |image: Image| Frame::new(seq, stamp, image);
+        Some(match channel.channel? {
+            Channel::Composite => {
+                schema::decode_image(data).map(|d| OutputMessage::Composite(frame(d.image)))
+            }
+            Channel::CompositeCompressed => msgs::decode_compressed_image(data)
+                .and_then(|c| compressed::decompress(c.data))
+                .map(|image| OutputMessage::Composite(frame(image))),
+            Channel::Delta => {
+                schema::decode_image(data).map(|d| OutputMessage::Delta(frame(d.image)))
+            }
+            Channel::Lighting => msgs::decode_string(data)
+                .map(|json| OutputMessage::Lighting(Frame::new(seq, stamp, json.to_owned()))),
+            _ => return None,
+        })
+    }
+}
+
+/// The image of an image stream's message: `sensor_msgs/msg/Image`, or on a `…/compressed`
+/// topic `sensor_msgs/msg/CompressedImage` (JPEG or PNG; not depth, whose compressed form is
+/// image_transport's own `compressedDepth`).
+fn decode_picture(
+    stream: StreamKind,
+    topic: &str,
+    data: &[u8],
+) -> Result<schema::DecodedImage, String> {
+    if !topic.ends_with("/compressed") {
+        return schema::decode_image(data);
+    }
+    if stream == StreamKind::Depth {
+        return Err("compressed depth images are not read; record or remap raw depth".into());
+    }
+    let message = msgs::decode_compressed_image(data)?;
+    Ok(schema::DecodedImage {
+        stamp_ns: message.stamp_ns,
+        frame_id: message.frame_id.to_owned(),
+        image: compressed::decompress(message.data)?,
+    })
+}
+
 /// Turn one message back into a [`StreamMessage`] (inverse of the writer; see the module docs).
-/// A foreign bag's image takes its device time from `header.stamp`, the driver's clock.
+/// A format-2 image takes its device time, full `seq` and exposure from its `frame_info`
+/// (without one, device time and `seq` from MCAP's `publish_time` and `sequence`); a foreign
+/// bag's image takes its device time from `header.stamp`, the driver's clock.
 fn decode_message(
     stream: StreamKind,
     channel: &ChannelInfo,
     header: &MessageHeader,
     data: &[u8],
+    info: Option<&FrameInfo>,
 ) -> Result<StreamMessage, String> {
     let message_encoding = channel.message_encoding.as_str();
     let mut stamp = Timestamp::new(header.publish_time, header.log_time);
     let short_seq = u64::from(header.sequence);
-    let expect_encoding = |expected: &str| {
-        if message_encoding == expected {
-            Ok(())
-        } else {
-            Err(format!(
-                "message encoding `{message_encoding}`, expected `{expected}`"
-            ))
-        }
+    let expected = match channel.layout {
+        Layout::Format1 => v1::message_encoding(stream),
+        _ => CDR_MESSAGE_ENCODING,
     };
-    match stream {
-        StreamKind::Depth | StreamKind::Color | StreamKind::Probe => {
-            expect_encoding(CDR_MESSAGE_ENCODING)?;
-            let decoded = schema::decode_image(data)?;
-            let extras = if channel.foreign {
-                stamp.device_ns = decoded.stamp_ns;
-                schema::FrameIdExtras::default()
-            } else {
-                schema::parse_frame_id(&decoded.frame_id)?.1
-            };
-            let seq = extras.seq.unwrap_or(short_seq);
-            Ok(match stream {
-                StreamKind::Depth => {
-                    StreamMessage::Depth(Arc::new(Frame::new(seq, stamp, decoded.image)))
+    if message_encoding != expected {
+        return Err(format!(
+            "message encoding `{message_encoding}`, expected `{expected}`"
+        ));
+    }
+    let mut seq = short_seq;
+    let mut exposure = None;
+    let image_with_extras =
+        |seq: &mut u64, stamp: &mut Timestamp, exposure: &mut Option<(u32, f32)>| {
+            let decoded = decode_picture(stream, &channel.topic, data)?;
+            match channel.layout {
+                Layout::Foreign => stamp.device_ns = decoded.stamp_ns,
+                Layout::Format1 => {
+                    let (_, extras) = v1::parse_frame_id(&decoded.frame_id)?;
+                    *seq = extras.seq.unwrap_or(*seq);
+                    *exposure = extras.exposure_us.zip(extras.gain_db);
                 }
-                StreamKind::Color => {
-                    StreamMessage::Color(Arc::new(Frame::new(seq, stamp, decoded.image)))
+                Layout::Format2 => {
+                    if let Some(info) = info {
+                        *seq = info.seq;
+                        stamp.device_ns = info.device_stamp_ns;
+                        *exposure = Some((info.exposure_us, info.gain_db));
+                    }
                 }
-                _ => {
-                    let exposure_us = extras
-                        .exposure_us
-                        .ok_or("probe frame_id lacks exposure_us")?;
-                    let gain_db = extras.gain_db.ok_or("probe frame_id lacks gain_db")?;
-                    let probe = ProbeImage {
-                        image: decoded.image,
-                        exposure_us,
-                        gain_db,
-                    };
-                    StreamMessage::Probe(Arc::new(Frame::new(seq, stamp, probe)))
-                }
-            })
+            }
+            Ok::<_, String>(decoded.image)
+        };
+    Ok(match stream {
+        StreamKind::Depth => {
+            let image = image_with_extras(&mut seq, &mut stamp, &mut exposure)?;
+            StreamMessage::Depth(Arc::new(Frame::new(seq, stamp, image)))
         }
-        StreamKind::Markers => {
-            expect_encoding(JSON_MESSAGE_ENCODING)?;
-            let (markers, seq) = schema::decode_markers(data)?;
-            Ok(StreamMessage::Markers(Arc::new(Frame::new(
-                seq.unwrap_or(short_seq),
+        StreamKind::Color => {
+            let image = image_with_extras(&mut seq, &mut stamp, &mut exposure)?;
+            StreamMessage::Color(Arc::new(Frame::new(seq, stamp, image)))
+        }
+        StreamKind::Probe => {
+            let image = image_with_extras(&mut seq, &mut stamp, &mut exposure)?;
+            let (exposure_us, gain_db) = exposure.ok_or(match channel.layout {
+                Layout::Format1 => "probe frame_id lacks exposure_us or gain_db",
+                _ => "the probe image's exposure is unknown: its frame_info message is missing",
+            })?;
+            let probe = ProbeImage {
+                image,
+                exposure_us,
+                gain_db,
+            };
+            StreamMessage::Probe(Arc::new(Frame::new(seq, stamp, probe)))
+        }
+        StreamKind::Markers if channel.layout == Layout::Format1 => {
+            let (markers, long_seq) = v1::decode_markers(data)?;
+            StreamMessage::Markers(Arc::new(Frame::new(
+                long_seq.unwrap_or(short_seq),
                 stamp,
                 markers,
-            ))))
+            )))
         }
-        StreamKind::Lamp => {
-            expect_encoding(JSON_MESSAGE_ENCODING)?;
-            let (lamp, seq) = schema::decode_lamp(data)?;
-            Ok(StreamMessage::Lamp(Arc::new(Frame::new(
-                seq.unwrap_or(short_seq),
+        StreamKind::Markers => {
+            let (markers, seq, device_ns) = msgs::decode_markers(data)?;
+            stamp.device_ns = device_ns;
+            StreamMessage::Markers(Arc::new(Frame::new(seq, stamp, markers)))
+        }
+        StreamKind::Lamp if channel.layout == Layout::Format1 => {
+            let (lamp, long_seq) = v1::decode_lamp(data)?;
+            StreamMessage::Lamp(Arc::new(Frame::new(
+                long_seq.unwrap_or(short_seq),
                 stamp,
                 lamp,
-            ))))
+            )))
         }
-    }
+        StreamKind::Lamp => {
+            let (lamp, seq, device_ns) = msgs::decode_lamp(data)?;
+            stamp.device_ns = device_ns;
+            StreamMessage::Lamp(Arc::new(Frame::new(seq, stamp, lamp)))
+        }
+    })
 }

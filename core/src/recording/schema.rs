@@ -1,17 +1,12 @@
-//! Schemas of the recording channels and the encoders/decoders of their messages.
-//!
-//! Images: ROS 2 `sensor_msgs/msg/Image` in little-endian CDR (OMG XCDR1 as ROS 2 writes it:
-//! a 4-byte encapsulation header, then fields aligned to their own size relative to the end of
-//! that header). Markers and lamp: JSON described by a JSON Schema (draft-07, no `$ref`, so
-//! Foxglove's schema parser handles it). The module docs of [`crate::recording`] list which
-//! frame field goes where.
-
-use std::fmt::Write as _;
-
-use serde::{Deserialize, Serialize};
+//! CDR, the ROS 2 wire format (OMG XCDR1 as ROS 2 writes it: a 4-byte encapsulation header,
+//! then fields aligned to their own size relative to the end of that header), written and read
+//! by hand, and its `sensor_msgs/msg/Image` codec. The other messages are in [`super::ros_msgs`]
+//! and [`super::camera_info`].
 
 use crate::frame::{Image, PixelFormat, Pixels};
-use crate::stream::{LampState, MarkerDetection, MarkerSet, StreamKind};
+
+/// MCAP message encoding of JSON messages (format 1's markers, lamp and truth state).
+pub const JSON_MESSAGE_ENCODING: &str = "json";
 
 /// ROS 2 type name of the image schema.
 pub const IMAGE_SCHEMA_NAME: &str = "sensor_msgs/msg/Image";
@@ -53,186 +48,6 @@ uint8[] data
     header_definitions!()
 );
 
-/// MCAP schema encoding of JSON Schema.
-pub const JSON_SCHEMA_ENCODING: &str = "jsonschema";
-/// MCAP message encoding of JSON messages.
-pub const JSON_MESSAGE_ENCODING: &str = "json";
-pub const MARKERS_SCHEMA_NAME: &str = "relight.MarkerSet";
-pub const LAMP_SCHEMA_NAME: &str = "relight.LampState";
-
-/// JSON Schema of a `/markers` message ([`MarkerSet`]).
-pub const MARKERS_JSON_SCHEMA: &str = r##"{
-  "$schema": "http://json-schema.org/draft-07/schema#",
-  "title": "relight.MarkerSet",
-  "description": "Square markers (AprilTag / ArUco) detected in one camera image. MCAP log_time = host clock ns, publish_time = device clock ns, sequence = frame sequence number.",
-  "type": "object",
-  "properties": {
-    "seq": {
-      "description": "Full frame sequence number; present only when it does not fit the 32-bit MCAP sequence field.",
-      "type": "integer",
-      "minimum": 0
-    },
-    "detections": {
-      "type": "array",
-      "items": {
-        "type": "object",
-        "properties": {
-          "family": { "description": "Tag family, e.g. tag36h11, aruco_4x4_50.", "type": "string" },
-          "marker_id": { "type": "integer", "minimum": 0, "maximum": 4294967295 },
-          "corners_px": {
-            "description": "Corners in pixels [x, y], counter-clockwise from the tag's lower-left as seen in the image.",
-            "type": "array",
-            "items": { "type": "array", "items": { "type": "number" }, "minItems": 2, "maxItems": 2 },
-            "minItems": 4,
-            "maxItems": 4
-          },
-          "camera_from_marker": {
-            "description": "The marker's pose in the observing camera's frame: point_in_camera = rotation * point_in_marker + translation (metres).",
-            "type": "object",
-            "properties": {
-              "rotation": {
-                "description": "Unit quaternion [x, y, z, w].",
-                "type": "array", "items": { "type": "number" }, "minItems": 4, "maxItems": 4
-              },
-              "translation": {
-                "description": "Metres [x, y, z].",
-                "type": "array", "items": { "type": "number" }, "minItems": 3, "maxItems": 3
-              }
-            },
-            "required": ["rotation", "translation"]
-          },
-          "reprojection_rms_px": {
-            "description": "Reprojection RMS of the pose fit, pixels.",
-            "type": "number",
-            "minimum": 0
-          }
-        },
-        "required": ["family", "marker_id", "corners_px", "camera_from_marker", "reprojection_rms_px"]
-      }
-    }
-  },
-  "required": ["detections"]
-}
-"##;
-
-/// JSON Schema of a `/lamp` message ([`LampState`]).
-pub const LAMP_JSON_SCHEMA: &str = r##"{
-  "$schema": "http://json-schema.org/draft-07/schema#",
-  "title": "relight.LampState",
-  "description": "The tracked pocket lamp. MCAP log_time = host clock ns, publish_time = device clock ns, sequence = frame sequence number.",
-  "type": "object",
-  "properties": {
-    "seq": {
-      "description": "Full frame sequence number; present only when it does not fit the 32-bit MCAP sequence field.",
-      "type": "integer",
-      "minimum": 0
-    },
-    "on": { "type": "boolean" },
-    "position_in_world": {
-      "description": "The light's centre in the world frame, metres [x, y, z].",
-      "type": "array", "items": { "type": "number" }, "minItems": 3, "maxItems": 3
-    },
-    "intensity": {
-      "description": "Radiant intensity, linear RGB, W/sr [r, g, b].",
-      "type": "array", "items": { "type": "number" }, "minItems": 3, "maxItems": 3
-    }
-  },
-  "required": ["on", "position_in_world", "intensity"]
-}
-"##;
-
-/// The schema and encodings of one stream's channel.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct ChannelSchema {
-    pub schema_name: &'static str,
-    pub schema_encoding: &'static str,
-    pub schema_data: &'static str,
-    pub message_encoding: &'static str,
-}
-
-/// The channel schema of each stream.
-pub fn channel_schema(kind: StreamKind) -> ChannelSchema {
-    match kind {
-        StreamKind::Depth | StreamKind::Color | StreamKind::Probe => ChannelSchema {
-            schema_name: IMAGE_SCHEMA_NAME,
-            schema_encoding: ROS2MSG_SCHEMA_ENCODING,
-            schema_data: IMAGE_SCHEMA,
-            message_encoding: CDR_MESSAGE_ENCODING,
-        },
-        StreamKind::Markers => ChannelSchema {
-            schema_name: MARKERS_SCHEMA_NAME,
-            schema_encoding: JSON_SCHEMA_ENCODING,
-            schema_data: MARKERS_JSON_SCHEMA,
-            message_encoding: JSON_MESSAGE_ENCODING,
-        },
-        StreamKind::Lamp => ChannelSchema {
-            schema_name: LAMP_SCHEMA_NAME,
-            schema_encoding: JSON_SCHEMA_ENCODING,
-            schema_data: LAMP_JSON_SCHEMA,
-            message_encoding: JSON_MESSAGE_ENCODING,
-        },
-    }
-}
-
-/// The value written in MCAP's 32-bit `sequence` field, and the full `seq` when it does not fit
-/// (then also written in the payload).
-pub fn split_seq(seq: u64) -> (u32, Option<u64>) {
-    match u32::try_from(seq) {
-        Ok(short) => (short, None),
-        Err(_) => ((seq & u64::from(u32::MAX)) as u32, Some(seq)),
-    }
-}
-
-/// Per-frame values carried in an image's `frame_id` after `?`.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct FrameIdExtras {
-    pub seq: Option<u64>,
-    pub exposure_us: Option<u32>,
-    pub gain_db: Option<f32>,
-}
-
-/// Write `camera[?key=value&…]` into `out` (cleared first). Floats use Rust's shortest
-/// representation that parses back to the same value.
-pub fn write_frame_id(out: &mut String, camera: &str, extras: &FrameIdExtras) {
-    out.clear();
-    out.push_str(camera);
-    let mut separator = '?';
-    let mut push = |out: &mut String, key: &str, value: &dyn std::fmt::Display| {
-        // Writing to a String cannot fail.
-        let _ = write!(out, "{separator}{key}={value}");
-        separator = '&';
-    };
-    if let Some(exposure_us) = extras.exposure_us {
-        push(out, "exposure_us", &exposure_us);
-    }
-    if let Some(gain_db) = extras.gain_db {
-        push(out, "gain_db", &gain_db);
-    }
-    if let Some(seq) = extras.seq {
-        push(out, "seq", &seq);
-    }
-}
-
-/// Split a `frame_id` into the camera name and its extras. Unknown keys are ignored (they may
-/// come from a later format version); a known key with a bad value is an error.
-pub fn parse_frame_id(frame_id: &str) -> Result<(&str, FrameIdExtras), String> {
-    let (camera, query) = frame_id.split_once('?').unwrap_or((frame_id, ""));
-    let mut extras = FrameIdExtras::default();
-    for pair in query.split('&').filter(|p| !p.is_empty()) {
-        let (key, value) = pair
-            .split_once('=')
-            .ok_or_else(|| format!("frame_id `{frame_id}`: `{pair}` is not key=value"))?;
-        let bad = |e: &dyn std::fmt::Display| format!("frame_id `{frame_id}`: {key}: {e}");
-        match key {
-            "seq" => extras.seq = Some(value.parse().map_err(|e| bad(&e))?),
-            "exposure_us" => extras.exposure_us = Some(value.parse().map_err(|e| bad(&e))?),
-            "gain_db" => extras.gain_db = Some(value.parse().map_err(|e| bad(&e))?),
-            _ => {}
-        }
-    }
-    Ok((camera, extras))
-}
-
 /// CDR encapsulation header of little-endian plain CDR (`CDR_LE`).
 const CDR_LE_HEADER: [u8; 4] = [0x00, 0x01, 0x00, 0x00];
 
@@ -269,9 +84,32 @@ impl<'a> CdrWriter<'a> {
         self.out.extend_from_slice(&value.to_le_bytes());
     }
 
+    pub(super) fn u64(&mut self, value: u64) {
+        self.align(8);
+        self.out.extend_from_slice(&value.to_le_bytes());
+    }
+
+    pub(super) fn f32(&mut self, value: f32) {
+        self.align(4);
+        self.out.extend_from_slice(&value.to_le_bytes());
+    }
+
     pub(super) fn f64(&mut self, value: f64) {
         self.align(8);
         self.out.extend_from_slice(&value.to_le_bytes());
+    }
+
+    pub(super) fn bool(&mut self, value: bool) {
+        self.out.push(u8::from(value));
+    }
+
+    /// A `uint8[]`: its length, then the bytes.
+    pub(super) fn bytes(&mut self, value: &[u8]) -> Result<(), String> {
+        let len = u32::try_from(value.len())
+            .map_err(|_| format!("{} bytes are too many for a CDR sequence", value.len()))?;
+        self.u32(len);
+        self.out.extend_from_slice(value);
+        Ok(())
     }
 
     /// `header.stamp` (seconds saturating at `i32::MAX`, nanoseconds) and `header.frame_id`.
@@ -311,7 +149,7 @@ impl<'a> CdrReader<'a> {
         }
     }
 
-    fn take(&mut self, len: usize) -> Result<&'a [u8], String> {
+    pub(super) fn take(&mut self, len: usize) -> Result<&'a [u8], String> {
         let end = self
             .pos
             .checked_add(len)
@@ -348,11 +186,46 @@ impl<'a> CdrReader<'a> {
         self.u32().map(|v| v as i32)
     }
 
-    pub(super) fn f64(&mut self) -> Result<f64, String> {
+    pub(super) fn u64(&mut self) -> Result<u64, String> {
         self.align(8);
         let bytes = self.take(8)?;
-        let array: [u8; 8] = bytes.try_into().map_err(|_| "short f64".to_string())?;
-        Ok(f64::from_le_bytes(array))
+        let array: [u8; 8] = bytes.try_into().map_err(|_| "short u64".to_string())?;
+        Ok(u64::from_le_bytes(array))
+    }
+
+    pub(super) fn f32(&mut self) -> Result<f32, String> {
+        self.u32().map(f32::from_bits)
+    }
+
+    pub(super) fn f64(&mut self) -> Result<f64, String> {
+        self.u64().map(f64::from_bits)
+    }
+
+    pub(super) fn bool(&mut self) -> Result<bool, String> {
+        match self.u8()? {
+            0 => Ok(false),
+            1 => Ok(true),
+            other => Err(format!("bool byte {other}")),
+        }
+    }
+
+    /// A `uint8[]`.
+    pub(super) fn bytes(&mut self) -> Result<&'a [u8], String> {
+        let len = self.u32()? as usize;
+        self.take(len)
+    }
+
+    /// The length of a sequence whose elements take at least `min_element_bytes` each, checked
+    /// against what is left, so a lying length cannot make the caller reserve memory.
+    pub(super) fn sequence_len(&mut self, min_element_bytes: usize) -> Result<usize, String> {
+        let len = self.u32()? as usize;
+        let left = self.body.len().saturating_sub(self.pos);
+        if len.saturating_mul(min_element_bytes.max(1)) > left {
+            return Err(format!(
+                "sequence of {len} elements does not fit in the {left} bytes left"
+            ));
+        }
+        Ok(len)
     }
 
     /// `header.stamp` in ns (negative seconds clamp to 0) and `header.frame_id`.
@@ -376,8 +249,13 @@ impl<'a> CdrReader<'a> {
     }
 }
 
+/// The ROS encoding a half-float RGBA image is written in: `rgba16f` is relight's own, which
+/// neither ROS nor Foxglove knows, so the values go out widened to f32 (exactly).
+pub const RGBA16F_WIRE_ENCODING: &str = "32FC4";
+
 /// Encode `image` as a CDR `sensor_msgs/msg/Image` into `out` (cleared first). `header.stamp` is
-/// `stamp_ns` split into seconds (saturating at `i32::MAX`) and nanoseconds.
+/// `stamp_ns` split into seconds (saturating at `i32::MAX`) and nanoseconds. Encodings are
+/// [`PixelFormat::ros_encoding`]'s, except `Rgba16F`, written as [`RGBA16F_WIRE_ENCODING`].
 pub fn encode_image(
     out: &mut Vec<u8>,
     stamp_ns: u64,
@@ -386,22 +264,35 @@ pub fn encode_image(
 ) -> Result<(), String> {
     out.clear();
     let format = image.format();
-    let data_len = image.pixel_count() * format.bytes_per_pixel();
+    let (encoding, bytes_per_pixel) = match format {
+        PixelFormat::Rgba16F => (RGBA16F_WIRE_ENCODING, 16),
+        _ => (format.ros_encoding(), format.bytes_per_pixel()),
+    };
+    let data_len = image.pixel_count() * bytes_per_pixel;
     let data_len_u32 = u32::try_from(data_len)
         .map_err(|_| format!("image of {data_len} bytes is too large for sensor_msgs/Image"))?;
-    let step = u32::try_from(image.stride())
-        .map_err(|_| format!("row of {} bytes is too large", image.stride()))?;
+    let row = image.width() as usize * bytes_per_pixel;
+    let step = u32::try_from(row).map_err(|_| format!("row of {row} bytes is too large"))?;
     out.reserve(data_len + 64 + frame_id.len());
 
     let mut cdr = CdrWriter::new(out);
     cdr.header(stamp_ns, frame_id)?;
     cdr.u32(image.height());
     cdr.u32(image.width());
-    cdr.string(format.ros_encoding())?;
+    cdr.string(encoding)?;
     cdr.u8(0);
     cdr.u32(step);
     cdr.u32(data_len_u32);
-    append_le_pixels(cdr.out, image.pixels());
+    match (format, image.pixels()) {
+        (PixelFormat::Rgba16F, Pixels::U16(halves)) => {
+            let start = cdr.out.len();
+            cdr.out.resize(start + halves.len() * 4, 0);
+            for (dst, bits) in cdr.out[start..].chunks_exact_mut(4).zip(halves) {
+                dst.copy_from_slice(&half::f16::from_bits(*bits).to_f32().to_le_bytes());
+            }
+        }
+        (_, pixels) => append_le_pixels(cdr.out, pixels),
+    }
     Ok(())
 }
 
@@ -452,6 +343,9 @@ pub fn decode_image(data: &[u8]) -> Result<DecodedImage, String> {
     let data_len = cdr.u32()? as usize;
     let pixel_bytes = cdr.take(data_len)?;
 
+    if encoding == RGBA16F_WIRE_ENCODING {
+        return decode_rgba32f(stamp_ns, frame_id, width, height, step, pixel_bytes);
+    }
     let (format, source) = match PixelFormat::from_ros_encoding(encoding) {
         Some(format) => (format, None),
         None => (
@@ -512,6 +406,44 @@ pub fn decode_image(data: &[u8]) -> Result<DecodedImage, String> {
     })
 }
 
+/// A `32FC4` image, narrowed to `Rgba16F` (exact for what [`encode_image`] wrote).
+fn decode_rgba32f(
+    stamp_ns: u64,
+    frame_id: String,
+    width: u32,
+    height: u32,
+    step: usize,
+    pixel_bytes: &[u8],
+) -> Result<DecodedImage, String> {
+    let stride = width as usize * 16;
+    let rows = height as usize;
+    let needed = stride
+        .checked_mul(rows)
+        .ok_or_else(|| "image size overflows".to_string())?;
+    if step != stride || pixel_bytes.len() < needed {
+        return Err(format!(
+            "{width}×{height} {RGBA16F_WIRE_ENCODING} with step {step} needs {needed} bytes (step {stride}), got {}",
+            pixel_bytes.len()
+        ));
+    }
+    let halves: Vec<u8> = pixel_bytes
+        .get(..needed)
+        .unwrap_or_default()
+        .chunks_exact(4)
+        .flat_map(|v| {
+            let value = f32::from_le_bytes([v[0], v[1], v[2], v[3]]);
+            half::f16::from_f32(value).to_bits().to_le_bytes()
+        })
+        .collect();
+    let image = Image::from_bytes(width, height, PixelFormat::Rgba16F, &halves)
+        .map_err(|e| e.to_string())?;
+    Ok(DecodedImage {
+        stamp_ns,
+        frame_id,
+        image,
+    })
+}
+
 /// An 8-bit colour encoding of other ROS drivers, read into `rgb8`.
 #[derive(Debug, Clone, Copy)]
 struct ForeignColour {
@@ -535,124 +467,9 @@ impl ForeignColour {
     }
 }
 
-#[derive(Serialize)]
-struct MarkersOut<'a> {
-    #[serde(skip_serializing_if = "Option::is_none")]
-    seq: Option<u64>,
-    detections: &'a [MarkerDetection],
-}
-
-#[derive(Deserialize)]
-struct MarkersIn {
-    #[serde(default)]
-    seq: Option<u64>,
-    detections: Vec<MarkerDetection>,
-}
-
-#[derive(Serialize)]
-struct LampOut {
-    #[serde(skip_serializing_if = "Option::is_none")]
-    seq: Option<u64>,
-    on: bool,
-    position_in_world: [f32; 3],
-    intensity: [f32; 3],
-}
-
-#[derive(Deserialize)]
-struct LampIn {
-    #[serde(default)]
-    seq: Option<u64>,
-    on: bool,
-    position_in_world: [f32; 3],
-    intensity: [f32; 3],
-}
-
-/// Encode a marker set as JSON into `out` (cleared first); `seq` is written only when given.
-/// Non-finite numbers are refused: JSON cannot hold them.
-pub fn encode_markers(
-    out: &mut Vec<u8>,
-    seq: Option<u64>,
-    markers: &MarkerSet,
-) -> Result<(), String> {
-    out.clear();
-    for (i, d) in markers.detections.iter().enumerate() {
-        let finite = d.corners_px.iter().all(|c| c.is_finite())
-            && d.camera_from_marker.rotation.is_finite()
-            && d.camera_from_marker.translation.is_finite()
-            && d.reprojection_rms_px.is_finite();
-        if !finite {
-            return Err(format!(
-                "detection {i} (marker {}) holds a non-finite number",
-                d.marker_id
-            ));
-        }
-    }
-    let message = MarkersOut {
-        seq,
-        detections: &markers.detections,
-    };
-    serde_json::to_writer(out, &message).map_err(|e| e.to_string())
-}
-
-/// Decode a `/markers` JSON message; returns the set and the `seq` member if present.
-pub fn decode_markers(data: &[u8]) -> Result<(MarkerSet, Option<u64>), String> {
-    let message: MarkersIn = serde_json::from_slice(data).map_err(|e| e.to_string())?;
-    Ok((
-        MarkerSet {
-            detections: message.detections,
-        },
-        message.seq,
-    ))
-}
-
-/// Encode a lamp state as JSON into `out` (cleared first); `seq` is written only when given.
-pub fn encode_lamp(out: &mut Vec<u8>, seq: Option<u64>, lamp: &LampState) -> Result<(), String> {
-    out.clear();
-    if !(lamp.position_in_world.is_finite() && lamp.intensity.is_finite()) {
-        return Err("lamp state holds a non-finite number".into());
-    }
-    let message = LampOut {
-        seq,
-        on: lamp.on,
-        position_in_world: lamp.position_in_world.to_array(),
-        intensity: lamp.intensity.to_array(),
-    };
-    serde_json::to_writer(out, &message).map_err(|e| e.to_string())
-}
-
-/// Decode a `/lamp` JSON message; returns the state and the `seq` member if present.
-pub fn decode_lamp(data: &[u8]) -> Result<(LampState, Option<u64>), String> {
-    let message: LampIn = serde_json::from_slice(data).map_err(|e| e.to_string())?;
-    Ok((
-        LampState {
-            on: message.on,
-            position_in_world: message.position_in_world.into(),
-            intensity: message.intensity.into(),
-        },
-        message.seq,
-    ))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn frame_id_round_trips_extras_exactly() {
-        let extras = FrameIdExtras {
-            seq: Some(u64::MAX),
-            exposure_us: Some(33_333),
-            gain_db: Some(0.1 + f32::EPSILON),
-        };
-        let mut text = String::new();
-        write_frame_id(&mut text, "probe", &extras);
-        let (camera, back) = parse_frame_id(&text).unwrap();
-        assert_eq!(camera, "probe");
-        assert_eq!(back, extras);
-        write_frame_id(&mut text, "depth", &FrameIdExtras::default());
-        assert_eq!(text, "depth");
-        assert!(parse_frame_id("probe?gain_db=loud").is_err());
-    }
 
     #[test]
     fn image_cdr_layout_matches_ros2() {
@@ -748,14 +565,5 @@ mod tests {
         let at = out.windows(4).position(|w| w == b"rgb8").unwrap();
         out[at..at + 4].copy_from_slice(b"yuv8");
         assert!(decode_image(&out).unwrap_err().contains("`yuv8`"));
-    }
-
-    #[test]
-    fn non_finite_json_is_refused() {
-        let lamp = LampState {
-            intensity: glam::Vec3::new(1.0, f32::NAN, 0.0),
-            ..Default::default()
-        };
-        assert!(encode_lamp(&mut Vec::new(), None, &lamp).is_err());
     }
 }

@@ -2,15 +2,17 @@
 //! normals, albedo, the camera's pose, the lights, the markers' poses), recorded next to the
 //! sensor streams so every estimator can be scored against the recording it ran on.
 //!
-//! | topic            | id | schema (encoding)                   | payload                        |
-//! |------------------|----|-------------------------------------|--------------------------------|
-//! | `/truth/depth`   | 16 | `sensor_msgs/msg/Image` (`ros2msg`) | `32FC1`: z along the optical axis, m; 0 = no surface |
-//! | `/truth/normals` | 17 | `sensor_msgs/msg/Image` (`ros2msg`) | `rgba16f`: unit world normal, a = 1 where a surface is |
-//! | `/truth/albedo`  | 18 | `sensor_msgs/msg/Image` (`ros2msg`) | `rgba16f`: diffuse albedo k_d, a = specular k_s (luminance) |
-//! | `/truth/state`   | 19 | `relight.TruthState` (`jsonschema`) | [`TruthState`] as JSON         |
+//! | topic            | id | schema                  | payload                        | `frame_id` |
+//! |------------------|----|-------------------------|--------------------------------|------------|
+//! | `/truth/depth`   | 16 | `sensor_msgs/msg/Image` | `32FC1`: z along the optical axis, m; 0 = no surface | `depth` |
+//! | `/truth/normals` | 17 | `sensor_msgs/msg/Image` | `32FC4`: unit normal in the world frame, a = 1 where a surface is | `world` |
+//! | `/truth/albedo`  | 18 | `sensor_msgs/msg/Image` | `32FC4`: diffuse albedo k_d, a = specular k_s (luminance) | `depth` |
+//! | `/truth/state`   | 19 | `std_msgs/msg/String`   | [`TruthState`] as JSON (poses glTF-convention) | — |
 //!
 //! The images are per pixel of the depth camera (registered to colour), of the **real** scene
-//! only, as the sensors see it. Channels are declared when their first message is written, with
+//! only, as the sensors see it; `frame_id` names the frame their values are expressed in. They
+//! hold `Rgba16F` in memory and go out widened to `32FC4` (ROS's float RGBA; format 1 wrote
+//! relight's own `rgba16f`). Channels are declared when their first message is written, with
 //! the fixed IDs above so that a file whose channel records are lost still reads.
 
 use serde::{Deserialize, Serialize};
@@ -124,35 +126,15 @@ impl TruthMessage {
     }
 }
 
-/// Schema name of `/truth/state`.
-pub const TRUTH_STATE_SCHEMA_NAME: &str = "relight.TruthState";
-
-/// JSON Schema of `/truth/state`.
-pub const TRUTH_STATE_JSON_SCHEMA: &str = r##"{
-  "$schema": "https://json-schema.org/draft/2020-12/schema",
-  "title": "relight.TruthState",
-  "description": "The simulated scene's true state: camera and probe poses (glTF convention, rotation [x,y,z,w], translation m), lights (relight light tables), marker poses.",
-  "type": "object",
-  "properties": {
-    "world_from_camera": { "type": "object" },
-    "world_from_probe": { "type": "object" },
-    "lights": { "type": "array", "items": { "type": "object" } },
-    "markers": { "type": "array", "items": { "type": "object" } }
-  },
-  "required": ["world_from_camera", "lights", "markers"]
-}
-"##;
-
-/// Encode a truth state as JSON into `out` (cleared first). Non-finite numbers are refused.
-pub fn encode_state(out: &mut Vec<u8>, state: &TruthState) -> Result<(), String> {
-    out.clear();
-    serde_json::to_writer(&mut *out, state).map_err(|e| e.to_string())?;
+/// A truth state as JSON. Non-finite numbers are refused.
+pub fn encode_state(state: &TruthState) -> Result<String, String> {
+    let json = serde_json::to_string(state).map_err(|e| e.to_string())?;
     // serde_json writes NaN/∞ as `null`, which would not read back: refuse instead.
-    let reread: serde_json::Value = serde_json::from_slice(out).map_err(|e| e.to_string())?;
+    let reread: serde_json::Value = serde_json::from_str(&json).map_err(|e| e.to_string())?;
     if contains_null_number(&reread) {
         return Err("truth state holds a non-finite number".into());
     }
-    Ok(())
+    Ok(json)
 }
 
 fn contains_null_number(value: &serde_json::Value) -> bool {
@@ -193,15 +175,14 @@ mod tests {
                 size_m: 0.08,
             }],
         };
-        let mut out = Vec::new();
-        encode_state(&mut out, &state).unwrap();
-        assert_eq!(decode_state(&out).unwrap(), state);
+        let json = encode_state(&state).unwrap();
+        assert_eq!(decode_state(json.as_bytes()).unwrap(), state);
 
         let mut bad = state;
         bad.lights[0] = Light::Point {
             position_in_world: Vec3::new(f32::NAN, 0.0, 0.0),
             intensity: Vec3::ONE,
         };
-        assert!(encode_state(&mut out, &bad).is_err());
+        assert!(encode_state(&bad).is_err());
     }
 }

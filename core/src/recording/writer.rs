@@ -1,6 +1,6 @@
 //! [`RecordingWriter`]: streams [`StreamMessage`]s into a chunked, compressed MCAP file.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::fmt;
 use std::fs::File;
 use std::io::{BufWriter, Seek, Write};
@@ -9,14 +9,25 @@ use std::path::Path;
 use mcap::records::{MessageHeader, Metadata};
 use mcap::{Attachment, Compression, WriteOptions};
 
-use super::schema::{self, FrameIdExtras};
+use super::camera_info::encode_camera_info;
+use super::channels::{CAMERAS, Channel, ChannelSchema};
+use super::compressed::{self, ColorEncoding};
+use super::ros_msgs::{self as msgs, FrameInfo, Header, Transform};
+use super::schema;
 use super::truth::{self, TruthKind, TruthMessage};
 use super::{
-    CALIBRATION_ATTACHMENT, CALIBRATION_KEY, CALIBRATION_METADATA, FORMAT_VERSION,
-    RECORDING_METADATA, RecordingError, RecordingMeta, RecordingSummary, channel_id, topic,
+    CALIBRATION_ATTACHMENT, CALIBRATION_KEY, CALIBRATION_METADATA, FORMAT_VERSION, OutputMessage,
+    RECORDING_METADATA, RecordingError, RecordingMeta, RecordingSummary,
 };
-use crate::frame::host_now_ns;
+use crate::camera::CameraModel;
+use crate::frame::{Image, PixelFormat, host_now_ns};
+use crate::pose::Pose;
+use crate::rig::RigCalibration;
+use crate::ros_frames;
 use crate::stream::{StreamKind, StreamMessage};
+
+/// The MCAP profile of a recording: ROS 2 (every channel `ros2msg` + `cdr`).
+pub const PROFILE: &str = "ros2";
 
 /// How chunks are compressed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -38,6 +49,8 @@ pub struct RecordingOptions {
     pub compression_level: u32,
     /// zstd worker threads; 0 compresses on the writing thread.
     pub compression_threads: u32,
+    /// How 8-bit colour images (and the composite) are stored; other formats are always raw.
+    pub color_encoding: ColorEncoding,
 }
 
 impl Default for RecordingOptions {
@@ -47,6 +60,7 @@ impl Default for RecordingOptions {
             compression: RecordingCompression::Zstd,
             compression_level: 0,
             compression_threads: 0,
+            color_encoding: ColorEncoding::Raw,
         }
     }
 }
@@ -59,14 +73,16 @@ pub struct RecordingWriter<W: Write + Seek> {
     mcap: mcap::Writer<W>,
     /// Encoded message payload, reused across messages.
     scratch: Vec<u8>,
-    /// Image `frame_id`, reused across messages.
-    frame_id: String,
     counts: BTreeMap<StreamKind, u64>,
     messages_written: u64,
-    /// Schema IDs by name, for channels declared after the start (ground truth).
+    /// Schema IDs by name.
     schema_ids: HashMap<&'static str, u16>,
-    /// Ground-truth channels declared so far, and how many messages each got.
-    truth_counts: BTreeMap<TruthKind, u64>,
+    declared: BTreeSet<Channel>,
+    /// The depth, colour and probe cameras of the calibration, for their `camera_info`.
+    cameras: [Option<CameraModel>; 3],
+    /// `/tf_static`, written once, just before the first message (with its host time).
+    static_transforms: Option<Vec<Transform>>,
+    color_encoding: ColorEncoding,
 }
 
 impl<W: Write + Seek> fmt::Debug for RecordingWriter<W> {
@@ -99,13 +115,54 @@ impl RecordingWriter<BufWriter<File>> {
     }
 }
 
+/// The camera a stream's images come from, as `frame_id`: `depth`, `color`, `probe`.
+fn camera_frame(kind: StreamKind) -> &'static str {
+    kind.name()
+}
+
+/// The fixed transforms: the +z-up `map` over the board's `world`, and what the calibration
+/// says of the rig, cameras as optical frames.
+fn static_transforms(calibration: Option<&RigCalibration>) -> Vec<Transform> {
+    let transform = |parent: &str, child: &str, parent_from_child: Pose| Transform {
+        parent: parent.into(),
+        child: child.into(),
+        parent_from_child,
+    };
+    let mut transforms = vec![transform("map", "world", ros_frames::map_from_world())];
+    if let Some(rig) = calibration {
+        transforms.push(transform("world", "board", rig.world_from_board));
+        if rig.probe.is_some() {
+            transforms.push(transform(
+                "world",
+                camera_frame(StreamKind::Probe),
+                ros_frames::world_from_optical(rig.world_from_probe),
+            ));
+        }
+        transforms.push(transform(
+            camera_frame(StreamKind::Color),
+            camera_frame(StreamKind::Depth),
+            ros_frames::optical_between(rig.color_from_depth),
+        ));
+    }
+    transforms
+}
+
+/// MCAP's 32-bit `sequence` of a message whose payload carries no full `seq`.
+fn short_seq(channel: Channel, seq: u64) -> Result<u32, RecordingError> {
+    u32::try_from(seq).map_err(|_| RecordingError::Encode {
+        channel: channel.topic().into(),
+        seq,
+        reason: "its sequence number does not fit the 32 bits MCAP and this channel hold".into(),
+    })
+}
+
 impl<W: Write + Seek> RecordingWriter<W> {
     /// Start a recording in `writer` with default options.
     pub fn new(writer: W, meta: &RecordingMeta) -> Result<Self, RecordingError> {
         Self::with_options(writer, meta, &RecordingOptions::default())
     }
 
-    /// Start a recording: writes header, metadata, calibration and the five channels.
+    /// Start a recording: writes header, metadata, calibration and the sensor channels.
     pub fn with_options(
         writer: W,
         meta: &RecordingMeta,
@@ -122,14 +179,34 @@ impl<W: Write + Seek> RecordingWriter<W> {
             RecordingCompression::None => None,
         };
         let write_options = WriteOptions::new()
+            .profile(PROFILE)
             .compression(compression)
             .compression_level(options.compression_level)
             .compression_threads(options.compression_threads)
             .chunk_size(Some(options.chunk_size_bytes.max(1)))
             .library(format!("relight-core {}", env!("CARGO_PKG_VERSION")));
-        let mut mcap = mcap::Writer::with_options(writer, write_options)?;
+        let mcap = mcap::Writer::with_options(writer, write_options)?;
+        let cameras = CAMERAS.map(|kind| {
+            let rig = meta.calibration.as_ref()?;
+            match kind {
+                StreamKind::Depth => rig.depth.clone(),
+                StreamKind::Color => rig.color.clone(),
+                _ => rig.probe.clone(),
+            }
+        });
+        let mut writer = Self {
+            mcap,
+            scratch: Vec::new(),
+            counts: BTreeMap::new(),
+            messages_written: 0,
+            schema_ids: HashMap::new(),
+            declared: BTreeSet::new(),
+            cameras,
+            static_transforms: Some(static_transforms(meta.calibration.as_ref())),
+            color_encoding: options.color_encoding,
+        };
 
-        mcap.write_metadata(&Metadata {
+        writer.mcap.write_metadata(&Metadata {
             name: RECORDING_METADATA.into(),
             metadata: BTreeMap::from([
                 ("source".to_string(), meta.source.clone()),
@@ -137,12 +214,12 @@ impl<W: Write + Seek> RecordingWriter<W> {
             ]),
         })?;
         if let Some(toml) = calibration_toml {
-            mcap.write_metadata(&Metadata {
+            writer.mcap.write_metadata(&Metadata {
                 name: CALIBRATION_METADATA.into(),
                 metadata: BTreeMap::from([(CALIBRATION_KEY.to_string(), toml.clone())]),
             })?;
             let now_ns = host_now_ns();
-            mcap.attach(&Attachment {
+            writer.mcap.attach(&Attachment {
                 log_time: now_ns,
                 create_time: now_ns,
                 name: CALIBRATION_ATTACHMENT.into(),
@@ -151,126 +228,284 @@ impl<W: Write + Seek> RecordingWriter<W> {
             })?;
         }
 
-        let mut schema_ids: HashMap<&'static str, u16> = HashMap::new();
-        for kind in StreamKind::ALL {
-            let schema = schema::channel_schema(kind);
-            let schema_id = match schema_ids.get(schema.schema_name) {
-                Some(&id) => id,
-                None => {
-                    let id = u16::try_from(schema_ids.len() + 1).unwrap_or(u16::MAX);
-                    mcap.add_schema_with_id(
-                        id,
-                        schema.schema_name,
-                        schema.schema_encoding,
-                        schema.schema_data.as_bytes(),
-                    )?;
-                    schema_ids.insert(schema.schema_name, id);
-                    id
-                }
-            };
-            mcap.add_channel_with_id(
-                channel_id(kind),
-                schema_id,
-                topic(kind),
-                schema.message_encoding,
-                &BTreeMap::new(),
-            )?;
+        // The sensors' channels up front, so that a file cut before their first message still
+        // lists them; the rest are declared on first use.
+        let colour = match options.color_encoding {
+            ColorEncoding::Raw => Channel::Stream(StreamKind::Color),
+            _ => Channel::ColorCompressed,
+        };
+        for channel in StreamKind::ALL
+            .map(|kind| match kind {
+                StreamKind::Color => colour,
+                _ => Channel::Stream(kind),
+            })
+            .into_iter()
+            .chain([Channel::Tf, Channel::TfStatic])
+            .chain(CAMERAS.map(Channel::FrameInfo))
+        {
+            writer.declare(channel)?;
+        }
+        for (kind, camera) in CAMERAS.into_iter().zip(&writer.cameras.clone()) {
+            if camera.is_some() {
+                writer.declare(Channel::CameraInfo(kind))?;
+            }
         }
         // Close the chunk holding schemas and channels so that it is complete on disk before
         // the first message arrives.
-        mcap.flush()?;
-
-        Ok(Self {
-            mcap,
-            scratch: Vec::new(),
-            frame_id: String::new(),
-            counts: BTreeMap::new(),
-            messages_written: 0,
-            schema_ids,
-            truth_counts: BTreeMap::new(),
-        })
+        writer.mcap.flush()?;
+        Ok(writer)
     }
 
-    /// Append one message. Host time becomes the MCAP log time; see the module docs for where
-    /// every other field goes.
+    fn declare(&mut self, channel: Channel) -> Result<(), RecordingError> {
+        if self.declared.contains(&channel) {
+            return Ok(());
+        }
+        let schema = channel.schema();
+        let schema_id = match self.schema_ids.get(schema.schema_name) {
+            Some(&id) => id,
+            None => {
+                let id = u16::try_from(self.schema_ids.len() + 1).unwrap_or(u16::MAX);
+                self.mcap.add_schema_with_id(
+                    id,
+                    schema.schema_name,
+                    ChannelSchema::SCHEMA_ENCODING,
+                    schema.schema_data.as_bytes(),
+                )?;
+                self.schema_ids.insert(schema.schema_name, id);
+                id
+            }
+        };
+        self.mcap.add_channel_with_id(
+            channel.id(),
+            schema_id,
+            channel.topic(),
+            ChannelSchema::MESSAGE_ENCODING,
+            &BTreeMap::new(),
+        )?;
+        self.declared.insert(channel);
+        Ok(())
+    }
+
+    /// Write what `scratch` holds on `channel`.
+    fn emit(
+        &mut self,
+        channel: Channel,
+        sequence: u32,
+        host_ns: u64,
+        device_ns: u64,
+    ) -> Result<(), RecordingError> {
+        self.declare(channel)?;
+        let header = MessageHeader {
+            channel_id: channel.id(),
+            sequence,
+            log_time: host_ns,
+            publish_time: device_ns,
+        };
+        self.mcap.write_to_known_channel(&header, &self.scratch)?;
+        Ok(())
+    }
+
+    fn write_static_transforms(&mut self, host_ns: u64) -> Result<(), RecordingError> {
+        let Some(transforms) = self.static_transforms.take() else {
+            return Ok(());
+        };
+        msgs::encode_tf(&mut self.scratch, host_ns, &transforms).map_err(|reason| {
+            RecordingError::Encode {
+                channel: Channel::TfStatic.topic().into(),
+                seq: 0,
+                reason,
+            }
+        })?;
+        self.emit(Channel::TfStatic, 0, host_ns, host_ns)
+    }
+
+    /// Append one stream message, with what goes beside it: an image's `frame_info` and
+    /// `camera_info`, the markers' and lamp's `/tf`. See the module docs for where each field
+    /// goes.
     pub fn write(&mut self, msg: &StreamMessage) -> Result<(), RecordingError> {
         let kind = msg.kind();
         let seq = msg.seq();
         let stamp = msg.stamp();
-        let (sequence, long_seq) = schema::split_seq(seq);
-        let encoded = match msg {
+        self.write_static_transforms(stamp.host_ns)?;
+        let sequence = (seq & u64::from(u32::MAX)) as u32;
+        let header = Header {
+            stamp_ns: stamp.host_ns,
+            frame_id: camera_frame(kind),
+        };
+        let encode_error = |channel: Channel| {
+            move |reason| RecordingError::Encode {
+                channel: channel.topic().into(),
+                seq,
+                reason,
+            }
+        };
+        match msg {
             StreamMessage::Depth(frame) | StreamMessage::Color(frame) => {
-                let extras = FrameIdExtras {
-                    seq: long_seq,
-                    ..Default::default()
-                };
-                schema::write_frame_id(&mut self.frame_id, kind.name(), &extras);
-                schema::encode_image(
-                    &mut self.scratch,
-                    stamp.device_ns,
-                    &self.frame_id,
-                    &frame.payload,
-                )
+                self.write_image(kind, header, seq, stamp.device_ns, &frame.payload, (0, 0.0))?;
             }
             StreamMessage::Probe(frame) => {
-                let extras = FrameIdExtras {
-                    seq: long_seq,
-                    exposure_us: Some(frame.payload.exposure_us),
-                    gain_db: Some(frame.payload.gain_db),
-                };
-                schema::write_frame_id(&mut self.frame_id, kind.name(), &extras);
-                schema::encode_image(
-                    &mut self.scratch,
-                    stamp.device_ns,
-                    &self.frame_id,
-                    &frame.payload.image,
-                )
+                let probe = &frame.payload;
+                let exposure = (probe.exposure_us, probe.gain_db);
+                self.write_image(kind, header, seq, stamp.device_ns, &probe.image, exposure)?;
             }
             StreamMessage::Markers(frame) => {
-                schema::encode_markers(&mut self.scratch, long_seq, &frame.payload)
+                let channel = Channel::Stream(kind);
+                let header = Header {
+                    frame_id: camera_frame(StreamKind::Color),
+                    ..header
+                };
+                msgs::encode_markers(
+                    &mut self.scratch,
+                    header,
+                    seq,
+                    stamp.device_ns,
+                    &frame.payload,
+                )
+                .map_err(encode_error(channel))?;
+                self.emit(channel, sequence, stamp.host_ns, stamp.device_ns)?;
+                if !frame.payload.detections.is_empty() {
+                    let transforms: Vec<Transform> = frame
+                        .payload
+                        .detections
+                        .iter()
+                        .map(|d| Transform {
+                            parent: header.frame_id.into(),
+                            child: format!("marker_{}", d.marker_id),
+                            parent_from_child: ros_frames::optical_from(d.camera_from_marker),
+                        })
+                        .collect();
+                    msgs::encode_tf(&mut self.scratch, stamp.host_ns, &transforms)
+                        .map_err(encode_error(Channel::Tf))?;
+                    self.emit(Channel::Tf, sequence, stamp.host_ns, stamp.device_ns)?;
+                }
             }
             StreamMessage::Lamp(frame) => {
-                schema::encode_lamp(&mut self.scratch, long_seq, &frame.payload)
+                let channel = Channel::Stream(kind);
+                let lamp = &frame.payload;
+                let header = Header {
+                    frame_id: "world",
+                    ..header
+                };
+                msgs::encode_lamp(&mut self.scratch, header, seq, stamp.device_ns, lamp)
+                    .map_err(encode_error(channel))?;
+                self.emit(channel, sequence, stamp.host_ns, stamp.device_ns)?;
+                let transform = Transform {
+                    parent: "world".into(),
+                    child: "lamp".into(),
+                    parent_from_child: Pose::from_translation(lamp.position_in_world),
+                };
+                msgs::encode_tf(&mut self.scratch, stamp.host_ns, &[transform])
+                    .map_err(encode_error(Channel::Tf))?;
+                self.emit(Channel::Tf, sequence, stamp.host_ns, stamp.device_ns)?;
             }
-        };
-        encoded.map_err(|reason| RecordingError::Encode {
-            channel: topic(kind).into(),
-            seq,
-            reason,
-        })?;
-
-        let header = MessageHeader {
-            channel_id: channel_id(kind),
-            sequence,
-            log_time: stamp.host_ns,
-            publish_time: stamp.device_ns,
-        };
-        self.mcap.write_to_known_channel(&header, &self.scratch)?;
+        }
         *self.counts.entry(kind).or_insert(0) += 1;
         self.messages_written += 1;
-        tracing::trace!(stream = %kind, seq, bytes = self.scratch.len(), "recorded");
+        tracing::trace!(stream = %kind, seq, "recorded");
         Ok(())
     }
 
+    /// An image with its `frame_info` (first, so a reader has it when the image arrives) and
+    /// its camera's `camera_info`; 8-bit colour compressed as the options say.
+    fn write_image(
+        &mut self,
+        kind: StreamKind,
+        header: Header<'_>,
+        seq: u64,
+        device_ns: u64,
+        image: &Image,
+        (exposure_us, gain_db): (u32, f32),
+    ) -> Result<(), RecordingError> {
+        let sequence = (seq & u64::from(u32::MAX)) as u32;
+        let host_ns = header.stamp_ns;
+        let encode_error = |channel: Channel| {
+            move |reason: String| RecordingError::Encode {
+                channel: channel.topic().into(),
+                seq,
+                reason,
+            }
+        };
+        let info = FrameInfo {
+            seq,
+            device_stamp_ns: device_ns,
+            exposure_us,
+            gain_db,
+        };
+        let channel = Channel::FrameInfo(kind);
+        msgs::encode_frame_info(&mut self.scratch, header, &info).map_err(encode_error(channel))?;
+        self.emit(channel, sequence, host_ns, device_ns)?;
+
+        let camera_index = CAMERAS.iter().position(|&k| k == kind).unwrap_or(0);
+        if let Some(camera) = self.cameras.get(camera_index).cloned().flatten() {
+            let channel = Channel::CameraInfo(kind);
+            encode_camera_info(&mut self.scratch, host_ns, header.frame_id, &camera)
+                .map_err(encode_error(channel))?;
+            self.emit(channel, sequence, host_ns, device_ns)?;
+        }
+
+        let encoding = if kind == StreamKind::Color {
+            self.color_encoding
+        } else {
+            ColorEncoding::Raw
+        };
+        let channel = self
+            .encode_picture(
+                header,
+                image,
+                encoding,
+                Channel::Stream(kind),
+                Channel::ColorCompressed,
+            )
+            .map_err(encode_error(Channel::Stream(kind)))?;
+        self.emit(channel, sequence, host_ns, device_ns)
+    }
+
+    /// Encode `image` into `scratch`: compressed on `compressed` when `encoding` asks and the
+    /// image is 8-bit, else raw on `raw`. Returns the channel it is for.
+    fn encode_picture(
+        &mut self,
+        header: Header<'_>,
+        image: &Image,
+        encoding: ColorEncoding,
+        raw: Channel,
+        compressed: Channel,
+    ) -> Result<Channel, String> {
+        let eight_bit = matches!(image.format(), PixelFormat::Rgb8 | PixelFormat::Mono8);
+        match (encoding.format(), eight_bit) {
+            (Some(format), true) => {
+                let data = compressed::compress(image, encoding)
+                    .unwrap_or_else(|| Ok(Vec::new()))
+                    .map_err(|e| e.to_string())?;
+                msgs::encode_compressed_image(&mut self.scratch, header, format, &data)?;
+                Ok(compressed)
+            }
+            _ => {
+                schema::encode_image(&mut self.scratch, header.stamp_ns, header.frame_id, image)?;
+                Ok(raw)
+            }
+        }
+    }
+
     /// Append one ground-truth message (see [`super::truth`]); its channel is declared on first
-    /// use.
+    /// use. Its `seq` must fit MCAP's 32-bit `sequence`.
     pub fn write_truth(&mut self, msg: &TruthMessage) -> Result<(), RecordingError> {
         let kind = msg.kind();
+        let channel = Channel::Truth(kind);
         let seq = msg.seq();
         let stamp = msg.stamp();
-        let (sequence, long_seq) = schema::split_seq(seq);
+        self.write_static_transforms(stamp.host_ns)?;
+        let sequence = short_seq(channel, seq)?;
         let encoded = match msg {
             TruthMessage::Image(_, frame) => {
-                let extras = FrameIdExtras {
-                    seq: long_seq,
-                    ..Default::default()
+                let frame_id = match kind {
+                    TruthKind::Normals => "world",
+                    _ => camera_frame(StreamKind::Depth),
                 };
-                schema::write_frame_id(&mut self.frame_id, "depth", &extras);
                 match kind.pixel_format() {
                     Some(format) if format == frame.payload.format() => schema::encode_image(
                         &mut self.scratch,
-                        stamp.device_ns,
-                        &self.frame_id,
+                        stamp.host_ns,
+                        frame_id,
                         &frame.payload,
                     ),
                     _ => Err(format!(
@@ -280,66 +515,64 @@ impl<W: Write + Seek> RecordingWriter<W> {
                     )),
                 }
             }
-            TruthMessage::State(frame) => truth::encode_state(&mut self.scratch, &frame.payload),
+            TruthMessage::State(frame) => truth::encode_state(&frame.payload)
+                .and_then(|json| msgs::encode_string(&mut self.scratch, &json)),
         };
         encoded.map_err(|reason| RecordingError::Encode {
             channel: kind.topic().into(),
             seq,
             reason,
         })?;
-        if !self.truth_counts.contains_key(&kind) {
-            self.declare_truth_channel(kind)?;
-        }
-        let header = MessageHeader {
-            channel_id: kind.channel_id(),
-            sequence,
-            log_time: stamp.host_ns,
-            publish_time: stamp.device_ns,
-        };
-        self.mcap.write_to_known_channel(&header, &self.scratch)?;
-        *self.truth_counts.entry(kind).or_insert(0) += 1;
+        self.emit(channel, sequence, stamp.host_ns, stamp.device_ns)?;
         self.messages_written += 1;
         Ok(())
     }
 
-    fn declare_truth_channel(&mut self, kind: TruthKind) -> Result<(), RecordingError> {
-        let (name, encoding, data, message_encoding) = match kind {
-            TruthKind::State => (
-                truth::TRUTH_STATE_SCHEMA_NAME,
-                schema::JSON_SCHEMA_ENCODING,
-                truth::TRUTH_STATE_JSON_SCHEMA,
-                schema::JSON_MESSAGE_ENCODING,
+    /// Append what the daemon rendered for a frame set; its `seq` must fit MCAP's 32-bit
+    /// `sequence`. The composite is compressed like the colour images.
+    pub fn write_output(&mut self, msg: &OutputMessage) -> Result<(), RecordingError> {
+        let channel = msg.channel();
+        let (seq, stamp) = match msg {
+            OutputMessage::Composite(f) | OutputMessage::Delta(f) => (f.seq, f.stamp),
+            OutputMessage::Lighting(f) => (f.seq, f.stamp),
+        };
+        self.write_static_transforms(stamp.host_ns)?;
+        let sequence = short_seq(channel, seq)?;
+        let header = Header {
+            stamp_ns: stamp.host_ns,
+            frame_id: camera_frame(StreamKind::Color),
+        };
+        let written = match msg {
+            OutputMessage::Composite(frame) => self.encode_picture(
+                header,
+                &frame.payload,
+                self.color_encoding,
+                Channel::Composite,
+                Channel::CompositeCompressed,
             ),
-            _ => {
-                let image = schema::channel_schema(StreamKind::Depth);
-                (
-                    image.schema_name,
-                    image.schema_encoding,
-                    image.schema_data,
-                    image.message_encoding,
-                )
+            OutputMessage::Delta(frame) => schema::encode_image(
+                &mut self.scratch,
+                header.stamp_ns,
+                header.frame_id,
+                &frame.payload,
+            )
+            .map(|()| Channel::Delta),
+            OutputMessage::Lighting(frame) => {
+                msgs::encode_string(&mut self.scratch, &frame.payload).map(|()| Channel::Lighting)
             }
         };
-        let schema_id = match self.schema_ids.get(name) {
-            Some(&id) => id,
-            None => {
-                let id = u16::try_from(self.schema_ids.len() + 1).unwrap_or(u16::MAX);
-                self.mcap
-                    .add_schema_with_id(id, name, encoding, data.as_bytes())?;
-                self.schema_ids.insert(name, id);
-                id
-            }
-        };
-        self.mcap.add_channel_with_id(
-            kind.channel_id(),
-            schema_id,
-            kind.topic(),
-            message_encoding,
-            &BTreeMap::new(),
-        )?;
+        let written = written.map_err(|reason| RecordingError::Encode {
+            channel: channel.topic().into(),
+            seq,
+            reason,
+        })?;
+        self.emit(written, sequence, stamp.host_ns, stamp.device_ns)?;
+        self.messages_written += 1;
         Ok(())
     }
 
+    /// Stream, truth and output messages written (the `frame_info`, `camera_info` and `/tf`
+    /// beside them are not counted).
     pub fn messages_written(&self) -> u64 {
         self.messages_written
     }

@@ -46,7 +46,14 @@ pub fn noisy_image(rng: &mut Rng, width: u32, height: u32, format: PixelFormat) 
     if let Some(v) = image.as_u8_mut() {
         v.iter_mut().for_each(|p| *p = rng.next_u64() as u8);
     } else if let Some(v) = image.as_u16_mut() {
-        v.iter_mut().for_each(|p| *p = rng.next_u64() as u16);
+        // Half floats travel widened to f32, which keeps every value but not NaN payloads.
+        let half_float = format == PixelFormat::Rgba16F;
+        v.iter_mut().for_each(|p| {
+            *p = rng.next_u64() as u16;
+            if half_float && half::f16::from_bits(*p).is_nan() {
+                *p = half::f16::INFINITY.to_bits();
+            }
+        });
     } else if let Some(v) = image.as_f32_mut() {
         // Any bit pattern but NaN (NaN != NaN would fail the equality, not the recording).
         v.iter_mut().for_each(|p| {
