@@ -78,7 +78,16 @@ pub fn world_from_optical(world_from_camera: Pose) -> Pose {
 /// One camera's pose relative to another, both glTF-convention, as optical frames:
 /// `optical_a_from_optical_b = flip · a_from_b · flip`.
 pub fn optical_between(a_from_b: Pose) -> Pose {
-    world_from_optical(optical_from(a_from_b))
+    let pose = world_from_optical(optical_from(a_from_b));
+    // The two flips make −q of an identity-like q; the same rotation, written w ≥ 0.
+    if pose.rotation.w < 0.0 {
+        Pose {
+            rotation: -pose.rotation,
+            ..pose
+        }
+    } else {
+        pose
+    }
 }
 
 #[cfg(test)]

@@ -26,8 +26,9 @@ use std::time::Duration;
 mod print;
 
 use crate::pipeline::tracking::{TrackingConfig, TrackingSource};
+use crate::sinks::recorder::RecordSettings;
 use relight_core::StreamKind;
-use relight_core::recording::{RecordingReader, TopicMap};
+use relight_core::recording::{ColorEncoding, RecordingOptions, RecordingReader, TopicMap};
 use relight_engines::live_scene::{LightSource, RealGeometry};
 pub use relight_live::{ImageEncoding, LiveViewSettings};
 use serde::Deserialize;
@@ -57,6 +58,9 @@ pub const MAX_CONFIG_BYTES: u64 = 1024 * 1024;
 /// The longest `[sync]` tolerance and wait, milliseconds: a frame set waiting longer than this
 /// is no longer live.
 const MAX_SYNC_MS: f64 = 10_000.0;
+/// `[recorder] jpeg_quality` when `color_encoding = "jpeg"` does not give one.
+pub const DEFAULT_RECORDER_JPEG_QUALITY: u8 = 90;
+
 /// The most frames the recorder may queue: each holds a whole image (a few MB at 640 × 480 with
 /// depth), so more would hold gigabytes rather than smooth a slow disk.
 const MAX_RECORDER_QUEUE_FRAMES: usize = 4096;
@@ -316,6 +320,24 @@ pub struct RecorderConfig {
     pub autostart: bool,
     /// Frames buffered between the bus and the writer before the oldest are dropped.
     pub queue_frames: usize,
+    /// How 8-bit colour images and the composite are stored: `raw` (`sensor_msgs/Image`),
+    /// `png` (lossless) or `jpeg` at `jpeg_quality` (`sensor_msgs/CompressedImage`).
+    pub color_encoding: ColorEncoding,
+    /// Also record the composite, Δ and the lighting estimate of every rendered frame.
+    pub outputs: bool,
+}
+
+impl RecorderConfig {
+    /// How a recording started now is written.
+    pub fn settings(&self) -> RecordSettings {
+        RecordSettings {
+            options: RecordingOptions {
+                color_encoding: self.color_encoding,
+                ..RecordingOptions::default()
+            },
+            outputs: self.outputs,
+        }
+    }
 }
 
 /// `[snapshot]`: where `snapshot` writes its images when no path is given.
@@ -388,6 +410,8 @@ impl Default for RecorderConfig {
             dir: PathBuf::from(DEFAULT_RECORDINGS_DIR),
             autostart: false,
             queue_frames: 64,
+            color_encoding: ColorEncoding::Raw,
+            outputs: false,
         }
     }
 }
@@ -704,6 +728,9 @@ struct RawRecorder {
     dir: Option<String>,
     autostart: Option<bool>,
     queue_frames: Option<i64>,
+    color_encoding: Option<String>,
+    jpeg_quality: Option<i64>,
+    outputs: Option<bool>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -854,14 +881,8 @@ impl Validator<'_> {
                 format!("must be \"jpeg\" or \"raw\", got {other:?}"),
             ),
         }
-        if let Some(quality) = raw.jpeg_quality {
-            match u8::try_from(quality) {
-                Ok(q) if (1..=100).contains(&q) => live.jpeg_quality = q,
-                _ => self.error(
-                    "live_view.jpeg_quality",
-                    format!("must be in 1..=100, got {quality}"),
-                ),
-            }
+        if let Some(quality) = self.jpeg_quality("live_view.jpeg_quality", raw.jpeg_quality) {
+            live.jpeg_quality = quality;
         }
         if let Some(hz) = raw.max_rate_hz {
             if hz.is_finite() && (0.1..=1000.0).contains(&hz) {
@@ -1406,7 +1427,34 @@ impl Validator<'_> {
                 ),
             }
         }
+        let quality = self
+            .jpeg_quality("recorder.jpeg_quality", raw.jpeg_quality)
+            .unwrap_or(DEFAULT_RECORDER_JPEG_QUALITY);
+        match raw.color_encoding.as_deref() {
+            None | Some("raw") => {}
+            Some("png") => recorder.color_encoding = ColorEncoding::Png,
+            Some("jpeg") => recorder.color_encoding = ColorEncoding::Jpeg { quality },
+            Some(other) => self.error(
+                "recorder.color_encoding",
+                format!("`{other}` is not one of raw, png, jpeg"),
+            ),
+        }
+        if let Some(outputs) = raw.outputs {
+            recorder.outputs = outputs;
+        }
         recorder
+    }
+
+    /// A JPEG quality, 1 to 100.
+    fn jpeg_quality(&mut self, key: &str, raw: Option<i64>) -> Option<u8> {
+        let quality = raw?;
+        match u8::try_from(quality) {
+            Ok(q) if (1..=100).contains(&q) => Some(q),
+            _ => {
+                self.error(key, format!("must be in 1..=100, got {quality}"));
+                None
+            }
+        }
     }
 
     fn output(&mut self, raw: RawOutput) -> OutputConfig {

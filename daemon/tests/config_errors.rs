@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use relight_core::StreamKind;
+use relight_core::recording::ColorEncoding;
 use relight_daemon::config::{
     Config, ConfigError, DeviceBackend, Diagnostic, GroupSpec, ReplayMode, SourceConfig,
 };
@@ -944,4 +945,41 @@ fn the_example_config_prints_and_reads_back() {
     let printed = config.to_toml();
     assert_eq!(Config::parse(&printed, &path).unwrap(), config, "{printed}");
     assert!(printed.contains("[engine]"), "{printed}");
+}
+
+#[test]
+fn recorder_colour_encoding_and_outputs() {
+    let config =
+        parse("[recorder]\ncolor_encoding = \"jpeg\"\njpeg_quality = 70\noutputs = true\n")
+            .unwrap();
+    assert_eq!(
+        config.recorder.color_encoding,
+        ColorEncoding::Jpeg { quality: 70 }
+    );
+    assert!(config.recorder.outputs);
+    let settings = config.recorder.settings();
+    assert_eq!(
+        settings.options.color_encoding,
+        ColorEncoding::Jpeg { quality: 70 }
+    );
+    assert!(settings.outputs);
+    let config = parse("[recorder]\ncolor_encoding = \"jpeg\"\n").unwrap();
+    assert_eq!(
+        config.recorder.color_encoding,
+        ColorEncoding::Jpeg { quality: 90 }
+    );
+    assert_eq!(
+        parse("").unwrap().recorder.color_encoding,
+        ColorEncoding::Raw
+    );
+
+    let d = only_error("[recorder]\ndir = \"/rec\"\ncolor_encoding = \"webp\"\n");
+    assert_at(
+        &d,
+        3,
+        "recorder.color_encoding",
+        "not one of raw, png, jpeg",
+    );
+    let d = only_error("[recorder]\ncolor_encoding = \"jpeg\"\njpeg_quality = 0\n");
+    assert_at(&d, 3, "recorder.jpeg_quality", "must be in 1..=100, got 0");
 }

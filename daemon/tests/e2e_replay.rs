@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
-use relight_core::recording::RecordingReader;
+use relight_core::recording::{OutputMessage, RecordingReader};
 use relight_core::{StreamKind, StreamMessage};
 use serde_json::{Value, json};
 use support::Daemon;
@@ -535,6 +535,125 @@ fn a_recording_cut_by_sigkill_is_repaired_into_one_the_reference_reader_reads() 
         String::from_utf8_lossy(&out.stderr)
     );
     let seen: Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert_eq!(seen["message_count"], repaired_messages, "{seen}");
-    assert_eq!(seen["statistics_message_count"], repaired_messages);
+    assert_eq!(seen["message_count"], seen["statistics_message_count"]);
+    // The stream messages; frame_info, camera_info and /tf travel beside them.
+    let streams: u64 = seen["channels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| {
+            StreamKind::ALL
+                .iter()
+                .any(|&kind| c["topic"] == relight_core::recording::topic(kind))
+        })
+        .map(|c| c["message_count"].as_u64().unwrap())
+        .sum();
+    assert_eq!(streams, repaired_messages, "{seen}");
+}
+
+/// `[recorder] color_encoding = "jpeg"` and `outputs = true`: the colour goes in compressed,
+/// and every rendered frame's composite and Δ, and the lighting estimate, go in beside it.
+#[test]
+fn a_recording_takes_compressed_colour_and_what_was_rendered() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let config = dir.path().join("relightd.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[daemon]\nsocket = \"{dir}/control.sock\"\nwatchdog = false\n\n\
+             [replay]\npath = \"{fixture}\"\nmode = \"fast\"\n\n\
+             [engine]\nname = \"differential\"\n\n\
+             [scene]\ndir = \"{scene}\"\ndepth_stride = 4\n\n\
+             [recorder]\ncolor_encoding = \"jpeg\"\njpeg_quality = 80\noutputs = true\n",
+            dir = dir.path().display(),
+            fixture = fixture().display(),
+            scene = root.join("tests/scenes/desk_box").display(),
+        ),
+    )
+    .unwrap();
+    let out_path = dir.path().join("out.mcap");
+    let out = Command::new(env!("CARGO_BIN_EXE_relightd"))
+        .arg("--config")
+        .arg(&config)
+        .args(["record", "--seconds", "6", "--out"])
+        .arg(&out_path)
+        .env("RELIGHT_LOG", "warn")
+        .output()
+        .expect("relightd record runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let reader = RecordingReader::open(&out_path).unwrap();
+    assert_eq!(reader.format_version(), Some("2"));
+    assert!(
+        reader
+            .topics()
+            .contains(&"/color/image_raw/compressed".to_owned()),
+        "{:?}",
+        reader.topics()
+    );
+    let messages: Vec<StreamMessage> = reader.messages().collect::<Result<_, _>>().unwrap();
+    let colours: Vec<_> = messages
+        .iter()
+        .filter_map(|m| match m {
+            StreamMessage::Color(f) => Some(f),
+            _ => None,
+        })
+        .collect();
+    assert!(!colours.is_empty());
+    for colour in &colours {
+        assert_eq!(
+            (colour.payload.width(), colour.payload.height()),
+            (320, 240)
+        );
+        assert_eq!(colour.payload.format(), relight_core::PixelFormat::Rgb8);
+    }
+
+    let outputs: Vec<OutputMessage> = reader.outputs().collect::<Result<_, _>>().unwrap();
+    let composites: Vec<_> = outputs
+        .iter()
+        .filter_map(|o| match o {
+            OutputMessage::Composite(f) => Some(f),
+            _ => None,
+        })
+        .collect();
+    let deltas = outputs
+        .iter()
+        .filter(|o| matches!(o, OutputMessage::Delta(_)))
+        .count();
+    assert!(!composites.is_empty(), "no composite recorded");
+    assert_eq!(deltas, composites.len(), "a Δ beside each composite");
+    for composite in &composites {
+        assert_eq!(
+            (composite.payload.width(), composite.payload.height()),
+            (320, 240)
+        );
+    }
+    // A composite carries its frame set's stamp, the reference (depth) frame's; sets from
+    // before the recording started may still be rendered after it.
+    let depth_stamps: Vec<u64> = messages
+        .iter()
+        .filter(|m| m.kind() == StreamKind::Depth)
+        .map(|m| m.stamp().host_ns)
+        .collect();
+    let first_depth = depth_stamps.iter().min().copied().unwrap();
+    for composite in composites.iter().filter(|c| c.stamp.host_ns >= first_depth) {
+        assert!(
+            depth_stamps.contains(&composite.stamp.host_ns),
+            "composite at {} is no recorded depth frame's",
+            composite.stamp.host_ns
+        );
+    }
+    let estimate = outputs
+        .iter()
+        .find_map(|o| match o {
+            OutputMessage::Lighting(f) => Some(f),
+            _ => None,
+        })
+        .expect("the probe's lighting estimate recorded");
+    let json: Value = serde_json::from_str(&estimate.payload).unwrap();
+    assert!(json["sh9_total"].is_array(), "{json}");
 }

@@ -208,7 +208,7 @@ fn the_live_view_serves_foxglove_and_a_page_with_the_relit_composite() {
             .expect("a composite and a transform within a minute")
     });
     assert_eq!(composite.format, "jpeg");
-    assert_eq!(composite.frame_id, "camera");
+    assert_eq!(composite.frame_id, "color");
     let mut decoder = jpeg_decoder::Decoder::new(&composite.data[..]);
     let pixels = decoder.decode().unwrap();
     let info = decoder.info().unwrap();
@@ -228,7 +228,7 @@ fn the_live_view_serves_foxglove_and_a_page_with_the_relit_composite() {
             .unwrap_or_else(|| panic!("{parent} → {child} in {transforms:?}"))
     };
     find("map", "world");
-    let camera = find("world", "camera");
+    let camera = find("world", "color");
     let q = camera.rotation.as_ref().unwrap();
     let norm = (q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w).sqrt();
     assert!((norm - 1.0).abs() < 1e-3, "a unit rotation");
@@ -236,7 +236,7 @@ fn the_live_view_serves_foxglove_and_a_page_with_the_relit_composite() {
     let marker = transforms
         .transforms
         .iter()
-        .find(|t| t.parent_frame_id == "camera" && t.child_frame_id.starts_with("marker_"))
+        .find(|t| t.parent_frame_id == "color" && t.child_frame_id.starts_with("marker_"))
         .expect("the markers of the frame set, under the camera");
     assert!(marker.translation.as_ref().unwrap().z > 0.1, "{marker:?}");
     find("world", "virtual_object");

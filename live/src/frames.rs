@@ -8,9 +8,9 @@
 //! |---|---|---|
 //! | `map` | — | the fixed frame, +z up |
 //! | `world` | `map` | the board's frame as relight keeps it (+y up): a +90° turn about x |
-//! | `camera` | `world` | the colour camera, optical convention; images' `frame_id` |
+//! | `color` | `world` | the colour camera, optical convention; images' `frame_id` (as in recordings) |
 //! | `board`, `probe` | `world` | from the rig calibration (the probe in optical convention) |
-//! | `marker_<id>` | `camera` | each marker detected in the frame set |
+//! | `marker_<id>` | `color` | each marker detected in the frame set |
 //! | `light_<n>`, `lamp` | `world` | each light the engine rendered with (the tracked lamp's) |
 //! | `virtual_object` | `world` | the virtual object's bounding-box centre |
 
@@ -20,8 +20,8 @@ pub use relight_core::ros_frames::{map_from_world, optical_from, world_from_opti
 pub const MAP: &str = "map";
 /// The board's (glTF, +y up) world frame.
 pub const WORLD: &str = "world";
-/// The colour camera, optical convention.
-pub const CAMERA: &str = "camera";
+/// The colour camera, optical convention; named as in the calibration and in recordings.
+pub const CAMERA: &str = "color";
 pub const BOARD: &str = "board";
 pub const PROBE: &str = "probe";
 pub const LAMP: &str = "lamp";

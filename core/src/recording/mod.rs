@@ -4,65 +4,75 @@
 //! (Foxglove, `mcap` CLI, the PyPI `mcap` + `mcap-ros2-support` packages;
 //! `tests/helpers/mcap_check.py` is the reference check).
 //!
-//! # Layout
+//! # Layout (format 2)
 //!
 //! ```text
-//! magic, Header (library "relight-core <version>")
-//! Metadata "relight.recording"   {source, format_version}
+//! magic, Header (profile "ros2", library "relight-core <version>")
+//! Metadata "relight.recording"   {source, format_version = "2"}
 //! Metadata "relight.calibration" {toml}          (when the rig has a calibration)
 //! Attachment "calibration.toml"  application/toml (same TOML, for tools that list attachments)
-//! Chunk 0: the five Schema and Channel records only
+//! Chunk 0: the sensors' Schema and Channel records only
 //! Chunk 1..: messages, zstd, ~1 MiB uncompressed each (`RecordingOptions::chunk_size_bytes`),
 //!            each followed by its MessageIndex records
 //! DataEnd, summary (schemas, channels, statistics, chunk/metadata/attachment indexes), Footer
 //! ```
 //!
 //! Metadata and calibration come before any message so that a file cut off mid-recording still
-//! says which rig it came from. Channel IDs are fixed (depth 1, color 2, probe 3, markers 4,
-//! lamp 5, see [`channel_id`]) so that the reader can still place messages when the chunk holding
-//! the Channel records is lost.
+//! says which rig it came from. Channel IDs are fixed ([`Channel::id`]) so that the reader can
+//! still place messages when the chunk holding the Channel records is lost.
 //!
-//! # Channels and encodings
+//! # Channels (ROS 2 conventions)
 //!
-//! | topic      | schema (encoding)                        | message encoding |
-//! |------------|------------------------------------------|------------------|
-//! | `/depth`   | `sensor_msgs/msg/Image` (`ros2msg`)      | `cdr`            |
-//! | `/color`   | `sensor_msgs/msg/Image` (`ros2msg`)      | `cdr`            |
-//! | `/probe`   | `sensor_msgs/msg/Image` (`ros2msg`)      | `cdr`            |
-//! | `/markers` | `relight.MarkerSet` (`jsonschema`)       | `json`           |
-//! | `/lamp`    | `relight.LampState` (`jsonschema`)       | `json`           |
+//! Every channel is a ROS 2 message in CDR (MCAP's `ros2` profile: schema encoding `ros2msg`,
+//! the concatenated `.msg` text, message encoding `cdr`), written by hand ([`schema`],
+//! [`ros_msgs`], [`camera_info`]), so Foxglove and every ROS 2 tool decode them:
 //!
-//! Simulated recordings add ground-truth channels (`/truth/...`, IDs 16–19), described in
-//! [`truth`]; [`RecordingReader::messages`] skips them and [`RecordingReader::truth`] reads them.
+//! | id | topic | type | per |
+//! |----|-------|------|-----|
+//! | 1, 2, 3 | `/depth/image_raw`, `/color/image_raw`, `/probe/image_raw` | `sensor_msgs/msg/Image` | image |
+//! | 6 | `/color/image_raw/compressed` | `sensor_msgs/msg/CompressedImage` (`png`, `jpeg`) | colour image, when [`RecordingOptions::color_encoding`] asks |
+//! | 7, 8, 9 | `/depth/camera_info`, `/color/camera_info`, `/probe/camera_info` | `sensor_msgs/msg/CameraInfo` | image, when the calibration has the camera |
+//! | 10, 11, 12 | `/depth/frame_info`, … | `relight_msgs/msg/FrameInfo` | image, written just before it |
+//! | 4 | `/markers` | `relight_msgs/msg/MarkerSet` | marker set |
+//! | 5 | `/lamp` | `relight_msgs/msg/LampState` | lamp report |
+//! | 13 | `/tf` | `tf2_msgs/msg/TFMessage` | marker set with detections (`color` → `marker_<id>`), lamp report (`world` → `lamp`) |
+//! | 14 | `/tf_static` | `tf2_msgs/msg/TFMessage` | once, before the first message |
+//! | 16–19 | `/truth/...` | see [`truth`] | simulated frame |
+//! | 20, 21 | `/relight/composite`, `/relight/composite/compressed` | `Image` rgb8 / `CompressedImage` | rendered frame ([`OutputMessage`]) |
+//! | 22 | `/relight/delta` | `Image` `32FC4` | rendered frame |
+//! | 23 | `/relight/lighting` | `std_msgs/msg/String`, JSON as `lights.get` returns it | changed estimate |
 //!
-//! Images use ROS 2 `sensor_msgs/msg/Image` (CDR, little endian) because every ROS-aware tool and
-//! Foxglove's image panel decode it; the CDR is written by hand in [`schema`]. Image `encoding`
-//! is [`PixelFormat::ros_encoding`](crate::PixelFormat::ros_encoding) (`16UC1`, `32FC1`, `rgb8`,
-//! `mono8`, and the non-standard `rgba16f` for half-float RGBA), `is_bigendian` 0, `step` the
-//! packed row size, `data` the little-endian pixels.
+//! Where each field of a [`Frame`](crate::Frame) goes, so that the round trip is exact:
+//! - host timestamp → every `header.stamp` (seconds saturate at `i32::MAX`) and MCAP
+//!   `log_time`, so tools order, seek and sync by arrival time;
+//! - device timestamp → `device_stamp_ns` (FrameInfo, MarkerSet, LampState) and MCAP
+//!   `publish_time`, which the reader uses when an image's FrameInfo is lost;
+//! - `seq` → `seq` in the same messages, and its low 32 bits in MCAP `sequence` (which pairs an
+//!   image with its FrameInfo);
+//! - probe exposure and gain → FrameInfo's `exposure_us` and `gain_db` (0 for the other
+//!   cameras); a probe image whose FrameInfo is lost does not decode (its exposure is unknown);
+//! - the camera → `header.frame_id`, one per sensor: `depth`, `color`, `probe`, as the
+//!   calibration names them; markers carry `color`, the lamp `world`.
 //!
-//! The fields of a [`Frame`](crate::Frame) that `sensor_msgs/Image` lacks are stored so that the
-//! round trip is exact:
-//! - host timestamp → MCAP `log_time` (ns), so tools order and seek by arrival time;
-//! - device timestamp → MCAP `publish_time` (ns, exact), and also the image `header.stamp`
-//!   (seconds saturate at `i32::MAX`; the reader takes `publish_time`);
-//! - `seq` → MCAP `sequence` when it fits in `u32`; otherwise `sequence` holds the low 32 bits
-//!   and the full value is written in the payload (`seq=N` in the image `frame_id`, a `"seq"`
-//!   member in JSON), which the reader prefers when present;
-//! - probe exposure and gain → the image `frame_id`, which is `depth`, `color` or
-//!   `probe?exposure_us=<u32>&gain_db=<f32>` (keys `&`-separated after `?`; floats written in
-//!   Rust's shortest round-trip form). The part before `?` names the camera as in the calibration.
+//! Image `encoding` is [`PixelFormat::ros_encoding`](crate::PixelFormat::ros_encoding)
+//! (`16UC1`, `32FC1`, `rgb8`, `mono8`) except half-float RGBA, which goes out widened to
+//! `32FC4` ([`schema::RGBA16F_WIRE_ENCODING`]); `is_bigendian` 0, `step` the packed row.
+//! A compressed image ([`compressed`]) decodes to `rgb8` or `mono8`; only 8-bit colour is
+//! compressed, other formats stay raw on `/color/image_raw`.
 //!
-//! Markers and lamp are JSON objects described by the JSON Schemas in [`schema`]: a
-//! [`MarkerSet`](crate::MarkerSet) is `{"detections": [{"family", "marker_id", "corners_px":
-//! [[x,y]×4], "camera_from_marker": {"rotation": [x,y,z,w], "translation": [x,y,z]},
-//! "reprojection_rms_px"}]}`, a [`LampState`](crate::LampState) is `{"on", "position_in_world":
-//! [x,y,z], "intensity": [r,g,b]}`. JSON has no NaN or infinity, so the writer refuses such
-//! values with [`RecordingError::Encode`] rather than writing `null`.
+//! Poses are relight's glTF convention inside and the ROS optical convention (+z forward, +y
+//! down) in the file, converted by [`crate::ros_frames`] bit-exactly both ways: MarkerSet's
+//! `camera_from_marker` and `/tf`'s camera-to-marker transforms are in the colour camera's
+//! optical frame; `/tf_static` holds `map` → `world` (+z up over the board's +y-up world),
+//! `world` → `board`, `world` → `probe` (optical) and `color` → `depth` (optical). A MarkerSet,
+//! LampState or `/tf` with a non-finite number is refused with [`RecordingError::Encode`].
 //!
 //! The calibration is the [`RigCalibration`] TOML, verbatim, in the `toml` key of the
 //! `relight.calibration` metadata record (and in the `calibration.toml` attachment), so
 //! `mcap get metadata --name relight.calibration` recovers it.
+//!
+//! Format 1 (relight before these conventions, [`v1`]) still reads; `relightd recording repair`
+//! rewrites such a file in format 2.
 //!
 //! # Reading other tools' bags
 //!

@@ -8,7 +8,7 @@ use std::io::{Seek, Write};
 use std::iter::Peekable;
 
 use super::truth::TruthMessage;
-use super::{RecordingError, RecordingReader, RecordingWriter};
+use super::{OutputMessage, RecordingError, RecordingReader, RecordingWriter};
 use crate::stream::{StreamKind, StreamMessage};
 
 /// What [`inspect`] or [`salvage`] found in a recording.
@@ -18,6 +18,10 @@ pub struct Inspection {
     pub messages: BTreeMap<StreamKind, u64>,
     /// Ground-truth messages read (simulated recordings).
     pub truth_messages: u64,
+    /// Composites, Δ and lighting estimates the daemon recorded.
+    pub output_messages: u64,
+    /// The relight format (`"1"`, `"2"`); `None` for another tool's bag.
+    pub format_version: Option<&'static str>,
     /// Chunks whose data is lost (bad CRC, does not decompress).
     pub corrupt_chunks: u64,
     /// Messages in intact chunks that do not decode.
@@ -38,7 +42,7 @@ impl Inspection {
     }
 
     pub fn total_messages(&self) -> u64 {
-        self.messages.values().sum::<u64>() + self.truth_messages
+        self.messages.values().sum::<u64>() + self.truth_messages + self.output_messages
     }
 
     fn count_error(&mut self, error: &RecordingError, count_chunks: bool) {
@@ -56,9 +60,10 @@ pub fn inspect(reader: &RecordingReader) -> Inspection {
     found
 }
 
-/// Every readable stream and ground-truth message of `reader`, merged in log-time order, into
-/// `writer`, which is left open: finishing it writes the summary and footer. Unreadable parts
-/// are skipped and counted.
+/// Every readable stream, ground-truth and output message of `reader`, merged in log-time
+/// order, into `writer`, which is left open: finishing it writes the summary and footer (in the
+/// current format, so this also converts a format-1 recording). Unreadable parts are skipped
+/// and counted.
 pub fn salvage<W: Write + Seek>(
     reader: &RecordingReader,
     writer: &mut RecordingWriter<W>,
@@ -66,51 +71,74 @@ pub fn salvage<W: Write + Seek>(
     copy(reader, |message| match message {
         Item::Stream(message) => writer.write(message),
         Item::Truth(message) => writer.write_truth(message),
+        Item::Output(message) => writer.write_output(message),
     })
 }
 
-enum Item<'a> {
-    Stream(&'a StreamMessage),
-    Truth(&'a TruthMessage),
+enum Item {
+    Stream(StreamMessage),
+    Truth(TruthMessage),
+    Output(OutputMessage),
+}
+
+impl Item {
+    fn host_ns(&self) -> u64 {
+        match self {
+            Item::Stream(m) => m.stamp().host_ns,
+            Item::Truth(m) => m.stamp().host_ns,
+            Item::Output(OutputMessage::Composite(f) | OutputMessage::Delta(f)) => f.stamp.host_ns,
+            Item::Output(OutputMessage::Lighting(f)) => f.stamp.host_ns,
+        }
+    }
+}
+
+type Items<'a> = Peekable<Box<dyn Iterator<Item = Result<Item, RecordingError>> + 'a>>;
+
+fn items<'a, T: 'a>(
+    messages: impl Iterator<Item = Result<T, RecordingError>> + 'a,
+    wrap: fn(T) -> Item,
+) -> Items<'a> {
+    let boxed: Box<dyn Iterator<Item = _>> = Box::new(messages.map(move |m| m.map(wrap)));
+    boxed.peekable()
 }
 
 fn copy<E>(
     reader: &RecordingReader,
-    mut sink: impl FnMut(Item<'_>) -> Result<(), E>,
+    mut sink: impl FnMut(&Item) -> Result<(), E>,
 ) -> Result<Inspection, E> {
     let mut found = Inspection {
+        format_version: reader.format_version(),
         has_summary: reader.has_summary(),
         warnings: reader.warnings(),
         ..Inspection::default()
     };
-    let mut streams = reader.messages().peekable();
-    let mut truth = reader.truth().peekable();
+    // Streams first: on equal log times they come before truth and outputs.
+    let mut sources = [
+        items(reader.messages(), Item::Stream),
+        items(reader.truth(), Item::Truth),
+        items(reader.outputs(), Item::Output),
+    ];
     loop {
-        // A corrupt chunk is reported by both iterators; it is counted once, from the streams.
-        skip_errors(&mut streams, &mut found, true);
-        skip_errors(&mut truth, &mut found, false);
-        let stream_ns = streams
-            .peek()
-            .and_then(|m| m.as_ref().ok())
-            .map(|m| m.stamp().host_ns);
-        let truth_ns = truth
-            .peek()
-            .and_then(|m| m.as_ref().ok())
-            .map(|m| m.stamp().host_ns);
-        let take_stream = match (stream_ns, truth_ns) {
-            (None, None) => break,
-            (Some(s), Some(t)) => s <= t,
-            (Some(_), None) => true,
-            (None, Some(_)) => false,
+        // A corrupt chunk is reported by every iterator; it is counted once, from the streams.
+        for (i, source) in sources.iter_mut().enumerate() {
+            skip_errors(source, &mut found, i == 0);
+        }
+        let earliest = sources
+            .iter_mut()
+            .enumerate()
+            .filter_map(|(i, source)| Some((source.peek()?.as_ref().ok()?.host_ns(), i)))
+            .min();
+        let Some((_, i)) = earliest else {
+            break;
         };
-        if take_stream {
-            if let Some(Ok(message)) = streams.next() {
-                sink(Item::Stream(&message))?;
-                *found.messages.entry(message.kind()).or_insert(0) += 1;
-            }
-        } else if let Some(Ok(message)) = truth.next() {
-            sink(Item::Truth(&message))?;
-            found.truth_messages += 1;
+        let Some(Ok(item)) = sources.get_mut(i).and_then(Iterator::next) else {
+            continue;
+        };
+        sink(&item)?;
+        match &item {
+            Item::Stream(message) => *found.messages.entry(message.kind()).or_insert(0) += 1,
+            Item::Truth(_) => found.truth_messages += 1,
+            Item::Output(_) => found.output_messages += 1,
         }
     }
     Ok(found)

@@ -179,12 +179,15 @@ impl ControlTarget for PipelineControl {
     }
 
     fn record_start(&self, request: OutputRequest) -> Result<PathBuf, ControlError> {
-        let dir = lock(&self.shared.config).recorder.dir.clone();
+        let (dir, settings) = {
+            let config = lock(&self.shared.config);
+            (config.recorder.dir.clone(), config.recorder.settings())
+        };
         let path = resolve(request.path.as_deref(), &dir)?.unwrap_or_else(|| recording_path(&dir));
         create_base_for(&path, &dir)?;
         self.shared
             .recorder
-            .start(path, Existing::from_overwrite(request.overwrite))
+            .start(path, Existing::from_overwrite(request.overwrite), settings)
             .map_err(recorder_error)
     }
 

@@ -46,14 +46,16 @@ use anyhow::Context as _;
 use crossbeam_channel::{Sender, bounded};
 use relight_backends::device::{DeviceStatus as BackendStatus, Stepper};
 use relight_backends::{DeviceRunner, DeviceState};
-use relight_core::StreamMessage;
 use relight_core::bus::Bus;
 use relight_core::frame::host_now_ns;
+use relight_core::recording::OutputMessage;
 use relight_core::rig::RigCalibration;
 use relight_core::sync::FrameSet;
 use relight_core::sync::{SyncConfig as CoreSyncConfig, Synchronizer};
+use relight_core::{Frame, StreamMessage};
 use relight_engines::{EngineRegistry, RelitFrame};
 use relight_live::{LiveView, Reports, RigFrames, ViewFrame};
+use relight_recon::estimate::LightingEstimate;
 use serde_json::{Map, Value};
 
 use crate::config::Config;
@@ -156,7 +158,7 @@ impl Pipeline {
         let autostart = config
             .recorder
             .autostart
-            .then(|| config.recorder.dir.clone());
+            .then(|| (config.recorder.dir.clone(), config.recorder.settings()));
         let started = Instant::now();
         let timings = Arc::new(Timings::new(TIMING_WINDOW));
         let (snapshots, snapshot_requests) = bounded(8);
@@ -185,10 +187,10 @@ impl Pipeline {
             live_view: OnceLock::new(),
         });
         let live_view = start_live_view(&shared, sources.meta.calibration.as_ref())?;
-        if let Some(dir) = autostart {
+        if let Some((dir, settings)) = autostart {
             shared
                 .recorder
-                .start(recording_path(&dir), Existing::Refuse)
+                .start(recording_path(&dir), Existing::Refuse, settings)
                 .map_err(anyhow::Error::new)
                 .context("[recorder] autostart")?;
         }
@@ -220,6 +222,7 @@ impl Pipeline {
                         render: render_stage,
                         outputs,
                         live_view,
+                        recorded_lighting: None,
                         exit_at_end: options.exit_at_end,
                     }
                     .run()
@@ -394,10 +397,45 @@ struct RenderLoop<'a> {
     outputs: Outputs,
     /// Owned by the render thread, so its publisher stops before the thread ends.
     live_view: LiveView,
+    /// The lighting estimate last handed to the recorder (it records one when it changes).
+    recorded_lighting: Option<Arc<LightingEstimate>>,
     exit_at_end: bool,
 }
 
 impl RenderLoop<'_> {
+    /// While a recording takes outputs: the frame's composite and Δ, and the lighting estimate
+    /// when it changed (or the recording is new), copied for the recorder.
+    fn offer_outputs(&mut self, set: &FrameSet) {
+        let recorder = &self.shared.recorder;
+        if !recorder.wants_outputs() {
+            self.recorded_lighting = None;
+            return;
+        }
+        let relit = self.render.relit();
+        let frame = |payload| Frame::new(relit.seq, set.stamp, payload);
+        recorder.offer_output(OutputMessage::Composite(frame(relit.composite.clone())));
+        if relit.delta.pixel_count() > 0 {
+            recorder.offer_output(OutputMessage::Delta(frame(relit.delta.clone())));
+        }
+        let Some(estimate) = self.shared.lights.latest() else {
+            return;
+        };
+        if self
+            .recorded_lighting
+            .as_ref()
+            .is_some_and(|last| Arc::ptr_eq(last, &estimate))
+        {
+            return;
+        }
+        match serde_json::to_string(&*estimate) {
+            Ok(json) => recorder.offer_output(OutputMessage::Lighting(Frame::new(
+                relit.seq, set.stamp, json,
+            ))),
+            Err(error) => tracing::warn!(%error, "lighting estimate not recorded"),
+        }
+        self.recorded_lighting = Some(estimate);
+    }
+
     fn run(mut self) {
         let shared = self.shared;
         while !shared.stop.load(Ordering::Acquire) {
@@ -496,6 +534,7 @@ impl RenderLoop<'_> {
             self.live_view
                 .offer(view_frame(&set, &frame, self.render.relit()));
         }
+        self.offer_outputs(&set);
         shared
             .counters
             .composite(&set, arrived, self.ingest.is_lossless());

@@ -1,5 +1,8 @@
 //! The MCAP recorder: a thread with its own bus subscription (every message of every stream,
 //! bounded queue, drop-oldest so a slow disk never stalls capture) that writes while recording.
+//! When asked to (`[recorder] outputs`), the render thread also offers it each frame's
+//! composite, Δ and lighting estimate through a short queue; an offer it cannot take at once is
+//! dropped and counted, so the recorder never holds up a frame.
 //!
 //! The file is opened on that thread, as a regular file only ([`super::safe_file`]: a FIFO or a
 //! link is refused at once, and an existing file unless the request replaces it). A request waits for the thread at most [`ANSWER_TIMEOUT`]: a
@@ -16,7 +19,8 @@ use std::time::Duration;
 use crossbeam_channel::{Receiver, Sender, TrySendError, bounded};
 use relight_core::StreamMessage;
 use relight_core::bus::{Bus, Subscription};
-use relight_core::recording::{RecordingMeta, RecordingWriter};
+use relight_core::recording::RecordingError;
+use relight_core::recording::{OutputMessage, RecordingMeta, RecordingOptions, RecordingWriter};
 use serde_json::{Value, json};
 
 use super::safe_file::Existing;
@@ -24,10 +28,22 @@ use super::safe_file::Existing;
 /// How long a request waits for the recorder thread's answer.
 pub const ANSWER_TIMEOUT: Duration = Duration::from_secs(3);
 
+/// Output messages (three per frame) queued before offers are dropped.
+const OUTPUT_QUEUE: usize = 12;
+
+/// How a recording is written: the writer's options, and whether the render thread's outputs
+/// go in beside the streams.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RecordSettings {
+    pub options: RecordingOptions,
+    pub outputs: bool,
+}
+
 enum Command {
     Start {
         path: PathBuf,
         existing: Existing,
+        settings: RecordSettings,
         reply: Sender<Result<PathBuf, RecorderError>>,
     },
     Stop {
@@ -53,7 +69,10 @@ pub enum RecorderError {
 #[derive(Debug, Default)]
 pub struct RecorderStatus {
     active: AtomicBool,
+    /// Whether the active recording takes the render thread's outputs.
+    outputs: AtomicBool,
     messages: AtomicU64,
+    outputs_dropped: AtomicU64,
     path: Mutex<Option<PathBuf>>,
 }
 
@@ -76,6 +95,7 @@ impl RecorderStatus {
 #[derive(Debug)]
 pub struct Recorder {
     commands: Sender<Command>,
+    outputs: Sender<OutputMessage>,
     status: Arc<RecorderStatus>,
     stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<()>>,
@@ -96,6 +116,7 @@ impl Recorder {
     pub fn spawn(bus: &Bus, queue_frames: usize, meta: RecordingMeta) -> std::io::Result<Self> {
         let subscription = bus.all.subscribe_named("recorder", queue_frames.max(1));
         let (commands, rx) = bounded(4);
+        let (outputs, output_rx) = bounded(OUTPUT_QUEUE);
         let status = Arc::new(RecorderStatus::default());
         let stop = Arc::new(AtomicBool::new(false));
         let thread = {
@@ -103,10 +124,11 @@ impl Recorder {
             let stop = stop.clone();
             std::thread::Builder::new()
                 .name("recorder".into())
-                .spawn(move || run(&subscription, &rx, &status, &stop, &meta))?
+                .spawn(move || run(&subscription, &rx, &output_rx, &status, &stop, &meta))?
         };
         Ok(Self {
             commands,
+            outputs,
             status,
             stop,
             thread: Some(thread),
@@ -117,16 +139,34 @@ impl Recorder {
         &self.status
     }
 
-    pub fn start(&self, path: PathBuf, existing: Existing) -> Result<PathBuf, RecorderError> {
+    pub fn start(
+        &self,
+        path: PathBuf,
+        existing: Existing,
+        settings: RecordSettings,
+    ) -> Result<PathBuf, RecorderError> {
         let (reply, answer) = bounded(1);
         self.send(
             Command::Start {
                 path,
                 existing,
+                settings,
                 reply,
             },
             &answer,
         )
+    }
+
+    /// Whether a recording is taking the render thread's outputs now.
+    pub fn wants_outputs(&self) -> bool {
+        self.status.active.load(Ordering::Acquire) && self.status.outputs.load(Ordering::Acquire)
+    }
+
+    /// Offer one output message; dropped (and counted) when the queue is full. Never blocks.
+    pub fn offer_output(&self, output: OutputMessage) {
+        if self.outputs.try_send(output).is_err() {
+            self.status.outputs_dropped.fetch_add(1, Ordering::Relaxed);
+        }
     }
 
     pub fn stop_recording(&self) -> Result<Value, RecorderError> {
@@ -175,11 +215,34 @@ struct Active {
     path: PathBuf,
     writer: RecordingWriter<BufWriter<File>>,
     drops_at_start: u64,
+    output_drops_at_start: u64,
+}
+
+impl Active {
+    /// Write one message; on failure the recording ends (logged) and `false` comes back.
+    fn record_outcome(
+        &mut self,
+        status: &RecorderStatus,
+        what: Result<(), RecordingError>,
+    ) -> bool {
+        match what {
+            Ok(()) => {
+                status.messages.fetch_add(1, Ordering::Relaxed);
+                true
+            }
+            Err(error) => {
+                tracing::error!(path = %self.path.display(), %error, "recording stopped: write failed");
+                status.active.store(false, Ordering::Release);
+                false
+            }
+        }
+    }
 }
 
 fn run(
     subscription: &Subscription<StreamMessage>,
     commands: &Receiver<Command>,
+    outputs: &Receiver<OutputMessage>,
     status: &RecorderStatus,
     stop: &AtomicBool,
     meta: &RecordingMeta,
@@ -191,6 +254,7 @@ fn run(
                 Command::Start {
                     path,
                     existing,
+                    settings,
                     reply,
                 } => {
                     let result = if active.is_some() {
@@ -198,20 +262,25 @@ fn run(
                             "already recording; stop first".to_owned(),
                         ))
                     } else {
-                        match create(&path, existing, meta) {
+                        match create(&path, existing, meta, &settings.options) {
                             Err(message) => Err(RecorderError::File { path, message }),
                             Ok(writer) => {
                                 // Discard what queued up before the start.
                                 while subscription.try_recv().is_some() {}
+                                while outputs.try_recv().is_ok() {}
                                 *status.path.lock().unwrap_or_else(PoisonError::into_inner) =
                                     Some(path.clone());
                                 status.messages.store(0, Ordering::Relaxed);
+                                status.outputs.store(settings.outputs, Ordering::Release);
                                 status.active.store(true, Ordering::Release);
-                                tracing::info!(path = %path.display(), "recording started");
+                                tracing::info!(path = %path.display(), outputs = settings.outputs, "recording started");
                                 active = Some(Active {
                                     path: path.clone(),
                                     writer,
                                     drops_at_start: subscription.dropped(),
+                                    output_drops_at_start: status
+                                        .outputs_dropped
+                                        .load(Ordering::Relaxed),
                                 });
                                 Ok(path)
                             }
@@ -228,19 +297,18 @@ fn run(
                 }
             }
         }
-        let Some(msg) = subscription.recv_timeout(Duration::from_millis(20)) else {
-            continue;
-        };
+        let msg = subscription.recv_timeout(Duration::from_millis(20));
         if let Some(rec) = active.as_mut() {
-            match rec.writer.write(&msg) {
-                Ok(()) => {
-                    status.messages.fetch_add(1, Ordering::Relaxed);
-                }
-                Err(error) => {
-                    tracing::error!(path = %rec.path.display(), %error, "recording stopped: write failed");
-                    status.active.store(false, Ordering::Release);
-                    active = None;
-                }
+            let mut ok = msg.is_none_or(|msg| {
+                let written = rec.writer.write(&msg);
+                rec.record_outcome(status, written)
+            });
+            while ok && let Ok(output) = outputs.try_recv() {
+                let written = rec.writer.write_output(&output);
+                ok = rec.record_outcome(status, written);
+            }
+            if !ok {
+                active = None;
             }
         }
     }
@@ -256,9 +324,11 @@ fn create(
     path: &std::path::Path,
     existing: Existing,
     meta: &RecordingMeta,
+    options: &RecordingOptions,
 ) -> Result<RecordingWriter<BufWriter<File>>, String> {
     let file = super::safe_file::create_regular(path, existing).map_err(|e| e.to_string())?;
-    RecordingWriter::new(BufWriter::with_capacity(1 << 20, file), meta).map_err(|e| e.to_string())
+    RecordingWriter::with_options(BufWriter::with_capacity(1 << 20, file), meta, options)
+        .map_err(|e| e.to_string())
 }
 
 fn finish(
@@ -269,6 +339,8 @@ fn finish(
     status.active.store(false, Ordering::Release);
     let messages = rec.writer.messages_written();
     let dropped = subscription.dropped() - rec.drops_at_start;
+    let outputs_dropped =
+        status.outputs_dropped.load(Ordering::Relaxed) - rec.output_drops_at_start;
     let summary = rec
         .writer
         .finish()
@@ -287,6 +359,7 @@ fn finish(
         "path": rec.path,
         "messages": messages,
         "dropped": dropped,
+        "outputs_dropped": outputs_dropped,
         "per_stream": per_stream,
         "duration_s": duration_s,
         "chunks": summary.chunks,

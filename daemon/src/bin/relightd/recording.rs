@@ -14,15 +14,19 @@ pub enum Command {
     /// Read every message and report what is there and what is lost; exits 1 when the file is
     /// damaged (cut, corrupt chunks, no summary).
     Check {
+        /// The MCAP recording to read.
         file: PathBuf,
         /// Print the report as JSON.
         #[arg(long)]
         json: bool,
     },
     /// Copy every readable message of IN into OUT, a complete recording (summary, chunk index
-    /// and footer) with IN's metadata and calibration.
+    /// and footer) with IN's metadata and calibration, in the current format (so it also
+    /// converts a format-1 recording).
     Repair {
+        /// The recording to read (damaged, or in an older format).
         input: PathBuf,
+        /// Where the complete copy goes.
         output: PathBuf,
         /// Replace OUT if it exists (it is refused otherwise).
         #[arg(long)]
@@ -98,11 +102,20 @@ fn report(path: &std::path::Path, found: &Inspection) -> String {
             "damaged"
         }
     );
+    out += &format!(
+        "  format   {}\n",
+        found
+            .format_version
+            .map_or("another tool's bag".to_owned(), |v| format!("relight {v}"))
+    );
     for (stream, n) in &found.messages {
         out += &format!("  {stream:<8} {n} messages\n");
     }
     if found.truth_messages > 0 {
         out += &format!("  truth    {} messages\n", found.truth_messages);
+    }
+    if found.output_messages > 0 {
+        out += &format!("  outputs  {} messages\n", found.output_messages);
     }
     out += &format!(
         "  summary  {}\n  lost     {} corrupt chunks, {} undecodable messages\n",
