@@ -799,10 +799,11 @@ impl Validator<'_> {
                 let topics = TopicMap::new(replay.topics.clone());
                 match RecordingReader::open(&replay.path) {
                     Ok(reader) => {
-                        let reader = reader.with_topics(topics.clone());
+                        let reader = reader.with_topics(topics);
                         if reader.messages().next().is_none() {
-                            let read: Vec<&str> =
-                                StreamKind::ALL.map(|kind| topics.topic(kind)).to_vec();
+                            let read: Vec<&str> = StreamKind::ALL
+                                .map(|kind| reader.topic_map().topic(kind))
+                                .to_vec();
                             self.error(
                                 "replay.path",
                                 format!(

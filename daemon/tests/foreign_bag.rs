@@ -21,16 +21,29 @@ fn repo(path: &str) -> PathBuf {
 
 /// The bag, or `None` where the Python interop checks are switched off.
 fn realsense_bag(dir: &Path, depth_encoding: &str, frames: usize) -> Option<PathBuf> {
+    realsense_bag_with(dir, depth_encoding, frames, "none")
+}
+
+/// [`realsense_bag`], with the colour also (`also`) or only (`only`) as PNG CompressedImage.
+fn realsense_bag_with(
+    dir: &Path,
+    depth_encoding: &str,
+    frames: usize,
+    compressed_colour: &str,
+) -> Option<PathBuf> {
     if std::env::var("RELIGHT_SKIP_PYTHON_INTEROP").is_ok_and(|v| v == "1") {
         eprintln!("RELIGHT_SKIP_PYTHON_INTEROP=1: skipping the bag written by the Python writer");
         return None;
     }
-    let bag = dir.join(format!("realsense-{depth_encoding}.mcap"));
+    let bag = dir.join(format!(
+        "realsense-{depth_encoding}-{compressed_colour}.mcap"
+    ));
     let out = Command::new("python3")
         .arg(repo("tests/helpers/realsense_bag.py"))
         .arg(repo("tests/fixtures/demo.mcap"))
         .arg(&bag)
         .args(["--depth", depth_encoding, "--frames", &frames.to_string()])
+        .args(["--compressed-colour", compressed_colour])
         .output()
         .expect("python3 runs");
     assert!(
@@ -124,6 +137,29 @@ fn a_realsense_bag_reads_back_as_the_frames_it_was_written_from() {
             .expect("the bag has camera_info");
         assert_eq!(calibration.color, demo_camera);
         assert_eq!(calibration.depth, demo_camera, "depth registered to colour");
+    }
+}
+
+/// image_transport's `…/compressed` sibling: read when it is the only colour topic (PNG, so
+/// exactly), ignored when the raw topic is there too (no frame twice).
+#[test]
+fn compressed_colour_is_read_once_from_whichever_topic_holds_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let demo = RecordingReader::open(&repo("tests/fixtures/demo.mcap")).unwrap();
+    let (demo_colour, _) = colour_and_depth(&demo);
+    for mode in ["also", "only"] {
+        let Some(path) = realsense_bag_with(dir.path(), "16UC1", 4, mode) else {
+            return;
+        };
+        let bag = RecordingReader::open(&path).unwrap().with_topics(topics());
+        let (colour, depth) = colour_and_depth(&bag);
+        assert_eq!((colour.len(), depth.len()), (4, 4), "{mode}");
+        for (i, ((image, (seq, _, _)), (expected, _))) in
+            colour.iter().zip(&demo_colour).enumerate()
+        {
+            assert_eq!(image, expected, "{mode}: colour frame {i}");
+            assert_eq!(*seq, i as u64, "{mode}");
+        }
     }
 }
 

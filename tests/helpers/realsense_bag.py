@@ -2,6 +2,7 @@
 """Write a RealSense-style ROS 2 bag from a relight recording, with the reference PyPI writer.
 
 Usage: python3 tests/helpers/realsense_bag.py IN.mcap OUT.mcap [--depth 16UC1|32FC1] [--frames N]
+                                             [--compressed-colour none|also|only]
 
 The bag looks as `ros2 bag record` of the `realsense2_camera` driver leaves it, not as relight
 writes: `mcap-ros2-support`'s writer, MCAP sequence 0 on every message, host log times in 2023,
@@ -12,6 +13,10 @@ writes: `mcap-ros2-support`'s writer, MCAP sequence 0 on every message, host log
   /camera/color/camera_info      sensor_msgs/msg/CameraInfo, plumb_bob, from the recording's
   /camera/depth/camera_info      relight.calibration (the depth is registered to colour)
   /camera/imu                    a topic relight does not read (std_msgs/msg/String here)
+  /camera/color/image_raw/compressed
+                                 sensor_msgs/msg/CompressedImage, PNG, with --compressed-colour
+                                 also (beside the raw topic, as image_transport records both)
+                                 or only (instead of it)
 
 Prints one JSON object: {"color": N, "depth": N} messages written.
 Exit status 3 (and a message naming the pip command) when a package is missing.
@@ -23,6 +28,7 @@ import math
 import struct
 import sys
 import tomllib
+import zlib
 
 PIP_COMMAND = "python3 -m pip install 'mcap>=1.2,<2' 'mcap-ros2-support>=0.5,<1'"
 
@@ -75,6 +81,10 @@ uint32 width
 bool do_rectify
 """
 
+COMPRESSED_IMAGE = """std_msgs/Header header
+string format
+uint8[] data""" + TIME_DEFS
+
 # Where a 2023 host clock would put the recording's first message.
 HOST_EPOCH_NS = 1_690_000_000_000_000_000
 
@@ -110,6 +120,19 @@ def bgr8(message) -> bytes:
     return bytes(out)
 
 
+def png_rgb8(width: int, height: int, rgb: bytes) -> bytes:
+    """A PNG of 8-bit RGB pixels (no filter), as cv::imencode would make for image_transport."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        body = kind + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+    stride = width * 3
+    raw = b"".join(b"\x00" + rgb[y * stride:(y + 1) * stride] for y in range(height))
+    return (b"\x89PNG\r\n\x1a\n"
+            + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw))
+            + chunk(b"IEND", b""))
+
+
 def depth_32fc1(message) -> bytes:
     millimetres = struct.unpack(f"<{len(message.data) // 2}H", bytes(message.data))
     metres = [mm / 1000.0 if mm else math.nan for mm in millimetres]
@@ -122,6 +145,7 @@ def main() -> dict:
     parser.add_argument("output")
     parser.add_argument("--depth", choices=["16UC1", "32FC1"], default="16UC1")
     parser.add_argument("--frames", type=int, default=1 << 30)
+    parser.add_argument("--compressed-colour", choices=["none", "also", "only"], default="none")
     args = parser.parse_args()
 
     written = {"color": 0, "depth": 0}
@@ -136,6 +160,8 @@ def main() -> dict:
         image_schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE)
         info_schema = writer.register_msgdef("sensor_msgs/msg/CameraInfo", CAMERA_INFO)
         string_schema = writer.register_msgdef("std_msgs/msg/String", "string data\n")
+        compressed_schema = writer.register_msgdef(
+            "sensor_msgs/msg/CompressedImage", COMPRESSED_IMAGE)
         origin = None
         infos_written = False
         for _schema, channel, message, decoded in reader.iter_decoded_messages(
@@ -158,6 +184,15 @@ def main() -> dict:
             kind = channel.topic.lstrip("/")
             if written[kind] >= args.frames:
                 continue
+            if kind == "color" and args.compressed_colour != "none":
+                writer.write_message("/camera/color/image_raw/compressed", compressed_schema, {
+                    "header": header(stamp, "camera_color_optical_frame"),
+                    "format": "rgb8; png compressed rgb8",
+                    "data": png_rgb8(decoded.width, decoded.height, bytes(decoded.data)),
+                }, log_time, log_time)
+                if args.compressed_colour == "only":
+                    written[kind] += 1
+                    continue
             if kind == "color":
                 topic, frame, encoding = ("/camera/color/image_raw",
                                           "camera_color_optical_frame", "bgr8")

@@ -10,8 +10,8 @@ use relight_backends::device::Backoff;
 use relight_backends::{DeviceRunner, Replay, ReplayConfig, ReplayMode};
 use relight_core::StreamKind;
 use relight_core::bus::Bus;
-use relight_core::recording::RecordingReader;
 use relight_core::recording::truth::TruthKind;
+use relight_core::recording::{RecordingReader, RecordingWriter, salvage};
 use relight_core::scene::Scene;
 use relight_sim::rig::{CameraPath, SimRig, SimSettings};
 
@@ -109,4 +109,22 @@ fn bundled_recording_replays_through_the_bus_frame_exact() {
             (s.kind(), s.seq(), s.stamp().device_ns)
         );
     }
+}
+
+/// `relightd recording repair` rewrites a format-1 recording in format 2 without losing a bit:
+/// every stream and truth message of the bundled (format-1) recording reads back equal.
+#[test]
+fn the_bundled_recording_converts_to_format_2_exactly() {
+    let old = RecordingReader::open(&fixture()).unwrap();
+    let mut writer = RecordingWriter::new(std::io::Cursor::new(Vec::new()), old.meta()).unwrap();
+    let found = salvage::salvage(&old, &mut writer).unwrap();
+    assert!(found.is_clean(), "{found:?}");
+    let (_, cursor) = writer.finish_into_inner().unwrap();
+    let new = RecordingReader::from_bytes(cursor.into_inner()).unwrap();
+    assert_eq!(new.format_version(), Some("2"));
+    assert_eq!(new.meta(), old.meta());
+    let streams = |r: &RecordingReader| r.messages().collect::<Result<Vec<_>, _>>().unwrap();
+    assert!(streams(&new) == streams(&old), "stream messages differ");
+    let truth = |r: &RecordingReader| r.truth().collect::<Result<Vec<_>, _>>().unwrap();
+    assert!(truth(&new) == truth(&old), "truth messages differ");
 }

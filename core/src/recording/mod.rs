@@ -79,7 +79,9 @@
 //! A file without the `relight.recording` metadata is another tool's bag (rosbag2, a driver's
 //! recorder). Its streams are found by topic through a [`TopicMap`]
 //! ([`RecordingReader::with_topics`]); its images may also be `bgr8`, `rgba8` or `bgra8`
-//! (read as `rgb8`); the device time comes from each image's `header.stamp`, and messages are
+//! (read as `rgb8`), or PNG/JPEG `CompressedImage` on the image topic's `…/compressed` sibling,
+//! read only when the raw topic is not in the bag (drivers often record both); the device time
+//! comes from each image's `header.stamp`, and messages are
 //! numbered per channel in log-time order, since such bags leave MCAP's `sequence` at 0. Its
 //! cameras come from the `sensor_msgs/msg/CameraInfo` topics beside the images
 //! ([`camera_info`], [`RecordingReader::calibration_from_camera_info`]).

@@ -203,7 +203,34 @@ impl RecordingReader {
         for info in self.channels.values_mut() {
             info.stream = self.topics.stream_of(&info.topic);
         }
+        self.prefer_raw_images();
         self
+    }
+
+    /// The topics the streams are read from.
+    pub fn topic_map(&self) -> &TopicMap {
+        &self.topics
+    }
+
+    /// A bag that holds a stream both raw and as image_transport's `…/compressed` (as ROS
+    /// drivers often record both) is read from the raw topic only, so no frame comes twice.
+    /// relight's own recordings hold different frames on the two, and keep both.
+    fn prefer_raw_images(&mut self) {
+        if self.layout != Layout::Foreign {
+            return;
+        }
+        let raw: Vec<StreamKind> = self
+            .channels
+            .values()
+            .filter(|c| !c.topic.ends_with("/compressed"))
+            .filter_map(|c| c.stream)
+            .collect();
+        for info in self.channels.values_mut() {
+            if info.topic.ends_with("/compressed") && info.stream.is_some_and(|k| raw.contains(&k))
+            {
+                info.stream = None;
+            }
+        }
     }
 
     /// Every channel's topic, sorted, once each.
@@ -601,7 +628,7 @@ impl RecordingReader {
                     self.channels.entry(channel.id()).or_insert(info);
                 }
             }
-            Layout::Foreign => {}
+            Layout::Foreign => self.prefer_raw_images(),
         }
 
         let stopped = match walk_end {

@@ -15,19 +15,22 @@ use crate::pose::Pose;
 use crate::ros_frames;
 use crate::stream::{LampState, MarkerDetection, MarkerSet};
 
-/// The `geometry_msgs` a pose needs, as schema sections.
-macro_rules! geometry_definitions {
+/// Schema sections of the `geometry_msgs` the messages here use.
+macro_rules! point_definition {
     () => {
         "\
-================================================================================
-MSG: geometry_msgs/Pose
-Point position
-Quaternion orientation
 ================================================================================
 MSG: geometry_msgs/Point
 float64 x
 float64 y
 float64 z
+"
+    };
+}
+
+macro_rules! quaternion_definition {
+    () => {
+        "\
 ================================================================================
 MSG: geometry_msgs/Quaternion
 float64 x
@@ -71,8 +74,13 @@ uint32 marker_id
 float32[8] corners_px
 geometry_msgs/Pose camera_from_marker
 float32 reprojection_rms_px
+================================================================================
+MSG: geometry_msgs/Pose
+Point position
+Quaternion orientation
 ",
-    geometry_definitions!(),
+    point_definition!(),
+    quaternion_definition!(),
     header_definitions!()
 );
 
@@ -88,13 +96,7 @@ bool on
 geometry_msgs/Point position
 float32[3] intensity
 ",
-    "\
-================================================================================
-MSG: geometry_msgs/Point
-float64 x
-float64 y
-float64 z
-",
+    point_definition!(),
     header_definitions!()
 );
 
@@ -116,13 +118,8 @@ MSG: geometry_msgs/Vector3
 float64 x
 float64 y
 float64 z
-================================================================================
-MSG: geometry_msgs/Quaternion
-float64 x
-float64 y
-float64 z
-float64 w
 ",
+    quaternion_definition!(),
     header_definitions!()
 );
 

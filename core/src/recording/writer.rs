@@ -189,9 +189,9 @@ impl<W: Write + Seek> RecordingWriter<W> {
         let cameras = CAMERAS.map(|kind| {
             let rig = meta.calibration.as_ref()?;
             match kind {
-                StreamKind::Depth => rig.depth.clone(),
-                StreamKind::Color => rig.color.clone(),
-                _ => rig.probe.clone(),
+                StreamKind::Depth => rig.depth,
+                StreamKind::Color => rig.color,
+                _ => rig.probe,
             }
         });
         let mut writer = Self {
@@ -245,7 +245,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
         {
             writer.declare(channel)?;
         }
-        for (kind, camera) in CAMERAS.into_iter().zip(&writer.cameras.clone()) {
+        for (kind, camera) in CAMERAS.into_iter().zip(writer.cameras) {
             if camera.is_some() {
                 writer.declare(Channel::CameraInfo(kind))?;
             }
@@ -436,7 +436,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
         self.emit(channel, sequence, host_ns, device_ns)?;
 
         let camera_index = CAMERAS.iter().position(|&k| k == kind).unwrap_or(0);
-        if let Some(camera) = self.cameras.get(camera_index).cloned().flatten() {
+        if let Some(camera) = self.cameras.get(camera_index).copied().flatten() {
             let channel = Channel::CameraInfo(kind);
             encode_camera_info(&mut self.scratch, host_ns, header.frame_id, &camera)
                 .map_err(encode_error(channel))?;
