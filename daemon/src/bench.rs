@@ -20,7 +20,7 @@ use relight_core::Image;
 use relight_core::scene::Scene;
 use relight_engines::offline::{
     background, delta_error, delta_pixels, object_error, reference_noise, reference_renderer,
-    scene_frame,
+    region_errors, scene_frame,
 };
 use relight_engines::reference::{ReferenceImages, ReferenceRenderer};
 use relight_engines::reference_cache::ReferenceCache;
@@ -147,6 +147,11 @@ pub struct BenchRow {
     /// ‖C − L^ρ_ref‖₂ / ‖L^ρ_ref‖₂ of the composite over the virtual object's pixels
     /// ([`object_error`]); `None` (JSON `null`) when the object covers no pixel.
     pub object_relative_l2: Option<f64>,
+    /// `relative_l2` over the object's shadow alone, and over its bleeding alone: the real
+    /// pixels where the reference's Δ is significantly negative or positive
+    /// ([`region_errors`]); `None` where the reference has no such pixel.
+    pub shadow_relative_l2: Option<f64>,
+    pub bleeding_relative_l2: Option<f64>,
     /// The reference's own noise in the metric of `relative_l2` ([`reference_noise`]): the
     /// row's error reads about √(e² + noise²) for a true error e.
     pub reference_noise: f64,
@@ -170,6 +175,9 @@ impl BenchRow {
             &reference.l_rho,
             &reference.virtual_mask,
         );
+        let regions = region_errors(&rendered.delta, reference);
+        self.shadow_relative_l2 = regions.shadow_relative_l2;
+        self.bleeding_relative_l2 = regions.bleeding_relative_l2;
         self.reference_noise = reference_noise(reference);
         self.reference_spp = reference.spp;
     }
@@ -368,6 +376,8 @@ fn measure(
         relative_l2: f64::NAN,
         max_abs: f64::NAN,
         object_relative_l2: None,
+        shadow_relative_l2: None,
+        bleeding_relative_l2: None,
         reference_noise: f64::NAN,
         reference_spp: 0,
     };
@@ -377,31 +387,33 @@ fn measure(
 
 pub fn table(rows: &[BenchRow]) -> String {
     let mut s = format!(
-        "{:<14} {:<48} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>7}\n",
+        "{:<14} {:<48} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>7}\n",
         "scene",
         "engine / setting",
         "median ms",
         "GPU ms",
         "rel L2",
+        "shadow",
+        "bleeding",
         "max abs",
         "object L2",
         "ref noise",
         "ref spp"
     );
+    let or_dash = |v: Option<f64>| v.map_or("-".to_owned(), |e| format!("{e:.4}"));
     for r in rows {
         let gpu = r.gpu_ms.map_or("-".to_owned(), |ms| format!("{ms:.2}"));
-        let object = r
-            .object_relative_l2
-            .map_or("-".to_owned(), |e| format!("{e:.4}"));
         s.push_str(&format!(
-            "{:<14} {:<48} {:>10.2} {:>10} {:>9.4} {:>9.4} {:>9} {:>9.4} {:>7}\n",
+            "{:<14} {:<48} {:>10.2} {:>10} {:>9.4} {:>9} {:>9} {:>9.4} {:>9} {:>9.4} {:>7}\n",
             r.scene,
             r.setting,
             r.median_ms,
             gpu,
             r.relative_l2,
+            or_dash(r.shadow_relative_l2),
+            or_dash(r.bleeding_relative_l2),
             r.max_abs,
-            object,
+            or_dash(r.object_relative_l2),
             r.reference_noise,
             r.reference_spp
         ));
@@ -414,24 +426,23 @@ pub fn table(rows: &[BenchRow]) -> String {
 pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut csv = String::from(
-        "scene,engine,setting,median_ms,min_ms,gpu_ms,relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp\n",
+        "scene,engine,setting,median_ms,min_ms,gpu_ms,relative_l2,shadow_relative_l2,bleeding_relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp\n",
     );
+    let or_empty = |v: Option<f64>| v.map_or(String::new(), |e| e.to_string());
     for r in rows {
-        let gpu = r.gpu_ms.map_or(String::new(), |ms| ms.to_string());
-        let object = r
-            .object_relative_l2
-            .map_or(String::new(), |e| e.to_string());
         csv.push_str(&format!(
-            "{},{},\"{}\",{},{},{},{},{},{},{},{}\n",
+            "{},{},\"{}\",{},{},{},{},{},{},{},{},{},{}\n",
             r.scene,
             r.engine,
             r.setting,
             r.median_ms,
             r.min_ms,
-            gpu,
+            or_empty(r.gpu_ms),
             r.relative_l2,
+            or_empty(r.shadow_relative_l2),
+            or_empty(r.bleeding_relative_l2),
             r.max_abs,
-            object,
+            or_empty(r.object_relative_l2),
             r.reference_noise,
             r.reference_spp
         ));

@@ -31,7 +31,7 @@ use relight_core::srgb::srgb_to_linear;
 use relight_core::sync::{FrameSet, Synchronizer};
 use relight_core::{Image, PixelFormat, Pose, StreamKind};
 use relight_engines::live_scene::RealGeometry;
-use relight_engines::offline::{delta_pixels, reference, srgb_image};
+use relight_engines::offline::{self, delta_pixels, reference, srgb_image};
 use relight_engines::{EngineRegistry, RelitFrame, SceneFrame};
 use serde::Serialize;
 use serde_json::{Map, Value};
@@ -76,6 +76,11 @@ pub struct FrameScore {
     pub composite_rel_l2_real: f64,
     pub composite_rel_l2_virtual: f64,
     pub delta_rel_l2: f64,
+    /// `delta_rel_l2` over the object's true shadow and over its true bleeding alone (the real
+    /// pixels where the true Δ is significantly negative or positive,
+    /// [`offline::region_errors`]); `None` where the truth has no such pixel.
+    pub delta_rel_l2_shadow: Option<f64>,
+    pub delta_rel_l2_bleeding: Option<f64>,
     pub delta_rel_l2_oracle: f64,
     pub composite_rel_l2_real_oracle: f64,
     /// ‖Δ_true‖ / ‖true composite‖ over real pixels: how much of the picture Δ is, which bounds
@@ -108,7 +113,7 @@ pub struct ScoreReport {
 }
 
 /// The measures in report order (the `--json` keys).
-pub const MEASURES: [&str; 12] = [
+pub const MEASURES: [&str; 14] = [
     "pose_error_mm",
     "pose_error_deg",
     "object_reprojection_px",
@@ -119,6 +124,8 @@ pub const MEASURES: [&str; 12] = [
     "composite_rel_l2_real",
     "composite_rel_l2_virtual",
     "delta_rel_l2",
+    "delta_rel_l2_shadow",
+    "delta_rel_l2_bleeding",
     "delta_rel_l2_oracle",
     "composite_rel_l2_real_oracle",
 ];
@@ -136,6 +143,8 @@ impl FrameScore {
             "composite_rel_l2_real" => Some(self.composite_rel_l2_real),
             "composite_rel_l2_virtual" => Some(self.composite_rel_l2_virtual),
             "delta_rel_l2" => Some(self.delta_rel_l2),
+            "delta_rel_l2_shadow" => self.delta_rel_l2_shadow,
+            "delta_rel_l2_bleeding" => self.delta_rel_l2_bleeding,
             "delta_rel_l2_oracle" => Some(self.delta_rel_l2_oracle),
             "composite_rel_l2_real_oracle" => Some(self.composite_rel_l2_real_oracle),
             _ => None,
@@ -313,6 +322,7 @@ pub fn run(
         let delta = delta_or_zero(&relit.delta, mask.len());
         let oracle_delta = delta_or_zero(&oracle_relit.delta, mask.len());
         let real: Vec<bool> = mask.iter().map(|v| !v).collect();
+        let regions = offline::region_errors(&delta, &truth_images);
 
         let pose = frame.tracking.world_from_camera;
         let pose_error = pose.map(|p| pose_difference(&p, &state.world_from_camera));
@@ -353,6 +363,8 @@ pub fn run(
             composite_rel_l2_real: relative_l2(&composite, &true_composite, &real),
             composite_rel_l2_virtual: relative_l2(&composite, &true_composite, mask),
             delta_rel_l2: relative_l2(&delta, &truth_images.delta, &real),
+            delta_rel_l2_shadow: regions.shadow_relative_l2,
+            delta_rel_l2_bleeding: regions.bleeding_relative_l2,
             delta_rel_l2_oracle: relative_l2(&oracle_delta, &truth_images.delta, &real),
             composite_rel_l2_real_oracle: relative_l2(&oracle_composite, &true_composite, &real),
             delta_share_real: l2(&truth_images.delta, &real) / l2(&true_composite, &real),

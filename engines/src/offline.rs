@@ -166,6 +166,81 @@ pub fn object_error(composite: &Image, l_rho: &[Vec3], virtual_mask: &[bool]) ->
     (pixels > 0).then(|| (err / norm.max(1e-30)).sqrt())
 }
 
+/// Rec. 709 luminance of linear RGB.
+fn luminance(v: Vec3) -> f32 {
+    0.2126 * v.x + 0.7152 * v.y + 0.0722 * v.z
+}
+
+/// How many standard errors from zero the reference's Δ must be for a pixel to count as changed.
+const SIGNIFICANT_SIGMAS: f32 = 3.0;
+
+/// The real pixels the reference says the object changes, and how: its **shadow**, where Δ's
+/// luminance is below −3 standard errors of the reference (the object takes light away), and
+/// its **bleeding**, where it is above +3 (the object reflects light there). Pixels within noise
+/// of zero are in neither; virtual pixels in neither.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Regions {
+    pub shadow: Vec<bool>,
+    pub bleeding: Vec<bool>,
+}
+
+pub fn regions(reference: &ReferenceImages) -> Regions {
+    let (mut shadow, mut bleeding) = (Vec::new(), Vec::new());
+    for ((d, se), on_object) in reference
+        .delta
+        .iter()
+        .zip(&reference.delta_std_error)
+        .zip(&reference.virtual_mask)
+    {
+        // The channels' errors are correlated (one path serves all three), so the luminance's
+        // standard error is bounded by the weighted sum, not the root of the weighted squares.
+        let threshold = SIGNIFICANT_SIGMAS * luminance(se.abs());
+        let y = luminance(*d);
+        let changed = !on_object && threshold.is_finite() && y.abs() > threshold && y != 0.0;
+        shadow.push(changed && y < 0.0);
+        bleeding.push(changed && y > 0.0);
+    }
+    Regions { shadow, bleeding }
+}
+
+/// Δ's error in the object's shadow and in its bleeding ([`Regions`]), each ‖Δ − Δ_ref‖₂ /
+/// ‖Δ_ref‖₂ over its pixels: `None` where the reference has no such pixel (an object that casts
+/// no visible shadow, a dark object that bleeds nothing) or Δ is missing or mis-sized.
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize)]
+pub struct RegionErrors {
+    pub shadow_relative_l2: Option<f64>,
+    pub bleeding_relative_l2: Option<f64>,
+    pub shadow_pixels: usize,
+    pub bleeding_pixels: usize,
+}
+
+pub fn region_errors(delta: &[Vec3], reference: &ReferenceImages) -> RegionErrors {
+    let regions = regions(reference);
+    let count = |mask: &[bool]| mask.iter().filter(|m| **m).count();
+    let error = |mask: &[bool]| {
+        if delta.len() != reference.delta.len() {
+            return None;
+        }
+        let (mut err, mut norm) = (0.0f64, 0.0f64);
+        for ((d, r), _) in delta
+            .iter()
+            .zip(&reference.delta)
+            .zip(mask)
+            .filter(|(_, m)| **m)
+        {
+            err += f64::from((*d - *r).length_squared());
+            norm += f64::from(r.length_squared());
+        }
+        (norm > 0.0).then(|| (err / norm).sqrt())
+    };
+    RegionErrors {
+        shadow_relative_l2: error(&regions.shadow),
+        bleeding_relative_l2: error(&regions.bleeding),
+        shadow_pixels: count(&regions.shadow),
+        bleeding_pixels: count(&regions.bleeding),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -184,5 +259,71 @@ mod tests {
         assert!((error - 1.0).abs() < 1e-6, "{error}");
         assert_eq!(object_error(&black, &l_rho, &[false; 3]), None);
         assert_eq!(object_error(&black, &l_rho[..2], &mask[..2]), None);
+    }
+
+    fn reference_of(
+        delta: Vec<Vec3>,
+        std_error: Vec<Vec3>,
+        virtual_mask: Vec<bool>,
+    ) -> ReferenceImages {
+        let n = delta.len();
+        ReferenceImages {
+            width: n as u32,
+            height: 1,
+            spp: 64,
+            l_rho: vec![Vec3::ZERO; n],
+            l_mu: vec![Vec3::ZERO; n],
+            delta,
+            delta_std_error: std_error,
+            l_rho_std_error: vec![Vec3::ZERO; n],
+            virtual_mask,
+        }
+    }
+
+    #[test]
+    fn regions_are_where_the_reference_changes_significantly() {
+        let reference = reference_of(
+            vec![
+                Vec3::splat(-0.5),  // shadow
+                Vec3::splat(0.3),   // bleeding
+                Vec3::splat(-0.01), // within 3σ of zero: neither
+                Vec3::ZERO,         // untouched
+                Vec3::splat(-0.5),  // on the object: neither
+                Vec3::splat(-0.2),  // shadow
+            ],
+            vec![Vec3::splat(0.01); 6],
+            vec![false, false, false, false, true, false],
+        );
+        let regions = regions(&reference);
+        assert_eq!(regions.shadow, [true, false, false, false, false, true]);
+        assert_eq!(regions.bleeding, [false, true, false, false, false, false]);
+
+        // Half the shadow's depth everywhere, the bleeding exact, noise elsewhere.
+        let delta = vec![
+            Vec3::splat(-0.25),
+            Vec3::splat(0.3),
+            Vec3::splat(0.5),
+            Vec3::splat(0.5),
+            Vec3::ZERO,
+            Vec3::splat(-0.1),
+        ];
+        let errors = region_errors(&delta, &reference);
+        assert!(
+            (errors.shadow_relative_l2.unwrap() - 0.5).abs() < 1e-6,
+            "{errors:?}"
+        );
+        assert_eq!(errors.bleeding_relative_l2, Some(0.0));
+        assert_eq!((errors.shadow_pixels, errors.bleeding_pixels), (2, 1));
+        assert_eq!(
+            region_errors(&delta[..2], &reference).shadow_relative_l2,
+            None
+        );
+
+        // A reference too noisy to say (∞ standard error below 2 spp) has no regions.
+        let noisy = reference_of(vec![Vec3::splat(-0.5)], vec![Vec3::INFINITY], vec![false]);
+        assert_eq!(
+            region_errors(&[Vec3::ZERO], &noisy),
+            RegionErrors::default()
+        );
     }
 }

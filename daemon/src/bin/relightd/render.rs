@@ -164,6 +164,7 @@ fn render_engine(
         offline::delta_error(&delta, &reference.delta, &reference.virtual_mask);
     let object_l2 =
         offline::object_error(&relit.composite, &reference.l_rho, &reference.virtual_mask);
+    let regions = offline::region_errors(&delta, &reference);
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     write_exr(&out.join("delta.exr"), w, h, &delta)?;
     write_exr(&out.join("delta_reference.exr"), w, h, &reference.delta)?;
@@ -180,14 +181,22 @@ fn render_engine(
         "delta_relative_l2": relative_l2,
         "delta_max_abs": max_abs,
         "object_relative_l2": object_l2,
+        "shadow_relative_l2": regions.shadow_relative_l2,
+        "bleeding_relative_l2": regions.bleeding_relative_l2,
+        "shadow_pixels": regions.shadow_pixels,
+        "bleeding_pixels": regions.bleeding_pixels,
     });
     std::fs::write(
         out.join("summary.json"),
         serde_json::to_string_pretty(&summary)?,
     )?;
     let object = object_l2.map_or("no object pixels".to_owned(), |e| format!("{e:.4}"));
+    let region =
+        |e: Option<f64>, n: usize| e.map_or("none".to_owned(), |e| format!("{e:.4} ({n} px)"));
+    let shadow = region(regions.shadow_relative_l2, regions.shadow_pixels);
+    let bleeding = region(regions.bleeding_relative_l2, regions.bleeding_pixels);
     println!(
-        "{}: {engine} {w}×{h} in {ms:.1} ms; Δ vs reference ({spp} spp): relative L2 {relative_l2:.4}, max abs {max_abs:.4}; object pixels vs L^ρ: relative L2 {object}; wrote {}",
+        "{}: {engine} {w}×{h} in {ms:.1} ms; Δ vs reference ({spp} spp): relative L2 {relative_l2:.4} (shadow {shadow}, bleeding {bleeding}), max abs {max_abs:.4}; object pixels vs L^ρ: relative L2 {object}; wrote {}",
         scene.name,
         out.display()
     );
