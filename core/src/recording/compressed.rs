@@ -16,17 +16,6 @@ pub enum ColorEncoding {
     Jpeg { quality: u8 },
 }
 
-impl ColorEncoding {
-    /// The `format` field of the CompressedImage; `None` for raw.
-    pub fn format(self) -> Option<&'static str> {
-        match self {
-            ColorEncoding::Raw => None,
-            ColorEncoding::Png => Some("png"),
-            ColorEncoding::Jpeg { .. } => Some("jpeg"),
-        }
-    }
-}
-
 #[derive(Debug, thiserror::Error)]
 pub enum CompressError {
     #[error("a {0:?} image cannot be compressed (8-bit RGB or mono only)")]
@@ -85,12 +74,16 @@ pub fn png(image: &Image) -> Result<Vec<u8>, CompressError> {
     Ok(out)
 }
 
-/// `image` in `encoding`; `None` for [`ColorEncoding::Raw`].
-pub fn compress(image: &Image, encoding: ColorEncoding) -> Option<Result<Vec<u8>, CompressError>> {
+/// `image` in `encoding`, with the `format` a `sensor_msgs/msg/CompressedImage` names it by
+/// (`png`, `jpeg`); `None` for [`ColorEncoding::Raw`].
+pub fn compress(
+    image: &Image,
+    encoding: ColorEncoding,
+) -> Option<Result<(&'static str, Vec<u8>), CompressError>> {
     match encoding {
         ColorEncoding::Raw => None,
-        ColorEncoding::Png => Some(png(image)),
-        ColorEncoding::Jpeg { quality } => Some(jpeg(image, quality)),
+        ColorEncoding::Png => Some(png(image).map(|data| ("png", data))),
+        ColorEncoding::Jpeg { quality } => Some(jpeg(image, quality).map(|data| ("jpeg", data))),
     }
 }
 

@@ -471,15 +471,13 @@ impl<W: Write + Seek> RecordingWriter<W> {
         compressed: Channel,
     ) -> Result<Channel, String> {
         let eight_bit = matches!(image.format(), PixelFormat::Rgb8 | PixelFormat::Mono8);
-        match (encoding.format(), eight_bit) {
-            (Some(format), true) => {
-                let data = compressed::compress(image, encoding)
-                    .unwrap_or_else(|| Ok(Vec::new()))
-                    .map_err(|e| e.to_string())?;
+        match eight_bit.then(|| compressed::compress(image, encoding)).flatten() {
+            Some(encoded) => {
+                let (format, data) = encoded.map_err(|e| e.to_string())?;
                 msgs::encode_compressed_image(&mut self.scratch, header, format, &data)?;
                 Ok(compressed)
             }
-            _ => {
+            None => {
                 schema::encode_image(&mut self.scratch, header.stamp_ns, header.frame_id, image)?;
                 Ok(raw)
             }
