@@ -2,7 +2,9 @@
 // a VPL: world position (w: distance as `light_distance` measures it), normal facing the light
 // (w: 1 on the virtual object), diffuse albedo (w: 1 where something was drawn). Its flux is
 // computed where it is used (`vpl_flux`), so the maps stay within 32 bytes per texel. Drawn for
-// every mesh (R^ρ) and for the real meshes only (R^μ).
+// every mesh (R^ρ) and for the real meshes only (R^μ). Engines that use the maps only for
+// visibility (`differential`, `ibl`) draw the position alone (`fs_position`): a third of the
+// writes.
 
 @group(0) @binding(0) var<storage, read> lights: array<Light>;
 @group(0) @binding(1) var<storage, read> faces: array<Face>;
@@ -51,4 +53,14 @@ fn fs_main(in: VertexOut) -> RsmOut {
     out.normal = vec4<f32>(n, f32(in.flags & FLAG_VIRTUAL));
     out.albedo = vec4<f32>(surface_albedo(in.measured, materials[in.material].albedo.rgb), 1.0);
     return out;
+}
+
+struct PositionOut {
+    @location(0) position: vec4<f32>,
+}
+
+@fragment
+fn fs_position(in: VertexOut) -> PositionOut {
+    let l = lights[faces[in.face].light.x];
+    return PositionOut(vec4<f32>(in.world, light_distance(l, in.world)));
 }

@@ -45,8 +45,14 @@ fn bench_measures_every_case_and_writes_its_outputs() {
         rows[0]
     );
     // spot_bleed's object both shadows and bleeds, and the reference says where.
-    assert!(rows.iter().all(|r| r.shadow_relative_l2.is_some_and(f64::is_finite)));
-    assert!(rows.iter().all(|r| r.bleeding_relative_l2.is_some_and(f64::is_finite)));
+    assert!(
+        rows.iter()
+            .all(|r| r.shadow_relative_l2.is_some_and(f64::is_finite))
+    );
+    assert!(
+        rows.iter()
+            .all(|r| r.bleeding_relative_l2.is_some_and(f64::is_finite))
+    );
     // Direct light alone only ever takes light away: in the bleeding its Δ is ≤ 0 where the
     // reference's is > 0, an error of at least the whole bleeding.
     let differential = rows.iter().find(|r| r.engine == "differential").unwrap();

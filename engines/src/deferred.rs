@@ -157,6 +157,17 @@ impl Deferred {
         }
     }
 
+    /// Shadow maps that hold the position alone, for engines that use them for visibility
+    /// only (`differential`, `ibl`): a third of the RSM's writes, and no normal or albedo for
+    /// VPLs ([`Targets::rsm_views`] must not be used on them).
+    pub fn for_visibility_only(self) -> Self {
+        Self {
+            rsm: RsmPass::position_only(&self.ctx),
+            light: None,
+            ..self
+        }
+    }
+
     pub fn ctx(&self) -> &Arc<GpuContext> {
         &self.ctx
     }
@@ -256,7 +267,12 @@ impl Deferred {
             .as_ref()
             .is_some_and(|l| l.rsm_size == rsm_size && l.layers == layers)
         {
-            self.light = Some(LightResources::new(&ctx, rsm_size, layers));
+            self.light = Some(LightResources::new(
+                &ctx,
+                rsm_size,
+                layers,
+                self.rsm.is_position_only(),
+            ));
         }
         self.light_count = self.lights_cpu.len() as u32;
         let (Some(frame_res), Some(light_res)) = (&self.frame, &self.light) else {
@@ -551,7 +567,12 @@ impl FrameResources {
 }
 
 impl LightResources {
-    fn new(ctx: &GpuContext, rsm_size: u32, layers: u32) -> Self {
+    fn new(ctx: &GpuContext, rsm_size: u32, layers: u32, position_only: bool) -> Self {
+        let targets = if position_only {
+            Targets::position_only
+        } else {
+            Targets::new
+        };
         let storage = |label, contents: &[u8]| {
             ctx.device
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -563,8 +584,8 @@ impl LightResources {
         Self {
             rsm_size,
             layers,
-            rsm_rho: Targets::new(ctx, "R^ρ", rsm_size, rsm_size, layers),
-            rsm_mu: Targets::new(ctx, "R^μ", rsm_size, rsm_size, layers),
+            rsm_rho: targets(ctx, "R^ρ", rsm_size, rsm_size, layers),
+            rsm_mu: targets(ctx, "R^μ", rsm_size, rsm_size, layers),
             lights: storage(
                 "lights",
                 bytemuck::cast_slice(&vec![GpuLight::zeroed(); layers as usize]),

@@ -19,14 +19,44 @@ pub struct Targets {
     pub height: u32,
     pub layers: u32,
     pub position: wgpu::Texture,
+    /// 1 × 1 and never drawn in position-only targets ([`Targets::position_only`]).
     pub normal: wgpu::Texture,
     pub albedo: wgpu::Texture,
     depth: wgpu::Texture,
+    position_only: bool,
 }
 
 impl Targets {
     pub fn new(ctx: &GpuContext, label: &str, width: u32, height: u32, layers: u32) -> Self {
+        Self::with_attachments(ctx, label, width, height, layers, false)
+    }
+
+    /// Targets of which only the position is drawn (shadow maps used for visibility alone).
+    pub fn position_only(
+        ctx: &GpuContext,
+        label: &str,
+        width: u32,
+        height: u32,
+        layers: u32,
+    ) -> Self {
+        Self::with_attachments(ctx, label, width, height, layers, true)
+    }
+
+    fn with_attachments(
+        ctx: &GpuContext,
+        label: &str,
+        width: u32,
+        height: u32,
+        layers: u32,
+        position_only: bool,
+    ) -> Self {
         let texture = |format, suffix: &str, layers: u32| {
+            let (width, height, layers) = if position_only && matches!(suffix, "normal" | "albedo")
+            {
+                (1, 1, 1)
+            } else {
+                (width, height, layers)
+            };
             ctx.device.create_texture(&wgpu::TextureDescriptor {
                 label: Some(&format!("{label} {suffix}")),
                 size: wgpu::Extent3d {
@@ -51,6 +81,7 @@ impl Targets {
             normal: texture(NORMAL, "normal", layers),
             albedo: texture(ALBEDO, "albedo", layers),
             depth: texture(DEPTH, "depth", 1),
+            position_only,
         }
     }
 
@@ -99,8 +130,12 @@ impl Targets {
         empty_w: f64,
         timestamps: Option<wgpu::RenderPassTimestampWrites>,
     ) {
-        let views =
-            [&self.position, &self.normal, &self.albedo].map(|t| Self::layer_view(t, layer));
+        let drawn = if self.position_only { 1 } else { 3 };
+        let views: Vec<wgpu::TextureView> = [&self.position, &self.normal, &self.albedo]
+            .into_iter()
+            .take(drawn)
+            .map(|t| Self::layer_view(t, layer))
+            .collect();
         let clears = [
             wgpu::Color {
                 r: 0.0,
@@ -151,15 +186,25 @@ impl Targets {
     }
 }
 
-fn raster_pipeline(ctx: &GpuContext, label: &str, source: &str) -> wgpu::RenderPipeline {
+/// A raster pipeline whose fragment entry `fragment` writes `targets` (in attachment order).
+fn raster_pipeline(
+    ctx: &GpuContext,
+    label: &str,
+    source: &str,
+    fragment: &str,
+    targets: &[wgpu::TextureFormat],
+) -> wgpu::RenderPipeline {
     let module = shaders::module(&ctx.device, label, source);
-    let target = |format| {
-        Some(wgpu::ColorTargetState {
-            format,
-            blend: None,
-            write_mask: wgpu::ColorWrites::ALL,
+    let targets: Vec<Option<wgpu::ColorTargetState>> = targets
+        .iter()
+        .map(|&format| {
+            Some(wgpu::ColorTargetState {
+                format,
+                blend: None,
+                write_mask: wgpu::ColorWrites::ALL,
+            })
         })
-    };
+        .collect();
     ctx.device
         .create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some(label),
@@ -185,9 +230,9 @@ fn raster_pipeline(ctx: &GpuContext, label: &str, source: &str) -> wgpu::RenderP
             multisample: Default::default(),
             fragment: Some(wgpu::FragmentState {
                 module: &module,
-                entry_point: Some("fs_main"),
+                entry_point: Some(fragment),
                 compilation_options: Default::default(),
-                targets: &[target(POSITION), target(NORMAL), target(ALBEDO)],
+                targets: &targets,
             }),
             multiview_mask: None,
             cache: None,
@@ -203,7 +248,7 @@ pub struct GBufferPass {
 impl GBufferPass {
     pub fn new(ctx: &GpuContext) -> Self {
         Self {
-            pipeline: raster_pipeline(ctx, "gbuffer", shaders::GBUFFER),
+            pipeline: raster_pipeline(ctx, "gbuffer", shaders::GBUFFER, "fs_main", &ALL_TARGETS),
         }
     }
 
@@ -250,7 +295,11 @@ impl GBufferPass {
 #[derive(Debug)]
 pub struct RsmPass {
     pipeline: wgpu::RenderPipeline,
+    position_only: bool,
 }
+
+/// The formats of a full G-buffer or RSM, in attachment order.
+const ALL_TARGETS: [wgpu::TextureFormat; 3] = [POSITION, NORMAL, ALBEDO];
 
 /// Position w of a shadow-map texel that saw nothing (`FAR` in the shaders).
 const RSM_EMPTY_DISTANCE: f64 = 3.0e38;
@@ -258,8 +307,28 @@ const RSM_EMPTY_DISTANCE: f64 = 3.0e38;
 impl RsmPass {
     pub fn new(ctx: &GpuContext) -> Self {
         Self {
-            pipeline: raster_pipeline(ctx, "rsm", shaders::RSM),
+            pipeline: raster_pipeline(ctx, "rsm", shaders::RSM, "fs_main", &ALL_TARGETS),
+            position_only: false,
         }
+    }
+
+    /// Shadow maps for visibility alone: the position only, into [`Targets::position_only`].
+    pub fn position_only(ctx: &GpuContext) -> Self {
+        Self {
+            pipeline: raster_pipeline(
+                ctx,
+                "rsm position",
+                shaders::RSM,
+                "fs_position",
+                &[POSITION],
+            ),
+            position_only: true,
+        }
+    }
+
+    /// Whether this pass draws the position alone.
+    pub fn is_position_only(&self) -> bool {
+        self.position_only
     }
 
     pub fn bind_group(
@@ -269,15 +338,18 @@ impl RsmPass {
         faces: &wgpu::Buffer,
         scene: &GpuScene,
     ) -> wgpu::BindGroup {
+        let all = [
+            lights.as_entire_binding(),
+            faces.as_entire_binding(),
+            scene.materials.as_entire_binding(),
+        ];
+        // The position alone reads no material, so its layout has no binding for them.
+        let used = if self.position_only { 2 } else { all.len() };
         shaders::bind_group(
             &ctx.device,
             "rsm",
             &self.pipeline.get_bind_group_layout(0),
-            &[
-                lights.as_entire_binding(),
-                faces.as_entire_binding(),
-                scene.materials.as_entire_binding(),
-            ],
+            &all[..used],
         )
     }
 

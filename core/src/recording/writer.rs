@@ -471,7 +471,10 @@ impl<W: Write + Seek> RecordingWriter<W> {
         compressed: Channel,
     ) -> Result<Channel, String> {
         let eight_bit = matches!(image.format(), PixelFormat::Rgb8 | PixelFormat::Mono8);
-        match eight_bit.then(|| compressed::compress(image, encoding)).flatten() {
+        match eight_bit
+            .then(|| compressed::compress(image, encoding))
+            .flatten()
+        {
             Some(encoded) => {
                 let (format, data) = encoded.map_err(|e| e.to_string())?;
                 msgs::encode_compressed_image(&mut self.scratch, header, format, &data)?;

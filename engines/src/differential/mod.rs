@@ -43,7 +43,7 @@ impl Differential {
 
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
         Ok(Self {
-            deferred: Deferred::new(ctx),
+            deferred: Deferred::new(ctx).for_visibility_only(),
             rsm_size: 512,
             shadow_bias_texels: 1.5,
         })

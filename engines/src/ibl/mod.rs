@@ -148,7 +148,7 @@ impl Ibl {
             shade: shaders::compute_pipeline(&ctx.device, "ibl shade", shaders::IBL_SHADE),
             uniform: uniform_buffer(&ctx.device, "ibl shade", size_of::<IblUniform>()),
             maps: ReflectionMaps::new(&ctx),
-            deferred: Deferred::sampling_the_environment(ctx),
+            deferred: Deferred::sampling_the_environment(ctx).for_visibility_only(),
             settings: IblSettings::default(),
             environment: None,
             convolutions: 0,
