@@ -1,8 +1,9 @@
 // Reflective shadow maps: one layer per light face (six for a point light's cube). Each texel is
 // a VPL: world position (w: distance as `light_distance` measures it), normal facing the light
 // (w: 1 on the virtual object), diffuse albedo (w: 1 where something was drawn). Its flux is
-// computed where it is used (`vpl_flux`), so the maps stay within 32 bytes per texel. Drawn for
-// every mesh (R^ρ) and for the real meshes only (R^μ). Engines that use the maps only for
+// computed where it is used (`vpl_flux`), so the maps stay within 32 bytes per texel. R^μ is
+// drawn from the real meshes; R^ρ is R^μ copied (depth included) with the virtual object drawn
+// over it (`RsmPass::render`). Engines that use the maps only for
 // visibility (`differential`, `ibl`) draw the position alone (`fs_position`): a third of the
 // writes.
 

@@ -327,18 +327,13 @@ impl Deferred {
             let rsm_group =
                 self.rsm
                     .bind_group(&ctx, &light_res.lights, &light_res.faces, gpu_scene);
-            for (include_virtual, targets) in
-                [(true, &light_res.rsm_rho), (false, &light_res.rsm_mu)]
-            {
-                self.rsm.render(
-                    &mut encoder,
-                    &rsm_group,
-                    gpu_scene,
-                    include_virtual,
-                    targets,
-                    self.timer.as_mut(),
-                );
-            }
+            self.rsm.render(
+                &mut encoder,
+                &rsm_group,
+                gpu_scene,
+                (&light_res.rsm_rho, &light_res.rsm_mu),
+                self.timer.as_mut(),
+            );
         }
         encoder.clear_buffer(&frame_res.indirect, 0, None);
         ctx.queue.submit([encoder.finish()]);

@@ -69,7 +69,9 @@ impl Targets {
                 dimension: wgpu::TextureDimension::D2,
                 format,
                 usage: wgpu::TextureUsages::RENDER_ATTACHMENT
-                    | wgpu::TextureUsages::TEXTURE_BINDING,
+                    | wgpu::TextureUsages::TEXTURE_BINDING
+                    | wgpu::TextureUsages::COPY_SRC
+                    | wgpu::TextureUsages::COPY_DST,
                 view_formats: &[],
             })
         };
@@ -80,7 +82,8 @@ impl Targets {
             position: texture(POSITION, "position", layers),
             normal: texture(NORMAL, "normal", layers),
             albedo: texture(ALBEDO, "albedo", layers),
-            depth: texture(DEPTH, "depth", 1),
+            // One depth layer per target layer, so that a layer's depth can be kept and copied.
+            depth: texture(DEPTH, "depth", layers),
             position_only,
         }
     }
@@ -116,8 +119,9 @@ impl Targets {
         })
     }
 
-    /// Clear layer `layer` (position w to `empty_w`) and draw `vertices` of `scene` into it,
-    /// with `instance` as the draw's instance index.
+    /// Draw `vertices` of `scene` into layer `layer`, with the layer as the draw's instance
+    /// index: cleared first (position w to `empty_w`) unless `start` says to draw over what the
+    /// layer holds, depth test included.
     #[allow(clippy::too_many_arguments)]
     fn draw(
         &self,
@@ -125,9 +129,9 @@ impl Targets {
         pipeline: &wgpu::RenderPipeline,
         bind_group: &wgpu::BindGroup,
         scene: &GpuScene,
-        vertices: u32,
+        vertices: std::ops::Range<u32>,
         layer: u32,
-        empty_w: f64,
+        start: LayerStart,
         timestamps: Option<wgpu::RenderPassTimestampWrites>,
     ) {
         let drawn = if self.position_only { 1 } else { 3 };
@@ -136,6 +140,10 @@ impl Targets {
             .take(drawn)
             .map(|t| Self::layer_view(t, layer))
             .collect();
+        let empty_w = match start {
+            LayerStart::Clear { empty_w, .. } => empty_w,
+            LayerStart::Over => 0.0,
+        };
         let clears = [
             wgpu::Color {
                 r: 0.0,
@@ -146,6 +154,10 @@ impl Targets {
             wgpu::Color::TRANSPARENT,
             wgpu::Color::TRANSPARENT,
         ];
+        let load = |clear| match start {
+            LayerStart::Clear { .. } => wgpu::LoadOp::Clear(clear),
+            LayerStart::Over => wgpu::LoadOp::Load,
+        };
         let attachments: Vec<Option<wgpu::RenderPassColorAttachment>> = views
             .iter()
             .zip(clears)
@@ -155,21 +167,35 @@ impl Targets {
                     depth_slice: None,
                     resolve_target: None,
                     ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(clear),
+                        load: load(clear),
                         store: wgpu::StoreOp::Store,
                     },
                 })
             })
             .collect();
-        let depth_view = Self::view(&self.depth);
+        let depth_view = Self::layer_view(&self.depth, layer);
+        let keep_depth = !matches!(
+            start,
+            LayerStart::Clear {
+                keep_depth: false,
+                ..
+            }
+        );
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("g-buffer"),
             color_attachments: &attachments,
             depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                 view: &depth_view,
                 depth_ops: Some(wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(1.0),
-                    store: wgpu::StoreOp::Discard,
+                    load: match start {
+                        LayerStart::Clear { .. } => wgpu::LoadOp::Clear(1.0),
+                        LayerStart::Over => wgpu::LoadOp::Load,
+                    },
+                    store: if keep_depth {
+                        wgpu::StoreOp::Store
+                    } else {
+                        wgpu::StoreOp::Discard
+                    },
                 }),
                 stencil_ops: None,
             }),
@@ -177,13 +203,43 @@ impl Targets {
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        if vertices > 0 {
+        if !vertices.is_empty() {
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, bind_group, &[]);
             pass.set_vertex_buffer(0, scene.vertices.slice(..));
-            pass.draw(0..vertices, layer..layer + 1);
+            pass.draw(vertices, layer..layer + 1);
         }
     }
+
+    /// Copy every layer of every drawn target, depth included, from `source` (same size).
+    fn copy_from(&self, encoder: &mut wgpu::CommandEncoder, source: &Targets) {
+        let drawn = if self.position_only { 1 } else { 3 };
+        let pairs = [
+            (&source.position, &self.position),
+            (&source.normal, &self.normal),
+            (&source.albedo, &self.albedo),
+        ];
+        for (from, to) in pairs
+            .into_iter()
+            .take(drawn)
+            .chain([(&source.depth, &self.depth)])
+        {
+            encoder.copy_texture_to_texture(
+                from.as_image_copy(),
+                to.as_image_copy(),
+                from.size(),
+            );
+        }
+    }
+}
+
+/// How [`Targets::draw`] begins a layer.
+#[derive(Debug, Clone, Copy)]
+enum LayerStart {
+    /// Cleared, position w set to `empty_w`; its depth kept after the pass when `keep_depth`.
+    Clear { empty_w: f64, keep_depth: bool },
+    /// Drawn over, colour and depth as the layer holds them.
+    Over,
 }
 
 /// A raster pipeline whose fragment entry `fragment` writes `targets` (in attachment order).
@@ -283,9 +339,12 @@ impl GBufferPass {
             &self.pipeline,
             bind_group,
             scene,
-            scene.vertex_count(include_virtual),
+            0..scene.vertex_count(include_virtual),
             0,
-            0.0,
+            LayerStart::Clear {
+                empty_w: 0.0,
+                keep_depth: false,
+            },
             timer.and_then(|t| t.render("gpu.gbuffer")),
         );
     }
@@ -353,27 +412,50 @@ impl RsmPass {
         )
     }
 
-    /// Render every face (layer) of `targets` (one layer per light face).
+    /// Render R^μ (the real meshes) and R^ρ (every mesh) into every face (layer) of their
+    /// targets, one layer per light face. R^ρ differs from R^μ only where the virtual object is
+    /// in front, so R^μ is drawn with its depth kept, copied into R^ρ, and only the object's
+    /// triangles are drawn over the copy: the real meshes (a live depth mesh of tens of
+    /// thousands of triangles) are rasterised once per face, not twice.
     pub fn render(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         bind_group: &wgpu::BindGroup,
         scene: &GpuScene,
-        include_virtual: bool,
-        targets: &Targets,
+        (rho, mu): (&Targets, &Targets),
         mut timer: Option<&mut GpuTimer>,
     ) {
-        for face in 0..targets.layers {
-            targets.draw(
+        let real = scene.vertex_count(false);
+        let all = scene.vertex_count(true);
+        for face in 0..mu.layers {
+            mu.draw(
                 encoder,
                 &self.pipeline,
                 bind_group,
                 scene,
-                scene.vertex_count(include_virtual),
+                0..real,
                 face,
-                RSM_EMPTY_DISTANCE,
+                LayerStart::Clear {
+                    empty_w: RSM_EMPTY_DISTANCE,
+                    keep_depth: true,
+                },
                 timer.as_deref_mut().and_then(|t| t.render("gpu.rsm")),
             );
+        }
+        rho.copy_from(encoder, mu);
+        if all > real {
+            for face in 0..rho.layers {
+                rho.draw(
+                    encoder,
+                    &self.pipeline,
+                    bind_group,
+                    scene,
+                    real..all,
+                    face,
+                    LayerStart::Over,
+                    timer.as_deref_mut().and_then(|t| t.render("gpu.rsm")),
+                );
+            }
         }
     }
 }
