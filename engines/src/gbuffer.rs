@@ -224,11 +224,7 @@ impl Targets {
             .take(drawn)
             .chain([(&source.depth, &self.depth)])
         {
-            encoder.copy_texture_to_texture(
-                from.as_image_copy(),
-                to.as_image_copy(),
-                from.size(),
-            );
+            encoder.copy_texture_to_texture(from.as_image_copy(), to.as_image_copy(), from.size());
         }
     }
 }
