@@ -227,6 +227,22 @@ impl OutputMessage {
             OutputMessage::Lighting(_) => Channel::Lighting,
         }
     }
+
+    /// The frame set's number.
+    pub fn seq(&self) -> u64 {
+        match self {
+            OutputMessage::Composite(f) | OutputMessage::Delta(f) => f.seq,
+            OutputMessage::Lighting(f) => f.seq,
+        }
+    }
+
+    /// The frame set's stamp.
+    pub fn stamp(&self) -> crate::Timestamp {
+        match self {
+            OutputMessage::Composite(f) | OutputMessage::Delta(f) => f.stamp,
+            OutputMessage::Lighting(f) => f.stamp,
+        }
+    }
 }
 
 /// What a recording says about itself besides its messages.

@@ -86,8 +86,7 @@ impl Item {
         match self {
             Item::Stream(m) => m.stamp().host_ns,
             Item::Truth(m) => m.stamp().host_ns,
-            Item::Output(OutputMessage::Composite(f) | OutputMessage::Delta(f)) => f.stamp.host_ns,
-            Item::Output(OutputMessage::Lighting(f)) => f.stamp.host_ns,
+            Item::Output(m) => m.stamp().host_ns,
         }
     }
 }

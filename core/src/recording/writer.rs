@@ -149,11 +149,26 @@ fn static_transforms(calibration: Option<&RigCalibration>) -> Vec<Transform> {
 
 /// MCAP's 32-bit `sequence` of a message whose payload carries no full `seq`.
 fn short_seq(channel: Channel, seq: u64) -> Result<u32, RecordingError> {
-    u32::try_from(seq).map_err(|_| RecordingError::Encode {
+    u32::try_from(seq).map_err(|_| {
+        encode_error(channel, seq)(
+            "its sequence number does not fit the 32 bits MCAP and this channel hold".into(),
+        )
+    })
+}
+
+/// MCAP's `sequence` of a message that carries its full `seq` itself: the low 32 bits, which
+/// pair an image with its `frame_info`.
+fn low_sequence(seq: u64) -> u32 {
+    (seq & u64::from(u32::MAX)) as u32
+}
+
+/// The error of message `seq` on `channel` that cannot be encoded for `reason`.
+fn encode_error(channel: Channel, seq: u64) -> impl FnOnce(String) -> RecordingError {
+    move |reason| RecordingError::Encode {
         channel: channel.topic().into(),
         seq,
-        reason: "its sequence number does not fit the 32 bits MCAP and this channel hold".into(),
-    })
+        reason,
+    }
 }
 
 impl<W: Write + Seek> RecordingWriter<W> {
@@ -309,13 +324,8 @@ impl<W: Write + Seek> RecordingWriter<W> {
         let Some(transforms) = self.static_transforms.take() else {
             return Ok(());
         };
-        msgs::encode_tf(&mut self.scratch, host_ns, &transforms).map_err(|reason| {
-            RecordingError::Encode {
-                channel: Channel::TfStatic.topic().into(),
-                seq: 0,
-                reason,
-            }
-        })?;
+        msgs::encode_tf(&mut self.scratch, host_ns, &transforms)
+            .map_err(encode_error(Channel::TfStatic, 0))?;
         self.emit(Channel::TfStatic, 0, host_ns, host_ns)
     }
 
@@ -327,17 +337,10 @@ impl<W: Write + Seek> RecordingWriter<W> {
         let seq = msg.seq();
         let stamp = msg.stamp();
         self.write_static_transforms(stamp.host_ns)?;
-        let sequence = (seq & u64::from(u32::MAX)) as u32;
+        let sequence = low_sequence(seq);
         let header = Header {
             stamp_ns: stamp.host_ns,
             frame_id: camera_frame(kind),
-        };
-        let encode_error = |channel: Channel| {
-            move |reason| RecordingError::Encode {
-                channel: channel.topic().into(),
-                seq,
-                reason,
-            }
         };
         match msg {
             StreamMessage::Depth(frame) | StreamMessage::Color(frame) => {
@@ -361,7 +364,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
                     stamp.device_ns,
                     &frame.payload,
                 )
-                .map_err(encode_error(channel))?;
+                .map_err(encode_error(channel, seq))?;
                 self.emit(channel, sequence, stamp.host_ns, stamp.device_ns)?;
                 if !frame.payload.detections.is_empty() {
                     let transforms: Vec<Transform> = frame
@@ -375,7 +378,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
                         })
                         .collect();
                     msgs::encode_tf(&mut self.scratch, stamp.host_ns, &transforms)
-                        .map_err(encode_error(Channel::Tf))?;
+                        .map_err(encode_error(Channel::Tf, seq))?;
                     self.emit(Channel::Tf, sequence, stamp.host_ns, stamp.device_ns)?;
                 }
             }
@@ -387,7 +390,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
                     ..header
                 };
                 msgs::encode_lamp(&mut self.scratch, header, seq, stamp.device_ns, lamp)
-                    .map_err(encode_error(channel))?;
+                    .map_err(encode_error(channel, seq))?;
                 self.emit(channel, sequence, stamp.host_ns, stamp.device_ns)?;
                 let transform = Transform {
                     parent: "world".into(),
@@ -395,7 +398,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
                     parent_from_child: Pose::from_translation(lamp.position_in_world),
                 };
                 msgs::encode_tf(&mut self.scratch, stamp.host_ns, &[transform])
-                    .map_err(encode_error(Channel::Tf))?;
+                    .map_err(encode_error(Channel::Tf, seq))?;
                 self.emit(Channel::Tf, sequence, stamp.host_ns, stamp.device_ns)?;
             }
         }
@@ -416,15 +419,8 @@ impl<W: Write + Seek> RecordingWriter<W> {
         image: &Image,
         (exposure_us, gain_db): (u32, f32),
     ) -> Result<(), RecordingError> {
-        let sequence = (seq & u64::from(u32::MAX)) as u32;
+        let sequence = low_sequence(seq);
         let host_ns = header.stamp_ns;
-        let encode_error = |channel: Channel| {
-            move |reason: String| RecordingError::Encode {
-                channel: channel.topic().into(),
-                seq,
-                reason,
-            }
-        };
         let info = FrameInfo {
             seq,
             device_stamp_ns: device_ns,
@@ -432,14 +428,15 @@ impl<W: Write + Seek> RecordingWriter<W> {
             gain_db,
         };
         let channel = Channel::FrameInfo(kind);
-        msgs::encode_frame_info(&mut self.scratch, header, &info).map_err(encode_error(channel))?;
+        msgs::encode_frame_info(&mut self.scratch, header, &info)
+            .map_err(encode_error(channel, seq))?;
         self.emit(channel, sequence, host_ns, device_ns)?;
 
         let camera_index = CAMERAS.iter().position(|&k| k == kind).unwrap_or(0);
         if let Some(camera) = self.cameras.get(camera_index).copied().flatten() {
             let channel = Channel::CameraInfo(kind);
             encode_camera_info(&mut self.scratch, host_ns, header.frame_id, &camera)
-                .map_err(encode_error(channel))?;
+                .map_err(encode_error(channel, seq))?;
             self.emit(channel, sequence, host_ns, device_ns)?;
         }
 
@@ -456,7 +453,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
                 Channel::Stream(kind),
                 Channel::ColorCompressed,
             )
-            .map_err(encode_error(Channel::Stream(kind)))?;
+            .map_err(encode_error(Channel::Stream(kind), seq))?;
         self.emit(channel, sequence, host_ns, device_ns)
     }
 
@@ -519,11 +516,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
             TruthMessage::State(frame) => truth::encode_state(&frame.payload)
                 .and_then(|json| msgs::encode_string(&mut self.scratch, &json)),
         };
-        encoded.map_err(|reason| RecordingError::Encode {
-            channel: kind.topic().into(),
-            seq,
-            reason,
-        })?;
+        encoded.map_err(encode_error(channel, seq))?;
         self.emit(channel, sequence, stamp.host_ns, stamp.device_ns)?;
         self.messages_written += 1;
         Ok(())
@@ -533,10 +526,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
     /// `sequence`. The composite is compressed like the colour images.
     pub fn write_output(&mut self, msg: &OutputMessage) -> Result<(), RecordingError> {
         let channel = msg.channel();
-        let (seq, stamp) = match msg {
-            OutputMessage::Composite(f) | OutputMessage::Delta(f) => (f.seq, f.stamp),
-            OutputMessage::Lighting(f) => (f.seq, f.stamp),
-        };
+        let (seq, stamp) = (msg.seq(), msg.stamp());
         self.write_static_transforms(stamp.host_ns)?;
         let sequence = short_seq(channel, seq)?;
         let header = Header {
@@ -562,11 +552,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
                 msgs::encode_string(&mut self.scratch, &frame.payload).map(|()| Channel::Lighting)
             }
         };
-        let written = written.map_err(|reason| RecordingError::Encode {
-            channel: channel.topic().into(),
-            seq,
-            reason,
-        })?;
+        let written = written.map_err(encode_error(channel, seq))?;
         self.emit(written, sequence, stamp.host_ns, stamp.device_ns)?;
         self.messages_written += 1;
         Ok(())
