@@ -1457,49 +1457,45 @@ fn decode_message(
             "message encoding `{message_encoding}`, expected `{expected}`"
         ));
     }
-    let mut seq = short_seq;
-    let mut exposure = None;
-    let image_with_extras =
-        |seq: &mut u64, stamp: &mut Timestamp, exposure: &mut Option<(u32, f32)>| {
+    Ok(match stream {
+        StreamKind::Depth | StreamKind::Color | StreamKind::Probe => {
             let decoded = decode_picture(stream, &channel.topic, data)?;
+            let mut seq = short_seq;
+            let mut exposure = None;
             match channel.layout {
                 Layout::Foreign => stamp.device_ns = decoded.stamp_ns,
                 Layout::Format1 => {
                     let (_, extras) = v1::parse_frame_id(&decoded.frame_id)?;
-                    *seq = extras.seq.unwrap_or(*seq);
-                    *exposure = extras.exposure_us.zip(extras.gain_db);
+                    seq = extras.seq.unwrap_or(seq);
+                    exposure = extras.exposure_us.zip(extras.gain_db);
                 }
                 Layout::Format2 => {
                     if let Some(info) = info {
-                        *seq = info.seq;
+                        seq = info.seq;
                         stamp.device_ns = info.device_stamp_ns;
-                        *exposure = Some((info.exposure_us, info.gain_db));
+                        exposure = Some((info.exposure_us, info.gain_db));
                     }
                 }
             }
-            Ok::<_, String>(decoded.image)
-        };
-    Ok(match stream {
-        StreamKind::Depth => {
-            let image = image_with_extras(&mut seq, &mut stamp, &mut exposure)?;
-            StreamMessage::Depth(Arc::new(Frame::new(seq, stamp, image)))
-        }
-        StreamKind::Color => {
-            let image = image_with_extras(&mut seq, &mut stamp, &mut exposure)?;
-            StreamMessage::Color(Arc::new(Frame::new(seq, stamp, image)))
-        }
-        StreamKind::Probe => {
-            let image = image_with_extras(&mut seq, &mut stamp, &mut exposure)?;
-            let (exposure_us, gain_db) = exposure.ok_or(match channel.layout {
-                Layout::Format1 => "probe frame_id lacks exposure_us or gain_db",
-                _ => "the probe image's exposure is unknown: its frame_info message is missing",
-            })?;
-            let probe = ProbeImage {
-                image,
-                exposure_us,
-                gain_db,
-            };
-            StreamMessage::Probe(Arc::new(Frame::new(seq, stamp, probe)))
+            let frame = |image| Arc::new(Frame::new(seq, stamp, image));
+            match stream {
+                StreamKind::Depth => StreamMessage::Depth(frame(decoded.image)),
+                StreamKind::Color => StreamMessage::Color(frame(decoded.image)),
+                _ => {
+                    let (exposure_us, gain_db) = exposure.ok_or(match channel.layout {
+                        Layout::Format1 => "probe frame_id lacks exposure_us or gain_db",
+                        _ => {
+                            "the probe image's exposure is unknown: its frame_info message is missing"
+                        }
+                    })?;
+                    let probe = ProbeImage {
+                        image: decoded.image,
+                        exposure_us,
+                        gain_db,
+                    };
+                    StreamMessage::Probe(Arc::new(Frame::new(seq, stamp, probe)))
+                }
+            }
         }
         StreamKind::Markers if channel.layout == Layout::Format1 => {
             let (markers, long_seq) = v1::decode_markers(data)?;
