@@ -134,10 +134,8 @@ impl Targets {
         start: LayerStart,
         timestamps: Option<wgpu::RenderPassTimestampWrites>,
     ) {
-        let drawn = if self.position_only { 1 } else { 3 };
-        let views: Vec<wgpu::TextureView> = [&self.position, &self.normal, &self.albedo]
-            .into_iter()
-            .take(drawn)
+        let views: Vec<wgpu::TextureView> = self
+            .drawn_colour()
             .map(|t| Self::layer_view(t, layer))
             .collect();
         let empty_w = match start {
@@ -211,18 +209,22 @@ impl Targets {
         }
     }
 
-    /// Copy every layer of every drawn target, depth included, from `source` (same size).
-    fn copy_from(&self, encoder: &mut wgpu::CommandEncoder, source: &Targets) {
+    /// The colour targets a pass draws, in attachment order: the position alone in
+    /// position-only targets.
+    fn drawn_colour(&self) -> impl Iterator<Item = &wgpu::Texture> {
         let drawn = if self.position_only { 1 } else { 3 };
-        let pairs = [
-            (&source.position, &self.position),
-            (&source.normal, &self.normal),
-            (&source.albedo, &self.albedo),
-        ];
-        for (from, to) in pairs
+        [&self.position, &self.normal, &self.albedo]
             .into_iter()
             .take(drawn)
-            .chain([(&source.depth, &self.depth)])
+    }
+
+    /// Copy every layer of every drawn target, depth included, from `source` (same size and
+    /// kind).
+    fn copy_from(&self, encoder: &mut wgpu::CommandEncoder, source: &Targets) {
+        for (from, to) in source
+            .drawn_colour()
+            .chain([&source.depth])
+            .zip(self.drawn_colour().chain([&self.depth]))
         {
             encoder.copy_texture_to_texture(from.as_image_copy(), to.as_image_copy(), from.size());
         }

@@ -12,6 +12,15 @@ use crate::stream::StreamKind;
 /// The image streams, which have cameras.
 pub const CAMERAS: [StreamKind; 3] = [StreamKind::Depth, StreamKind::Color, StreamKind::Probe];
 
+/// Where `kind` is in [`CAMERAS`] (the probe for any other stream).
+pub fn camera_index(kind: StreamKind) -> usize {
+    match kind {
+        StreamKind::Depth => 0,
+        StreamKind::Color => 1,
+        _ => 2,
+    }
+}
+
 /// A channel relight writes. IDs are fixed so that messages stay readable when the chunk
 /// holding the Channel records is lost.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -95,11 +104,7 @@ impl Channel {
 
     /// The fixed MCAP channel ID.
     pub fn id(self) -> u16 {
-        let camera = |kind: StreamKind| match kind {
-            StreamKind::Depth => 0,
-            StreamKind::Color => 1,
-            _ => 2,
-        };
+        let camera = |kind| camera_index(kind) as u16;
         match self {
             Channel::Stream(kind) => super::channel_id(kind),
             Channel::ColorCompressed => 6,

@@ -10,7 +10,7 @@ use mcap::records::{MessageHeader, Metadata};
 use mcap::{Attachment, Compression, WriteOptions};
 
 use super::camera_info::encode_camera_info;
-use super::channels::{CAMERAS, Channel, ChannelSchema};
+use super::channels::{CAMERAS, Channel, ChannelSchema, camera_index};
 use super::compressed::{self, ColorEncoding};
 use super::ros_msgs::{self as msgs, FrameInfo, Header, Transform};
 use super::schema;
@@ -432,8 +432,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
             .map_err(encode_error(channel, seq))?;
         self.emit(channel, sequence, host_ns, device_ns)?;
 
-        let camera_index = CAMERAS.iter().position(|&k| k == kind).unwrap_or(0);
-        if let Some(camera) = self.cameras.get(camera_index).copied().flatten() {
+        if let Some(camera) = self.cameras.get(camera_index(kind)).copied().flatten() {
             let channel = Channel::CameraInfo(kind);
             encode_camera_info(&mut self.scratch, host_ns, header.frame_id, &camera)
                 .map_err(encode_error(channel, seq))?;
