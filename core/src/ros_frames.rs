@@ -4,7 +4,8 @@
 //! up, and a camera looks along its −z with +y up. ROS and Foxglove expect an image's
 //! `frame_id` in the optical convention (REP 103/104: +x right, +y down, +z forward) and a fixed
 //! frame with +z up (REP 105). Recordings ([`crate::recording`]) and the live view convert with
-//! these functions where they write, and nowhere else.
+//! these functions where they write, and nowhere else, and name the frames alike (cameras by
+//! their calibration names, `depth`, `color`, `probe`).
 //!
 //! The camera flip is half a turn about x; it is written out component by component (a sign
 //! change and a swap, see [`optical_from`]) so that a pose survives the round trip bit for bit.
@@ -12,6 +13,20 @@
 use glam::{Quat, Vec3};
 
 use crate::pose::Pose;
+
+/// The fixed frame (+z up).
+pub const MAP: &str = "map";
+/// The board's (glTF, +y up) world frame.
+pub const WORLD: &str = "world";
+/// The world-defining marker board.
+pub const BOARD: &str = "board";
+/// The tracked lamp's light centre.
+pub const LAMP: &str = "lamp";
+
+/// The name of marker `id`'s frame.
+pub fn marker(id: u32) -> String {
+    format!("marker_{id}")
+}
 
 /// `map_from_world`: the world's +y (up) becomes the fixed frame's +z.
 pub fn map_from_world() -> Pose {

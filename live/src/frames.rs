@@ -14,23 +14,14 @@
 //! | `light_<n>`, `lamp` | `world` | each light the engine rendered with (the tracked lamp's) |
 //! | `virtual_object` | `world` | the virtual object's bounding-box centre |
 
-pub use relight_core::ros_frames::{map_from_world, optical_from, world_from_optical};
+pub use relight_core::ros_frames::{
+    BOARD, LAMP, MAP, WORLD, map_from_world, marker, optical_from, world_from_optical,
+};
 
-/// The fixed frame (+z up).
-pub const MAP: &str = "map";
-/// The board's (glTF, +y up) world frame.
-pub const WORLD: &str = "world";
 /// The colour camera, optical convention; named as in the calibration and in recordings.
 pub const CAMERA: &str = "color";
-pub const BOARD: &str = "board";
 pub const PROBE: &str = "probe";
-pub const LAMP: &str = "lamp";
 pub const VIRTUAL_OBJECT: &str = "virtual_object";
-
-/// The name of marker `id`'s frame.
-pub fn marker(id: u32) -> String {
-    format!("marker_{id}")
-}
 
 /// The name of light `index`'s frame.
 pub fn light(index: usize) -> String {

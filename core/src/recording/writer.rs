@@ -128,12 +128,20 @@ fn static_transforms(calibration: Option<&RigCalibration>) -> Vec<Transform> {
         child: child.into(),
         parent_from_child,
     };
-    let mut transforms = vec![transform("map", "world", ros_frames::map_from_world())];
+    let mut transforms = vec![transform(
+        ros_frames::MAP,
+        ros_frames::WORLD,
+        ros_frames::map_from_world(),
+    )];
     if let Some(rig) = calibration {
-        transforms.push(transform("world", "board", rig.world_from_board));
+        transforms.push(transform(
+            ros_frames::WORLD,
+            ros_frames::BOARD,
+            rig.world_from_board,
+        ));
         if rig.probe.is_some() {
             transforms.push(transform(
-                "world",
+                ros_frames::WORLD,
                 camera_frame(StreamKind::Probe),
                 ros_frames::world_from_optical(rig.world_from_probe),
             ));
@@ -373,7 +381,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
                         .iter()
                         .map(|d| Transform {
                             parent: header.frame_id.into(),
-                            child: format!("marker_{}", d.marker_id),
+                            child: ros_frames::marker(d.marker_id),
                             parent_from_child: ros_frames::optical_from(d.camera_from_marker),
                         })
                         .collect();
@@ -386,15 +394,15 @@ impl<W: Write + Seek> RecordingWriter<W> {
                 let channel = Channel::Stream(kind);
                 let lamp = &frame.payload;
                 let header = Header {
-                    frame_id: "world",
+                    frame_id: ros_frames::WORLD,
                     ..header
                 };
                 msgs::encode_lamp(&mut self.scratch, header, seq, stamp.device_ns, lamp)
                     .map_err(encode_error(channel, seq))?;
                 self.emit(channel, sequence, stamp.host_ns, stamp.device_ns)?;
                 let transform = Transform {
-                    parent: "world".into(),
-                    child: "lamp".into(),
+                    parent: ros_frames::WORLD.into(),
+                    child: ros_frames::LAMP.into(),
                     parent_from_child: Pose::from_translation(lamp.position_in_world),
                 };
                 msgs::encode_tf(&mut self.scratch, stamp.host_ns, &[transform])
@@ -495,7 +503,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
         let encoded = match msg {
             TruthMessage::Image(_, frame) => {
                 let frame_id = match kind {
-                    TruthKind::Normals => "world",
+                    TruthKind::Normals => ros_frames::WORLD,
                     _ => camera_frame(StreamKind::Depth),
                 };
                 match kind.pixel_format() {

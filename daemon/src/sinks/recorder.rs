@@ -220,11 +220,7 @@ struct Active {
 
 impl Active {
     /// Write one message; on failure the recording ends (logged) and `false` comes back.
-    fn record_outcome(
-        &mut self,
-        status: &RecorderStatus,
-        what: Result<(), RecordingError>,
-    ) -> bool {
+    fn record_outcome(&self, status: &RecorderStatus, what: Result<(), RecordingError>) -> bool {
         match what {
             Ok(()) => {
                 status.messages.fetch_add(1, Ordering::Relaxed);
