@@ -652,21 +652,7 @@ fn l2(a: &[Vec3], mask: &[bool]) -> f64 {
 /// zero `b` there (the bench's `offline::delta_error` floors the norm instead; a frame whose
 /// true Δ is zero must drop out of the summaries here, not dominate them).
 pub fn relative_l2(a: &[Vec3], b: &[Vec3], mask: &[bool]) -> f64 {
-    if a.len() != b.len() || b.len() != mask.len() {
-        return f64::NAN;
-    }
-    let (mut err, mut norm) = (0.0f64, 0.0f64);
-    for ((x, y), m) in a.iter().zip(b).zip(mask) {
-        if *m {
-            err += f64::from((*x - *y).length_squared());
-            norm += f64::from(y.length_squared());
-        }
-    }
-    if norm > 0.0 {
-        (err / norm).sqrt()
-    } else {
-        f64::NAN
-    }
+    offline::masked_relative_l2(a, b, mask).unwrap_or(f64::NAN)
 }
 
 fn rgb_linear(image: &Image) -> Vec<Vec3> {

@@ -203,6 +203,20 @@ pub fn regions(reference: &ReferenceImages) -> Regions {
     Regions { shadow, bleeding }
 }
 
+/// ‖a − b‖₂ / ‖b‖₂ over the pixels `mask` selects; `None` on mismatched sizes or where `b` is
+/// zero there (an empty mask included).
+pub fn masked_relative_l2(a: &[Vec3], b: &[Vec3], mask: &[bool]) -> Option<f64> {
+    if a.len() != b.len() || b.len() != mask.len() {
+        return None;
+    }
+    let (mut err, mut norm) = (0.0f64, 0.0f64);
+    for ((x, y), _) in a.iter().zip(b).zip(mask).filter(|(_, m)| **m) {
+        err += f64::from((*x - *y).length_squared());
+        norm += f64::from(y.length_squared());
+    }
+    (norm > 0.0).then(|| (err / norm).sqrt())
+}
+
 /// Δ's error in the object's shadow and in its bleeding ([`Regions`]), each ‖Δ − Δ_ref‖₂ /
 /// ‖Δ_ref‖₂ over its pixels: `None` where the reference has no such pixel (an object that casts
 /// no visible shadow, a dark object that bleeds nothing) or Δ is missing or mis-sized.
@@ -217,22 +231,7 @@ pub struct RegionErrors {
 pub fn region_errors(delta: &[Vec3], reference: &ReferenceImages) -> RegionErrors {
     let regions = regions(reference);
     let count = |mask: &[bool]| mask.iter().filter(|m| **m).count();
-    let error = |mask: &[bool]| {
-        if delta.len() != reference.delta.len() {
-            return None;
-        }
-        let (mut err, mut norm) = (0.0f64, 0.0f64);
-        for ((d, r), _) in delta
-            .iter()
-            .zip(&reference.delta)
-            .zip(mask)
-            .filter(|(_, m)| **m)
-        {
-            err += f64::from((*d - *r).length_squared());
-            norm += f64::from(r.length_squared());
-        }
-        (norm > 0.0).then(|| (err / norm).sqrt())
-    };
+    let error = |mask: &[bool]| masked_relative_l2(delta, &reference.delta, mask);
     RegionErrors {
         shadow_relative_l2: error(&regions.shadow),
         bleeding_relative_l2: error(&regions.bleeding),
