@@ -3,6 +3,7 @@
 //! shadow maps; and, after the engine's own passes have written its indirect term, shade and
 //! composite (`shaders/shade.wgsl`) and read Δ and the composite back into the [`RelitFrame`].
 
+use std::hash::{DefaultHasher, Hash, Hasher};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -13,7 +14,7 @@ use relight_core::{Image, PixelFormat};
 use wgpu::util::DeviceExt;
 
 use crate::engine::{EngineError, PassTiming, RelitFrame, SceneFrame};
-use crate::gbuffer::{GBufferPass, RsmPass, Targets};
+use crate::gbuffer::{GBufferPass, RsmPass, RsmRedraw, Targets};
 use crate::gpu::GpuContext;
 use crate::gpu_scene::{
     GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, is_shadowed, light_faces,
@@ -88,6 +89,8 @@ pub struct Deferred {
     scene: Option<(Arc<Scene>, GpuScene)>,
     frame: Option<FrameResources>,
     light: Option<LightResources>,
+    /// [`Self::rsm_keys`] of what `light`'s maps hold, once drawn.
+    rsm_drawn: Option<[u64; 2]>,
     light_count: u32,
     rgba: Vec<u8>,
     lights_cpu: Vec<GpuLight>,
@@ -135,6 +138,7 @@ impl Deferred {
             scene: None,
             frame: None,
             light: None,
+            rsm_drawn: None,
             light_count: 0,
             rgba: Vec::new(),
             lights_cpu: Vec::new(),
@@ -164,6 +168,7 @@ impl Deferred {
         Self {
             rsm: RsmPass::position_only(&self.ctx),
             light: None,
+            rsm_drawn: None,
             ..self
         }
     }
@@ -202,7 +207,6 @@ impl Deferred {
             .is_some_and(|(s, _)| Arc::ptr_eq(s, scene))
         {
             self.scene = Some((scene.clone(), GpuScene::new(&ctx, scene)));
-            self.light = None;
             let map = scene
                 .environment
                 .as_ref()
@@ -213,7 +217,7 @@ impl Deferred {
         let Some((_, gpu_scene)) = &self.scene else {
             unreachable!("uploaded above")
         };
-        let bounds = gpu_scene.bounds;
+        let (bounds, light_bounds) = (gpu_scene.bounds, gpu_scene.light_bounds);
         if !self
             .frame
             .as_ref()
@@ -230,7 +234,7 @@ impl Deferred {
         };
         (self.lights_cpu, self.faces_cpu) =
             if self.extra_lights.is_empty() && environment_lights.is_empty() {
-                light_faces(&scene.lights, bounds, rsm_size)
+                light_faces(&scene.lights, light_bounds, rsm_size)
             } else {
                 let all: Vec<Light> = scene
                     .lights
@@ -239,7 +243,7 @@ impl Deferred {
                     .chain(&self.extra_lights)
                     .copied()
                     .collect();
-                let (mut lights, faces) = light_faces(&all, bounds, rsm_size);
+                let (mut lights, faces) = light_faces(&all, light_bounds, rsm_size);
                 if self.extra_role == ExtraLights::ShadowOnly {
                     let extras = self.extra_lights.iter().filter(|l| is_shadowed(l)).count();
                     let first = lights.len().saturating_sub(extras);
@@ -273,6 +277,7 @@ impl Deferred {
                 layers,
                 self.rsm.is_position_only(),
             ));
+            self.rsm_drawn = None;
         }
         self.light_count = self.lights_cpu.len() as u32;
         let (Some(frame_res), Some(light_res)) = (&self.frame, &self.light) else {
@@ -323,7 +328,14 @@ impl Deferred {
                 self.timer.as_mut(),
             );
         }
-        if !self.faces_cpu.is_empty() {
+        let drawn = self.rsm_keys(gpu_scene, rsm_size, layers);
+        let redraw = match self.rsm_drawn {
+            _ if self.faces_cpu.is_empty() => None,
+            Some(before) if before == drawn => None,
+            Some([mu, _]) if mu == drawn[0] => Some(RsmRedraw::Rho),
+            _ => Some(RsmRedraw::Both),
+        };
+        if let Some(redraw) = redraw {
             let rsm_group =
                 self.rsm
                     .bind_group(&ctx, &light_res.lights, &light_res.faces, gpu_scene);
@@ -332,8 +344,10 @@ impl Deferred {
                 &rsm_group,
                 gpu_scene,
                 (&light_res.rsm_rho, &light_res.rsm_mu),
+                redraw,
                 self.timer.as_mut(),
             );
+            self.rsm_drawn = Some(drawn);
         }
         encoder.clear_buffer(&frame_res.indirect, 0, None);
         ctx.queue.submit([encoder.finish()]);
@@ -343,6 +357,21 @@ impl Deferred {
             ms: started.elapsed().as_secs_f64() * 1e3,
         });
         Ok((width, height))
+    }
+
+    /// What the R^μ and R^ρ maps would hold for this frame, as hashes of everything they are
+    /// drawn from: the light-space geometry ([`GpuScene::light_fingerprint`]), the lights,
+    /// their faces and the maps' size. Equal to the last drawn: the maps need no redraw.
+    fn rsm_keys(&self, scene: &GpuScene, rsm_size: u32, layers: u32) -> [u64; 2] {
+        let mut mu = DefaultHasher::new();
+        scene.light_fingerprint[0].hash(&mut mu);
+        bytemuck::cast_slice::<_, u8>(&self.lights_cpu).hash(&mut mu);
+        bytemuck::cast_slice::<_, u8>(&self.faces_cpu).hash(&mut mu);
+        (rsm_size, layers).hash(&mut mu);
+        let mu = mu.finish();
+        let mut rho = DefaultHasher::new();
+        (mu, scene.light_fingerprint[1]).hash(&mut rho);
+        [mu, rho.finish()]
     }
 
     /// The uploaded scene (after [`prepare`](Self::prepare)).

@@ -232,6 +232,15 @@ impl Targets {
 }
 
 /// How [`Targets::draw`] begins a layer.
+/// Which reflective shadow maps [`RsmPass::render`] draws.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RsmRedraw {
+    /// R^μ, then R^ρ over its copy.
+    Both,
+    /// R^ρ over a copy of the R^μ drawn before.
+    Rho,
+}
+
 #[derive(Debug, Clone, Copy)]
 enum LayerStart {
     /// Cleared, position w set to `empty_w`; its depth kept after the pass when `keep_depth`.
@@ -414,41 +423,47 @@ impl RsmPass {
     /// targets, one layer per light face. R^ρ differs from R^μ only where the virtual object is
     /// in front, so R^μ is drawn with its depth kept, copied into R^ρ, and only the object's
     /// triangles are drawn over the copy: the real meshes (a live depth mesh of tens of
-    /// thousands of triangles) are rasterised once per face, not twice.
+    /// thousands of triangles) are rasterised once per face, not twice. The real meshes are
+    /// [`GpuScene::shadow_real`] (a scene's shadow proxy, where it has one).
+    ///
+    /// `redraw` says what to draw: [`RsmRedraw::Both`], or [`RsmRedraw::Rho`] when R^μ still
+    /// holds this frame's real scene (only the copy and the object are drawn).
     pub fn render(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         bind_group: &wgpu::BindGroup,
         scene: &GpuScene,
         (rho, mu): (&Targets, &Targets),
+        redraw: RsmRedraw,
         mut timer: Option<&mut GpuTimer>,
     ) {
-        let real = scene.vertex_count(false);
-        let all = scene.vertex_count(true);
-        for face in 0..mu.layers {
-            mu.draw(
-                encoder,
-                &self.pipeline,
-                bind_group,
-                scene,
-                0..real,
-                face,
-                LayerStart::Clear {
-                    empty_w: RSM_EMPTY_DISTANCE,
-                    keep_depth: true,
-                },
-                timer.as_deref_mut().and_then(|t| t.render("gpu.rsm")),
-            );
+        if redraw == RsmRedraw::Both {
+            for face in 0..mu.layers {
+                mu.draw(
+                    encoder,
+                    &self.pipeline,
+                    bind_group,
+                    scene,
+                    scene.shadow_real.clone(),
+                    face,
+                    LayerStart::Clear {
+                        empty_w: RSM_EMPTY_DISTANCE,
+                        keep_depth: true,
+                    },
+                    timer.as_deref_mut().and_then(|t| t.render("gpu.rsm")),
+                );
+            }
         }
         rho.copy_from(encoder, mu);
-        if all > real {
+        let virtual_vertices = scene.real_vertices..scene.all_vertices;
+        if !virtual_vertices.is_empty() {
             for face in 0..rho.layers {
                 rho.draw(
                     encoder,
                     &self.pipeline,
                     bind_group,
                     scene,
-                    real..all,
+                    virtual_vertices.clone(),
                     face,
                     LayerStart::Over,
                     timer.as_deref_mut().and_then(|t| t.render("gpu.rsm")),

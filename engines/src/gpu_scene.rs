@@ -2,10 +2,13 @@
 //! real-only draws are a prefix), the materials, the camera, and every light with its shadow-map
 //! faces. Layouts match `shaders/common.wgsl`.
 
+use std::hash::{DefaultHasher, Hash, Hasher};
+use std::ops::Range;
+
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3};
 use relight_core::light::Light;
-use relight_core::scene::{Scene, SceneCamera, box_corners};
+use relight_core::scene::{Mesh, Scene, SceneCamera, box_corners};
 use wgpu::util::DeviceExt;
 
 use crate::gpu::GpuContext;
@@ -81,8 +84,16 @@ pub struct GpuScene {
     pub real_vertices: u32,
     pub all_vertices: u32,
     pub materials: wgpu::Buffer,
+    /// Vertices the light-space passes draw for the real meshes: the [`Scene::shadow_proxy`]'s
+    /// (after every mesh's) when the scene has one, else the real meshes'.
+    pub shadow_real: Range<u32>,
     /// World-space bounds of every mesh.
     pub bounds: (Vec3, Vec3),
+    /// Bounds of what the light-space passes draw (the shadow maps' frusta enclose them).
+    pub light_bounds: (Vec3, Vec3),
+    /// Hashes of what the light-space passes draw: the real part (with the materials) and the
+    /// virtual part. Equal hashes, equal lights: equal shadow maps.
+    pub light_fingerprint: [u64; 2],
     /// Bounds of the virtual object(s), if any.
     pub virtual_bounds: Option<(Vec3, Vec3)>,
 }
@@ -118,49 +129,86 @@ impl GpuScene {
             specular: [0.0; 4],
         });
         let mut vertices = Vec::new();
+        let push_mesh = |mesh: &Mesh, vertices: &mut Vec<GpuVertex>| {
+            let material = if mesh.material < scene.materials.len() {
+                mesh.material as u32
+            } else {
+                fallback
+            };
+            let virtual_flag = if mesh.is_virtual { FLAG_VIRTUAL } else { 0 };
+            for tri in &mesh.triangles {
+                let corners = tri.map(|i| {
+                    let p = mesh.positions_in_world.get(i as usize).copied();
+                    let n = mesh.normals_in_world.get(i as usize).copied();
+                    (p, n, mesh.measured_albedo(i))
+                });
+                if corners
+                    .iter()
+                    .any(|(p, _, _)| !p.is_some_and(|p| p.is_finite()))
+                {
+                    continue;
+                }
+                for (p, n, albedo) in corners {
+                    let n = n.filter(|n| n.is_finite()).unwrap_or(Vec3::ZERO);
+                    vertices.push(GpuVertex {
+                        position: p.unwrap_or(Vec3::ZERO).to_array(),
+                        normal: n.normalize_or_zero().to_array(),
+                        material,
+                        flags: virtual_flag | albedo.map_or(0, pack_measured_albedo),
+                    });
+                }
+            }
+        };
         let mut real_vertices = 0;
         for want_virtual in [false, true] {
             for mesh in scene.meshes.iter().filter(|m| m.is_virtual == want_virtual) {
-                let material = if mesh.material < scene.materials.len() {
-                    mesh.material as u32
-                } else {
-                    fallback
-                };
-                let virtual_flag = if mesh.is_virtual { FLAG_VIRTUAL } else { 0 };
-                for tri in &mesh.triangles {
-                    let corners = tri.map(|i| {
-                        let p = mesh.positions_in_world.get(i as usize).copied();
-                        let n = mesh.normals_in_world.get(i as usize).copied();
-                        (p, n, mesh.measured_albedo(i))
-                    });
-                    if corners
-                        .iter()
-                        .any(|(p, _, _)| !p.is_some_and(|p| p.is_finite()))
-                    {
-                        continue;
-                    }
-                    for (p, n, albedo) in corners {
-                        let n = n.filter(|n| n.is_finite()).unwrap_or(Vec3::ZERO);
-                        vertices.push(GpuVertex {
-                            position: p.unwrap_or(Vec3::ZERO).to_array(),
-                            normal: n.normalize_or_zero().to_array(),
-                            material,
-                            flags: virtual_flag | albedo.map_or(0, pack_measured_albedo),
-                        });
-                    }
-                }
+                push_mesh(mesh, &mut vertices);
             }
             if !want_virtual {
                 real_vertices = vertices.len() as u32;
             }
         }
-        let bounds = vertices
-            .iter()
-            .map(|v| Vec3::from(v.position))
-            .fold(None, |acc: Option<(Vec3, Vec3)>, p| {
-                Some(acc.map_or((p, p), |(lo, hi)| (lo.min(p), hi.max(p))))
-            })
-            .unwrap_or((Vec3::ZERO, Vec3::ZERO));
+        let all_vertices = vertices.len() as u32;
+        let shadow_real = match &scene.shadow_proxy {
+            Some(proxy) => {
+                push_mesh(proxy, &mut vertices);
+                all_vertices..vertices.len() as u32
+            }
+            None => 0..real_vertices,
+        };
+        let bounds_of = |vertices: &[GpuVertex]| {
+            vertices.iter().map(|v| Vec3::from(v.position)).fold(
+                None,
+                |acc: Option<(Vec3, Vec3)>, p| {
+                    Some(acc.map_or((p, p), |(lo, hi)| (lo.min(p), hi.max(p))))
+                },
+            )
+        };
+        let range = |r: Range<u32>| &vertices[r.start as usize..r.end as usize];
+        let bounds =
+            bounds_of(&vertices[..all_vertices as usize]).unwrap_or((Vec3::ZERO, Vec3::ZERO));
+        let light_bounds = [
+            bounds_of(range(shadow_real.clone())),
+            bounds_of(range(real_vertices..all_vertices)),
+        ]
+        .into_iter()
+        .flatten()
+        .reduce(|(lo, hi), (l, h)| (lo.min(l), hi.max(h)))
+        .unwrap_or((Vec3::ZERO, Vec3::ZERO));
+        let fingerprint = |parts: &[&[u8]]| {
+            let mut hasher = DefaultHasher::new();
+            for part in parts {
+                part.hash(&mut hasher);
+            }
+            hasher.finish()
+        };
+        let light_fingerprint = [
+            fingerprint(&[
+                bytemuck::cast_slice(range(shadow_real.clone())),
+                bytemuck::cast_slice(&materials),
+            ]),
+            fingerprint(&[bytemuck::cast_slice(range(real_vertices..all_vertices))]),
+        ];
         // wgpu refuses zero-sized vertex buffers; one degenerate vertex is never drawn.
         if vertices.is_empty() {
             vertices.push(GpuVertex::zeroed());
@@ -168,7 +216,7 @@ impl GpuScene {
         let all_vertices = if scene.meshes.is_empty() {
             0
         } else {
-            vertices.len() as u32
+            all_vertices
         };
         Self {
             vertices: ctx
@@ -180,7 +228,8 @@ impl GpuScene {
                     usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::STORAGE,
                 }),
             real_vertices,
-            all_vertices: all_vertices.min(vertices.len() as u32),
+            all_vertices,
+            shadow_real,
             materials: ctx
                 .device
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -189,6 +238,8 @@ impl GpuScene {
                     usage: wgpu::BufferUsages::STORAGE,
                 }),
             bounds,
+            light_bounds,
+            light_fingerprint,
             virtual_bounds: scene.virtual_bounds(),
         }
     }

@@ -22,6 +22,7 @@ pub mod recon_gpu;
 pub mod reference_cache;
 pub mod registry;
 pub mod shaders;
+pub mod shadow_proxy;
 pub mod surface_albedo;
 pub mod timer;
 mod volume;

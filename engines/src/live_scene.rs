@@ -16,6 +16,7 @@ use relight_core::scene::{EnvironmentMap, Material, Mesh, Scene};
 use relight_core::{Image, LampState, Pose};
 use relight_recon::irradiance::project_sh9;
 
+use crate::shadow_proxy::{HeldProxy, ProxyHold};
 use crate::surface_albedo::{AlbedoReport, DepthGrid, SurfaceAlbedo};
 
 /// Where the real geometry comes from.
@@ -62,6 +63,10 @@ pub struct LiveScene {
     /// The scene file's environment map as an SH light (what albedo estimation is told of it),
     /// projected when measurement starts.
     environment_sh: Option<Light>,
+    /// The depth surface decimated for the shadow maps ([`Scene::shadow_proxy`]).
+    shadow_proxy: HeldProxy,
+    /// The depth stage said the next frame's surface is the last one's ([`Self::hold_surface`]).
+    surface_held: bool,
 }
 
 impl LiveScene {
@@ -100,7 +105,21 @@ impl LiveScene {
             lamp: None,
             albedo: None,
             environment_sh: None,
+            shadow_proxy: HeldProxy::new(ProxyHold::default()),
+            surface_held: false,
         }
+    }
+
+    /// The depth stage merged the next frame's depth with its history without a reset: the
+    /// real surface has not materially changed, so the shadow maps' proxy of it may be kept.
+    /// Holds for one [`frame`](Self::frame).
+    pub fn hold_surface(&mut self) {
+        self.surface_held = true;
+    }
+
+    /// Shadow proxies built so far (a held one is not counted again).
+    pub fn shadow_proxies_built(&self) -> u64 {
+        self.shadow_proxy.built()
     }
 
     /// Measure the depth surface's albedo from now on (with [`RealGeometry::Depth`]).
@@ -204,6 +223,7 @@ impl LiveScene {
         if let Some(lamp) = lamp {
             self.lamp = Some(*lamp);
         }
+        let surface_held = std::mem::take(&mut self.surface_held);
         let lamp_light = self.lamp_light();
         if self.real == RealGeometry::Scene && lamp_light.is_none() {
             return Some(
@@ -247,12 +267,21 @@ impl LiveScene {
                             lights.as_deref().unwrap_or_default(),
                         );
                     }
+                    scene.shadow_proxy = Some(self.shadow_proxy.proxy(
+                        &mesh,
+                        &world_from_camera,
+                        surface_held,
+                    ));
                     scene.meshes.insert(0, mesh);
                 }
                 None if !self.proxy.is_empty() => {
+                    self.shadow_proxy.drop_held();
                     scene.meshes.splice(0..0, self.proxy.iter().cloned());
                 }
-                None => return None,
+                None => {
+                    self.shadow_proxy.drop_held();
+                    return None;
+                }
             }
         }
         Some(Arc::new(scene))
@@ -420,6 +449,7 @@ mod tests {
             lights: Vec::new(),
             environment: None,
             environment_lights: Vec::new(),
+            shadow_proxy: None,
         };
         let mut live = LiveScene::new(base, RealGeometry::Depth, 0.5, Some(camera()), 1);
         let lamp = LampState {
@@ -456,6 +486,45 @@ mod tests {
             live.frame(None, None, None).is_none(),
             "no depth, no surface"
         );
+    }
+
+    #[test]
+    fn the_shadow_proxy_is_decimated_and_held_while_the_depth_stage_says_so() {
+        let mut depth = Image::new(8, 6, PixelFormat::DepthF32M);
+        depth.as_f32_mut().unwrap().fill(2.0);
+        let base = Scene {
+            name: "t".into(),
+            meshes: Vec::new(),
+            materials: Vec::new(),
+            camera: relight_core::scene::SceneCamera {
+                world_from_camera: Pose::IDENTITY,
+                yfov_rad: 1.0,
+                width: 8,
+                height: 6,
+            },
+            lights: Vec::new(),
+            environment: None,
+            environment_lights: Vec::new(),
+            shadow_proxy: None,
+        };
+        let mut live = LiveScene::new(base, RealGeometry::Depth, 0.5, Some(camera()), 1);
+        let first = live.frame(Some(&depth), None, None).unwrap();
+        let proxy = first.shadow_proxy.clone().unwrap();
+        assert_eq!(
+            first.meshes[0].triangles.len(),
+            2 * 7 * 5,
+            "the camera sees it all"
+        );
+        assert_eq!(proxy.triangles.len(), 2, "a flat wall is one quad");
+        live.hold_surface();
+        let held = live.frame(Some(&depth), None, None).unwrap();
+        assert!(Arc::ptr_eq(&proxy, held.shadow_proxy.as_ref().unwrap()));
+        let rebuilt = live.frame(Some(&depth), None, None).unwrap();
+        assert!(
+            !Arc::ptr_eq(&proxy, rebuilt.shadow_proxy.as_ref().unwrap()),
+            "held one frame only"
+        );
+        assert_eq!(live.shadow_proxies_built(), 2);
     }
 
     #[test]

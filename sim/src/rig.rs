@@ -1065,6 +1065,7 @@ pub(crate) mod tests {
             lights: Vec::new(),
             environment: None,
             environment_lights: Vec::new(),
+            shadow_proxy: None,
         }
     }
 

@@ -186,6 +186,7 @@ fn scene() -> Scene {
         }],
         environment: None,
         environment_lights: Vec::new(),
+        shadow_proxy: None,
     }
 }
 

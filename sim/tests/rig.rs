@@ -57,6 +57,7 @@ fn floor_scene() -> Scene {
         }],
         environment: None,
         environment_lights: Vec::new(),
+        shadow_proxy: None,
     }
 }
 

@@ -352,6 +352,7 @@ impl Scene {
             lights: desc.lights,
             environment,
             environment_lights: Vec::new(),
+            shadow_proxy: None,
         })
     }
 }

@@ -4,6 +4,8 @@
 //! Everything is flattened into world space on load, so renderers (the reference path tracer,
 //! the simulator, the engines' offline path) never walk a node hierarchy.
 
+use std::sync::Arc;
+
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
@@ -91,6 +93,11 @@ pub struct Scene {
     /// ignore these, so the environment's light is counted once either way. Empty for a scene
     /// file.
     pub environment_lights: Vec<Light>,
+    /// The real meshes as the light-space passes (shadow maps, reflective shadow maps) draw
+    /// them, in their place: the live depth surface decimated, and kept while the real surface
+    /// holds, so the maps of a still scene need not be redrawn. `None`: the real meshes
+    /// themselves. Only the rasterising engines use it; the reference ignores it.
+    pub shadow_proxy: Option<Arc<Mesh>>,
 }
 
 impl Mesh {

@@ -259,6 +259,13 @@ impl LiveFrames {
                 _ => None,
             };
             let depth_ms = start.elapsed().as_secs_f64() * 1e3;
+            if self
+                .depth_stage
+                .as_ref()
+                .is_some_and(DepthStage::surface_held)
+            {
+                live.hold_surface();
+            }
             let depth = match &reconstructed {
                 Some(DepthOutcome::Depth(image)) => Some(image),
                 Some(DepthOutcome::Proxy) => None,

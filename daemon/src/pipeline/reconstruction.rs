@@ -17,7 +17,7 @@ use relight_engines::recon_gpu::{DepthPass, DepthPassSettings};
 use relight_recon::depth::{
     DepthMap, DepthRange, GeometrySource, GuidedFilterSettings, ProxySwitch, guided_filter,
 };
-use relight_recon::temporal::{TemporalMerge, TemporalSettings};
+use relight_recon::temporal::{MergeReport, TemporalMerge, TemporalSettings};
 
 /// What the scene is built from this frame.
 #[derive(Debug)]
@@ -37,6 +37,8 @@ pub struct DepthStage {
     merge: TemporalMerge,
     switch: ProxySwitch,
     gpu: Option<(DepthPass, DepthPassSettings)>,
+    /// The last frame's depth was merged with its history without a reset.
+    surface_held: bool,
 }
 
 impl DepthStage {
@@ -51,7 +53,14 @@ impl DepthStage {
             merge: TemporalMerge::new(TemporalSettings::kinect_v1(focal)),
             switch: ProxySwitch::default(),
             gpu: gpu.map(|ctx| (DepthPass::new(ctx), DepthPassSettings::kinect_v1(focal))),
+            surface_held: false,
         }
+    }
+
+    /// Whether the last [`process`](Self::process) merged its depth with the history without a
+    /// reset: the temporal merge found the real surface unchanged.
+    pub fn surface_held(&self) -> bool {
+        self.surface_held
     }
 
     /// One depth frame, `colour` its registered colour image (the filter's guide; without one,
@@ -62,6 +71,7 @@ impl DepthStage {
         colour: Option<&Image>,
         world_from_camera: &Pose,
     ) -> DepthOutcome {
+        self.surface_held = false;
         let (map, census) = match DepthMap::from_image_with_census(depth, self.range) {
             Ok(parsed) => parsed,
             Err(error) => {
@@ -76,7 +86,10 @@ impl DepthStage {
         let guide = colour.filter(|c| c.width() == map.width && c.height() == map.height);
         if let (Some((pass, settings)), Some(guide)) = (&mut self.gpu, guide) {
             match pass.run(&map, guide, &self.camera, world_from_camera, settings) {
-                Ok(frame) => return DepthOutcome::Depth(frame.depth.to_image()),
+                Ok(frame) => {
+                    self.surface_held = frame.merge.as_ref().is_some_and(surface_unchanged);
+                    return DepthOutcome::Depth(frame.depth.to_image());
+                }
                 Err(error) => {
                     tracing::warn!(%error, "GPU depth pass failed: this frame on the CPU")
                 }
@@ -90,11 +103,29 @@ impl DepthStage {
             })
             .unwrap_or(map);
         match self.merge.merge(&filtered, &self.camera, world_from_camera) {
-            Ok(merged) => DepthOutcome::Depth(merged.to_image()),
+            Ok(merged) => {
+                self.surface_held = surface_unchanged(self.merge.report());
+                DepthOutcome::Depth(merged.to_image())
+            }
             Err(error) => {
                 tracing::debug!(%error, "depth not merged");
                 DepthOutcome::Depth(filtered.to_image())
             }
         }
     }
+}
+
+/// Share of the pixels compared with the history that may disagree with it while the real
+/// surface still counts as unchanged: a correctly tracked camera has under 1 % (edges, noise;
+/// [`TemporalSettings::kinect_v1`]), so more means something in view moved, even where too
+/// little moved for the merge to reset.
+const MAX_CHANGED_SHARE: f32 = 0.03;
+
+/// Whether a merge found the real surface unchanged: no reset, and at most
+/// [`MAX_CHANGED_SHARE`] of the compared pixels rejected.
+fn surface_unchanged(report: &MergeReport) -> bool {
+    let compared = report.merged + report.rejected;
+    report.reset.is_none()
+        && compared > 0
+        && report.rejected as f32 <= MAX_CHANGED_SHARE * compared as f32
 }

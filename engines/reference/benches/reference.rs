@@ -98,6 +98,7 @@ fn bench_scene(width: u32, height: u32) -> Scene {
             radiance,
         }),
         environment_lights: Vec::new(),
+        shadow_proxy: None,
     }
 }
 

@@ -455,6 +455,7 @@ mod tests {
             }],
             environment: Some(environment),
             environment_lights: Vec::new(),
+            shadow_proxy: None,
         }
     }
 

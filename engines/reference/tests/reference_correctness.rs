@@ -37,6 +37,7 @@ fn scene(name: &str, camera: SceneCamera) -> Scene {
         lights: Vec::new(),
         environment: None,
         environment_lights: Vec::new(),
+        shadow_proxy: None,
     }
 }
 

@@ -145,6 +145,7 @@ fn nasty_scene() -> Scene {
         ],
         environment: Some(environment),
         environment_lights: Vec::new(),
+        shadow_proxy: None,
     }
 }
 

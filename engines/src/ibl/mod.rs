@@ -425,6 +425,7 @@ mod tests {
             lights: Vec::new(),
             environment: None,
             environment_lights: Vec::new(),
+            shadow_proxy: None,
         };
         let levels = specular_levels(&scene, 8);
         assert_eq!(levels.len(), 8);

@@ -1,0 +1,218 @@
+//! The shadow maps every engine shares (`Deferred`): kept across frames while what they are drawn
+//! from holds, redrawn when it changes, and drawn from the scene's shadow proxy where it has one.
+
+mod support;
+
+use std::sync::Arc;
+
+use glam::Vec3;
+use relight_core::light::Light;
+use relight_core::scene::{Mesh, Scene};
+use relight_engines::shadow_proxy::{SHADOW_PROXY_ERROR_M, decimate};
+use relight_engines::{Engine, RelitFrame};
+use support::{engine, frame, load_scene};
+
+fn render(engine: &mut Box<dyn Engine>, scene: &Arc<Scene>) -> RelitFrame {
+    let mut out = RelitFrame::default();
+    engine
+        .render(&frame(scene.clone(), 80, 60), &mut out)
+        .unwrap_or_else(|e| panic!("{e}"));
+    out
+}
+
+fn drew_shadow_maps(out: &RelitFrame) -> bool {
+    out.timings.iter().any(|t| t.pass == "gpu.rsm")
+}
+
+fn moved_light(scene: &Scene, by: Vec3) -> Scene {
+    let mut scene = scene.clone();
+    for light in &mut scene.lights {
+        if let Light::Point {
+            position_in_world, ..
+        } = light
+        {
+            *position_in_world += by;
+        }
+    }
+    scene
+}
+
+fn moved_object(scene: &Scene, by: Vec3) -> Scene {
+    let mut scene = scene.clone();
+    for mesh in scene.meshes.iter_mut().filter(|m| m.is_virtual) {
+        for p in &mut mesh.positions_in_world {
+            *p += by;
+        }
+    }
+    scene
+}
+
+/// A sequence of frames where the light, then nothing, then the object changes: every frame's
+/// Δ and composite are bit-identical to a fresh engine's on that frame alone, so maps kept from
+/// an earlier frame are never stale. A frame whose scene equals the last one's (a new `Arc`, as
+/// the live scene makes every frame) draws no shadow map at all.
+#[test]
+fn kept_shadow_maps_equal_freshly_drawn_ones() {
+    let desk = load_scene("desk_box");
+    let frames = [
+        desk.clone(),
+        moved_light(&desk, Vec3::new(0.2, 0.0, 0.0)),
+        moved_light(&desk, Vec3::new(0.2, 0.0, 0.0)),
+        moved_object(
+            &moved_light(&desk, Vec3::new(0.2, 0.0, 0.0)),
+            Vec3::X * 0.05,
+        ),
+    ];
+    for name in ["differential", "dvct"] {
+        let mut kept = engine(name);
+        for (i, scene) in frames.iter().enumerate() {
+            let scene = Arc::new(scene.clone());
+            let out = render(&mut kept, &scene);
+            let fresh = render(&mut engine(name), &scene);
+            assert!(out.delta == fresh.delta, "{name}: frame {i}'s Δ");
+            assert!(
+                out.composite == fresh.composite,
+                "{name}: frame {i}'s composite"
+            );
+            if drew_shadow_maps(&fresh) {
+                assert_eq!(drew_shadow_maps(&out), i != 2, "{name}: frame {i}");
+            }
+        }
+    }
+}
+
+/// Every real triangle of `mesh` split into 4^`levels` by its edge midpoints.
+fn subdivided(mesh: &Mesh, levels: u32) -> Mesh {
+    let mut mesh = mesh.clone();
+    for _ in 0..levels {
+        let mut triangles = Vec::new();
+        // One midpoint per edge, shared by the triangles on both sides.
+        let mut midpoints = std::collections::HashMap::new();
+        for [a, b, c] in std::mem::take(&mut mesh.triangles) {
+            let mut mid = |i: u32, j: u32| {
+                *midpoints.entry((i.min(j), i.max(j))).or_insert_with(|| {
+                    let (i, j) = (i as usize, j as usize);
+                    mesh.positions_in_world
+                        .push((mesh.positions_in_world[i] + mesh.positions_in_world[j]) / 2.0);
+                    mesh.normals_in_world
+                        .push((mesh.normals_in_world[i] + mesh.normals_in_world[j]).normalize());
+                    mesh.positions_in_world.len() as u32 - 1
+                })
+            };
+            let (ab, bc, ca) = (mid(a, b), mid(b, c), mid(c, a));
+            triangles.extend([[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]);
+        }
+        mesh.triangles = triangles;
+    }
+    mesh
+}
+
+/// The real meshes as one (what a depth surface is).
+fn merged(meshes: &[Mesh]) -> Mesh {
+    let mut out = Mesh {
+        name: "real".into(),
+        triangles: Vec::new(),
+        positions_in_world: Vec::new(),
+        normals_in_world: Vec::new(),
+        material: meshes[0].material,
+        is_virtual: false,
+        vertex_albedo: Vec::new(),
+    };
+    for mesh in meshes {
+        let first = out.positions_in_world.len() as u32;
+        out.positions_in_world.extend(&mesh.positions_in_world);
+        out.normals_in_world.extend(&mesh.normals_in_world);
+        out.triangles
+            .extend(mesh.triangles.iter().map(|t| t.map(|i| i + first)));
+    }
+    out
+}
+
+/// The desk with its real meshes finely tessellated (as a depth surface is), drawn into the
+/// shadow maps once as they are and once through their decimated proxy. The proxy has a small
+/// fraction of the triangles and lies within 2 mm of the surface, under the shading's depth
+/// bias, so Δ may differ only by rounding: the f16 step of Δ (2⁻¹⁰ relative) on a pixel
+/// whose shadow test sits at the bias, which bounds the relative L2 difference by 1 %.
+#[test]
+fn a_decimated_shadow_proxy_casts_the_same_shadows() {
+    let mut desk = load_scene("desk_box");
+    let (real, object): (Vec<Mesh>, Vec<Mesh>) = desk.meshes.drain(..).partition(|m| !m.is_virtual);
+    let fine: Vec<Mesh> = real.iter().map(|m| subdivided(m, 4)).collect();
+    desk.meshes = fine.iter().cloned().chain(object).collect();
+    let proxy = decimate(&merged(&fine), SHADOW_PROXY_ERROR_M);
+    let fine_triangles: usize = fine.iter().map(|m| m.triangles.len()).sum();
+    eprintln!("{fine_triangles} → {} triangles", proxy.triangles.len());
+    assert!(
+        proxy.triangles.len() * 20 < fine_triangles,
+        "{} of {fine_triangles} triangles kept",
+        proxy.triangles.len()
+    );
+    let with_proxy = Scene {
+        shadow_proxy: Some(Arc::new(proxy)),
+        ..desk.clone()
+    };
+    let full = render(&mut engine("differential"), &Arc::new(desk));
+    let decimated = render(&mut engine("differential"), &Arc::new(with_proxy));
+    let (a, b) = (
+        relight_engines::offline::delta_pixels(&full.delta),
+        relight_engines::offline::delta_pixels(&decimated.delta),
+    );
+    let norm = |v: &[Vec3]| v.iter().map(|d| d.length_squared()).sum::<f32>().sqrt();
+    let difference: Vec<Vec3> = a.iter().zip(&b).map(|(a, b)| *a - *b).collect();
+    let relative = norm(&difference) / norm(&a);
+    eprintln!("relative L2 of the Δ difference {relative:.5}");
+    assert!(norm(&a) > 0.0, "the object casts a shadow");
+    assert!(relative < 0.01, "relative L2 {relative}");
+}
+
+/// The shadow maps draw the proxy in place of the real meshes. The real meshes as their own
+/// proxy change nothing; a proxy with a real roof between the lamp and the desk (a roof the
+/// camera does not see) puts the whole desk in shadow in both solutions, so the object's
+/// shadow, and with it Δ, is gone.
+#[test]
+fn the_shadow_maps_draw_the_proxy_not_the_real_meshes() {
+    let desk = load_scene("desk_box");
+    let real: Vec<Mesh> = desk
+        .meshes
+        .iter()
+        .filter(|m| !m.is_virtual)
+        .cloned()
+        .collect();
+    let with_proxy = |meshes: Vec<Mesh>| {
+        Arc::new(Scene {
+            shadow_proxy: Some(Arc::new(merged(&meshes))),
+            ..desk.clone()
+        })
+    };
+    let roof = Mesh::cuboid(
+        "roof",
+        Vec3::new(-1.0, 1.0, -0.8),
+        Vec3::new(1.0, 1.02, 1.2),
+        0,
+        false,
+    );
+    let full = render(&mut engine("differential"), &Arc::new(desk.clone()));
+    let same = render(&mut engine("differential"), &with_proxy(real.clone()));
+    let roofed = render(
+        &mut engine("differential"),
+        &with_proxy(real.into_iter().chain([roof]).collect()),
+    );
+    assert!(
+        full.delta == same.delta,
+        "the real meshes as their own proxy"
+    );
+    let norm = |out: &RelitFrame| {
+        relight_engines::offline::delta_pixels(&out.delta)
+            .iter()
+            .map(|d| d.length_squared())
+            .sum::<f32>()
+            .sqrt()
+    };
+    assert!(norm(&full) > 0.0, "the object casts a shadow");
+    assert!(
+        norm(&roofed) < 0.05 * norm(&full),
+        "under the roof: {} against {}",
+        norm(&roofed),
+        norm(&full)
+    );
+}
