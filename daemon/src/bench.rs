@@ -133,8 +133,13 @@ pub struct BenchRow {
     pub scene: String,
     pub engine: String,
     pub setting: String,
+    /// Median frame time with every input changed since the previous frame (the real geometry
+    /// moves by 10 µm on alternate frames), so nothing drawn before can be kept: a live frame.
     pub median_ms: f64,
     pub min_ms: f64,
+    /// Median frame time when nothing changed since the previous frame: a still scene, where
+    /// an engine keeps what it may (the shadow maps, `Deferred::prepare`).
+    pub static_ms: f64,
     /// Median GPU time of the frame's passes by timestamp queries (`None` where the adapter
     /// has none).
     pub gpu_ms: Option<f64>,
@@ -317,7 +322,23 @@ pub fn run(
     Ok(rows)
 }
 
-/// Warm up, time `frames` renders of one case, and score the last against the reference.
+/// `scene` with its first real vertex moved by 10 µm: the same picture to the shadow maps'
+/// resolution, but new geometry to every cache.
+fn nudged(scene: &Scene) -> Scene {
+    let mut scene = scene.clone();
+    if let Some(p) = scene
+        .meshes
+        .iter_mut()
+        .find(|m| !m.is_virtual)
+        .and_then(|m| m.positions_in_world.first_mut())
+    {
+        p.x += 1e-5;
+    }
+    scene
+}
+
+/// Warm up, time `frames` renders of one case with every input changing, then `frames` with
+/// nothing changing, and score the last against the reference.
 fn measure(
     registry: &EngineRegistry,
     case: &BenchCase,
@@ -331,19 +352,22 @@ fn measure(
         .with_context(|| case.label())?
         .engine;
     let mut out = RelitFrame::default();
+    let nudged = SceneFrame {
+        scene: frame.scene.as_deref().map(|s| Arc::new(nudged(s))),
+        ..frame.clone()
+    };
+    let mut render = |frame: &SceneFrame, out: &mut RelitFrame| -> Result<f64> {
+        let started = Instant::now();
+        engine.render(frame, out).with_context(|| case.label())?;
+        Ok(started.elapsed().as_secs_f64() * 1e3)
+    };
     for _ in 0..2 {
-        engine
-            .render(frame, &mut out)
-            .with_context(|| case.label())?;
+        render(frame, &mut out)?;
     }
     let mut times = Vec::new();
     let mut gpu_times = Vec::new();
-    for _ in 0..frames.max(1) {
-        let started = Instant::now();
-        engine
-            .render(frame, &mut out)
-            .with_context(|| case.label())?;
-        times.push(started.elapsed().as_secs_f64() * 1e3);
+    for i in 0..frames.max(1) {
+        times.push(render(if i % 2 == 0 { &nudged } else { frame }, &mut out)?);
         let gpu: Vec<f64> = out
             .timings
             .iter()
@@ -361,6 +385,13 @@ fn measure(
         .iter()
         .filter_map(|t| Some((t.pass.strip_prefix("gpu.")?.to_owned(), t.ms)))
         .collect();
+    // The unchanged frame once more after a changed one, then timed as it repeats; the last
+    // is the one scored.
+    render(frame, &mut out)?;
+    let mut static_times = (0..frames.max(1))
+        .map(|_| render(frame, &mut out))
+        .collect::<Result<Vec<f64>>>()?;
+    static_times.sort_by(f64::total_cmp);
     let rendered = Rendered {
         delta: delta_pixels(&out.delta),
         composite: out.composite.clone(),
@@ -371,6 +402,7 @@ fn measure(
         setting: case.label(),
         median_ms: times[times.len() / 2],
         min_ms: times[0],
+        static_ms: static_times[static_times.len() / 2],
         gpu_ms: gpu_times.get(gpu_times.len() / 2).copied(),
         gpu_passes,
         relative_l2: f64::NAN,
@@ -387,10 +419,11 @@ fn measure(
 
 pub fn table(rows: &[BenchRow]) -> String {
     let mut s = format!(
-        "{:<14} {:<48} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>7}\n",
+        "{:<14} {:<48} {:>10} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>7}\n",
         "scene",
         "engine / setting",
         "median ms",
+        "static ms",
         "GPU ms",
         "rel L2",
         "shadow",
@@ -404,10 +437,11 @@ pub fn table(rows: &[BenchRow]) -> String {
     for r in rows {
         let gpu = r.gpu_ms.map_or("-".to_owned(), |ms| format!("{ms:.2}"));
         s.push_str(&format!(
-            "{:<14} {:<48} {:>10.2} {:>10} {:>9.4} {:>9} {:>9} {:>9.4} {:>9} {:>9.4} {:>7}\n",
+            "{:<14} {:<48} {:>10.2} {:>10.2} {:>10} {:>9.4} {:>9} {:>9} {:>9.4} {:>9} {:>9.4} {:>7}\n",
             r.scene,
             r.setting,
             r.median_ms,
+            r.static_ms,
             gpu,
             r.relative_l2,
             or_dash(r.shadow_relative_l2),
@@ -426,17 +460,18 @@ pub fn table(rows: &[BenchRow]) -> String {
 pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut csv = String::from(
-        "scene,engine,setting,median_ms,min_ms,gpu_ms,relative_l2,shadow_relative_l2,bleeding_relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp\n",
+        "scene,engine,setting,median_ms,min_ms,static_ms,gpu_ms,relative_l2,shadow_relative_l2,bleeding_relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp\n",
     );
     let or_empty = |v: Option<f64>| v.map_or(String::new(), |e| e.to_string());
     for r in rows {
         csv.push_str(&format!(
-            "{},{},\"{}\",{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},\"{}\",{},{},{},{},{},{},{},{},{},{},{}\n",
             r.scene,
             r.engine,
             r.setting,
             r.median_ms,
             r.min_ms,
+            r.static_ms,
             or_empty(r.gpu_ms),
             r.relative_l2,
             or_empty(r.shadow_relative_l2),

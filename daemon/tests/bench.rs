@@ -22,6 +22,7 @@ fn bench_measures_every_case_and_writes_its_outputs() {
     assert_eq!(rows.len(), default_cases(false).len());
     for row in &rows {
         assert!(row.median_ms.is_finite() && row.median_ms > 0.0, "{row:?}");
+        assert!(row.static_ms.is_finite() && row.static_ms > 0.0, "{row:?}");
         assert!(
             row.relative_l2.is_finite() && row.relative_l2 < 2.0,
             "{row:?}"

@@ -318,16 +318,13 @@ impl Deferred {
                 label: Some("geometry"),
             });
         let camera_group = self.gbuffer.bind_group(&ctx, &self.camera, gpu_scene);
-        for (include_virtual, targets) in [(true, &frame_res.gb_rho), (false, &frame_res.gb_mu)] {
-            self.gbuffer.render(
-                &mut encoder,
-                &camera_group,
-                gpu_scene,
-                include_virtual,
-                targets,
-                self.timer.as_mut(),
-            );
-        }
+        self.gbuffer.render(
+            &mut encoder,
+            &camera_group,
+            gpu_scene,
+            (&frame_res.gb_rho, &frame_res.gb_mu),
+            self.timer.as_mut(),
+        );
         let drawn = self.rsm_keys(gpu_scene, rsm_size, layers);
         let redraw = match self.rsm_drawn {
             _ if self.faces_cpu.is_empty() => None,

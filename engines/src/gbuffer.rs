@@ -231,7 +231,6 @@ impl Targets {
     }
 }
 
-/// How [`Targets::draw`] begins a layer.
 /// Which reflective shadow maps [`RsmPass::render`] draws.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum RsmRedraw {
@@ -241,6 +240,7 @@ pub enum RsmRedraw {
     Rho,
 }
 
+/// How [`Targets::draw`] begins a layer.
 #[derive(Debug, Clone, Copy)]
 enum LayerStart {
     /// Cleared, position w set to `empty_w`; its depth kept after the pass when `keep_depth`.
@@ -332,26 +332,40 @@ impl GBufferPass {
         )
     }
 
+    /// Render the μ G-buffer (the real meshes) and the ρ one (every mesh). As with the shadow
+    /// maps ([`RsmPass::render`]), μ is drawn with its depth kept and copied into ρ, and only
+    /// the virtual object is drawn over the copy: the real meshes (the live depth mesh) are
+    /// rasterised once.
     pub fn render(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         bind_group: &wgpu::BindGroup,
         scene: &GpuScene,
-        include_virtual: bool,
-        targets: &Targets,
-        timer: Option<&mut GpuTimer>,
+        (rho, mu): (&Targets, &Targets),
+        mut timer: Option<&mut GpuTimer>,
     ) {
-        targets.draw(
+        mu.draw(
             encoder,
             &self.pipeline,
             bind_group,
             scene,
-            0..scene.vertex_count(include_virtual),
+            0..scene.real_vertices,
             0,
             LayerStart::Clear {
                 empty_w: 0.0,
-                keep_depth: false,
+                keep_depth: true,
             },
+            timer.as_deref_mut().and_then(|t| t.render("gpu.gbuffer")),
+        );
+        rho.copy_from(encoder, mu);
+        rho.draw(
+            encoder,
+            &self.pipeline,
+            bind_group,
+            scene,
+            scene.real_vertices..scene.all_vertices,
+            0,
+            LayerStart::Over,
             timer.and_then(|t| t.render("gpu.gbuffer")),
         );
     }

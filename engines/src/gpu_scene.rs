@@ -243,15 +243,6 @@ impl GpuScene {
             virtual_bounds: scene.virtual_bounds(),
         }
     }
-
-    /// Vertices to draw for the ρ (every mesh) or μ (real meshes) variant.
-    pub fn vertex_count(&self, include_virtual: bool) -> u32 {
-        if include_virtual {
-            self.all_vertices
-        } else {
-            self.real_vertices
-        }
-    }
 }
 
 /// The camera uniform for an image of `width` × `height` with the scene camera's vertical field
