@@ -29,6 +29,37 @@ struct ShadeParams {
     options: [f32; 4],
 }
 
+/// What an engine's result derived from the scene and its lights alone was computed from, so
+/// that it is kept, not recomputed, while that holds (a still scene: the camera may move).
+#[derive(Debug, Default)]
+pub struct KeptInputs(Option<u64>);
+
+impl KeptInputs {
+    /// The inputs as one hash: `parts` in order.
+    pub fn hash_of(parts: &[&[u8]]) -> u64 {
+        let mut hasher = DefaultHasher::new();
+        for part in parts {
+            part.hash(&mut hasher);
+        }
+        hasher.finish()
+    }
+
+    /// Whether the result held was computed from `inputs`.
+    pub fn holds(&self, inputs: u64) -> bool {
+        self.0 == Some(inputs)
+    }
+
+    /// The result now held was computed from `inputs` (once its work is submitted).
+    pub fn record(&mut self, inputs: u64) {
+        self.0 = Some(inputs);
+    }
+
+    /// The result is gone (its buffers were made anew).
+    pub fn forget(&mut self) {
+        self.0 = None;
+    }
+}
+
 /// How the final pass treats the direct light on real pixels.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ShadeOptions {
@@ -369,6 +400,19 @@ impl Deferred {
         let mut rho = DefaultHasher::new();
         (mu, scene.light_fingerprint[1]).hash(&mut rho);
         [mu, rho.finish()]
+    }
+
+    /// A hash of what this frame's shadow maps hold (after [`prepare`](Self::prepare)): equal
+    /// on two frames, the maps, the lights and their faces are equal, so a result derived
+    /// from them alone (DLPV's propagated volume, DVCT's injected radiance) may be kept.
+    pub fn light_inputs(&self) -> u64 {
+        let mut hasher = DefaultHasher::new();
+        if self.faces_cpu.is_empty() {
+            hasher.write_u8(0);
+        } else {
+            self.rsm_drawn.hash(&mut hasher);
+        }
+        hasher.finish()
     }
 
     /// The uploaded scene (after [`prepare`](Self::prepare)).

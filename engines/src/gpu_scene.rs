@@ -2,7 +2,6 @@
 //! real-only draws are a prefix), the materials, the camera, and every light with its shadow-map
 //! faces. Layouts match `shaders/common.wgsl`.
 
-use std::hash::{DefaultHasher, Hash, Hasher};
 use std::ops::Range;
 
 use bytemuck::{Pod, Zeroable};
@@ -11,6 +10,7 @@ use relight_core::light::Light;
 use relight_core::scene::{Mesh, Scene, SceneCamera, box_corners};
 use wgpu::util::DeviceExt;
 
+use crate::deferred::KeptInputs;
 use crate::gpu::GpuContext;
 
 #[repr(C)]
@@ -94,6 +94,8 @@ pub struct GpuScene {
     /// Hashes of what the light-space passes draw: the real part (with the materials) and the
     /// virtual part. Equal hashes, equal lights: equal shadow maps.
     pub light_fingerprint: [u64; 2],
+    /// A hash of every mesh's vertices (not the proxy's) and the materials.
+    pub geometry_fingerprint: u64,
     /// Bounds of the virtual object(s), if any.
     pub virtual_bounds: Option<(Vec3, Vec3)>,
 }
@@ -195,20 +197,19 @@ impl GpuScene {
         .flatten()
         .reduce(|(lo, hi), (l, h)| (lo.min(l), hi.max(h)))
         .unwrap_or((Vec3::ZERO, Vec3::ZERO));
-        let fingerprint = |parts: &[&[u8]]| {
-            let mut hasher = DefaultHasher::new();
-            for part in parts {
-                part.hash(&mut hasher);
-            }
-            hasher.finish()
-        };
+        let fingerprint = KeptInputs::hash_of;
+        let materials_bytes: &[u8] = bytemuck::cast_slice(&materials);
         let light_fingerprint = [
             fingerprint(&[
                 bytemuck::cast_slice(range(shadow_real.clone())),
-                bytemuck::cast_slice(&materials),
+                materials_bytes,
             ]),
             fingerprint(&[bytemuck::cast_slice(range(real_vertices..all_vertices))]),
         ];
+        let geometry_fingerprint = fingerprint(&[
+            bytemuck::cast_slice(range(0..all_vertices)),
+            materials_bytes,
+        ]);
         // wgpu refuses zero-sized vertex buffers; one degenerate vertex is never drawn.
         if vertices.is_empty() {
             vertices.push(GpuVertex::zeroed());
@@ -240,6 +241,7 @@ impl GpuScene {
             bounds,
             light_bounds,
             light_fingerprint,
+            geometry_fingerprint,
             virtual_bounds: scene.virtual_bounds(),
         }
     }

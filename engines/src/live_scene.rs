@@ -432,8 +432,8 @@ mod tests {
         }
     }
 
-    #[test]
-    fn the_lamp_holds_its_last_state_between_reports() {
+    /// A flat wall 2 m in front of [`camera`], and a live scene of it with nothing else.
+    fn flat_wall() -> (Image, LiveScene) {
         let mut depth = Image::new(8, 6, PixelFormat::DepthF32M);
         depth.as_f32_mut().unwrap().fill(2.0);
         let base = Scene {
@@ -451,7 +451,13 @@ mod tests {
             environment_lights: Vec::new(),
             shadow_proxy: None,
         };
-        let mut live = LiveScene::new(base, RealGeometry::Depth, 0.5, Some(camera()), 1);
+        let live = LiveScene::new(base, RealGeometry::Depth, 0.5, Some(camera()), 1);
+        (depth, live)
+    }
+
+    #[test]
+    fn the_lamp_holds_its_last_state_between_reports() {
+        let (depth, mut live) = flat_wall();
         let lamp = LampState {
             on: true,
             position_in_world: Vec3::Y,
@@ -490,24 +496,7 @@ mod tests {
 
     #[test]
     fn the_shadow_proxy_is_decimated_and_held_while_the_depth_stage_says_so() {
-        let mut depth = Image::new(8, 6, PixelFormat::DepthF32M);
-        depth.as_f32_mut().unwrap().fill(2.0);
-        let base = Scene {
-            name: "t".into(),
-            meshes: Vec::new(),
-            materials: Vec::new(),
-            camera: relight_core::scene::SceneCamera {
-                world_from_camera: Pose::IDENTITY,
-                yfov_rad: 1.0,
-                width: 8,
-                height: 6,
-            },
-            lights: Vec::new(),
-            environment: None,
-            environment_lights: Vec::new(),
-            shadow_proxy: None,
-        };
-        let mut live = LiveScene::new(base, RealGeometry::Depth, 0.5, Some(camera()), 1);
+        let (depth, mut live) = flat_wall();
         let first = live.frame(Some(&depth), None, None).unwrap();
         let proxy = first.shadow_proxy.clone().unwrap();
         assert_eq!(

@@ -10,7 +10,7 @@ use relight_core::light::Light;
 use relight_core::scene::{Mesh, Scene};
 use relight_engines::shadow_proxy::{SHADOW_PROXY_ERROR_M, decimate};
 use relight_engines::{Engine, RelitFrame};
-use support::{engine, frame, load_scene};
+use support::{engine, engine_with, frame, load_scene};
 
 fn render(engine: &mut Box<dyn Engine>, scene: &Arc<Scene>) -> RelitFrame {
     let mut out = RelitFrame::default();
@@ -18,10 +18,6 @@ fn render(engine: &mut Box<dyn Engine>, scene: &Arc<Scene>) -> RelitFrame {
         .render(&frame(scene.clone(), 80, 60), &mut out)
         .unwrap_or_else(|e| panic!("{e}"));
     out
-}
-
-fn drew_shadow_maps(out: &RelitFrame) -> bool {
-    out.timings.iter().any(|t| t.pass == "gpu.rsm")
 }
 
 fn moved_light(scene: &Scene, by: Vec3) -> Scene {
@@ -47,35 +43,63 @@ fn moved_object(scene: &Scene, by: Vec3) -> Scene {
     scene
 }
 
-/// A sequence of frames where the light, then nothing, then the object changes: every frame's
-/// Δ and composite are bit-identical to a fresh engine's on that frame alone, so maps kept from
-/// an earlier frame are never stale. A frame whose scene equals the last one's (a new `Arc`, as
-/// the live scene makes every frame) draws no shadow map at all.
+fn moved_camera(scene: &Scene, by: Vec3) -> Scene {
+    let mut scene = scene.clone();
+    scene.camera.world_from_camera.translation += by;
+    scene
+}
+
+fn ran(out: &RelitFrame, pass: &str) -> bool {
+    out.timings.iter().any(|t| t.pass == pass)
+}
+
+/// A sequence of frames where the light changes, then nothing, then only the camera, then the
+/// object: every frame's Δ and composite are bit-identical to a fresh engine's on that frame
+/// alone, so nothing kept from an earlier frame is ever stale. The shadow maps, and what
+/// `dvct` and `dlpv` derive from them alone (voxels and their radiance, the propagated
+/// volume), are recomputed only on the frames whose scene or lights changed: not on a frame
+/// equal to the last (a new `Arc`, as the live scene makes every frame), nor on one where the
+/// camera alone moved.
 #[test]
-fn kept_shadow_maps_equal_freshly_drawn_ones() {
+fn kept_shadow_maps_and_volumes_equal_freshly_drawn_ones() {
     let desk = load_scene("desk_box");
+    let lit = moved_light(&desk, Vec3::new(0.2, 0.0, 0.0));
     let frames = [
         desk.clone(),
-        moved_light(&desk, Vec3::new(0.2, 0.0, 0.0)),
-        moved_light(&desk, Vec3::new(0.2, 0.0, 0.0)),
+        lit.clone(),
+        lit.clone(),
+        moved_camera(&lit, Vec3::new(0.05, 0.0, 0.0)),
         moved_object(
-            &moved_light(&desk, Vec3::new(0.2, 0.0, 0.0)),
+            &moved_camera(&lit, Vec3::new(0.05, 0.0, 0.0)),
             Vec3::X * 0.05,
         ),
     ];
-    for name in ["differential", "dvct"] {
-        let mut kept = engine(name);
+    let recomputed = [true, true, false, false, true];
+    let small = serde_json::json!({"volume_size": 16, "steps": 8});
+    for (name, params, volume_pass) in [
+        ("differential", serde_json::json!({}), None),
+        (
+            "dvct",
+            serde_json::json!({"volume_size": 16}),
+            Some("gpu.voxelize"),
+        ),
+        ("dlpv", small, Some("gpu.propagate")),
+    ] {
+        let mut kept = engine_with(name, params.clone());
         for (i, scene) in frames.iter().enumerate() {
             let scene = Arc::new(scene.clone());
             let out = render(&mut kept, &scene);
-            let fresh = render(&mut engine(name), &scene);
+            let fresh = render(&mut engine_with(name, params.clone()), &scene);
             assert!(out.delta == fresh.delta, "{name}: frame {i}'s Δ");
             assert!(
                 out.composite == fresh.composite,
                 "{name}: frame {i}'s composite"
             );
-            if drew_shadow_maps(&fresh) {
-                assert_eq!(drew_shadow_maps(&out), i != 2, "{name}: frame {i}");
+            if ran(&fresh, "gpu.rsm") {
+                assert_eq!(ran(&out, "gpu.rsm"), recomputed[i], "{name}: frame {i}");
+                if let Some(pass) = volume_pass {
+                    assert_eq!(ran(&out, pass), recomputed[i], "{name}: frame {i}'s {pass}");
+                }
             }
         }
     }

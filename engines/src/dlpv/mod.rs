@@ -32,7 +32,7 @@ use std::time::Instant;
 use bytemuck::{Pod, Zeroable};
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, ShadeOptions};
+use crate::deferred::{Deferred, KeptInputs, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -96,6 +96,9 @@ pub struct Dlpv {
     volume_uniform: wgpu::Buffer,
     lookup_uniform: wgpu::Buffer,
     volume: Option<VolumeBuffers>,
+    /// What `volume`'s accumulated V^Δ was propagated from: kept while the shadow maps, the
+    /// lights and the volume's placement hold.
+    propagated: KeptInputs,
 }
 
 impl Dlpv {
@@ -165,6 +168,7 @@ impl Dlpv {
             deferred: Deferred::new(ctx),
             settings: DlpvSettings::default(),
             volume: None,
+            propagated: KeptInputs::default(),
         })
     }
 
@@ -188,6 +192,7 @@ impl Dlpv {
                 })
             };
             use wgpu::BufferUsages as U;
+            self.propagated.forget();
             self.volume = Some(VolumeBuffers {
                 n,
                 cells: buffer("dlpv cells", U::STORAGE | U::COPY_DST),
@@ -247,6 +252,12 @@ impl Engine for Dlpv {
                 }),
             );
             self.volume_buffers()?;
+            let inputs = KeptInputs::hash_of(&[
+                bytemuck::bytes_of(&volume),
+                &settings.steps.to_le_bytes(),
+                &self.deferred.light_inputs().to_le_bytes(),
+            ]);
+            let repropagate = !self.propagated.holds(inputs);
             let mut timer = self.deferred.lend_timer();
             let (Some(v), Some(light_buffers), Some((gb_rho, _, indirect))) = (
                 self.volume.as_ref(),
@@ -304,16 +315,16 @@ impl Engine for Dlpv {
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                     label: Some("dlpv"),
                 });
-            encoder.clear_buffer(&v.cells, 0, None);
-            {
-                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
-                self.inject
-                    .dispatch(&mut pass, &inject_group, settings.rsm_size, faces);
-                pass.set_pipeline(&self.resolve);
-                pass.set_bind_group(0, &resolve_group, &[]);
-                pass.dispatch_workgroups((2 * n.pow(3) * 3).div_ceil(64), 1, 1);
-            }
-            {
+            if repropagate {
+                encoder.clear_buffer(&v.cells, 0, None);
+                {
+                    let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
+                    self.inject
+                        .dispatch(&mut pass, &inject_group, settings.rsm_size, faces);
+                    pass.set_pipeline(&self.resolve);
+                    pass.set_bind_group(0, &resolve_group, &[]);
+                    pass.dispatch_workgroups((2 * n.pow(3) * 3).div_ceil(64), 1, 1);
+                }
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.propagate");
                 pass.set_pipeline(&self.propagate);
                 for step in 0..settings.steps {
@@ -329,6 +340,7 @@ impl Engine for Dlpv {
             }
             ctx.queue.submit([encoder.finish()]);
             ctx.check()?;
+            self.propagated.record(inputs);
             self.deferred.return_timer(timer);
         }
         out.timings.push(PassTiming {

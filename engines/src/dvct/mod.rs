@@ -27,7 +27,7 @@ use std::time::Instant;
 use bytemuck::{Pod, Zeroable};
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, ShadeOptions};
+use crate::deferred::{Deferred, KeptInputs, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -118,6 +118,8 @@ pub struct Dvct {
     inject_uniform: wgpu::Buffer,
     dvct_uniform: wgpu::Buffer,
     volume: Option<VolumeBuffers>,
+    /// What `volume`'s voxels, radiance and mips were built from.
+    voxelized: KeptInputs,
 }
 
 impl Dvct {
@@ -213,6 +215,7 @@ impl Dvct {
             deferred: Deferred::new(ctx),
             settings: DvctSettings::default(),
             volume: None,
+            voxelized: KeptInputs::default(),
         })
     }
 
@@ -262,6 +265,7 @@ impl Dvct {
                     mip
                 })
                 .collect();
+            self.voxelized.forget();
             self.volume = Some(VolumeBuffers {
                 n,
                 cells: buffer("dvct cells", cells, U::STORAGE | U::COPY_DST),
@@ -294,8 +298,12 @@ impl Engine for Dvct {
         let Some(scene) = self.deferred.scene() else {
             return Err(EngineError::NotPrepared);
         };
-        let (bounds, virtual_bounds, vertices) =
-            (scene.bounds, scene.virtual_bounds, scene.all_vertices);
+        let (bounds, virtual_bounds, vertices, scene_geometry) = (
+            scene.bounds,
+            scene.virtual_bounds,
+            scene.all_vertices,
+            scene.geometry_fingerprint,
+        );
         let faces = self.deferred.faces().len() as u32;
         if let Some((lo, hi)) = virtual_bounds {
             let n = settings.volume_size;
@@ -306,20 +314,18 @@ impl Engine for Dvct {
             let mut offsets12 = [0u32; 12];
             offsets12[..offsets.len()].copy_from_slice(&offsets);
             let tan = |deg: f32| deg.to_radians().tan();
-            ctx.queue.write_buffer(
-                &self.inject_uniform,
-                0,
-                bytemuck::bytes_of(&VolumeUniform {
-                    origin: origin.extend(cell).to_array(),
-                    dims: [
-                        n,
-                        settings.rsm_size,
-                        faces,
-                        self.deferred.lights().len() as u32,
-                    ],
-                    scale: [scale, 0.0, 0.0, 0.0],
-                }),
-            );
+            let inject_volume = VolumeUniform {
+                origin: origin.extend(cell).to_array(),
+                dims: [
+                    n,
+                    settings.rsm_size,
+                    faces,
+                    self.deferred.lights().len() as u32,
+                ],
+                scale: [scale, 0.0, 0.0, 0.0],
+            };
+            ctx.queue
+                .write_buffer(&self.inject_uniform, 0, bytemuck::bytes_of(&inject_volume));
             ctx.queue.write_buffer(
                 &self.dvct_uniform,
                 0,
@@ -347,6 +353,14 @@ impl Engine for Dvct {
                 }),
             );
             self.volume_buffers()?;
+            // Voxels and their radiance depend on the geometry, the shadow maps and the
+            // volume's placement, not on the camera: the trace alone runs while they hold.
+            let inputs = KeptInputs::hash_of(&[
+                bytemuck::bytes_of(&inject_volume),
+                &scene_geometry.to_le_bytes(),
+                &self.deferred.light_inputs().to_le_bytes(),
+            ]);
+            let revoxelize = !self.voxelized.holds(inputs);
             let mut timer = self.deferred.lend_timer();
             let (
                 Some(v),
@@ -422,23 +436,23 @@ impl Engine for Dvct {
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                     label: Some("dvct"),
                 });
-            encoder.clear_buffer(&v.cells, 0, None);
-            encoder.clear_buffer(&v.occupancy, 0, None);
-            {
-                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.voxelize");
-                pass.set_pipeline(&self.voxelize);
-                pass.set_bind_group(0, &voxelize_group, &[]);
-                let groups = (vertices / 3).div_ceil(64);
-                if groups > 0 {
-                    pass.dispatch_workgroups(groups.min(65535), groups.div_ceil(65535), 1);
+            if revoxelize {
+                encoder.clear_buffer(&v.cells, 0, None);
+                encoder.clear_buffer(&v.occupancy, 0, None);
+                {
+                    let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.voxelize");
+                    pass.set_pipeline(&self.voxelize);
+                    pass.set_bind_group(0, &voxelize_group, &[]);
+                    let groups = (vertices / 3).div_ceil(64);
+                    if groups > 0 {
+                        pass.dispatch_workgroups(groups.min(65535), groups.div_ceil(65535), 1);
+                    }
                 }
-            }
-            {
-                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
-                self.inject
-                    .dispatch(&mut pass, &inject_group, settings.rsm_size, faces);
-            }
-            {
+                {
+                    let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
+                    self.inject
+                        .dispatch(&mut pass, &inject_group, settings.rsm_size, faces);
+                }
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.mip");
                 pass.set_pipeline(&self.mip);
                 for (level, mip_group) in mip_groups.iter().enumerate() {
@@ -455,6 +469,7 @@ impl Engine for Dvct {
             }
             ctx.queue.submit([encoder.finish()]);
             ctx.check()?;
+            self.voxelized.record(inputs);
             self.deferred.return_timer(timer);
         }
         out.timings.push(PassTiming {
