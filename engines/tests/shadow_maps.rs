@@ -59,7 +59,7 @@ fn ran(out: &RelitFrame, pass: &str) -> bool {
 /// `dvct` and `dlpv` derive from them alone (voxels and their radiance, the propagated
 /// volume), are recomputed only on the frames whose scene or lights changed: not on a frame
 /// equal to the last (a new `Arc`, as the live scene makes every frame), nor on one where the
-/// camera alone moved.
+/// camera alone moved. The same holds for `dir`'s VPLs and their imperfect shadow maps.
 #[test]
 fn kept_shadow_maps_and_volumes_equal_freshly_drawn_ones() {
     let desk = load_scene("desk_box");
@@ -84,6 +84,11 @@ fn kept_shadow_maps_and_volumes_equal_freshly_drawn_ones() {
             Some("gpu.voxelize"),
         ),
         ("dlpv", small, Some("gpu.propagate")),
+        (
+            "dir",
+            serde_json::json!({"vpl_count": 64}),
+            Some("gpu.vpls"),
+        ),
     ] {
         let mut kept = engine_with(name, params.clone());
         for (i, scene) in frames.iter().enumerate() {

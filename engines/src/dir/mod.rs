@@ -39,7 +39,7 @@ use relight_core::scene::Scene;
 use serde_json::{Map, Value};
 use wgpu::util::DeviceExt;
 
-use crate::deferred::{Deferred, ExtraLights, ShadeOptions};
+use crate::deferred::{Deferred, ExtraLights, KeptInputs, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -104,11 +104,16 @@ pub struct Dir {
     ism: wgpu::ComputePipeline,
     gather: wgpu::ComputePipeline,
     uniform: wgpu::Buffer,
-    /// The surface points of the scene they were sampled from, and how many were asked for.
-    points: Option<(Arc<Scene>, u32, u32, wgpu::Buffer)>,
+    /// The surface points, the geometry they were sampled from
+    /// ([`GpuScene::geometry_fingerprint`](crate::gpu_scene::GpuScene)), how many were asked
+    /// for and how many came.
+    points: Option<(u64, u32, u32, wgpu::Buffer)>,
     /// The scene and light count the environment lights were sampled for.
     environment: EnvironmentLights,
     buffers: Option<VplBuffers>,
+    /// What the VPLs and their imperfect shadow maps in `buffers` were made from: kept while
+    /// the shadow maps, the geometry and the settings hold (the gather alone runs).
+    lit: KeptInputs,
 }
 
 impl Dir {
@@ -194,16 +199,17 @@ impl Dir {
             points: None,
             environment: EnvironmentLights::default(),
             buffers: None,
+            lit: KeptInputs::default(),
         })
     }
 
     /// The point cloud of `scene` (sampled again when the scene or the count changes).
-    fn points(&mut self, scene: &Arc<Scene>) -> u32 {
+    fn points(&mut self, scene: &Scene, geometry: u64) -> u32 {
         let count = self.settings.ism_points;
         if !self
             .points
             .as_ref()
-            .is_some_and(|(s, c, _, _)| Arc::ptr_eq(s, scene) && *c == count)
+            .is_some_and(|(g, c, _, _)| *g == geometry && *c == count)
         {
             let mut points = surface_points(&scene.meshes, count);
             let used = points.len() as u32;
@@ -219,7 +225,7 @@ impl Dir {
                         contents: bytemuck::cast_slice(&points),
                         usage: wgpu::BufferUsages::STORAGE,
                     });
-            self.points = Some((scene.clone(), count, used, buffer));
+            self.points = Some((geometry, count, used, buffer));
         }
         self.points.as_ref().map_or(0, |(_, _, used, _)| *used)
     }
@@ -249,6 +255,7 @@ impl Dir {
                 })
             };
             use wgpu::BufferUsages as U;
+            self.lit.forget();
             self.buffers = Some(VplBuffers {
                 key,
                 rows: buffer(
@@ -285,18 +292,29 @@ impl Engine for Dir {
         let ctx = self.deferred.ctx().clone();
         let layers = self.deferred.faces().len() as u32;
         let scene = frame.scene.clone().ok_or(EngineError::NotPrepared)?;
-        let point_count = self.points(&scene);
+        let geometry = self
+            .deferred
+            .scene()
+            .ok_or(EngineError::NotPrepared)?
+            .geometry_fingerprint;
+        let point_count = self.points(&scene, geometry);
         if layers > 0 {
             self.buffers(layers)?;
-            ctx.queue.write_buffer(
-                &self.uniform,
-                0,
-                bytemuck::bytes_of(&DirUniform {
-                    dims: [s.vpl_count, s.rsm_size, layers, s.ism_size],
-                    size: [width, height, point_count, 0],
-                    params: [s.clamp_distance, s.ism_bias, 0.0, 0.0],
-                }),
-            );
+            let uniform = DirUniform {
+                dims: [s.vpl_count, s.rsm_size, layers, s.ism_size],
+                size: [width, height, point_count, 0],
+                params: [s.clamp_distance, s.ism_bias, 0.0, 0.0],
+            };
+            ctx.queue
+                .write_buffer(&self.uniform, 0, bytemuck::bytes_of(&uniform));
+            let inputs = KeptInputs::hash_of(&[
+                bytemuck::bytes_of(&uniform.dims),
+                bytemuck::bytes_of(&uniform.params),
+                &point_count.to_le_bytes(),
+                &geometry.to_le_bytes(),
+                &self.deferred.light_inputs().to_le_bytes(),
+            ]);
+            let relight = !self.lit.holds(inputs);
             let mut timer = self.deferred.lend_timer();
             let (
                 Some(b),
@@ -366,20 +384,20 @@ impl Engine for Dir {
             let mut encoder = ctx
                 .device
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("dir") });
-            encoder.clear_buffer(&b.ism, 0, None);
-            {
-                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.vpls");
-                pass.set_pipeline(&self.rows);
-                pass.set_bind_group(0, &rows_group, &[]);
-                pass.dispatch_workgroups(s.rsm_size.div_ceil(64), layers, 3);
-                pass.set_pipeline(&self.alloc);
-                pass.set_bind_group(0, &alloc_group, &[]);
-                pass.dispatch_workgroups(1, 1, 1);
-                pass.set_pipeline(&self.vpl);
-                pass.set_bind_group(0, &vpl_group, &[]);
-                pass.dispatch_workgroups(s.vpl_count.div_ceil(64), 1, 1);
-            }
-            {
+            if relight {
+                encoder.clear_buffer(&b.ism, 0, None);
+                {
+                    let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.vpls");
+                    pass.set_pipeline(&self.rows);
+                    pass.set_bind_group(0, &rows_group, &[]);
+                    pass.dispatch_workgroups(s.rsm_size.div_ceil(64), layers, 3);
+                    pass.set_pipeline(&self.alloc);
+                    pass.set_bind_group(0, &alloc_group, &[]);
+                    pass.dispatch_workgroups(1, 1, 1);
+                    pass.set_pipeline(&self.vpl);
+                    pass.set_bind_group(0, &vpl_group, &[]);
+                    pass.dispatch_workgroups(s.vpl_count.div_ceil(64), 1, 1);
+                }
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.ism");
                 if point_count > 0 {
                     pass.set_pipeline(&self.ism);
@@ -395,6 +413,7 @@ impl Engine for Dir {
             }
             ctx.queue.submit([encoder.finish()]);
             ctx.check()?;
+            self.lit.record(inputs);
             self.deferred.return_timer(timer);
         }
         out.timings.push(PassTiming {
