@@ -259,6 +259,9 @@ struct Dvct {
     // Cell offset of each level in the chain (level L at [L / 4][L % 4]); the entry after the
     // last level holds the total.
     offsets: array<vec4<u32>, 3>,
+    // x: first vertex of the triangles voxelised, y: how many triangles (the light-space
+    // geometry: the virtual object and the real scene's shadow proxy, or every mesh).
+    voxelized: vec4<u32>,
 }
 
 fn dvct_offset(d: Dvct, level: u32) -> u32 {

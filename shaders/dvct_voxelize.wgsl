@@ -1,6 +1,7 @@
-// DVCT voxelisation (Franke 2014, Sec. 3.1): every triangle of the scene marks each level-0
-// cell it touches (conservative: the triangle–box overlap test of Akenine-Möller 2001, 13
-// separating axes), bit 0 for real geometry, bit 1 for the virtual object. One thread per
+// DVCT voxelisation (Franke 2014, Sec. 3.1): every triangle of the light-space geometry
+// (`Dvct.voxelized`: the object and the real scene's shadow proxy, or every mesh) marks each
+// level-0 cell it touches (conservative: the triangle–box overlap test of Akenine-Möller
+// 2001, 13 separating axes), bit 0 for real geometry, bit 1 for the virtual object. One thread per
 // triangle walks the cells of its bounding box, so a depth-derived mesh of many small
 // triangles costs a few tests each and a large floor quad costs its footprint.
 
@@ -45,14 +46,15 @@ fn overlaps(centre: vec3<f32>, h: f32, a: vec3<f32>, b: vec3<f32>, c: vec3<f32>)
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     // Dispatched as (min(groups, 65535), ⌈groups / 65535⌉) workgroups of 64.
-    let t = id.x + id.y * 65535u * 64u;
-    if t >= arrayLength(&vertices) / 24u {
+    let k = id.x + id.y * 65535u * 64u;
+    if k >= dvct.voxelized.y {
         return;
     }
-    let a = vertex_position(3u * t);
-    let b = vertex_position(3u * t + 1u);
-    let c = vertex_position(3u * t + 2u);
-    let bit = select(1u, 2u, (vertices[24u * t + 7u] & FLAG_VIRTUAL) != 0u);
+    let corner = dvct.voxelized.x + 3u * k;
+    let a = vertex_position(corner);
+    let b = vertex_position(corner + 1u);
+    let c = vertex_position(corner + 2u);
+    let bit = select(1u, 2u, (vertices[8u * corner + 7u] & FLAG_VIRTUAL) != 0u);
     let n = i32(dvct.dims.x);
     let s = dvct.origin.w;
     let lo = vec3<i32>(floor((min(a, min(b, c)) - dvct.origin.xyz) / s));

@@ -94,8 +94,6 @@ pub struct GpuScene {
     /// Hashes of what the light-space passes draw: the real part (with the materials) and the
     /// virtual part. Equal hashes, equal lights: equal shadow maps.
     pub light_fingerprint: [u64; 2],
-    /// A hash of every mesh's vertices (not the proxy's) and the materials.
-    pub geometry_fingerprint: u64,
     /// Bounds of the virtual object(s), if any.
     pub virtual_bounds: Option<(Vec3, Vec3)>,
 }
@@ -206,10 +204,6 @@ impl GpuScene {
             ]),
             fingerprint(&[bytemuck::cast_slice(range(real_vertices..all_vertices))]),
         ];
-        let geometry_fingerprint = fingerprint(&[
-            bytemuck::cast_slice(range(0..all_vertices)),
-            materials_bytes,
-        ]);
         // wgpu refuses zero-sized vertex buffers; one degenerate vertex is never drawn.
         if vertices.is_empty() {
             vertices.push(GpuVertex::zeroed());
@@ -241,9 +235,28 @@ impl GpuScene {
             bounds,
             light_bounds,
             light_fingerprint,
-            geometry_fingerprint,
             virtual_bounds: scene.virtual_bounds(),
         }
+    }
+}
+
+impl GpuScene {
+    /// Every vertex the light-space passes draw, as one range: the virtual object's and the
+    /// shadow proxy's, which follows it, or every mesh's when there is no proxy.
+    pub fn light_space_vertices(&self) -> Range<u32> {
+        if self.shadow_real.start == self.all_vertices {
+            self.real_vertices..self.shadow_real.end
+        } else {
+            0..self.all_vertices
+        }
+    }
+
+    /// A hash of [`Self::light_space_vertices`] and the materials.
+    pub fn light_space_fingerprint(&self) -> u64 {
+        KeptInputs::hash_of(&[
+            &self.light_fingerprint[0].to_le_bytes(),
+            &self.light_fingerprint[1].to_le_bytes(),
+        ])
     }
 }
 

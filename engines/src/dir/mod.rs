@@ -104,9 +104,9 @@ pub struct Dir {
     ism: wgpu::ComputePipeline,
     gather: wgpu::ComputePipeline,
     uniform: wgpu::Buffer,
-    /// The surface points, the geometry they were sampled from
-    /// ([`GpuScene::geometry_fingerprint`](crate::gpu_scene::GpuScene)), how many were asked
-    /// for and how many came.
+    /// The surface points, the light-space geometry they were sampled from (its
+    /// [`GpuScene::light_space_fingerprint`](crate::gpu_scene::GpuScene::light_space_fingerprint)),
+    /// how many were asked for and how many came.
     points: Option<(u64, u32, u32, wgpu::Buffer)>,
     /// The scene and light count the environment lights were sampled for.
     environment: EnvironmentLights,
@@ -211,7 +211,15 @@ impl Dir {
             .as_ref()
             .is_some_and(|(g, c, _, _)| *g == geometry && *c == count)
         {
-            let mut points = surface_points(&scene.meshes, count);
+            // The light-space geometry, as the shadow maps draw it: the real scene's proxy
+            // where it has one.
+            let mut points = match &scene.shadow_proxy {
+                Some(proxy) => surface_points(
+                    std::iter::once(&**proxy).chain(scene.meshes.iter().filter(|m| m.is_virtual)),
+                    count,
+                ),
+                None => surface_points(scene.meshes.iter(), count),
+            };
             let used = points.len() as u32;
             if points.is_empty() {
                 points.push([0.0; 4]);
@@ -296,7 +304,7 @@ impl Engine for Dir {
             .deferred
             .scene()
             .ok_or(EngineError::NotPrepared)?
-            .geometry_fingerprint;
+            .light_space_fingerprint();
         let point_count = self.points(&scene, geometry);
         if layers > 0 {
             self.buffers(layers)?;

@@ -11,10 +11,13 @@ const MIN_VIRTUAL_SHARE: f64 = 0.25;
 
 /// `count` points as `[x, y, z, r]`, r the radius of the disc of surface each stands for,
 /// negated on the virtual object.
-pub fn surface_points(meshes: &[Mesh], count: u32) -> Vec<[f32; 4]> {
+pub fn surface_points<'a>(
+    meshes: impl Iterator<Item = &'a Mesh> + Clone,
+    count: u32,
+) -> Vec<[f32; 4]> {
     let triangles = |want_virtual: bool| -> Vec<(Vec3, Vec3, Vec3)> {
         meshes
-            .iter()
+            .clone()
             .filter(|m| m.is_virtual == want_virtual)
             .flat_map(|m| {
                 m.triangles.iter().filter_map(|t| {
@@ -104,7 +107,7 @@ mod tests {
             quad("floor", 0.0, 2.0, false),
             quad("object", 1.0, 0.1, true),
         ];
-        let points = surface_points(&meshes, 4000);
+        let points = surface_points(meshes.iter(), 4000);
         assert_eq!(points.len(), 4000);
         let virtual_points: Vec<_> = points.iter().filter(|p| p[3] < 0.0).collect();
         assert_eq!(virtual_points.len(), 1000);
@@ -129,6 +132,6 @@ mod tests {
         // Disc radius: the floor's 4 m² over 3000 discs.
         let r = (4.0 / (std::f32::consts::PI * 3000.0)).sqrt();
         assert!((points[0][3] - r).abs() < 1e-6);
-        assert_eq!(surface_points(&meshes, 4000), points, "deterministic");
+        assert_eq!(surface_points(meshes.iter(), 4000), points, "deterministic");
     }
 }

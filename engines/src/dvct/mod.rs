@@ -46,6 +46,7 @@ struct DvctUniform {
     cone: [f32; 4],
     options: [f32; 4],
     offsets: [u32; 12],
+    voxelized: [u32; 4],
 }
 
 #[repr(C)]
@@ -298,12 +299,13 @@ impl Engine for Dvct {
         let Some(scene) = self.deferred.scene() else {
             return Err(EngineError::NotPrepared);
         };
-        let (bounds, virtual_bounds, vertices, scene_geometry) = (
+        let (bounds, virtual_bounds, voxelized, scene_geometry) = (
             scene.bounds,
             scene.virtual_bounds,
-            scene.all_vertices,
-            scene.geometry_fingerprint,
+            scene.light_space_vertices(),
+            scene.light_space_fingerprint(),
         );
+        let triangles = voxelized.len() as u32 / 3;
         let faces = self.deferred.faces().len() as u32;
         if let Some((lo, hi)) = virtual_bounds {
             let n = settings.volume_size;
@@ -350,11 +352,12 @@ impl Engine for Dvct {
                         scale,
                     ],
                     offsets: offsets12,
+                    voxelized: [voxelized.start, triangles, 0, 0],
                 }),
             );
             self.volume_buffers()?;
-            // Voxels and their radiance depend on the geometry, the shadow maps and the
-            // volume's placement, not on the camera: the trace alone runs while they hold.
+            // Voxels and their radiance depend on the light-space geometry, the shadow maps and
+            // the volume's placement, not on the camera: the trace alone runs while they hold.
             let inputs = KeptInputs::hash_of(&[
                 bytemuck::bytes_of(&inject_volume),
                 &scene_geometry.to_le_bytes(),
@@ -443,7 +446,7 @@ impl Engine for Dvct {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.voxelize");
                     pass.set_pipeline(&self.voxelize);
                     pass.set_bind_group(0, &voxelize_group, &[]);
-                    let groups = (vertices / 3).div_ceil(64);
+                    let groups = triangles.div_ceil(64);
                     if groups > 0 {
                         pass.dispatch_workgroups(groups.min(65535), groups.div_ceil(65535), 1);
                     }
