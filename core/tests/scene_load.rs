@@ -155,3 +155,33 @@ fn errors_name_the_file_and_the_node_or_key() {
         "{err}"
     );
 }
+
+/// Inputs the `scene` fuzz target crashed on (fuzz/regressions/scene: `scene.toml`, a 0xFF
+/// byte, then `scene.gltf`, as the target splits them): each loads or is refused, without a
+/// panic. The first named a POSITION accessor past the file's accessors, on which gltf-json's
+/// own validation indexes out of bounds.
+#[test]
+fn fuzz_regressions_load_without_panicking() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz/regressions/scene");
+    let mut inputs = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        let data = std::fs::read(&path).unwrap();
+        let (toml, gltf) = match data.iter().position(|&b| b == 0xff) {
+            Some(at) => (&data[..at], &data[at + 1..]),
+            None => (&data[..], &[][..]),
+        };
+        let scene = tempfile::tempdir().unwrap();
+        std::fs::write(scene.path().join("scene.toml"), toml).unwrap();
+        std::fs::write(scene.path().join("scene.gltf"), gltf).unwrap();
+        let result = Scene::load(scene.path());
+        inputs += 1;
+        if path.ends_with("gltf_position_accessor_out_of_range") {
+            let error = result
+                .expect_err("an accessor that does not exist")
+                .to_string();
+            assert!(error.contains("POSITION"), "{error}");
+        }
+    }
+    assert!(inputs > 0, "no inputs in {}", dir.display());
+}

@@ -125,7 +125,11 @@ impl Scene {
             path: gltf_path.clone(),
             message,
         };
-        let gltf::Gltf { document, blob } = gltf::Gltf::from_slice(&read_regular(&gltf_path)?)
+        let gltf::Gltf { document, blob } =
+            gltf::Gltf::from_slice_without_validation(&read_regular(&gltf_path)?)
+                .map_err(|e| gltf_error(e.to_string()))?;
+        position_accessors_exist(document.as_json()).map_err(gltf_error)?;
+        let document = gltf::Document::from_json(document.into_json())
             .map_err(|e| gltf_error(e.to_string()))?;
         // Buffers only: images are not used, and a buffer file must lie beside the glTF.
         let gltf_dir = gltf_path.parent().unwrap_or(dir);
@@ -442,6 +446,27 @@ fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> SceneError + '_ {
         path: path.to_owned(),
         source,
     }
+}
+
+/// gltf-json 1.4 reads a primitive's POSITION accessor by index, unchecked, while validating
+/// (`primitive_validate_hook` in its `mesh.rs`) and panics on an index past the accessors; the
+/// scene fuzzer found it. Such a file is refused here, before validation.
+fn position_accessors_exist(root: &gltf::json::Root) -> Result<(), String> {
+    let positions = gltf::json::validation::Checked::Valid(gltf::Semantic::Positions);
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, primitive) in mesh.primitives.iter().enumerate() {
+            if let Some(index) = primitive.attributes.get(&positions)
+                && index.value() >= root.accessors.len()
+            {
+                return Err(format!(
+                    "meshes[{m}].primitives[{p}].attributes.POSITION: accessor {} does not exist ({} accessors)",
+                    index.value(),
+                    root.accessors.len()
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The bytes of `path`, a regular file ([`crate::input_file`]).
