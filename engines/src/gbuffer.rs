@@ -172,13 +172,6 @@ impl Targets {
             })
             .collect();
         let depth_view = Self::layer_view(&self.depth, layer);
-        let keep_depth = !matches!(
-            start,
-            LayerStart::Clear {
-                keep_depth: false,
-                ..
-            }
-        );
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("g-buffer"),
             color_attachments: &attachments,
@@ -189,11 +182,8 @@ impl Targets {
                         LayerStart::Clear { .. } => wgpu::LoadOp::Clear(1.0),
                         LayerStart::Over => wgpu::LoadOp::Load,
                     },
-                    store: if keep_depth {
-                        wgpu::StoreOp::Store
-                    } else {
-                        wgpu::StoreOp::Discard
-                    },
+                    // Kept: a layer's depth is copied (`copy_from`) and drawn over.
+                    store: wgpu::StoreOp::Store,
                 }),
                 stencil_ops: None,
             }),
@@ -243,8 +233,8 @@ pub enum RsmRedraw {
 /// How [`Targets::draw`] begins a layer.
 #[derive(Debug, Clone, Copy)]
 enum LayerStart {
-    /// Cleared, position w set to `empty_w`; its depth kept after the pass when `keep_depth`.
-    Clear { empty_w: f64, keep_depth: bool },
+    /// Cleared, position w set to `empty_w`.
+    Clear { empty_w: f64 },
     /// Drawn over, colour and depth as the layer holds them.
     Over,
 }
@@ -351,10 +341,7 @@ impl GBufferPass {
             scene,
             0..scene.real_vertices,
             0,
-            LayerStart::Clear {
-                empty_w: 0.0,
-                keep_depth: true,
-            },
+            LayerStart::Clear { empty_w: 0.0 },
             timer.as_deref_mut().and_then(|t| t.render("gpu.gbuffer")),
         );
         rho.copy_from(encoder, mu);
@@ -462,7 +449,6 @@ impl RsmPass {
                     face,
                     LayerStart::Clear {
                         empty_w: RSM_EMPTY_DISTANCE,
-                        keep_depth: true,
                     },
                     timer.as_deref_mut().and_then(|t| t.render("gpu.rsm")),
                 );

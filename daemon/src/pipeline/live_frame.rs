@@ -251,21 +251,21 @@ impl LiveFrames {
             live.set_world_from_camera(world_from_camera);
             let start = Instant::now();
             reconstructed = match (&mut self.depth_stage, &set.depth) {
-                (Some(stage), Some(depth)) => Some(stage.process(
-                    &depth.payload,
-                    set.color.as_ref().map(|c| &c.payload),
-                    &world_from_camera,
-                )),
+                (Some(stage), Some(depth)) => {
+                    let outcome = stage.process(
+                        &depth.payload,
+                        set.color.as_ref().map(|c| &c.payload),
+                        &world_from_camera,
+                    );
+                    // Only this frame's merge says whether its surface is the last one's.
+                    if stage.surface_held() {
+                        live.hold_surface();
+                    }
+                    Some(outcome)
+                }
                 _ => None,
             };
             let depth_ms = start.elapsed().as_secs_f64() * 1e3;
-            if self
-                .depth_stage
-                .as_ref()
-                .is_some_and(DepthStage::surface_held)
-            {
-                live.hold_surface();
-            }
             let depth = match &reconstructed {
                 Some(DepthOutcome::Depth(image)) => Some(image),
                 Some(DepthOutcome::Proxy) => None,

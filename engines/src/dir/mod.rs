@@ -203,7 +203,8 @@ impl Dir {
         })
     }
 
-    /// The point cloud of `scene` (sampled again when the scene or the count changes).
+    /// The point cloud of `scene`'s light-space geometry, whose hash is `geometry` (sampled
+    /// again when that or the count changes).
     fn points(&mut self, scene: &Scene, geometry: u64) -> u32 {
         let count = self.settings.ism_points;
         if !self
