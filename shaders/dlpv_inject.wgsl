@@ -32,61 +32,148 @@ fn cell_of(p: vec3<f32>) -> i32 {
     return (c.z * n + c.y) * n + c.x;
 }
 
-fn inject(which: u32, cell: i32, lobe: vec4<f32>, flux: vec3<f32>) {
-    if cell < 0 {
-        return;
-    }
-    let n3 = volume.dims.x * volume.dims.x * volume.dims.x;
-    let base = (which * n3 + u32(cell)) * 12u;
-    for (var ch = 0u; ch < 3u; ch++) {
-        let v = lobe * (flux[ch] / PI) * volume.scale.x;
-        for (var k = 0u; k < 4u; k++) {
-            atomicAdd(&cells[base + ch * 4u + k], i32(round(v[k])));
+// Counts not yet added to a cell of one volume: consecutive texels of a tile mostly land in
+// the same cell, so each thread sums them privately and adds them with one set of atomics per
+// run of texels (integer sums: the same counts as adding each texel's, in any order).
+struct Pending {
+    cell: i32,
+    r: vec4<i32>,
+    g: vec4<i32>,
+    b: vec4<i32>,
+}
+
+fn pending() -> Pending {
+    return Pending(-1, vec4<i32>(0), vec4<i32>(0), vec4<i32>(0));
+}
+
+fn add_counts(base: u32, v: vec4<i32>) {
+    for (var k = 0u; k < 4u; k++) {
+        if v[k] != 0 {
+            atomicAdd(&cells[base + k], v[k]);
         }
     }
 }
 
+fn flush(which: u32, p: ptr<function, Pending>) {
+    if (*p).cell < 0 {
+        return;
+    }
+    let n3 = volume.dims.x * volume.dims.x * volume.dims.x;
+    let base = (which * n3 + u32((*p).cell)) * 12u;
+    add_counts(base, (*p).r);
+    add_counts(base + 4u, (*p).g);
+    add_counts(base + 8u, (*p).b);
+    *p = pending();
+}
+
+// A VPL's L1 SH (`lobe` × flux / π) into `cell` of volume `which`, in fixed point.
+fn inject(which: u32, p: ptr<function, Pending>, cell: i32, lobe: vec4<f32>, flux: vec3<f32>) {
+    if cell < 0 {
+        return;
+    }
+    if cell != (*p).cell {
+        flush(which, p);
+        (*p).cell = cell;
+    }
+    let s = lobe * volume.scale.x / PI;
+    (*p).r += vec4<i32>(round(s * flux.r));
+    (*p).g += vec4<i32>(round(s * flux.g));
+    (*p).b += vec4<i32>(round(s * flux.b));
+}
+
+struct Texel {
+    position: vec4<f32>,
+    normal: vec4<f32>,
+    albedo: vec4<f32>,
+}
+
+// A texel's VPL: its reflected flux in `cell` as a cosine lobe around its normal, and (for
+// direct injection) the light's incident flux along its direction of travel in `direct_cell`.
+struct TexelVpl {
+    cell: i32,
+    lobe: vec4<f32>,
+    flux: vec3<f32>,
+    direct_cell: i32,
+    direct_lobe: vec4<f32>,
+    direct_flux: vec3<f32>,
+}
+
+fn vpl_of(t: Texel, face: Face, l: Light, size: u32) -> TexelVpl {
+    let p = t.position.xyz;
+    let n = normalize(t.normal.xyz);
+    let half_cell = 0.5 * volume.origin.w;
+    let travel = -incident(l, p).to_light;
+    return TexelVpl(
+        cell_of(p + n * half_cell),
+        cosine_lobe(n),
+        vpl_flux(l, face, p, t.albedo.rgb, size),
+        cell_of(p - travel * half_cell),
+        cosine_lobe(travel),
+        vpl_flux(l, face, p, vec3<f32>(1.0), size),
+    );
+}
+
+// Texels per thread along each axis of its tile.
+const TILE: u32 = 4u;
+
+// One thread per TILE × TILE texels of both maps, walked row by row in alternating directions
+// so that consecutive texels are neighbours. Where R^ρ and R^μ hold the same surface
+// (everywhere but the object and what it hides), their V^Δ contributions are equal
+// fixed-point counts of opposite sign and cancel exactly, so neither is added: only R^ρ's VPL
+// goes into V^ρ. The volumes hold the same counts as if every texel were injected alone.
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let size = volume.dims.y;
-    let layer = id.z / 2u;
-    let rho = (id.z % 2u) == 0u;
-    if id.x >= size || id.y >= size || layer >= volume.dims.z {
-        return;
-    }
-    let texel = vec2<i32>(id.xy);
-    var position: vec4<f32>;
-    var normal: vec4<f32>;
-    var albedo: vec4<f32>;
-    if rho {
-        position = textureLoad(rsm_rho_position, texel, i32(layer), 0);
-        normal = textureLoad(rsm_rho_normal, texel, i32(layer), 0);
-        albedo = textureLoad(rsm_rho_albedo, texel, i32(layer), 0);
-    } else {
-        position = textureLoad(rsm_mu_position, texel, i32(layer), 0);
-        normal = textureLoad(rsm_mu_normal, texel, i32(layer), 0);
-        albedo = textureLoad(rsm_mu_albedo, texel, i32(layer), 0);
-    }
-    if albedo.w < 0.5 {
+    let layer = id.z;
+    if id.x * TILE >= size || id.y * TILE >= size || layer >= volume.dims.z {
         return;
     }
     let face = faces[layer];
     let l = lights[face.light.x];
-    let p = position.xyz;
-    let n = normalize(normal.xyz);
-    let sign = select(-1.0, 1.0, rho);
-    let half_cell = 0.5 * volume.origin.w;
-    // Indirect: the VPL's reflected flux.
-    let flux = vpl_flux(l, face, p, albedo.rgb, size);
-    let vpl_cell = cell_of(p + n * half_cell);
-    inject(0u, vpl_cell, cosine_lobe(n), sign * flux);
-    if rho {
-        inject(1u, vpl_cell, cosine_lobe(n), flux);
+    // Pending counts: V^Δ indirect, V^ρ indirect, V^Δ direct (each its own run of cells).
+    var delta = pending();
+    var rho_only = pending();
+    var direct = pending();
+    let direct_on = volume.scale.y > 0.5;
+    for (var j = 0u; j < TILE; j++) {
+        for (var i = 0u; i < TILE; i++) {
+            let column = select(i, TILE - 1u - i, (j & 1u) == 1u);
+            let texel = vec2<i32>(vec2<u32>(id.x * TILE + column, id.y * TILE + j));
+            if u32(texel.x) >= size || u32(texel.y) >= size {
+                continue;
+            }
+            let rho = Texel(
+                textureLoad(rsm_rho_position, texel, i32(layer), 0),
+                textureLoad(rsm_rho_normal, texel, i32(layer), 0),
+                textureLoad(rsm_rho_albedo, texel, i32(layer), 0),
+            );
+            let mu = Texel(
+                textureLoad(rsm_mu_position, texel, i32(layer), 0),
+                textureLoad(rsm_mu_normal, texel, i32(layer), 0),
+                textureLoad(rsm_mu_albedo, texel, i32(layer), 0),
+            );
+            let same = all(rho.position == mu.position) && all(rho.normal == mu.normal)
+                && all(rho.albedo == mu.albedo);
+            if rho.albedo.w >= 0.5 {
+                let v = vpl_of(rho, face, l, size);
+                inject(1u, &rho_only, v.cell, v.lobe, v.flux);
+                if !same {
+                    inject(0u, &delta, v.cell, v.lobe, v.flux);
+                    if direct_on {
+                        inject(0u, &direct, v.direct_cell, v.direct_lobe, v.direct_flux);
+                    }
+                }
+            }
+            if mu.albedo.w >= 0.5 && !same {
+                let v = vpl_of(mu, face, l, size);
+                inject(0u, &delta, v.cell, v.lobe, -v.flux);
+                if direct_on {
+                    inject(0u, &direct, v.direct_cell, v.direct_lobe, -v.direct_flux);
+                }
+            }
+        }
     }
-    // Direct: the incident flux along the light's direction of travel.
-    if volume.scale.y > 0.5 {
-        let incident_flux = vpl_flux(l, face, p, vec3<f32>(1.0), size);
-        let travel = -incident(l, p).to_light;
-        inject(0u, cell_of(p - travel * half_cell), cosine_lobe(travel), sign * incident_flux);
-    }
+    flush(0u, &delta);
+    flush(1u, &rho_only);
+    flush(0u, &direct);
 }

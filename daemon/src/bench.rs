@@ -24,6 +24,7 @@ use relight_engines::offline::{
 };
 use relight_engines::reference::{ReferenceImages, ReferenceRenderer};
 use relight_engines::reference_cache::ReferenceCache;
+use relight_engines::roofline::{PassWork, Rates};
 use relight_engines::{EngineRegistry, RelitFrame, SceneFrame};
 use serde::Serialize;
 use serde_json::{Map, Value, json};
@@ -143,8 +144,11 @@ pub struct BenchRow {
     /// Median GPU time of the frame's passes by timestamp queries (`None` where the adapter
     /// has none).
     pub gpu_ms: Option<f64>,
-    /// GPU time per pass of the last timed frame.
+    /// GPU time per pass of the last timed frame whose inputs changed.
     pub gpu_passes: Vec<(String, f64)>,
+    /// What each pass of that frame had to do ([`RelitFrame::work`]), for the roofline.
+    #[serde(skip)]
+    pub pass_work: Vec<PassWork>,
     /// ‖Δ − Δ_ref‖₂ / ‖Δ_ref‖₂ over real pixels.
     pub relative_l2: f64,
     /// max |Δ − Δ_ref| over real pixels and channels.
@@ -366,25 +370,21 @@ fn measure(
     }
     let mut times = Vec::new();
     let mut gpu_times = Vec::new();
+    let (mut gpu_passes, mut pass_work) = (Vec::new(), Vec::new());
     for i in 0..frames.max(1) {
         times.push(render(if i % 2 == 0 { &nudged } else { frame }, &mut out)?);
-        let gpu: Vec<f64> = out
+        gpu_passes = out
             .timings
             .iter()
-            .filter(|t| t.pass.starts_with("gpu."))
-            .map(|t| t.ms)
-            .collect();
-        if !gpu.is_empty() {
-            gpu_times.push(gpu.iter().sum::<f64>());
+            .filter_map(|t| Some((t.pass.strip_prefix("gpu.")?.to_owned(), t.ms)))
+            .collect::<Vec<_>>();
+        pass_work = out.work.clone();
+        if !gpu_passes.is_empty() {
+            gpu_times.push(gpu_passes.iter().map(|(_, ms)| ms).sum::<f64>());
         }
     }
     times.sort_by(f64::total_cmp);
     gpu_times.sort_by(f64::total_cmp);
-    let gpu_passes = out
-        .timings
-        .iter()
-        .filter_map(|t| Some((t.pass.strip_prefix("gpu.")?.to_owned(), t.ms)))
-        .collect();
     // The unchanged frame once more after a changed one, then timed as it repeats; the last
     // is the one scored.
     render(frame, &mut out)?;
@@ -405,6 +405,7 @@ fn measure(
         static_ms: static_times[static_times.len() / 2],
         gpu_ms: gpu_times.get(gpu_times.len() / 2).copied(),
         gpu_passes,
+        pass_work,
         relative_l2: f64::NAN,
         max_abs: f64::NAN,
         object_relative_l2: None,
@@ -453,6 +454,130 @@ pub fn table(rows: &[BenchRow]) -> String {
         ));
     }
     s
+}
+
+/// One pass of one bench row against the adapter's roofline (`bench --roofline`).
+#[derive(Debug, Clone, Serialize)]
+pub struct RooflineRow {
+    pub scene: String,
+    pub engine: String,
+    pub setting: String,
+    pub pass: String,
+    /// The pass's GPU time (timestamp queries) in the last timed frame.
+    pub ms: f64,
+    /// What its algorithm must move and compute ([`relight_engines::roofline::Work`]);
+    /// `None` for a pass without a work model.
+    pub bytes: Option<f64>,
+    pub ops: Option<f64>,
+    /// That work at the adapter's rates, and which rate bounds it (`memory` or `alu`).
+    pub roofline_ms: Option<f64>,
+    pub bound: Option<&'static str>,
+    /// `roofline_ms / ms`: 1 is the adapter's limit.
+    pub roofline_fraction: Option<f64>,
+}
+
+/// Every timed pass of every row, with its work where the engine stated one.
+pub fn roofline_rows(rows: &[BenchRow], rates: &Rates) -> Vec<RooflineRow> {
+    let mut out = Vec::new();
+    for row in rows {
+        for (pass, ms) in &row.gpu_passes {
+            let work = row
+                .pass_work
+                .iter()
+                .filter(|w| w.pass == pass)
+                .map(|w| w.work)
+                .reduce(|a, b| a + b);
+            let roofline = work.map(|w| rates.roofline_ms(w));
+            out.push(RooflineRow {
+                scene: row.scene.clone(),
+                engine: row.engine.clone(),
+                setting: row.setting.clone(),
+                pass: pass.clone(),
+                ms: *ms,
+                bytes: work.map(|w| w.bytes),
+                ops: work.map(|w| w.ops),
+                roofline_ms: roofline.map(|(ms, _)| ms),
+                bound: roofline.map(|(_, bound)| bound.name()),
+                roofline_fraction: work.map(|w| rates.fraction(w, *ms)),
+            });
+        }
+    }
+    out
+}
+
+pub fn roofline_table(rates: &Rates, rows: &[RooflineRow]) -> String {
+    let mut s = format!(
+        "roofline: {:.2} GB/s (copy), {:.2} Gop/s (fma)\n{:<14} {:<40} {:<10} {:>10} {:>10} {:>10} {:>12} {:>7} {:>9}\n",
+        rates.bytes_per_s / 1e9,
+        rates.ops_per_s / 1e9,
+        "scene",
+        "engine / setting",
+        "pass",
+        "ms",
+        "MB",
+        "Mop",
+        "roofline ms",
+        "bound",
+        "fraction"
+    );
+    let or_dash = |v: Option<f64>, scale: f64, digits: usize| {
+        v.map_or("-".to_owned(), |v| format!("{:.*}", digits, v * scale))
+    };
+    for r in rows {
+        s.push_str(&format!(
+            "{:<14} {:<40} {:<10} {:>10.2} {:>10} {:>10} {:>12} {:>7} {:>9}\n",
+            r.scene,
+            r.setting,
+            r.pass,
+            r.ms,
+            or_dash(r.bytes, 1e-6, 1),
+            or_dash(r.ops, 1e-6, 1),
+            or_dash(r.roofline_ms, 1.0, 3),
+            r.bound.unwrap_or("-"),
+            or_dash(r.roofline_fraction, 1.0, 4),
+        ));
+    }
+    s
+}
+
+/// `roofline.csv` and `roofline.json` (with the rates) in `dir`.
+pub fn write_roofline(
+    rates: &Rates,
+    rows: &[RooflineRow],
+    dir: &Path,
+    adapter: &str,
+) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let or_empty = |v: Option<f64>| v.map_or(String::new(), |e| e.to_string());
+    let mut csv = String::from(
+        "scene,engine,setting,pass,ms,bytes,ops,roofline_ms,bound,roofline_fraction\n",
+    );
+    for r in rows {
+        csv.push_str(&format!(
+            "{},{},\"{}\",{},{},{},{},{},{},{}\n",
+            r.scene,
+            r.engine,
+            r.setting,
+            r.pass,
+            r.ms,
+            or_empty(r.bytes),
+            or_empty(r.ops),
+            or_empty(r.roofline_ms),
+            r.bound.unwrap_or(""),
+            or_empty(r.roofline_fraction)
+        ));
+    }
+    std::fs::write(dir.join("roofline.csv"), csv)?;
+    std::fs::write(
+        dir.join("roofline.json"),
+        serde_json::to_string_pretty(&json!({
+            "adapter": adapter,
+            "bytes_per_s": rates.bytes_per_s,
+            "ops_per_s": rates.ops_per_s,
+            "rows": rows,
+        }))?,
+    )?;
+    Ok(())
 }
 
 /// `bench.csv`, `bench.json` and `bench.svg` (frame time vs error, one colour per engine) in

@@ -19,6 +19,7 @@ use crate::gpu::GpuContext;
 use crate::gpu_scene::{
     GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, is_shadowed, light_faces,
 };
+use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::timer::GpuTimer;
 
@@ -349,13 +350,17 @@ impl Deferred {
                 label: Some("geometry"),
             });
         let camera_group = self.gbuffer.bind_group(&ctx, &self.camera, gpu_scene);
-        self.gbuffer.render(
+        let gbuffer_work = self.gbuffer.render(
             &mut encoder,
             &camera_group,
             gpu_scene,
             (&frame_res.gb_rho, &frame_res.gb_mu),
             self.timer.as_mut(),
         );
+        out.work.push(PassWork {
+            pass: "gbuffer",
+            work: gbuffer_work,
+        });
         let drawn = self.rsm_keys(gpu_scene, rsm_size, layers);
         let redraw = match self.rsm_drawn {
             _ if self.faces_cpu.is_empty() => None,
@@ -367,7 +372,7 @@ impl Deferred {
             let rsm_group =
                 self.rsm
                     .bind_group(&ctx, &light_res.lights, &light_res.faces, gpu_scene);
-            self.rsm.render(
+            let work = self.rsm.render(
                 &mut encoder,
                 &rsm_group,
                 gpu_scene,
@@ -375,6 +380,7 @@ impl Deferred {
                 redraw,
                 self.timer.as_mut(),
             );
+            out.work.push(PassWork { pass: "rsm", work });
             self.rsm_drawn = Some(drawn);
         }
         encoder.clear_buffer(&frame_res.indirect, 0, None);
@@ -535,6 +541,10 @@ impl Deferred {
             pass.set_bind_group(0, &group, &[]);
             pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
         }
+        out.work.push(PassWork {
+            pass: "shade",
+            work: shade_work(u64::from(width) * u64::from(height), self.light_count),
+        });
         if let Some(timer) = &self.timer {
             timer.resolve(&mut encoder);
         }
@@ -563,6 +573,15 @@ impl Deferred {
         }
         Ok(())
     }
+}
+
+/// The shading pass's work over `pixels`: both G-buffers (32 bytes a texel each), the
+/// background and the indirect term read, Δ and the composite written; per light and G-buffer
+/// one shadow-map texel (16 bytes) and about 200 operations (the light's incidence, the BRDF,
+/// the depth test and its bias).
+fn shade_work(pixels: u64, lights: u32) -> Work {
+    let per_light = Work::new(16.0, 200.0).times(2.0 * f64::from(lights));
+    (Work::new(2.0 * 32.0 + 4.0 + 16.0 + 16.0 + 4.0, 50.0) + per_light).times(pixels as f64)
 }
 
 /// Linear f32 RGBA → the frame's Rgba16F Δ; non-finite values become 0 (they never should).

@@ -7,6 +7,7 @@ use relight_core::scene::Scene;
 use relight_core::{Frame, Image, PixelFormat, Timestamp};
 
 use crate::gpu::GpuError;
+use crate::roofline::PassWork;
 
 /// What every engine renders from: the synchronised sensor data of one instant.
 ///
@@ -63,6 +64,9 @@ pub struct RelitFrame {
     /// Background + Δ on real pixels, L^ρ on virtual pixels (DLPV Algorithm 1), 8-bit RGB.
     pub composite: Image,
     pub timings: Vec<PassTiming>,
+    /// What each GPU pass run this frame had to do, for the roofline (`bench --roofline`);
+    /// a pass kept from an earlier frame has no entry.
+    pub work: Vec<PassWork>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -130,6 +134,7 @@ impl RelitFrame {
         self.stamp = scene.stamp;
         self.seq = scene.seq;
         self.timings.clear();
+        self.work.clear();
         self.composite.reshape(width, height, PixelFormat::Rgb8);
         self.delta.reshape(width, height, PixelFormat::Rgba16F);
         if let Some(delta) = self.delta.as_u16_mut() {

@@ -4,6 +4,7 @@
 
 use crate::gpu::GpuContext;
 use crate::gpu_scene::{GpuScene, GpuVertex};
+use crate::roofline::{self, Work};
 use crate::shaders;
 use crate::timer::GpuTimer;
 
@@ -104,6 +105,23 @@ impl Targets {
             .concat()
             .try_into()
             .unwrap_or_else(|_| unreachable!("two maps of three views"))
+    }
+
+    /// Bytes of one texel over every drawn target and the depth.
+    pub fn texel_bytes(&self) -> u64 {
+        let colour = POSITION.block_copy_size(None).unwrap_or(16)
+            + if self.position_only {
+                0
+            } else {
+                NORMAL.block_copy_size(None).unwrap_or(8)
+                    + ALBEDO.block_copy_size(None).unwrap_or(8)
+            };
+        u64::from(colour) + 4
+    }
+
+    /// Texels of one layer.
+    pub fn layer_texels(&self) -> u64 {
+        u64::from(self.width) * u64::from(self.height)
     }
 
     pub fn view(texture: &wgpu::Texture) -> wgpu::TextureView {
@@ -333,7 +351,7 @@ impl GBufferPass {
         scene: &GpuScene,
         (rho, mu): (&Targets, &Targets),
         mut timer: Option<&mut GpuTimer>,
-    ) {
+    ) -> Work {
         mu.draw(
             encoder,
             &self.pipeline,
@@ -355,6 +373,10 @@ impl GBufferPass {
             LayerStart::Over,
             timer.and_then(|t| t.render("gpu.gbuffer")),
         );
+        let (texels, texel_bytes) = (mu.layer_texels(), mu.texel_bytes());
+        roofline::raster(scene.real_vertices, texels, texel_bytes)
+            + roofline::copy(texels * texel_bytes)
+            + roofline::raster(scene.all_vertices - scene.real_vertices, 0, 0)
     }
 }
 
@@ -437,8 +459,13 @@ impl RsmPass {
         (rho, mu): (&Targets, &Targets),
         redraw: RsmRedraw,
         mut timer: Option<&mut GpuTimer>,
-    ) {
+    ) -> Work {
+        let (texels, texel_bytes) = (mu.layer_texels(), mu.texel_bytes());
+        let layers = f64::from(mu.layers);
+        let mut work = roofline::copy(texels * texel_bytes).times(layers);
         if redraw == RsmRedraw::Both {
+            let real = scene.shadow_real.end - scene.shadow_real.start;
+            work = work + roofline::raster(real, texels, texel_bytes).times(layers);
             for face in 0..mu.layers {
                 mu.draw(
                     encoder,
@@ -470,5 +497,6 @@ impl RsmPass {
                 );
             }
         }
+        work + roofline::raster(scene.all_vertices - scene.real_vertices, 0, 0).times(layers)
     }
 }

@@ -21,6 +21,7 @@ pub mod params;
 pub mod recon_gpu;
 pub mod reference_cache;
 pub mod registry;
+pub mod roofline;
 pub mod shaders;
 pub mod shadow_proxy;
 pub mod surface_albedo;

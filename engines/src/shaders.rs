@@ -23,6 +23,7 @@ pub const DVCT_VOXELIZE: &str = pass!("dvct_voxelize.wgsl");
 pub const DVCT_MIP: &str = pass!("dvct_mip.wgsl");
 pub const DVCT_TRACE: &str = pass!("dvct_trace.wgsl");
 pub const DIR_ROWS: &str = pass!("dir_rows.wgsl");
+pub const ROOFLINE: &str = pass!("roofline.wgsl");
 pub const DIR_ALLOC: &str = pass!("dir_alloc.wgsl");
 pub const DIR_VPL: &str = pass!("dir_vpl.wgsl");
 pub const DIR_ISM: &str = pass!("dir_ism.wgsl");
@@ -62,6 +63,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("dvct_mip.wgsl", DVCT_MIP),
     ("dvct_trace.wgsl", DVCT_TRACE),
     ("dir_rows.wgsl", DIR_ROWS),
+    ("roofline.wgsl", ROOFLINE),
     ("dir_alloc.wgsl", DIR_ALLOC),
     ("dir_vpl.wgsl", DIR_VPL),
     ("dir_ism.wgsl", DIR_ISM),
@@ -89,12 +91,22 @@ pub fn module(device: &wgpu::Device, name: &str, source: &str) -> wgpu::ShaderMo
 /// A compute pipeline of a pass's `main` entry point, its bind-group layout derived from the
 /// shader.
 pub fn compute_pipeline(device: &wgpu::Device, label: &str, source: &str) -> wgpu::ComputePipeline {
+    compute_pipeline_at(device, label, source, "main")
+}
+
+/// A compute pipeline of `entry` in a source with several entry points.
+pub fn compute_pipeline_at(
+    device: &wgpu::Device,
+    label: &str,
+    source: &str,
+    entry: &str,
+) -> wgpu::ComputePipeline {
     let module = module(device, label, source);
     device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
         label: Some(label),
         layout: None,
         module: &module,
-        entry_point: Some("main"),
+        entry_point: Some(entry),
         compilation_options: Default::default(),
         cache: None,
     })

@@ -7,6 +7,7 @@ use glam::Vec3;
 
 use crate::gbuffer::Targets;
 use crate::gpu_scene::GpuLight;
+use crate::roofline::Work;
 use crate::shaders;
 use crate::timer::GpuTimer;
 
@@ -109,6 +110,15 @@ impl InjectPass {
         shaders::pipeline_bind_group(device, &self.pipeline, "inject", &resources)
     }
 
+    /// What injecting `layers` faces of `rsm_size`² into `cells` cells must do: every texel of
+    /// both maps read once (32 bytes each), at least R^ρ's VPL turned into 12 fixed-point SH
+    /// values (about 36 operations, 60 more for the texel's VPL itself; the V^Δ pairs that
+    /// cancel need none), and the cells written once (48 bytes).
+    pub fn work(rsm_size: u32, layers: u32, cells: f64) -> Work {
+        let pairs = f64::from(layers) * f64::from(rsm_size).powi(2);
+        Work::new(64.0, 156.0).times(pairs) + Work::new(48.0, 0.0).times(cells)
+    }
+
     /// Inject every texel of `layers` shadow-map layers of `rsm_size`², both maps.
     pub fn dispatch(
         &self,
@@ -122,7 +132,8 @@ impl InjectPass {
         }
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, group, &[]);
-        let s = rsm_size.div_ceil(8);
-        pass.dispatch_workgroups(s, s, layers * 2);
+        // Each thread injects a 4 × 4 tile (`TILE` in the shader), 8 × 8 threads a group.
+        let s = rsm_size.div_ceil(4 * 8);
+        pass.dispatch_workgroups(s, s, layers);
     }
 }

@@ -44,6 +44,7 @@ use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
+use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::volume::{timed_pass, uniform_buffer};
 
@@ -281,6 +282,11 @@ impl Dir {
     }
 }
 
+/// Bytes of every VPL's imperfect shadow map (one f32 depth a texel).
+fn ism_size_bytes(s: &DirSettings) -> f64 {
+    f64::from(s.vpl_count) * f64::from(s.ism_size).powi(2) * 4.0
+}
+
 impl Engine for Dir {
     fn name(&self) -> &'static str {
         Self::NAME
@@ -394,6 +400,25 @@ impl Engine for Dir {
                 .device
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("dir") });
             if relight {
+                out.work.extend([
+                    PassWork {
+                        pass: "vpls",
+                        // Both maps' texels read for the importance rows (32 bytes, about 30
+                        // operations each); each VPL written (64 bytes).
+                        work: Work::new(2.0 * 32.0, 60.0)
+                            .times(f64::from(layers) * f64::from(s.rsm_size).powi(2))
+                            + Work::new(64.0, 100.0).times(f64::from(s.vpl_count)),
+                    },
+                    PassWork {
+                        pass: "ism",
+                        // Every surface point into every VPL's paraboloid (about 40
+                        // operations); the points read once, the maps written once.
+                        work: Work::new(0.0, 40.0)
+                            .times(f64::from(point_count) * f64::from(s.vpl_count))
+                            + Work::new(16.0, 0.0).times(f64::from(point_count))
+                            + Work::new(ism_size_bytes(&s), 0.0),
+                    },
+                ]);
                 encoder.clear_buffer(&b.ism, 0, None);
                 {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.vpls");
@@ -414,6 +439,16 @@ impl Engine for Dir {
                     pass.dispatch_workgroups(point_count.div_ceil(64), s.vpl_count, 1);
                 }
             }
+            out.work.push(PassWork {
+                pass: "gather",
+                // Per pixel the G-buffer read and the result written, and per VPL about 80
+                // operations (its geometry term, BRDF and one ISM lookup); the VPLs and their
+                // maps read once.
+                work: Work::new(32.0 + 16.0, 0.0).times(f64::from(width) * f64::from(height))
+                    + Work::new(0.0, 80.0)
+                        .times(f64::from(width) * f64::from(height) * f64::from(s.vpl_count))
+                    + Work::new(64.0 * f64::from(s.vpl_count) + ism_size_bytes(&s), 0.0),
+            });
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.gather");
                 pass.set_pipeline(&self.gather);

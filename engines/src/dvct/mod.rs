@@ -32,6 +32,7 @@ use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
+use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::volume::{
     InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer,
@@ -284,6 +285,26 @@ impl Dvct {
     }
 }
 
+/// What the cone tracing must do over `pixels`: the G-buffer read and the result written per
+/// pixel, the mip chains (`mip_cells`) read once; per cone, the samples a cone of its aperture
+/// takes across the volume (its diameter grows by `2 tan(aperture/2) · step` a sample, from one
+/// cell to the volume's diagonal), each a quadrilinear lookup of two levels (16 cells of 14
+/// values). Nine diffuse cones, one glossy, and with shadow cones one per light.
+fn trace_work(settings: &DvctSettings, n: u32, pixels: u32, lights: u32, mip_cells: f64) -> Work {
+    let samples = |aperture_deg: f32| {
+        let growth = 1.0 + 2.0 * f64::from(aperture_deg.to_radians().tan() * settings.step);
+        ((1.7 * f64::from(n)).ln() / growth.ln()).max(1.0)
+    };
+    let cones = 10.0 * samples(settings.cone_aperture_deg)
+        + if settings.shadow_cones {
+            f64::from(lights) * samples(settings.shadow_aperture_deg)
+        } else {
+            0.0
+        };
+    Work::new(32.0 + 16.0, cones * 16.0 * 14.0 * 2.0).times(f64::from(pixels))
+        + Work::new(96.0 + 8.0, 0.0).times(mip_cells)
+}
+
 impl Engine for Dvct {
     fn name(&self) -> &'static str {
         Self::NAME
@@ -440,6 +461,27 @@ impl Engine for Dvct {
                     label: Some("dvct"),
                 });
             if revoxelize {
+                let cells = 2.0 * f64::from(n).powi(3);
+                let mip_cells = f64::from(offsets[levels as usize]);
+                out.work.extend([
+                    PassWork {
+                        pass: "voxelize",
+                        // Each triangle's vertices read, about 300 operations to find the
+                        // cells it covers; the occupancy written once.
+                        work: Work::new(96.0, 300.0).times(f64::from(triangles))
+                            + Work::new(4.0, 0.0).times(cells),
+                    },
+                    PassWork {
+                        pass: "inject",
+                        work: InjectPass::work(settings.rsm_size, faces, cells),
+                    },
+                    PassWork {
+                        pass: "mip",
+                        // Every level's cells read as eight children and written once: two
+                        // radiance volumes (96 bytes) and two occlusion channels (8).
+                        work: Work::new(2.0 * (96.0 + 8.0), 8.0 * 26.0).times(mip_cells),
+                    },
+                ]);
                 encoder.clear_buffer(&v.cells, 0, None);
                 encoder.clear_buffer(&v.occupancy, 0, None);
                 {
@@ -464,6 +506,16 @@ impl Engine for Dvct {
                     pass.dispatch_workgroups(m, m, m);
                 }
             }
+            out.work.push(PassWork {
+                pass: "trace",
+                work: trace_work(
+                    &settings,
+                    n,
+                    width * height,
+                    self.deferred.lights().len() as u32,
+                    f64::from(offsets[levels as usize]),
+                ),
+            });
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.trace");
                 pass.set_pipeline(&self.trace);

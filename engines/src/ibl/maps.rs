@@ -10,6 +10,7 @@ use relight_recon::envmap::{texel_direction, texel_solid_angle};
 
 use crate::engine::EngineError;
 use crate::gpu::{GpuContext, GpuError};
+use crate::roofline::Work;
 use crate::shaders;
 use crate::timer::GpuTimer;
 use crate::volume::{timed_pass, uniform_buffer};
@@ -183,7 +184,10 @@ impl ReflectionMaps {
     }
 
     /// Convolve `texels` into maps `size` texels square with the specular exponents `shininess`
-    /// (at most [`MAX_LEVELS`], each > 0).
+    /// (at most [`MAX_LEVELS`], each > 0). Returns the work the convolution must do: every
+    /// output texel of every map sums every input texel (about 12 operations: the cosine or
+    /// the Phong lobe, weighted by the texel's solid angle), the input read once and the maps
+    /// written once.
     pub fn convolve(
         &mut self,
         ctx: &GpuContext,
@@ -191,7 +195,7 @@ impl ReflectionMaps {
         size: u32,
         shininess: &[f32],
         timer: &mut Option<GpuTimer>,
-    ) -> Result<(), EngineError> {
+    ) -> Result<Work, EngineError> {
         let levels = shininess.len().min(MAX_LEVELS);
         let bytes = u64::from(size).pow(2) * (levels as u64 + 1) * 16;
         ctx.require("max_storage_buffer_binding_size", bytes, "map_size")?;
@@ -249,7 +253,9 @@ impl ReflectionMaps {
         ctx.check()?;
         self.size = size;
         self.shininess = shininess[..levels].to_vec();
-        Ok(())
+        let outputs = f64::from(size).powi(2) * (levels as f64 + 1.0);
+        Ok(Work::new(input_bytes as f64 + bytes as f64, 0.0)
+            + Work::new(0.0, 12.0).times(outputs * texels.len() as f64))
     }
 
     /// The maps buffer (after [`convolve`](Self::convolve)).

@@ -31,6 +31,7 @@ use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
+use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::volume::{timed_pass, uniform_buffer};
 use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, log_spaced_shininess, resample};
@@ -170,14 +171,13 @@ impl Ibl {
     fn update_environment(
         &mut self,
         scene: &Arc<Scene>,
-        out: &mut RelitFrame,
-    ) -> Result<(), EngineError> {
+    ) -> Result<Option<(PassTiming, PassWork)>, EngineError> {
         let s = self.settings;
         if let Some(e) = &self.environment
             && Arc::ptr_eq(&e.scene, scene)
             && e.settings == s
         {
-            return Ok(());
+            return Ok(None);
         }
         let input = scene
             .environment
@@ -197,15 +197,21 @@ impl Ibl {
             if let Some(e) = self.environment.as_mut() {
                 e.scene = scene.clone();
             }
-            return Ok(());
+            return Ok(None);
         }
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();
+        let mut work = Work::default();
         let lights = match &input {
             Some(env) => {
                 let mut timer = self.deferred.lend_timer();
-                self.maps
-                    .convolve(&ctx, &input_texels(env), s.map_size, &shininess, &mut timer)?;
+                work = self.maps.convolve(
+                    &ctx,
+                    &input_texels(env),
+                    s.map_size,
+                    &shininess,
+                    &mut timer,
+                )?;
                 self.deferred.return_timer(timer);
                 self.convolutions += 1;
                 shadow_lights(env, s.env_lights)
@@ -220,11 +226,16 @@ impl Ibl {
             shininess,
             settings: s,
         });
-        out.timings.push(PassTiming {
-            pass: "convolve",
-            ms: started.elapsed().as_secs_f64() * 1e3,
-        });
-        Ok(())
+        Ok(Some((
+            PassTiming {
+                pass: "convolve",
+                ms: started.elapsed().as_secs_f64() * 1e3,
+            },
+            PassWork {
+                pass: "convolve",
+                work,
+            },
+        )))
     }
 }
 
@@ -288,11 +299,18 @@ impl Engine for Ibl {
     }
 
     fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
-        if let Some(scene) = &frame.scene {
-            self.update_environment(scene, out)?;
-        }
+        let convolved = match &frame.scene {
+            Some(scene) => self.update_environment(scene)?,
+            None => None,
+        };
         let s = self.settings;
         let (width, height) = self.deferred.prepare(Self::NAME, frame, out, s.rsm_size)?;
+        // After `prepare`, which starts the frame's timings (the convolution's GPU timestamp
+        // is lost with the timer's reset; `bench --ibl-maps` times the convolution alone).
+        if let Some((timing, work)) = convolved {
+            out.timings.push(timing);
+            out.work.push(work);
+        }
         let has_maps = self.environment.as_ref().is_some_and(|e| e.input.is_some());
         if has_maps {
             let started = Instant::now();
@@ -348,6 +366,13 @@ impl Engine for Ibl {
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                     label: Some("ibl shade"),
                 });
+            out.work.push(PassWork {
+                pass: "ibl_shade",
+                // Per pixel the G-buffer read and the result written, the diffuse and one
+                // specular map read bilinearly (8 texels of 16 bytes), about 300 operations.
+                work: Work::new(32.0 + 16.0 + 8.0 * 16.0, 300.0)
+                    .times(f64::from(width) * f64::from(height)),
+            });
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.ibl_shade");
                 pass.set_pipeline(&self.shade);

@@ -42,6 +42,10 @@ pub struct Args {
     /// maps in one pass) at these output sizes, e.g. `--ibl-maps 128,256,512`.
     #[arg(long, value_delimiter = ',')]
     ibl_maps: Vec<u32>,
+    /// Also measure the adapter's bandwidth and arithmetic rate with micro-kernels, and print
+    /// each pass's achieved fraction of them (roofline.csv, roofline.json).
+    #[arg(long)]
+    roofline: bool,
     /// Where bench.csv, bench.json and bench.svg (or ibl_maps.csv) are written.
     #[arg(long, default_value = "target/bench")]
     out: PathBuf,
@@ -108,10 +112,24 @@ pub fn run(args: Args) -> Result<()> {
         frames: args.frames,
         cases,
     };
-    let adapter = relight_engines::gpu::GpuContext::new()
+    let context = relight_engines::gpu::GpuContext::new();
+    let adapter = context
+        .as_ref()
         .map(|c| format!("{} ({:?})", c.info.name, c.info.backend))
         .unwrap_or_else(|e| format!("no GPU: {e}"));
     eprintln!("bench on {adapter}");
+    let rates = if args.roofline {
+        let context = context.map_err(|e| anyhow::anyhow!("--roofline needs a GPU: {e}"))?;
+        let rates = relight_engines::roofline::measure(&context)?;
+        eprintln!(
+            "roofline: {:.2} GB/s, {:.2} Gop/s",
+            rates.bytes_per_s / 1e9,
+            rates.ops_per_s / 1e9
+        );
+        Some(rates)
+    } else {
+        None
+    };
     // A bar on a terminal; on a pipe or in a log, one line per reference and per row.
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} cases  {elapsed}  {msg}")
@@ -152,5 +170,11 @@ pub fn run(args: Args) -> Result<()> {
     print!("{}", bench::table(&rows));
     bench::write_outputs(&rows, &args.out, &adapter)?;
     println!("wrote {}/bench.{{csv,json,svg}}", args.out.display());
+    if let Some(rates) = rates {
+        let roofline = bench::roofline_rows(&rows, &rates);
+        print!("{}", bench::roofline_table(&rates, &roofline));
+        bench::write_roofline(&rates, &roofline, &args.out, &adapter)?;
+        println!("wrote {}/roofline.{{csv,json}}", args.out.display());
+    }
     Ok(())
 }
