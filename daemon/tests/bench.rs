@@ -3,7 +3,11 @@
 
 use std::path::Path;
 
-use relight_daemon::bench::{BenchSettings, default_cases, run, table, write_outputs};
+use relight_daemon::bench::{
+    BenchSettings, default_cases, roofline_rows, roofline_table, run, table, write_outputs,
+    write_roofline,
+};
+use relight_engines::roofline::Rates;
 
 #[test]
 fn bench_measures_every_case_and_writes_its_outputs() {
@@ -70,6 +74,42 @@ fn bench_measures_every_case_and_writes_its_outputs() {
     }
     let csv = std::fs::read_to_string(dir.path().join("bench.csv")).unwrap();
     assert_eq!(csv.lines().count(), rows.len() + 1);
+
+    // The roofline: a row per timed pass (lavapipe has timestamps), each with its work.
+    let rates = Rates {
+        bytes_per_s: 1e10,
+        ops_per_s: 1e11,
+    };
+    let roofline = roofline_rows(&rows, &rates);
+    let timed: usize = rows.iter().map(|r| r.gpu_passes.len()).sum();
+    assert!(timed > 0);
+    assert_eq!(roofline.len(), timed);
+    for r in &roofline {
+        let (bytes, ops) = (r.bytes.unwrap(), r.ops.unwrap());
+        let expected = (bytes / 1e10).max(ops / 1e11) * 1e3;
+        assert!(
+            (r.roofline_ms.unwrap() - expected).abs() <= 1e-9 * expected.max(1.0),
+            "{r:?}"
+        );
+        if r.ms > 0.0 {
+            assert!(
+                (r.roofline_fraction.unwrap() - expected / r.ms).abs() <= 1e-9 * (expected / r.ms),
+                "{r:?}"
+            );
+        }
+    }
+    assert_eq!(
+        roofline_table(&rates, &roofline).lines().count(),
+        roofline.len() + 2
+    );
+    write_roofline(&rates, &roofline, dir.path(), "test adapter").unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("roofline.json")).unwrap())
+            .unwrap();
+    let first = &json["rows"][0];
+    for key in ["pass", "ms", "roofline_fraction"] {
+        assert!(!first[key].is_null(), "{key}: {first}");
+    }
 }
 
 /// `bench --engine nosuch` used to print an empty table and exit 0.
