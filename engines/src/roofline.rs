@@ -135,7 +135,7 @@ const FMA_ITERATIONS: u32 = 256;
 const MIN_MEASURE_S: f64 = 0.05;
 
 /// Measure the adapter's bandwidth and arithmetic rate: each kernel warms up once, then runs
-/// in batches doubled until a batch lasts [`MIN_MEASURE_S`]; the best of three such batches
+/// in batches doubled until a batch lasts `MIN_MEASURE_S`; the best of three such batches
 /// counts (the others were disturbed by something else).
 pub fn measure(ctx: &GpuContext) -> Result<Rates, GpuError> {
     let device = &ctx.device;

@@ -1,5 +1,6 @@
-//! The real surface as the light-space passes draw it ([`Scene::shadow_proxy`]): the live depth
-//! mesh decimated, and held while the real surface holds.
+//! The real surface as the light-space passes draw it
+//! ([`Scene::shadow_proxy`](relight_core::scene::Scene::shadow_proxy)): the live depth mesh
+//! decimated, and held while the real surface holds.
 //!
 //! **Why decimate.** The depth mesh has two triangles per 2 × 2 block of depth samples: about
 //! 38 000 at 320 × 240 and stride 2. Every shadow-map face rasterises all of them, so the live

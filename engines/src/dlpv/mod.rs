@@ -9,10 +9,13 @@
 //!    deterministic and VPLs seen in both maps cancel to exactly zero (Δ = 0 without an object
 //!    holds bit for bit). Additive blending into volume slices would need one render pass per
 //!    slice and leave order-dependent float residues; a gather over all VPLs per cell costs
-//!    cells × VPLs.
+//!    cells × VPLs. A thread injects a 4 × 4 tile, summing runs of texels that land in one cell
+//!    before adding them, and adds neither VPL of an R^ρ/R^μ pair that is the same texel (the
+//!    counts would cancel): the same integers with far fewer atomics.
 //! 2. **resolve** the counts to float SH; **propagate** N steps (gather from the six
-//!    neighbours over their faces' solid angles, `dlpv_propagate.wgsl`), accumulating every step;
-//!    negative light is dampened per step.
+//!    neighbours over their faces' solid angles, written out per direction:
+//!    `dlpv_propagate.wgsl`, `propagate.rs`), accumulating every step; negative light is
+//!    dampened per step.
 //! 3. **look up** (`dlpv_lookup.wgsl`): trilinear V^Δ on real pixels, V^ρ on virtual ones.
 //! 4. the shared shading pass composites (Algorithm 1): real pixels B + albedo · V^Δ (+ the
 //!    shadow-mapped direct Δ when `shadows = "shadow_map"`), virtual pixels direct + albedo · V^ρ.
@@ -180,7 +183,8 @@ impl Dlpv {
         ctx.require("max_storage_buffer_binding_size", cells * 48, "volume_size")?;
         ctx.require(
             "max_compute_workgroups_per_dimension",
-            u64::from(2 * n).div_ceil(4),
+            // Propagation dispatches one workgroup per slice of both volumes.
+            u64::from(2 * n),
             "volume_size",
         )?;
         if self.volume.as_ref().is_none_or(|v| v.n != n) {
