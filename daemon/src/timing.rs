@@ -122,6 +122,40 @@ impl Timings {
     }
 }
 
+/// The passes of one stage as `<stage>.<pass>` timers (`render.gpu.shade`,
+/// `depth.recon upload`), registered as they first appear.
+#[derive(Debug)]
+pub struct PassTimers {
+    stage: &'static str,
+    timings: Arc<Timings>,
+    passes: Vec<(&'static str, StageTimer)>,
+}
+
+impl PassTimers {
+    pub fn new(stage: &'static str, timings: Arc<Timings>) -> Self {
+        Self {
+            stage,
+            timings,
+            passes: Vec::new(),
+        }
+    }
+
+    /// Record each `(pass, ms)` of one frame.
+    pub fn record(&mut self, passes: impl IntoIterator<Item = (&'static str, f64)>) {
+        for (pass, ms) in passes {
+            let index = match self.passes.iter().position(|(name, _)| *name == pass) {
+                Some(index) => index,
+                None => {
+                    let timer = self.timings.stage(&format!("{}.{pass}", self.stage));
+                    self.passes.push((pass, timer));
+                    self.passes.len() - 1
+                }
+            };
+            self.passes[index].1.record(ms);
+        }
+    }
+}
+
 /// One stage's statistics, shared between the stage that records and the status that reads.
 #[derive(Debug, Clone)]
 pub struct StageTimer(Arc<Mutex<StageStats>>);

@@ -430,6 +430,13 @@ fn gpu_engines_switch_live_while_replaying() {
             .map(|s| s["name"].as_str().unwrap_or_default().to_owned())
             .collect();
         assert!(stages.iter().any(|s| s == "scene"), "{stages:?}");
+        // The depth stage's parts, on the GPU or on the CPU.
+        assert!(
+            stages
+                .iter()
+                .any(|s| s == "depth.recon upload" || s == "depth.cpu filter"),
+            "{stages:?}"
+        );
     }
 }
 

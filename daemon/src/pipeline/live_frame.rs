@@ -18,7 +18,7 @@ use relight_core::sync::FrameSet;
 use relight_core::{Frame, LampState, ProbeImage};
 use relight_engines::live_scene::{LightSource, LiveScene, RealGeometry};
 use relight_engines::surface_albedo::{AlbedoReport, SurfaceAlbedo};
-use relight_engines::{EngineRegistry, SceneFrame};
+use relight_engines::{EngineRegistry, PassTiming, SceneFrame};
 use relight_recon::albedo::{AlbedoSettings, ColorDecoding};
 use relight_recon::probe::{ProbeLighting, ProbeSettings};
 
@@ -37,6 +37,9 @@ pub struct LiveFrame {
     /// camera is untracked and nothing was built).
     pub depth: Option<DepthOutcome>,
     pub timings: LiveTimings,
+    /// The depth stage's parts on this frame ([`DepthStage::passes`]); empty when it did not
+    /// run.
+    pub depth_passes: Vec<PassTiming>,
     /// What the albedo measurement did on this frame, when it runs.
     pub albedo: Option<AlbedoReport>,
 }
@@ -284,11 +287,16 @@ impl LiveFrames {
             }
             timings.scene_ms = Some(start.elapsed().as_secs_f64() * 1e3 - depth_ms);
         }
+        let depth_passes = match (&self.depth_stage, &reconstructed) {
+            (Some(stage), Some(_)) => stage.passes().to_vec(),
+            _ => Vec::new(),
+        };
         LiveFrame {
             scene,
             tracking,
             depth: reconstructed,
             timings,
+            depth_passes,
             albedo: self.live_scene.as_ref().and_then(LiveScene::albedo_report),
         }
     }

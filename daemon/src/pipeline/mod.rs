@@ -53,7 +53,7 @@ use relight_core::rig::RigCalibration;
 use relight_core::sync::FrameSet;
 use relight_core::sync::{SyncConfig as CoreSyncConfig, Synchronizer};
 use relight_core::{Frame, StreamMessage};
-use relight_engines::{EngineRegistry, RelitFrame};
+use relight_engines::{EngineRegistry, PassTiming, RelitFrame};
 use relight_live::{LiveView, Reports, RigFrames, ViewFrame};
 use relight_recon::estimate::LightingEstimate;
 use serde_json::{Map, Value};
@@ -65,7 +65,7 @@ use crate::lock;
 use crate::sinks::recorder::Recorder;
 use crate::sinks::safe_file::Existing;
 use crate::sinks::writer::ImageWriter;
-use crate::timing::{StageTimer, Timings};
+use crate::timing::{PassTimers, StageTimer, Timings};
 use ingest::{Ingest, ReadySet};
 use live_frame::{LiveFrame, LiveFrames, LiveTimings};
 use outputs::{Outputs, SnapshotRequest};
@@ -359,20 +359,25 @@ struct LiveTimers {
     tracking: StageTimer,
     probe: StageTimer,
     depth: StageTimer,
+    /// The depth stage's parts, `depth.<pass>`.
+    depth_passes: PassTimers,
     scene: StageTimer,
 }
 
 impl LiveTimers {
-    fn new(timings: &Timings) -> Self {
+    fn new(timings: &Arc<Timings>) -> Self {
         Self {
             tracking: timings.stage("tracking"),
             probe: timings.stage("probe"),
             depth: timings.stage("depth"),
+            depth_passes: PassTimers::new("depth", timings.clone()),
             scene: timings.stage("scene"),
         }
     }
 
-    fn record(&self, t: &LiveTimings) {
+    fn record(&mut self, t: &LiveTimings, depth_passes: &[PassTiming]) {
+        self.depth_passes
+            .record(depth_passes.iter().map(|p| (p.pass, p.ms)));
         self.tracking.record(t.tracking_ms);
         for (timer, ms) in [
             (&self.probe, t.probe_ms),
@@ -516,7 +521,7 @@ impl RenderLoop<'_> {
         let seq = shared.counters.frame_set(&set);
         let frame: LiveFrame = self.live.frame(&set, seq, &shared.lights);
         shared.liveness.beat();
-        self.live_timers.record(&frame.timings);
+        self.live_timers.record(&frame.timings, &frame.depth_passes);
         shared.counters.live_frame(&frame);
         let (rendered, rebuilt) =
             self.render

@@ -9,9 +9,11 @@
 //! frame the GPU failed on.
 
 use std::sync::Arc;
+use std::time::Instant;
 
 use relight_core::camera::Pinhole;
 use relight_core::{Image, Pose};
+use relight_engines::PassTiming;
 use relight_engines::gpu::GpuContext;
 use relight_engines::recon_gpu::{DepthPass, DepthPassSettings};
 use relight_recon::depth::{
@@ -39,6 +41,8 @@ pub struct DepthStage {
     gpu: Option<(DepthPass, DepthPassSettings)>,
     /// The last frame's depth was merged with its history without a reset.
     surface_held: bool,
+    /// The last frame's passes and their times (status: `depth.<pass>`).
+    passes: Vec<PassTiming>,
 }
 
 impl DepthStage {
@@ -54,6 +58,7 @@ impl DepthStage {
             switch: ProxySwitch::default(),
             gpu: gpu.map(|ctx| (DepthPass::new(ctx), DepthPassSettings::kinect_v1(focal))),
             surface_held: false,
+            passes: Vec::new(),
         }
     }
 
@@ -61,6 +66,13 @@ impl DepthStage {
     /// reset: the temporal merge found the real surface unchanged.
     pub fn surface_held(&self) -> bool {
         self.surface_held
+    }
+
+    /// What the last [`process`](Self::process) ran and how long each part took: on the GPU,
+    /// the upload, the GPU work with its read-back and the GPU passes by timestamp; on the
+    /// CPU, the filter and the merge.
+    pub fn passes(&self) -> &[PassTiming] {
+        &self.passes
     }
 
     /// One depth frame, `colour` its registered colour image (the filter's guide; without one,
@@ -72,6 +84,7 @@ impl DepthStage {
         world_from_camera: &Pose,
     ) -> DepthOutcome {
         self.surface_held = false;
+        self.passes.clear();
         let (map, census) = match DepthMap::from_image_with_census(depth, self.range) {
             Ok(parsed) => parsed,
             Err(error) => {
@@ -88,6 +101,7 @@ impl DepthStage {
             match pass.run(&map, guide, &self.camera, world_from_camera, settings) {
                 Ok(frame) => {
                     self.surface_held = frame.merge.as_ref().is_some_and(surface_unchanged);
+                    self.passes.clone_from(&frame.timings);
                     return DepthOutcome::Depth(frame.depth.to_image());
                 }
                 Err(error) => {
@@ -95,6 +109,7 @@ impl DepthStage {
                 }
             }
         }
+        let started = Instant::now();
         let filtered = guide
             .and_then(|guide| {
                 guided_filter(&map, guide, &self.filter)
@@ -102,7 +117,19 @@ impl DepthStage {
                     .ok()
             })
             .unwrap_or(map);
-        match self.merge.merge(&filtered, &self.camera, world_from_camera) {
+        let filtered_at = Instant::now();
+        let merged = self.merge.merge(&filtered, &self.camera, world_from_camera);
+        self.passes.extend([
+            PassTiming {
+                pass: "cpu filter",
+                ms: (filtered_at - started).as_secs_f64() * 1e3,
+            },
+            PassTiming {
+                pass: "cpu merge",
+                ms: filtered_at.elapsed().as_secs_f64() * 1e3,
+            },
+        ]);
+        match merged {
             Ok(merged) => {
                 self.surface_held = surface_unchanged(self.merge.report());
                 DepthOutcome::Depth(merged.to_image())

@@ -12,7 +12,7 @@ use serde_json::{Map, Value};
 use super::live_frame::LiveFrame;
 use super::status::Counters;
 use crate::lock;
-use crate::timing::{StageTimer, Timings};
+use crate::timing::{PassTimers, StageTimer, Timings};
 
 /// A change the render thread applies at the next frame boundary.
 pub enum Pending {
@@ -59,9 +59,8 @@ pub struct RenderStage {
     /// Sleep this long in every render, standing in for a slow engine (tests).
     delay: Option<Duration>,
     timer: StageTimer,
-    /// The engine's passes as `render.<pass>`, registered as they first appear.
-    passes: Vec<(&'static str, StageTimer)>,
-    timings: Arc<Timings>,
+    /// The engine's passes as `render.<pass>`.
+    passes: PassTimers,
 }
 
 impl std::fmt::Debug for RenderStage {
@@ -85,8 +84,7 @@ impl RenderStage {
             relit: RelitFrame::default(),
             delay,
             timer: timings.stage("render"),
-            passes: Vec::new(),
-            timings,
+            passes: PassTimers::new("render", timings),
         }
     }
 
@@ -151,17 +149,8 @@ impl RenderStage {
         self.timer.record(start.elapsed().as_secs_f64() * 1e3);
         match rendered {
             Ok(()) => {
-                for pass in &self.relit.timings {
-                    let index = match self.passes.iter().position(|(name, _)| *name == pass.pass) {
-                        Some(index) => index,
-                        None => {
-                            let timer = self.timings.stage(&format!("render.{}", pass.pass));
-                            self.passes.push((pass.pass, timer));
-                            self.passes.len() - 1
-                        }
-                    };
-                    self.passes[index].1.record(pass.ms);
-                }
+                self.passes
+                    .record(self.relit.timings.iter().map(|t| (t.pass, t.ms)));
                 (Rendered::Composite, false)
             }
             Err(error) => {

@@ -165,13 +165,20 @@ fn print_summary(status: &StatusReport, elapsed: Duration) {
         status.outputs_dropped,
         status.outputs_failed,
     );
+    let width = status
+        .stages
+        .iter()
+        .map(|s| s.name.chars().count())
+        .max()
+        .unwrap_or(0)
+        .max(22);
     println!(
-        "{:<22} {:>7} {:>9} {:>9} {:>9}",
+        "{:<width$} {:>7} {:>9} {:>9} {:>9}",
         "stage", "frames", "mean ms", "p50 ms", "p99 ms"
     );
     for stage in &status.stages {
         println!(
-            "{:<22} {:>7} {:>9.3} {:>9.3} {:>9.3}",
+            "{:<width$} {:>7} {:>9.3} {:>9.3} {:>9.3}",
             stage.name, stage.frames, stage.mean_ms, stage.p50_ms, stage.p99_ms
         );
     }
