@@ -144,7 +144,7 @@ pub struct BenchRow {
     /// Median GPU time of the frame's passes by timestamp queries (`None` where the adapter
     /// has none).
     pub gpu_ms: Option<f64>,
-    /// GPU time per pass of the last timed frame whose inputs changed.
+    /// GPU time per pass of the last timed frame (its inputs changed, as every timed frame's).
     pub gpu_passes: Vec<(String, f64)>,
     /// What each pass of that frame had to do ([`RelitFrame::work`]), for the roofline.
     #[serde(skip)]
@@ -370,21 +370,26 @@ fn measure(
     }
     let mut times = Vec::new();
     let mut gpu_times = Vec::new();
-    let (mut gpu_passes, mut pass_work) = (Vec::new(), Vec::new());
     for i in 0..frames.max(1) {
         times.push(render(if i % 2 == 0 { &nudged } else { frame }, &mut out)?);
-        gpu_passes = out
+        let gpu: Vec<f64> = out
             .timings
             .iter()
-            .filter_map(|t| Some((t.pass.strip_prefix("gpu.")?.to_owned(), t.ms)))
-            .collect::<Vec<_>>();
-        pass_work = out.work.clone();
-        if !gpu_passes.is_empty() {
-            gpu_times.push(gpu_passes.iter().map(|(_, ms)| ms).sum::<f64>());
+            .filter(|t| t.pass.starts_with("gpu."))
+            .map(|t| t.ms)
+            .collect();
+        if !gpu.is_empty() {
+            gpu_times.push(gpu.iter().sum::<f64>());
         }
     }
     times.sort_by(f64::total_cmp);
     gpu_times.sort_by(f64::total_cmp);
+    let gpu_passes = out
+        .timings
+        .iter()
+        .filter_map(|t| Some((t.pass.strip_prefix("gpu.")?.to_owned(), t.ms)))
+        .collect();
+    let pass_work = out.work.clone();
     // The unchanged frame once more after a changed one, then timed as it repeats; the last
     // is the one scored.
     render(frame, &mut out)?;

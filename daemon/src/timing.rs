@@ -6,6 +6,8 @@
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, MutexGuard};
 
+use relight_engines::PassTiming;
+
 use crate::control::types::StageTiming;
 use crate::lock;
 
@@ -140,9 +142,9 @@ impl PassTimers {
         }
     }
 
-    /// Record each `(pass, ms)` of one frame.
-    pub fn record(&mut self, passes: impl IntoIterator<Item = (&'static str, f64)>) {
-        for (pass, ms) in passes {
+    /// Record each pass of one frame.
+    pub fn record(&mut self, passes: &[PassTiming]) {
+        for &PassTiming { pass, ms } in passes {
             let index = match self.passes.iter().position(|(name, _)| *name == pass) {
                 Some(index) => index,
                 None => {

@@ -376,8 +376,7 @@ impl LiveTimers {
     }
 
     fn record(&mut self, t: &LiveTimings, depth_passes: &[PassTiming]) {
-        self.depth_passes
-            .record(depth_passes.iter().map(|p| (p.pass, p.ms)));
+        self.depth_passes.record(depth_passes);
         self.tracking.record(t.tracking_ms);
         for (timer, ms) in [
             (&self.probe, t.probe_ms),

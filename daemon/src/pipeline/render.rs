@@ -149,8 +149,7 @@ impl RenderStage {
         self.timer.record(start.elapsed().as_secs_f64() * 1e3);
         match rendered {
             Ok(()) => {
-                self.passes
-                    .record(self.relit.timings.iter().map(|t| (t.pass, t.ms)));
+                self.passes.record(&self.relit.timings);
                 (Rendered::Composite, false)
             }
             Err(error) => {
