@@ -5,11 +5,19 @@
 //   real pixels:    B + Δ, Δ = (direct^ρ − direct^μ when `options.y` is 1) + indirect (V^Δ);
 //   empty pixels:   B.
 // Δ is written per pixel (linear, may be negative); the composite as sRGB RGBA8.
+//
+// Accumulation (`Accumulation` in deferred.rs): while the picture holds still, frames drawn at
+// sub-pixel offsets are averaged. The mean is kept as the overlay O (L^ρ on samples that hit
+// the object, Δ on real ones) with the object's coverage c, and Δ; the composite is then
+// O + (1 − c)·B with this frame's background B, the mean of the samples' composites, so the
+// live video never lags behind the average.
 
 struct ShadeParams {
     // width, height, light count, shadow-map size
     size: vec4<u32>,
-    // x: shadow bias in texels; y: 1 to add the shadow-mapped direct Δ on real pixels.
+    // x: shadow bias in texels; y: 1 to add the shadow-mapped direct Δ on real pixels;
+    // z: this frame's weight in the running mean (1: alone, 0: keep the mean); w: 1 to write
+    // the mean.
     options: vec4<f32>,
 }
 
@@ -30,6 +38,8 @@ struct ShadeParams {
 @group(0) @binding(14) var<storage, read> indirect: array<vec4<f32>>;
 @group(0) @binding(15) var<storage, read_write> delta: array<vec4<f32>>;
 @group(0) @binding(16) var<storage, read_write> composite: array<u32>;
+// Two vec4 a pixel: (O, c) and (Δ, 0).
+@group(0) @binding(17) var<storage, read_write> history: array<vec4<f32>>;
 
 // `on_virtual`: the point is on the virtual object, which LIGHT_SHADOW_ONLY lights do not shade.
 fn direct(p: vec4<f32>, n: vec3<f32>, albedo: vec3<f32>, rho: bool, on_virtual: bool) -> vec3<f32> {
@@ -79,18 +89,28 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         l_mu = direct(p_mu, normalize(n_mu), textureLoad(gb_mu_albedo, xy, 0).rgb, false, false);
     }
     var d = vec3<f32>(0.0);
-    var out = background_linear;
+    var overlay = vec4<f32>(0.0);
     if p_rho.w > 0.5 && n_rho.w > 0.5 {
         l_rho += indirect[i].rgb;
         d = l_rho - l_mu;
-        out = l_rho;
+        overlay = vec4<f32>(l_rho, 1.0);
     } else if p_rho.w > 0.5 {
         if params.options.y > 0.5 {
             d = l_rho - l_mu;
         }
         d += indirect[i].rgb;
-        out = background_linear + d;
+        overlay = vec4<f32>(d, 0.0);
     }
+    let weight = params.options.z;
+    if weight < 1.0 {
+        overlay = mix(history[2u * i], overlay, weight);
+        d = mix(history[2u * i + 1u].rgb, d, weight);
+    }
+    if params.options.w > 0.5 {
+        history[2u * i] = overlay;
+        history[2u * i + 1u] = vec4<f32>(d, 0.0);
+    }
+    let out = overlay.rgb + (1.0 - overlay.w) * background_linear;
     delta[i] = vec4<f32>(d, 0.0);
     composite[i] = pack4x8unorm(vec4<f32>(linear_to_srgb(out), 1.0));
 }

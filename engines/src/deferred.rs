@@ -8,6 +8,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
+use glam::Vec2;
 use relight_core::light::Light;
 use relight_core::scene::Scene;
 use relight_core::{Image, PixelFormat};
@@ -19,6 +20,7 @@ use crate::gpu::GpuContext;
 use crate::gpu_scene::{
     GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, is_shadowed, light_faces,
 };
+use crate::params::ParamSpec;
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::timer::GpuTimer;
@@ -61,6 +63,110 @@ impl KeptInputs {
     }
 }
 
+/// Frames averaged over sub-pixel offsets by default ([`accumulate_param`]).
+const ACCUMULATE_DEFAULT: i64 = 32;
+
+/// The `accumulate` parameter every GPU engine takes: how many frames, each drawn at another
+/// sub-pixel offset, are averaged while the picture's inputs hold still.
+pub fn accumulate_param() -> ParamSpec {
+    ParamSpec::int(
+        "accumulate",
+        "frames averaged over sub-pixel offsets while the scene, camera and lights hold still, \
+         so edges converge to the pixel's area (1: off)",
+        1,
+        256,
+        ACCUMULATE_DEFAULT,
+    )
+}
+
+/// Edges converged over frames (issue 18's pixel-area truth): every engine samples a pixel at
+/// one point, where a camera integrates the pixel's area, and at a shadow or silhouette edge
+/// the two differ by up to the whole step. While the inputs of the picture hold (the scene's
+/// geometry, materials and environment, the camera, the lights; not the background, which the
+/// composite takes fresh every frame), frame k is drawn at the k-th point of the Halton (2, 3)
+/// sequence within the pixel and averaged into a running mean; the first frame after a change
+/// is drawn at the centre and shown alone, exactly as without accumulation, and after
+/// `frames` frames the mean is kept as it is.
+#[derive(Debug)]
+struct Accumulation {
+    frames: u32,
+    /// The inputs the running mean was drawn from.
+    key: Option<u64>,
+    /// Frames since those inputs last changed.
+    still: u32,
+}
+
+/// This frame's part in the running mean.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Sample {
+    /// Where in the pixel the frame samples, from its centre.
+    offset_px: Vec2,
+    /// The frame's weight in the mean: 1 shows it alone, 0 keeps the mean.
+    weight: f32,
+    /// Whether the mean is written (off without accumulation and once it is complete).
+    write: bool,
+}
+
+impl Accumulation {
+    fn new() -> Self {
+        Self {
+            frames: ACCUMULATE_DEFAULT as u32,
+            key: None,
+            still: 0,
+        }
+    }
+
+    fn set_frames(&mut self, frames: u32) {
+        self.frames = frames.max(1);
+        self.key = None;
+    }
+
+    /// The sample of a frame drawn from `key`'s inputs.
+    fn advance(&mut self, key: u64) -> Sample {
+        if self.key == Some(key) {
+            self.still = self.still.saturating_add(1);
+        } else {
+            self.key = Some(key);
+            self.still = 0;
+        }
+        match self.still {
+            _ if self.frames <= 1 => Sample {
+                offset_px: Vec2::ZERO,
+                weight: 1.0,
+                write: false,
+            },
+            still if still >= self.frames => Sample {
+                offset_px: Vec2::ZERO,
+                weight: 0.0,
+                write: false,
+            },
+            still => Sample {
+                offset_px: halton_offset(still),
+                weight: 1.0 / (still + 1) as f32,
+                write: true,
+            },
+        }
+    }
+}
+
+/// Point `index` of the Halton (2, 3) sequence as an offset from the pixel's centre; point 0
+/// is the centre itself.
+fn halton_offset(index: u32) -> Vec2 {
+    let radical_inverse = |base: u32| {
+        let (mut i, mut f, mut r) = (index, 1.0f32, 0.0f32);
+        while i > 0 {
+            f /= base as f32;
+            r += f * (i % base) as f32;
+            i /= base;
+        }
+        r
+    };
+    if index == 0 {
+        return Vec2::ZERO;
+    }
+    Vec2::new(radical_inverse(2), radical_inverse(3)) - 0.5
+}
+
 /// How the final pass treats the direct light on real pixels.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ShadeOptions {
@@ -96,6 +202,9 @@ struct FrameResources {
     composite: wgpu::Buffer,
     delta_staging: wgpu::Buffer,
     composite_staging: wgpu::Buffer,
+    /// The running mean ([`Accumulation`]), two vec4 a pixel: the overlay (L^ρ on the
+    /// object's samples, Δ on real ones) with the object's coverage, and Δ.
+    history: wgpu::Buffer,
 }
 
 /// Per-light-set resources: the shadow maps and the light/face buffers.
@@ -119,6 +228,11 @@ pub struct Deferred {
     camera: wgpu::Buffer,
     params: wgpu::Buffer,
     scene: Option<(Arc<Scene>, GpuScene)>,
+    /// A hash of what the uploaded scene shows the camera: its geometry and materials
+    /// ([`GpuScene::view_fingerprint`]) and its environment map.
+    scene_key: u64,
+    accumulation: Accumulation,
+    sample: Sample,
     frame: Option<FrameResources>,
     light: Option<LightResources>,
     /// [`Self::rsm_keys`] of what `light`'s maps hold, once drawn.
@@ -168,6 +282,13 @@ impl Deferred {
             camera: uniform("camera", size_of::<GpuCamera>() as u64),
             params: uniform("shade params", size_of::<ShadeParams>() as u64),
             scene: None,
+            scene_key: 0,
+            accumulation: Accumulation::new(),
+            sample: Sample {
+                offset_px: Vec2::ZERO,
+                weight: 1.0,
+                write: false,
+            },
             frame: None,
             light: None,
             rsm_drawn: None,
@@ -205,6 +326,13 @@ impl Deferred {
         }
     }
 
+    /// Average `frames` frames over sub-pixel offsets while the picture holds still
+    /// ([`accumulate_param`]; 1: off). Starts the mean afresh, as any change of the engine's
+    /// parameters must.
+    pub fn set_accumulate(&mut self, frames: u32) {
+        self.accumulation.set_frames(frames);
+    }
+
     pub fn ctx(&self) -> &Arc<GpuContext> {
         &self.ctx
     }
@@ -238,7 +366,17 @@ impl Deferred {
             .as_ref()
             .is_some_and(|(s, _)| Arc::ptr_eq(s, scene))
         {
-            self.scene = Some((scene.clone(), GpuScene::new(&ctx, scene)));
+            let gpu_scene = GpuScene::new(&ctx, scene);
+            let mut key = DefaultHasher::new();
+            gpu_scene.view_fingerprint.hash(&mut key);
+            if let Some(map) = &scene.environment {
+                (map.width, map.height).hash(&mut key);
+                for texel in &map.radiance {
+                    texel.to_array().map(f32::to_bits).hash(&mut key);
+                }
+            }
+            self.scene_key = key.finish();
+            self.scene = Some((scene.clone(), gpu_scene));
             let map = scene
                 .environment
                 .as_ref()
@@ -256,6 +394,7 @@ impl Deferred {
             .is_some_and(|f| f.width == width && f.height == height)
         {
             self.frame = Some(FrameResources::new(&ctx, width, height));
+            self.accumulation.key = None;
         }
         let environment_lights: &[Light] = if !self.environment_lights {
             &[]
@@ -322,6 +461,14 @@ impl Deferred {
                 .write_buffer(&light_res.faces, 0, bytemuck::cast_slice(&self.faces_cpu));
         }
         let camera = camera_uniform(&scene.camera, width, height, bounds);
+        self.sample = self.accumulation.advance(KeptInputs::hash_of(&[
+            &self.scene_key.to_le_bytes(),
+            bytemuck::bytes_of(&camera),
+            bytemuck::cast_slice(&self.lights_cpu),
+            bytemuck::cast_slice(&self.faces_cpu),
+            &rsm_size.to_le_bytes(),
+        ]));
+        let camera = camera.jittered(self.sample.offset_px);
         ctx.queue
             .write_buffer(&self.camera, 0, bytemuck::bytes_of(&camera));
         self.rgba.clear();
@@ -490,8 +637,8 @@ impl Deferred {
             options: [
                 options.shadow_bias_texels,
                 if options.direct_delta { 1.0 } else { 0.0 },
-                0.0,
-                0.0,
+                self.sample.weight,
+                if self.sample.write { 1.0 } else { 0.0 },
             ],
         };
         ctx.queue
@@ -518,8 +665,13 @@ impl Deferred {
         ];
         resources.extend(views.iter().map(wgpu::BindingResource::TextureView));
         resources.extend(
-            [&frame_res.indirect, &frame_res.delta, &frame_res.composite]
-                .map(|b| b.as_entire_binding()),
+            [
+                &frame_res.indirect,
+                &frame_res.delta,
+                &frame_res.composite,
+                &frame_res.history,
+            ]
+            .map(|b| b.as_entire_binding()),
         );
         let group = shaders::bind_group(
             &ctx.device,
@@ -543,7 +695,11 @@ impl Deferred {
         }
         out.work.push(PassWork {
             pass: "shade",
-            work: shade_work(u64::from(width) * u64::from(height), self.light_count),
+            work: shade_work(
+                u64::from(width) * u64::from(height),
+                self.light_count,
+                self.sample,
+            ),
         });
         if let Some(timer) = &self.timer {
             timer.resolve(&mut encoder);
@@ -578,10 +734,14 @@ impl Deferred {
 /// The shading pass's work over `pixels`: both G-buffers (32 bytes a texel each), the
 /// background and the indirect term read, Δ and the composite written; per light and G-buffer
 /// one shadow-map texel (16 bytes) and about 200 operations (the light's incidence, the BRDF,
-/// the depth test and its bias).
-fn shade_work(pixels: u64, lights: u32) -> Work {
+/// the depth test and its bias); the running mean's 32 bytes read and written as `sample`
+/// needs them.
+fn shade_work(pixels: u64, lights: u32, sample: Sample) -> Work {
     let per_light = Work::new(16.0, 200.0).times(2.0 * f64::from(lights));
-    (Work::new(2.0 * 32.0 + 4.0 + 16.0 + 16.0 + 4.0, 50.0) + per_light).times(pixels as f64)
+    let read = if sample.weight < 1.0 { 32.0 } else { 0.0 };
+    let written = if sample.write { 32.0 } else { 0.0 };
+    (Work::new(2.0 * 32.0 + 4.0 + 16.0 + 16.0 + 4.0 + read + written, 50.0) + per_light)
+        .times(pixels as f64)
 }
 
 /// Linear f32 RGBA → the frame's Rgba16F Δ; non-finite values become 0 (they never should).
@@ -646,6 +806,7 @@ impl FrameResources {
             composite: buffer("composite", pixels * 4, U::STORAGE | U::COPY_SRC),
             delta_staging: buffer("delta staging", pixels * 16, U::MAP_READ | U::COPY_DST),
             composite_staging: buffer("composite staging", pixels * 4, U::MAP_READ | U::COPY_DST),
+            history: buffer("accumulated", pixels * 32, U::STORAGE),
         }
     }
 }

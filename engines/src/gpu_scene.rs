@@ -5,7 +5,7 @@
 use std::ops::Range;
 
 use bytemuck::{Pod, Zeroable};
-use glam::{Mat4, Vec3};
+use glam::{Mat4, Vec2, Vec3};
 use relight_core::light::Light;
 use relight_core::scene::{Mesh, Scene, SceneCamera, box_corners};
 use wgpu::util::DeviceExt;
@@ -94,6 +94,9 @@ pub struct GpuScene {
     /// Hashes of what the light-space passes draw: the real part (with the materials) and the
     /// virtual part. Equal hashes, equal lights: equal shadow maps.
     pub light_fingerprint: [u64; 2],
+    /// A hash of what the camera sees: every mesh's vertices and the materials. Equal hashes:
+    /// equal G-buffers from one camera.
+    pub view_fingerprint: u64,
     /// Bounds of the virtual object(s), if any.
     pub virtual_bounds: Option<(Vec3, Vec3)>,
 }
@@ -204,6 +207,10 @@ impl GpuScene {
             ]),
             fingerprint(&[bytemuck::cast_slice(range(real_vertices..all_vertices))]),
         ];
+        let view_fingerprint = fingerprint(&[
+            bytemuck::cast_slice(range(0..all_vertices)),
+            materials_bytes,
+        ]);
         // wgpu refuses zero-sized vertex buffers; one degenerate vertex is never drawn.
         if vertices.is_empty() {
             vertices.push(GpuVertex::zeroed());
@@ -235,6 +242,7 @@ impl GpuScene {
             bounds,
             light_bounds,
             light_fingerprint,
+            view_fingerprint,
             virtual_bounds: scene.virtual_bounds(),
         }
     }
@@ -287,6 +295,22 @@ pub fn camera_uniform(
             1.0 / width.max(1) as f32,
             1.0 / height.max(1) as f32,
         ],
+    }
+}
+
+impl GpuCamera {
+    /// The camera with its image moved by `offset_px` pixels (x right, y down): each pixel's
+    /// centre sample then sees what lay `offset_px` from it before, so frames drawn at offsets
+    /// spread over a pixel average to the pixel's area.
+    pub fn jittered(mut self, offset_px: Vec2) -> Self {
+        let [width, height] = [self.size[0].max(1.0), self.size[1].max(1.0)];
+        let shift = Mat4::from_translation(Vec3::new(
+            2.0 * offset_px.x / width,
+            -2.0 * offset_px.y / height,
+            0.0,
+        ));
+        self.view_proj = (shift * Mat4::from_cols_array_2d(&self.view_proj)).to_cols_array_2d();
+        self
     }
 }
 

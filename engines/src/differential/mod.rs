@@ -38,6 +38,7 @@ impl Differential {
                 8.0,
                 1.5,
             ),
+            crate::deferred::accumulate_param(),
         ])
     }
 
@@ -71,5 +72,7 @@ impl Engine for Differential {
         let schema = Self::schema();
         self.rsm_size = schema.int(params, "rsm_size") as u32;
         self.shadow_bias_texels = schema.float(params, "shadow_bias") as f32;
+        self.deferred
+            .set_accumulate(schema.int(params, "accumulate") as u32);
     }
 }

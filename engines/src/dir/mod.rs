@@ -183,6 +183,7 @@ impl Dir {
                 48,
                 d.env_lights,
             ),
+            crate::deferred::accumulate_param(),
         ])
     }
 
@@ -489,5 +490,7 @@ impl Engine for Dir {
             shadow_bias: float("shadow_bias"),
             env_lights: int("env_lights"),
         };
+        self.deferred
+            .set_accumulate(schema.int(params, "accumulate") as u32);
     }
 }

@@ -157,6 +157,7 @@ impl Dlpv {
                 1.0,
                 0.0,
             ),
+            crate::deferred::accumulate_param(),
         ])
     }
 
@@ -405,5 +406,7 @@ impl Engine for Dlpv {
             shadow_bias: float("shadow_bias"),
             lookup_offset: float("lookup_offset"),
         };
+        self.deferred
+            .set_accumulate(schema.int(params, "accumulate") as u32);
     }
 }

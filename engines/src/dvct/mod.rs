@@ -202,6 +202,7 @@ impl Dvct {
                 8.0,
                 d.shadow_bias,
             ),
+            crate::deferred::accumulate_param(),
         ])
     }
 
@@ -558,5 +559,7 @@ impl Engine for Dvct {
             shadow_cones: schema.choice(params, "shadows") == "cones",
             shadow_bias: float("shadow_bias"),
         };
+        self.deferred
+            .set_accumulate(schema.int(params, "accumulate") as u32);
     }
 }

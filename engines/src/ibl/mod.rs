@@ -141,6 +141,7 @@ impl Ibl {
                 1.0,
                 d.update_threshold,
             ),
+            crate::deferred::accumulate_param(),
         ])
     }
 
@@ -411,6 +412,8 @@ impl Engine for Ibl {
             shadow_bias: float("shadow_bias"),
             update_threshold: float("update_threshold"),
         };
+        self.deferred
+            .set_accumulate(schema.int(params, "accumulate") as u32);
     }
 }
 
