@@ -19,8 +19,8 @@ use plotters::prelude::*;
 use relight_core::Image;
 use relight_core::scene::Scene;
 use relight_engines::offline::{
-    background, delta_error, delta_pixels, object_error, reference_noise, reference_renderer,
-    region_errors, scene_frame,
+    Sampling, background, delta_error, delta_pixels, object_error, reference_noise,
+    reference_renderer, region_errors, scene_frame,
 };
 use relight_engines::reference::{ReferenceImages, ReferenceRenderer};
 use relight_engines::reference_cache::ReferenceCache;
@@ -126,6 +126,9 @@ pub struct BenchSettings {
     /// Where references are kept between runs ([`ReferenceCache`]); `None`: always render.
     pub reference_cache: Option<PathBuf>,
     pub frames: u32,
+    /// Still frames every GPU engine accumulates (its `accumulate` parameter) in place of the
+    /// case's own or the engine's default; 1 scores no converged picture.
+    pub accumulate: Option<u32>,
     pub cases: Vec<BenchCase>,
 }
 
@@ -166,29 +169,176 @@ pub struct BenchRow {
     pub reference_noise: f64,
     /// Samples per pixel of the reference the row was scored against.
     pub reference_spp: u32,
+    /// Still frames the engine accumulated over sub-pixel offsets for the converged scores
+    /// (its `accumulate` parameter; 1: none).
+    pub accumulated_frames: u32,
+    /// The pixel-centre frame above against the reference over each pixel's area, which a
+    /// camera sees: the part of the error the centre samples add is `area_relative_l2` less
+    /// `converged_relative_l2`.
+    pub area_relative_l2: Option<f64>,
+    /// ‖Δ − Δ_ref‖₂ / ‖Δ_ref‖₂ over real pixels once `accumulated_frames` still frames are
+    /// averaged, against the pixel-area reference; `None` without accumulation.
+    pub converged_relative_l2: Option<f64>,
+    /// The object's pixels of that converged composite against the pixel-area L^ρ.
+    pub converged_object_relative_l2: Option<f64>,
+    /// The pixel-area reference's noise and samples per pixel.
+    pub area_reference_noise: Option<f64>,
+    pub area_reference_spp: Option<u32>,
 }
 
-/// What a row is scored from, kept until the scene's reference is final.
+/// What a row is scored from, kept until the scene's references are final.
 struct Rendered {
+    /// The first frame after a change: pixel centres.
+    centre: Picture,
+    /// After the engine's accumulation completed, still.
+    converged: Option<Picture>,
+}
+
+struct Picture {
     delta: Vec<Vec3>,
     composite: Image,
 }
 
+impl Picture {
+    fn of(out: &RelitFrame) -> Self {
+        Self {
+            delta: delta_pixels(&out.delta),
+            composite: out.composite.clone(),
+        }
+    }
+
+    /// Δ's error over real pixels (relative L2, max) and the object's.
+    fn errors(&self, reference: &ReferenceImages) -> ((f64, f64), Option<f64>) {
+        (
+            delta_error(&self.delta, &reference.delta, &reference.virtual_mask),
+            object_error(&self.composite, &reference.l_rho, &reference.virtual_mask),
+        )
+    }
+}
+
 impl BenchRow {
-    /// (Re)score against `reference`.
+    /// (Re)score the centre frame against `reference` (pixel centres).
     fn score(&mut self, rendered: &Rendered, reference: &ReferenceImages) {
-        (self.relative_l2, self.max_abs) =
-            delta_error(&rendered.delta, &reference.delta, &reference.virtual_mask);
-        self.object_relative_l2 = object_error(
-            &rendered.composite,
-            &reference.l_rho,
-            &reference.virtual_mask,
-        );
-        let regions = region_errors(&rendered.delta, reference);
+        ((self.relative_l2, self.max_abs), self.object_relative_l2) =
+            rendered.centre.errors(reference);
+        let regions = region_errors(&rendered.centre.delta, reference);
         self.shadow_relative_l2 = regions.shadow_relative_l2;
         self.bleeding_relative_l2 = regions.bleeding_relative_l2;
         self.reference_noise = reference_noise(reference);
         self.reference_spp = reference.spp;
+    }
+
+    /// (Re)score both pictures against `reference` (pixel areas).
+    fn score_area(&mut self, rendered: &Rendered, reference: &ReferenceImages) {
+        self.area_relative_l2 = Some(rendered.centre.errors(reference).0.0);
+        if let Some(converged) = &rendered.converged {
+            let ((delta, _), object) = converged.errors(reference);
+            self.converged_relative_l2 = Some(delta);
+            self.converged_object_relative_l2 = object;
+        }
+        self.area_reference_noise = Some(reference_noise(reference));
+        self.area_reference_spp = Some(reference.spp);
+    }
+}
+
+/// One of a scene's references: read from the cache or rendered, then refined while its noise
+/// is above a third of the best row's error, and cached once final.
+struct Truth {
+    sampling: Sampling,
+    cache: Option<(ReferenceCache, u64)>,
+    /// The renderer it was rendered or refined with this run (a cached one starts afresh).
+    renderer: Option<ReferenceRenderer>,
+    images: ReferenceImages,
+}
+
+impl Truth {
+    fn new(
+        settings: &BenchSettings,
+        dir: &Path,
+        scene: &Scene,
+        sampling: Sampling,
+        progress: &mut impl FnMut(BenchProgress<'_>),
+    ) -> Result<Self> {
+        let (w, h) = (settings.width, settings.height);
+        let spp = settings.reference_spp.max(2);
+        let cache = settings.reference_cache.as_ref().and_then(|dir_of_cache| {
+            let key = ReferenceCache::key(dir, w, h, sampling).ok()?;
+            Some((ReferenceCache::new(dir_of_cache), key))
+        });
+        let cached = cache
+            .as_ref()
+            .and_then(|(cache, key)| cache.load(*key))
+            .filter(|r| r.spp >= spp && (r.width, r.height) == (w, h));
+        let (images, renderer) = match cached {
+            Some(images) => {
+                progress(BenchProgress::Reference {
+                    scene: &scene.name,
+                    sampling,
+                    spp: images.spp,
+                    cached: true,
+                });
+                (images, None)
+            }
+            None => {
+                progress(BenchProgress::Reference {
+                    scene: &scene.name,
+                    sampling,
+                    spp,
+                    cached: false,
+                });
+                let mut renderer = reference_renderer(scene, w, h, sampling)?;
+                renderer.add_samples(spp);
+                (renderer.images(), Some(renderer))
+            }
+        };
+        Ok(Self {
+            sampling,
+            cache,
+            renderer,
+            images,
+        })
+    }
+
+    /// Double the samples while the noise is above `best / 3` and below `max_spp` samples;
+    /// whether any were added.
+    fn refine(
+        &mut self,
+        scene: &Scene,
+        best: f64,
+        max_spp: u32,
+        progress: &mut impl FnMut(BenchProgress<'_>),
+    ) -> Result<bool> {
+        let mut refined = false;
+        while reference_noise(&self.images) > best / 3.0 && self.images.spp < max_spp {
+            let target = self.images.spp.saturating_mul(2).min(max_spp);
+            progress(BenchProgress::Reference {
+                scene: &scene.name,
+                sampling: self.sampling,
+                spp: target,
+                cached: false,
+            });
+            let renderer = match self.renderer.take() {
+                Some(renderer) => renderer,
+                None => {
+                    reference_renderer(scene, self.images.width, self.images.height, self.sampling)?
+                }
+            };
+            let renderer = self.renderer.insert(renderer);
+            renderer.add_samples(target.saturating_sub(renderer.spp()));
+            self.images = renderer.images();
+            refined = true;
+        }
+        Ok(refined)
+    }
+
+    /// Keep it in the cache if it was rendered this run.
+    fn store(&self, scene: &str) {
+        if self.renderer.is_some()
+            && let Some((cache, key)) = &self.cache
+            && let Err(error) = cache.store(*key, &self.images)
+        {
+            tracing::warn!(%error, "{scene}: reference not cached");
+        }
     }
 }
 
@@ -199,6 +349,7 @@ pub enum BenchProgress<'a> {
     /// reading one of `spp` from the reference cache.
     Reference {
         scene: &'a str,
+        sampling: Sampling,
         spp: u32,
         cached: bool,
     },
@@ -224,42 +375,12 @@ pub fn run(
     mut progress: impl FnMut(BenchProgress<'_>),
 ) -> Result<Vec<BenchRow>> {
     let registry = EngineRegistry::new();
-    let (w, h) = (settings.width, settings.height);
     let total = settings.scenes.len() * settings.cases.len();
     let mut rows = Vec::new();
     for (scene_index, dir) in settings.scenes.iter().enumerate() {
         let scene = Arc::new(Scene::load(dir)?);
-        let spp = settings.reference_spp.max(2);
-        let cache = settings.reference_cache.as_ref().and_then(|dir_of_cache| {
-            let key = ReferenceCache::key(dir, w, h).ok()?;
-            Some((ReferenceCache::new(dir_of_cache), key))
-        });
-        let cached = cache
-            .as_ref()
-            .and_then(|(cache, key)| cache.load(*key))
-            .filter(|r| r.spp >= spp && (r.width, r.height) == (w, h));
-        let mut renderer: Option<ReferenceRenderer> = None;
-        let mut reference = match cached {
-            Some(reference) => {
-                progress(BenchProgress::Reference {
-                    scene: &scene.name,
-                    spp: reference.spp,
-                    cached: true,
-                });
-                reference
-            }
-            None => {
-                progress(BenchProgress::Reference {
-                    scene: &scene.name,
-                    spp,
-                    cached: false,
-                });
-                let fresh = renderer.insert(reference_renderer(&scene, w, h)?);
-                fresh.add_samples(spp);
-                fresh.images()
-            }
-        };
-        let frame = scene_frame(scene.clone(), background(&reference));
+        let mut centre = Truth::new(settings, dir, &scene, Sampling::Centre, &mut progress)?;
+        let frame = scene_frame(scene.clone(), background(&centre.images));
         let mut scene_rows: Vec<(BenchRow, Rendered)> = Vec::new();
         for (case_index, case) in settings.cases.iter().enumerate() {
             progress(BenchProgress::Case {
@@ -273,50 +394,50 @@ pub fn run(
             match measure(
                 &registry,
                 case,
+                settings,
                 &scene.name,
                 &frame,
-                &reference,
-                settings.frames,
+                &centre.images,
             ) {
                 Ok(measured) => scene_rows.push(measured),
                 Err(e) => tracing::warn!("{}: skipped: {e:#}", scene.name),
             }
         }
-        let best = |rows: &[(BenchRow, Rendered)]| {
+        let best = |rows: &[(BenchRow, Rendered)], error: fn(&BenchRow) -> Option<f64>| {
             rows.iter()
-                .map(|(row, _)| row.relative_l2)
+                .filter_map(|(row, _)| error(row))
                 .filter(|e| e.is_finite())
                 .fold(f64::INFINITY, f64::min)
         };
-        while reference_noise(&reference) > best(&scene_rows) / 3.0
-            && reference.spp < settings.max_reference_spp
-        {
-            let target = reference
-                .spp
-                .saturating_mul(2)
-                .min(settings.max_reference_spp);
-            progress(BenchProgress::Reference {
-                scene: &scene.name,
-                spp: target,
-                cached: false,
-            });
-            // A cached reference cannot be resumed: its refinement starts a renderer afresh.
-            let current = match renderer.take() {
-                Some(current) => current,
-                None => reference_renderer(&scene, w, h)?,
-            };
-            let current = renderer.insert(current);
-            current.add_samples(target.saturating_sub(current.spp()));
-            reference = current.images();
+        if centre.refine(
+            &scene,
+            best(&scene_rows, |r| Some(r.relative_l2)),
+            settings.max_reference_spp,
+            &mut progress,
+        )? {
             for (row, rendered) in &mut scene_rows {
-                row.score(rendered, &reference);
+                row.score(rendered, &centre.images);
             }
         }
-        if renderer.is_some()
-            && let Some((cache, key)) = &cache
-            && let Err(error) = cache.store(*key, &reference)
-        {
-            tracing::warn!(%error, "{}: reference not cached", scene.name);
+        centre.store(&scene.name);
+        // The pixel-area truth the accumulated frames converge to, where any row has them.
+        if scene_rows.iter().any(|(_, r)| r.converged.is_some()) {
+            let mut area = Truth::new(settings, dir, &scene, Sampling::Area, &mut progress)?;
+            let score = |rows: &mut Vec<(BenchRow, Rendered)>, area: &Truth| {
+                for (row, rendered) in rows {
+                    row.score_area(rendered, &area.images);
+                }
+            };
+            score(&mut scene_rows, &area);
+            if area.refine(
+                &scene,
+                best(&scene_rows, |r| r.converged_relative_l2),
+                settings.max_reference_spp,
+                &mut progress,
+            )? {
+                score(&mut scene_rows, &area);
+            }
+            area.store(&scene.name);
         }
         for (row, _) in scene_rows {
             progress(BenchProgress::Row(&row));
@@ -342,19 +463,33 @@ fn nudged(scene: &Scene) -> Scene {
 }
 
 /// Warm up, time `frames` renders of one case with every input changing, then `frames` with
-/// nothing changing, and score the last against the reference.
+/// nothing changing. Scored: the first frame after a change (pixel centres, as live) and, for
+/// an engine that accumulates, the still frame its accumulation completes on.
 fn measure(
     registry: &EngineRegistry,
     case: &BenchCase,
+    settings: &BenchSettings,
     scene: &str,
     frame: &SceneFrame,
     reference: &ReferenceImages,
-    frames: u32,
 ) -> Result<(BenchRow, Rendered)> {
-    let mut engine = registry
-        .build(&case.engine, &case.params)
-        .with_context(|| case.label())?
-        .engine;
+    let frames = settings.frames.max(1);
+    let spec = registry.spec(&case.engine)?;
+    let mut params = case.params.clone();
+    if let Some(accumulate) = settings.accumulate
+        && spec.schema.params.iter().any(|p| p.name == "accumulate")
+    {
+        params.insert("accumulate".into(), accumulate.into());
+    }
+    let built = registry
+        .build(&case.engine, &params)
+        .with_context(|| case.label())?;
+    let accumulated_frames = built
+        .params
+        .get("accumulate")
+        .and_then(Value::as_u64)
+        .map_or(1, |n| n.max(1) as u32);
+    let mut engine = built.engine;
     let mut out = RelitFrame::default();
     let nudged = SceneFrame {
         scene: frame.scene.as_deref().map(|s| Arc::new(nudged(s))),
@@ -370,7 +505,7 @@ fn measure(
     }
     let mut times = Vec::new();
     let mut gpu_times = Vec::new();
-    for i in 0..frames.max(1) {
+    for i in 0..frames {
         times.push(render(if i % 2 == 0 { &nudged } else { frame }, &mut out)?);
         let gpu: Vec<f64> = out
             .timings
@@ -390,17 +525,24 @@ fn measure(
         .filter_map(|t| Some((t.pass.strip_prefix("gpu.")?.to_owned(), t.ms)))
         .collect();
     let pass_work = out.work.clone();
-    // The unchanged frame once more after a changed one, then timed as it repeats; the last
-    // is the one scored.
+    // The unchanged frame once more after a changed one (the nudged frame, or the warm-up's
+    // last): the picture a live frame shows. Then timed as it repeats.
+    render(&nudged, &mut out)?;
     render(frame, &mut out)?;
-    let mut static_times = (0..frames.max(1))
+    let centre = Picture::of(&out);
+    let mut static_times = (0..frames)
         .map(|_| render(frame, &mut out))
         .collect::<Result<Vec<f64>>>()?;
     static_times.sort_by(f64::total_cmp);
-    let rendered = Rendered {
-        delta: delta_pixels(&out.delta),
-        composite: out.composite.clone(),
+    let converged = if accumulated_frames > 1 {
+        for _ in frames + 1..accumulated_frames {
+            render(frame, &mut out)?;
+        }
+        Some(Picture::of(&out))
+    } else {
+        None
     };
+    let rendered = Rendered { centre, converged };
     let mut row = BenchRow {
         scene: scene.to_owned(),
         engine: case.engine.clone(),
@@ -418,6 +560,12 @@ fn measure(
         bleeding_relative_l2: None,
         reference_noise: f64::NAN,
         reference_spp: 0,
+        accumulated_frames,
+        area_relative_l2: None,
+        converged_relative_l2: None,
+        converged_object_relative_l2: None,
+        area_reference_noise: None,
+        area_reference_spp: None,
     };
     row.score(&rendered, reference);
     Ok((row, rendered))
@@ -425,7 +573,7 @@ fn measure(
 
 pub fn table(rows: &[BenchRow]) -> String {
     let mut s = format!(
-        "{:<14} {:<48} {:>10} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>7}\n",
+        "{:<14} {:<48} {:>10} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>7} {:>9} {:>9} {:>9} {:>9}\n",
         "scene",
         "engine / setting",
         "median ms",
@@ -437,13 +585,17 @@ pub fn table(rows: &[BenchRow]) -> String {
         "max abs",
         "object L2",
         "ref noise",
-        "ref spp"
+        "ref spp",
+        "area L2",
+        "conv L2",
+        "conv obj",
+        "area nois"
     );
     let or_dash = |v: Option<f64>| v.map_or("-".to_owned(), |e| format!("{e:.4}"));
     for r in rows {
         let gpu = r.gpu_ms.map_or("-".to_owned(), |ms| format!("{ms:.2}"));
         s.push_str(&format!(
-            "{:<14} {:<48} {:>10.2} {:>10.2} {:>10} {:>9.4} {:>9} {:>9} {:>9.4} {:>9} {:>9.4} {:>7}\n",
+            "{:<14} {:<48} {:>10.2} {:>10.2} {:>10} {:>9.4} {:>9} {:>9} {:>9.4} {:>9} {:>9.4} {:>7} {:>9} {:>9} {:>9} {:>9}\n",
             r.scene,
             r.setting,
             r.median_ms,
@@ -455,7 +607,11 @@ pub fn table(rows: &[BenchRow]) -> String {
             r.max_abs,
             or_dash(r.object_relative_l2),
             r.reference_noise,
-            r.reference_spp
+            r.reference_spp,
+            or_dash(r.area_relative_l2),
+            or_dash(r.converged_relative_l2),
+            or_dash(r.converged_object_relative_l2),
+            or_dash(r.area_reference_noise)
         ));
     }
     s
@@ -590,12 +746,12 @@ pub fn write_roofline(
 pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut csv = String::from(
-        "scene,engine,setting,median_ms,min_ms,static_ms,gpu_ms,relative_l2,shadow_relative_l2,bleeding_relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp\n",
+        "scene,engine,setting,median_ms,min_ms,static_ms,gpu_ms,relative_l2,shadow_relative_l2,bleeding_relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp,accumulated_frames,area_relative_l2,converged_relative_l2,converged_object_relative_l2,area_reference_noise,area_reference_spp\n",
     );
     let or_empty = |v: Option<f64>| v.map_or(String::new(), |e| e.to_string());
     for r in rows {
         csv.push_str(&format!(
-            "{},{},\"{}\",{},{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},\"{}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
             r.scene,
             r.engine,
             r.setting,
@@ -609,7 +765,14 @@ pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()>
             r.max_abs,
             or_empty(r.object_relative_l2),
             r.reference_noise,
-            r.reference_spp
+            r.reference_spp,
+            r.accumulated_frames,
+            or_empty(r.area_relative_l2),
+            or_empty(r.converged_relative_l2),
+            or_empty(r.converged_object_relative_l2),
+            or_empty(r.area_reference_noise),
+            r.area_reference_spp
+                .map_or(String::new(), |n| n.to_string())
         ));
     }
     std::fs::write(dir.join("bench.csv"), csv)?;

@@ -20,6 +20,7 @@ fn bench_measures_every_case_and_writes_its_outputs() {
         max_reference_spp: 64,
         reference_cache: None,
         frames: 1,
+        accumulate: Some(4),
         cases: default_cases(false),
     };
     let rows = run(&settings, |_| {}).unwrap();
@@ -49,6 +50,18 @@ fn bench_measures_every_case_and_writes_its_outputs() {
         "{:?}",
         rows[0]
     );
+    // Every engine accumulated 4 still frames, scored against the pixel-area reference.
+    for row in &rows {
+        assert_eq!(row.accumulated_frames, 4, "{row:?}");
+        for error in [
+            row.area_relative_l2,
+            row.converged_relative_l2,
+            row.converged_object_relative_l2,
+            row.area_reference_noise,
+        ] {
+            assert!(error.is_some_and(f64::is_finite), "{row:?}");
+        }
+    }
     // spot_bleed's object both shadows and bleeds, and the reference says where.
     assert!(
         rows.iter()
@@ -153,6 +166,7 @@ fn a_cached_reference_is_read_back_on_the_next_run() {
         max_reference_spp: 8,
         reference_cache: Some(cache.path().to_owned()),
         frames: 1,
+        accumulate: Some(2),
         cases: vec![BenchCase::new("differential", serde_json::json!({}))],
     };
     let run_once = || {
@@ -166,9 +180,14 @@ fn a_cached_reference_is_read_back_on_the_next_run() {
         (rows, cached)
     };
     let (first, cached) = run_once();
-    assert_eq!(cached, [false]);
+    // The pixel-centre reference, then the pixel-area one, each under its own key.
+    assert_eq!(cached, [false, false]);
     let (second, cached) = run_once();
-    assert_eq!(cached, [true], "the second run reads the cache");
+    assert_eq!(cached, [true, true], "the second run reads the cache");
     assert_eq!(first[0].relative_l2, second[0].relative_l2);
+    assert_eq!(
+        first[0].converged_relative_l2,
+        second[0].converged_relative_l2
+    );
     assert_eq!(second[0].reference_spp, 8);
 }

@@ -13,6 +13,17 @@ use crate::reference::{
     ReferenceError, ReferenceImages, ReferenceRenderer, ReferenceSettings, render_reference,
 };
 
+/// Where a reference samples each pixel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Sampling {
+    /// At the pixel's centre, as one engine frame samples it, so silhouettes agree pixel for
+    /// pixel: what a live (changing) frame is judged against.
+    Centre,
+    /// Over the pixel's area, as a camera integrates it: what an engine's still frames converge
+    /// to as they accumulate sub-pixel samples (`Deferred`'s accumulation).
+    Area,
+}
+
 /// What the engines are judged against: the reference with full light transport, `spp` samples
 /// at pixel centres (as the engines' rasteriser samples, so silhouettes agree pixel for pixel).
 pub fn reference(
@@ -21,23 +32,32 @@ pub fn reference(
     height: u32,
     spp: u32,
 ) -> Result<ReferenceImages, ReferenceError> {
-    render_reference(scene, reference_settings(width, height, spp))
+    render_reference(
+        scene,
+        reference_settings(width, height, spp, Sampling::Centre),
+    )
 }
 
-/// The same reference, progressive: samples are added until its noise is small enough (the
-/// bench refines it against the best engine's error).
+/// The reference, progressive: samples are added until its noise is small enough (the bench
+/// refines it against the best engine's error).
 pub fn reference_renderer(
     scene: &Scene,
     width: u32,
     height: u32,
+    sampling: Sampling,
 ) -> Result<ReferenceRenderer, ReferenceError> {
-    ReferenceRenderer::new(scene, reference_settings(width, height, 0))
+    ReferenceRenderer::new(scene, reference_settings(width, height, 0, sampling))
 }
 
-pub(crate) fn reference_settings(width: u32, height: u32, spp: u32) -> ReferenceSettings {
+pub(crate) fn reference_settings(
+    width: u32,
+    height: u32,
+    spp: u32,
+    sampling: Sampling,
+) -> ReferenceSettings {
     ReferenceSettings {
         spp,
-        pixel_jitter: false,
+        pixel_jitter: sampling == Sampling::Area,
         size: Some((width, height)),
         ..ReferenceSettings::default()
     }

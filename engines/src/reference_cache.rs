@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 
 use glam::Vec3;
 
+use crate::offline::Sampling;
 use crate::reference::{REVISION, ReferenceImages};
 
 const MAGIC: &[u8; 8] = b"RLREF\x00\x00\x01";
@@ -43,9 +44,9 @@ impl ReferenceCache {
         Self { dir: dir.into() }
     }
 
-    /// The key of the offline reference ([`crate::offline::reference`]) of the scene in
-    /// `scene_dir` at `width × height`.
-    pub fn key(scene_dir: &Path, width: u32, height: u32) -> io::Result<u64> {
+    /// The key of the offline reference ([`crate::offline::reference_renderer`]) of the scene
+    /// in `scene_dir` at `width × height`, sampling pixels as `sampling` says.
+    pub fn key(scene_dir: &Path, width: u32, height: u32, sampling: Sampling) -> io::Result<u64> {
         let mut files: Vec<PathBuf> = std::fs::read_dir(scene_dir)?
             .filter_map(|e| e.ok().map(|e| e.path()))
             .filter(|p| p.is_file())
@@ -55,7 +56,11 @@ impl ReferenceCache {
         hash.write(MAGIC);
         hash.write(&REVISION.to_le_bytes());
         hash.write(
-            format!("{:?}", crate::offline::reference_settings(width, height, 0)).as_bytes(),
+            format!(
+                "{:?}",
+                crate::offline::reference_settings(width, height, 0, sampling)
+            )
+            .as_bytes(),
         );
         for file in files {
             let name = file.file_name().unwrap_or_default().to_string_lossy();
@@ -182,13 +187,15 @@ mod tests {
     }
 
     #[test]
-    fn the_key_follows_the_scene_files_and_the_size() {
+    fn the_key_follows_the_scene_files_the_size_and_the_sampling() {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("scene.toml"), "gltf = \"a.gltf\"\n").unwrap();
-        let key = ReferenceCache::key(dir.path(), 16, 12).unwrap();
-        assert_eq!(key, ReferenceCache::key(dir.path(), 16, 12).unwrap());
-        assert_ne!(key, ReferenceCache::key(dir.path(), 16, 13).unwrap());
+        let key_of = |w, h, sampling| ReferenceCache::key(dir.path(), w, h, sampling).unwrap();
+        let key = key_of(16, 12, Sampling::Centre);
+        assert_eq!(key, key_of(16, 12, Sampling::Centre));
+        assert_ne!(key, key_of(16, 13, Sampling::Centre));
+        assert_ne!(key, key_of(16, 12, Sampling::Area));
         std::fs::write(dir.path().join("scene.toml"), "gltf = \"b.gltf\"\n").unwrap();
-        assert_ne!(key, ReferenceCache::key(dir.path(), 16, 12).unwrap());
+        assert_ne!(key, key_of(16, 12, Sampling::Centre));
     }
 }

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use relight_daemon::bench::{self, BenchSettings};
+use relight_engines::offline::Sampling;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -32,6 +33,11 @@ pub struct Args {
     /// Timed frames per case (after two warm-up frames); the median is reported.
     #[arg(long, default_value_t = 5)]
     frames: u32,
+    /// Still frames every GPU engine accumulates over sub-pixel offsets before its converged
+    /// picture is scored against the pixel-area reference (default: each engine's own
+    /// `accumulate`; 1: score none).
+    #[arg(long)]
+    accumulate: Option<u32>,
     /// Add the papers' parameter sweeps (DLPV volume × steps and RSM sizes, DVCT volume × step, DIR VPL count and ISM size, IBL map size).
     #[arg(long)]
     sweep: bool,
@@ -110,6 +116,7 @@ pub fn run(args: Args) -> Result<()> {
         max_reference_spp: args.max_reference_spp,
         reference_cache: (!args.no_reference_cache).then_some(args.reference_cache),
         frames: args.frames,
+        accumulate: args.accumulate,
         cases,
     };
     let context = relight_engines::gpu::GpuContext::new();
@@ -143,12 +150,21 @@ pub fn run(args: Args) -> Result<()> {
         }
     };
     let rows = bench::run(&settings, |event| match event {
-        bench::BenchProgress::Reference { scene, spp, cached } => {
-            bar.set_message(format!("{scene}: reference at {spp} spp"));
+        bench::BenchProgress::Reference {
+            scene,
+            sampling,
+            spp,
+            cached,
+        } => {
+            let which = match sampling {
+                Sampling::Centre => "reference",
+                Sampling::Area => "pixel-area reference",
+            };
+            bar.set_message(format!("{scene}: {which} at {spp} spp"));
             say(if cached {
-                format!("{scene}: the cached reference ({spp} spp)")
+                format!("{scene}: the cached {which} ({spp} spp)")
             } else {
-                format!("{scene}: rendering the reference to {spp} spp")
+                format!("{scene}: rendering the {which} to {spp} spp")
             });
         }
         bench::BenchProgress::Case {

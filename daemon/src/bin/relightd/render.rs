@@ -150,9 +150,25 @@ fn render_engine(
 ) -> Result<()> {
     let scene = Arc::new(Scene::load(scene_dir)?);
     let (w, h) = size.unwrap_or((scene.camera.width, scene.camera.height));
-    let mut built = relight_engines::EngineRegistry::new()
-        .build(engine, &crate::params::parse_params(params)?)?;
-    let reference = trace_with_progress(&mut offline::reference_renderer(&scene, w, h)?, spp);
+    // One frame as a live, changing frame draws it (pixel centres), scored against the
+    // reference sampled so: the warm-up frame before the timed one would otherwise count as
+    // a still frame accumulated into it. `bench` measures the accumulation.
+    let registry = relight_engines::EngineRegistry::new();
+    let mut params = crate::params::parse_params(params)?;
+    if registry
+        .spec(engine)?
+        .schema
+        .params
+        .iter()
+        .any(|p| p.name == "accumulate")
+    {
+        params.entry("accumulate").or_insert(1.into());
+    }
+    let mut built = registry.build(engine, &params)?;
+    let reference = trace_with_progress(
+        &mut offline::reference_renderer(&scene, w, h, offline::Sampling::Centre)?,
+        spp,
+    );
     let frame = offline::scene_frame(scene.clone(), offline::background(&reference));
     let mut relit = relight_engines::RelitFrame::default();
     built.engine.render(&frame, &mut relit)?;
