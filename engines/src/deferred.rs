@@ -710,9 +710,7 @@ impl Deferred {
             &frame_res.delta,
             &frame_res.delta_staging,
             pixels * 16,
-            |bytes| {
-                write_delta(bytes, &mut out.delta);
-            },
+            |bytes| out.non_finite = write_delta(bytes, &mut out.delta),
         )?;
         ctx.read_back(
             &frame_res.composite,
@@ -744,20 +742,35 @@ fn shade_work(pixels: u64, lights: u32, sample: Sample) -> Work {
         .times(pixels as f64)
 }
 
-/// Linear f32 RGBA → the frame's Rgba16F Δ; non-finite values become 0 (they never should).
-fn write_delta(bytes: &[u8], delta: &mut Image) {
+/// Linear f32 RGBA → the frame's Rgba16F Δ; non-finite values become 0 (they never should)
+/// and are counted, as are values beyond f16's range (clamped to its largest).
+fn write_delta(bytes: &[u8], delta: &mut Image) -> usize {
     let Some(out) = delta.as_u16_mut() else {
-        return;
+        return 0;
     };
+    let mut non_finite = 0;
     for (o, chunk) in out.iter_mut().zip(bytes.chunks_exact(4)) {
         let v = f32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
-        let v = if v.is_finite() { v } else { 0.0 };
-        *o = half::f16::from_f32(v).to_bits();
+        let v = if v.is_finite() {
+            v
+        } else {
+            non_finite += 1;
+            0.0
+        };
+        let h = half::f16::from_f32(v);
+        *o = if h.is_finite() {
+            h
+        } else {
+            non_finite += 1;
+            half::f16::MAX.copysign(h)
+        }
+        .to_bits();
     }
     // Alpha is 1 where Δ is defined (everywhere).
     for px in out.chunks_exact_mut(4) {
         px[3] = half::f16::ONE.to_bits();
     }
+    non_finite
 }
 
 fn write_composite(bytes: &[u8], composite: &mut Image) {
@@ -840,5 +853,42 @@ impl LightResources {
                 bytemuck::cast_slice(&vec![GpuFace::zeroed(); layers as usize]),
             ),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn non_finite_and_out_of_range_delta_is_counted_and_never_written() {
+        let values = [0.5f32, f32::NAN, f32::INFINITY, -1e6, 0.0, 0.0, 0.0, 0.0];
+        let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let mut delta = Image::new(2, 1, PixelFormat::Rgba16F);
+        assert_eq!(write_delta(&bytes, &mut delta), 3);
+        let written: Vec<f32> = delta
+            .as_u16()
+            .unwrap()
+            .iter()
+            .map(|&b| half::f16::from_bits(b).to_f32())
+            .collect();
+        assert_eq!(written, [0.5, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        // -1e6 is beyond f16: clamped to its largest negative value.
+        let mut bytes = bytes;
+        bytes[..4].copy_from_slice(&(-1e6f32).to_le_bytes());
+        write_delta(&bytes, &mut delta);
+        assert_eq!(
+            half::f16::from_bits(delta.as_u16().unwrap()[0]),
+            -half::f16::MAX
+        );
+    }
+
+    #[test]
+    fn halton_offsets_start_at_the_centre_and_stay_inside_the_pixel() {
+        assert_eq!(halton_offset(0), Vec2::ZERO);
+        let points: Vec<Vec2> = (1..32).map(halton_offset).collect();
+        assert!(points.iter().all(|p| p.abs().max_element() <= 0.5));
+        let mean = points.iter().sum::<Vec2>() / points.len() as f32;
+        assert!(mean.abs().max_element() < 0.05, "{mean}");
     }
 }

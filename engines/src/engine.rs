@@ -67,6 +67,10 @@ pub struct RelitFrame {
     /// What each GPU pass run this frame had to do, for the roofline (`bench --roofline`);
     /// a pass kept from an earlier frame has no entry.
     pub work: Vec<PassWork>,
+    /// Δ values (pixels × channels) the engine computed as NaN or ±∞ (written as 0) or beyond
+    /// f16's range (clamped to it): no non-finite value reaches a sink, and this says one was
+    /// computed (0 on a healthy frame).
+    pub non_finite: usize,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -135,6 +139,7 @@ impl RelitFrame {
         self.seq = scene.seq;
         self.timings.clear();
         self.work.clear();
+        self.non_finite = 0;
         self.composite.reshape(width, height, PixelFormat::Rgb8);
         self.delta.reshape(width, height, PixelFormat::Rgba16F);
         if let Some(delta) = self.delta.as_u16_mut() {
