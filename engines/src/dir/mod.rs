@@ -77,7 +77,7 @@ impl Default for DirSettings {
             vpl_count: 256,
             ism_size: 64,
             ism_points: 16384,
-            ism_bias: 1.5,
+            ism_bias: 4.0,
             clamp_distance: 0.05,
             shadow_bias: 1.5,
             env_lights: 16,
