@@ -194,7 +194,7 @@ fn environment_light_reaches_delta() {
     let reference = reference_full(&scene, w, h, 256);
     let error = |params: serde_json::Value| {
         let (delta, _) = delta_of(&mut engine_with("dir", params), &frame(scene.clone(), w, h));
-        support::relative_l2(&delta, &reference.delta, &reference.virtual_mask).0
+        relative_l2(&delta, &reference.delta, &reference.virtual_mask).0
     };
     let (with_env, without) = (
         error(serde_json::json!({})),
