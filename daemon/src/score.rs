@@ -27,9 +27,8 @@ use relight_core::light::Light;
 use relight_core::recording::RecordingReader;
 use relight_core::recording::truth::{TruthKind, TruthMessage, TruthState};
 use relight_core::scene::{Scene, box_corners};
-use relight_core::srgb::srgb_to_linear;
 use relight_core::sync::{FrameSet, Synchronizer};
-use relight_core::{Image, PixelFormat, Pose, StreamKind};
+use relight_core::{Image, Pose, StreamKind};
 use relight_engines::live_scene::RealGeometry;
 use relight_engines::offline::{self, delta_pixels, reference, srgb_image};
 use relight_engines::{EngineRegistry, RelitFrame, SceneFrame};
@@ -307,7 +306,7 @@ pub fn run(
             oracle_relit = RelitFrame::default();
         }
 
-        let background: Vec<Vec3> = rgb_linear(&color.payload);
+        let background: Vec<Vec3> = offline::composite_pixels(&color.payload);
         let mask = &truth_images.virtual_mask;
         let true_composite: Vec<Vec3> = background
             .iter()
@@ -317,8 +316,8 @@ pub fn run(
             .map(|(((b, d), l), v)| if *v { *l } else { *b + *d })
             .map(|c| c.clamp(Vec3::ZERO, Vec3::ONE))
             .collect();
-        let composite = rgb_linear(&relit.composite);
-        let oracle_composite = rgb_linear(&oracle_relit.composite);
+        let composite = offline::composite_pixels(&relit.composite);
+        let oracle_composite = offline::composite_pixels(&oracle_relit.composite);
         let delta = delta_or_zero(&relit.delta, mask.len());
         let oracle_delta = delta_or_zero(&oracle_relit.delta, mask.len());
         let real: Vec<bool> = mask.iter().map(|v| !v).collect();
@@ -653,25 +652,6 @@ fn l2(a: &[Vec3], mask: &[bool]) -> f64 {
 /// true Δ is zero must drop out of the summaries here, not dominate them).
 pub fn relative_l2(a: &[Vec3], b: &[Vec3], mask: &[bool]) -> f64 {
     offline::masked_relative_l2(a, b, mask).unwrap_or(f64::NAN)
-}
-
-fn rgb_linear(image: &Image) -> Vec<Vec3> {
-    match image
-        .as_u8()
-        .filter(|_| image.format() == PixelFormat::Rgb8)
-    {
-        Some(px) => px
-            .chunks_exact(3)
-            .map(|c| {
-                Vec3::new(
-                    srgb_to_linear(c[0]),
-                    srgb_to_linear(c[1]),
-                    srgb_to_linear(c[2]),
-                )
-            })
-            .collect(),
-        None => Vec::new(),
-    }
 }
 
 /// Δ as linear RGB; zeros when the engine drew none (untracked, or a failed frame).

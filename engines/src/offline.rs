@@ -134,6 +134,25 @@ pub fn delta_pixels(delta: &Image) -> Vec<Vec3> {
         .collect()
 }
 
+/// An 8-bit sRGB composite as linear RGB per pixel; empty for other formats.
+pub fn composite_pixels(image: &Image) -> Vec<Vec3> {
+    let Some(px) = image
+        .as_u8()
+        .filter(|_| image.format() == PixelFormat::Rgb8)
+    else {
+        return Vec::new();
+    };
+    px.chunks_exact(3)
+        .map(|c| {
+            Vec3::new(
+                srgb_to_linear(c[0]),
+                srgb_to_linear(c[1]),
+                srgb_to_linear(c[2]),
+            )
+        })
+        .collect()
+}
+
 /// The error every engine is judged by: ‖Δ − Δ_ref‖₂ / ‖Δ_ref‖₂ over real pixels (where the
 /// reference's camera ray hits no virtual object), and max |Δ − Δ_ref| there. A missing or
 /// mis-sized Δ is an error of NaN.

@@ -8,9 +8,8 @@ use std::sync::Arc;
 
 use glam::{Quat, Vec3};
 use relight_core::scene::Scene;
-use relight_core::srgb::srgb_to_linear;
 use relight_core::{Frame, Image, PixelFormat};
-use relight_engines::offline::delta_pixels;
+use relight_engines::offline::{composite_pixels as linear, delta_pixels};
 use relight_engines::{Engine, RelitFrame, SceneFrame};
 use support::{engine_with, frame, load_scene};
 
@@ -70,21 +69,6 @@ fn box_filtered(pixels: &[Vec3], width: usize, factor: usize) -> Vec<Vec3> {
         out[y * w + x] += *p / (factor * factor) as f32;
     }
     out
-}
-
-fn linear(composite: &Image) -> Vec<Vec3> {
-    composite
-        .as_u8()
-        .unwrap()
-        .chunks_exact(3)
-        .map(|c| {
-            Vec3::new(
-                srgb_to_linear(c[0]),
-                srgb_to_linear(c[1]),
-                srgb_to_linear(c[2]),
-            )
-        })
-        .collect()
 }
 
 fn relative_l2(a: &[Vec3], b: &[Vec3]) -> f64 {
