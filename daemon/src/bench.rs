@@ -477,7 +477,7 @@ fn measure(
     let spec = registry.spec(&case.engine)?;
     let mut params = case.params.clone();
     if let Some(accumulate) = settings.accumulate
-        && spec.schema.params.iter().any(|p| p.name == "accumulate")
+        && spec.schema.has("accumulate")
     {
         params.insert("accumulate".into(), accumulate.into());
     }
@@ -573,7 +573,7 @@ fn measure(
 
 pub fn table(rows: &[BenchRow]) -> String {
     let mut s = format!(
-        "{:<14} {:<48} {:>10} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>7} {:>9} {:>9} {:>9} {:>9}\n",
+        "{:<14} {:<48} {:>10} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>7} {:>9} {:>9} {:>9} {:>10}\n",
         "scene",
         "engine / setting",
         "median ms",
@@ -589,13 +589,13 @@ pub fn table(rows: &[BenchRow]) -> String {
         "area L2",
         "conv L2",
         "conv obj",
-        "area nois"
+        "area noise"
     );
     let or_dash = |v: Option<f64>| v.map_or("-".to_owned(), |e| format!("{e:.4}"));
     for r in rows {
         let gpu = r.gpu_ms.map_or("-".to_owned(), |ms| format!("{ms:.2}"));
         s.push_str(&format!(
-            "{:<14} {:<48} {:>10.2} {:>10.2} {:>10} {:>9.4} {:>9} {:>9} {:>9.4} {:>9} {:>9.4} {:>7} {:>9} {:>9} {:>9} {:>9}\n",
+            "{:<14} {:<48} {:>10.2} {:>10.2} {:>10} {:>9.4} {:>9} {:>9} {:>9.4} {:>9} {:>9.4} {:>7} {:>9} {:>9} {:>9} {:>10}\n",
             r.scene,
             r.setting,
             r.median_ms,

@@ -107,6 +107,15 @@ struct Sample {
     write: bool,
 }
 
+impl Sample {
+    /// A frame shown alone: at the centre, no mean read or written.
+    const ALONE: Self = Self {
+        offset_px: Vec2::ZERO,
+        weight: 1.0,
+        write: false,
+    };
+}
+
 impl Accumulation {
     fn new() -> Self {
         Self {
@@ -130,11 +139,7 @@ impl Accumulation {
             self.still = 0;
         }
         match self.still {
-            _ if self.frames <= 1 => Sample {
-                offset_px: Vec2::ZERO,
-                weight: 1.0,
-                write: false,
-            },
+            _ if self.frames <= 1 => Sample::ALONE,
             still if still >= self.frames => Sample {
                 offset_px: Vec2::ZERO,
                 weight: 0.0,
@@ -284,11 +289,7 @@ impl Deferred {
             scene: None,
             scene_key: 0,
             accumulation: Accumulation::new(),
-            sample: Sample {
-                offset_px: Vec2::ZERO,
-                weight: 1.0,
-                write: false,
-            },
+            sample: Sample::ALONE,
             frame: None,
             light: None,
             rsm_drawn: None,

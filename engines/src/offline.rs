@@ -179,26 +179,19 @@ pub fn delta_error(delta: &[Vec3], reference: &[Vec3], virtual_mask: &[bool]) ->
 /// see an object drawn wrong; this can. `None` when the object covers no pixel or the composite
 /// is missing, mis-sized or not 8-bit RGB.
 pub fn object_error(composite: &Image, l_rho: &[Vec3], virtual_mask: &[bool]) -> Option<f64> {
-    let bytes = composite
-        .as_u8()
-        .filter(|_| composite.format() == PixelFormat::Rgb8)?;
-    if bytes.len() != l_rho.len() * 3 || virtual_mask.len() != l_rho.len() {
+    let linear = composite_pixels(composite);
+    if linear.len() != l_rho.len() || virtual_mask.len() != l_rho.len() {
         return None;
     }
     let (mut err, mut norm, mut pixels) = (0.0f64, 0.0f64, 0usize);
-    for ((rgb, r), _) in bytes
-        .chunks_exact(3)
+    for ((c, r), _) in linear
+        .iter()
         .zip(l_rho)
         .zip(virtual_mask)
         .filter(|(_, on_object)| **on_object)
     {
-        let c = Vec3::new(
-            srgb_to_linear(rgb[0]),
-            srgb_to_linear(rgb[1]),
-            srgb_to_linear(rgb[2]),
-        );
         let r = r.clamp(Vec3::ZERO, Vec3::ONE);
-        err += f64::from((c - r).length_squared());
+        err += f64::from((*c - r).length_squared());
         norm += f64::from(r.length_squared());
         pixels += 1;
     }

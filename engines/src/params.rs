@@ -98,6 +98,11 @@ impl ParamsSchema {
             .collect()
     }
 
+    /// Whether the engine takes a parameter `name`.
+    pub fn has(&self, name: &str) -> bool {
+        self.params.iter().any(|p| p.name == name)
+    }
+
     fn spec(&self, name: &str) -> &ParamSpec {
         self.params
             .iter()

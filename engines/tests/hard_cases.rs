@@ -11,7 +11,7 @@ use std::sync::Arc;
 use glam::Vec3;
 use relight_core::light::Light;
 use relight_core::scene::Scene;
-use support::{delta_of, engine_with, frame, load_scene, max_abs};
+use support::{add_sun, delta_of, engine_with, frame, load_scene, max_abs};
 
 fn hard_scenes() -> Vec<(&'static str, Scene)> {
     let desk = load_scene("desk_box");
@@ -20,13 +20,8 @@ fn hard_scenes() -> Vec<(&'static str, Scene)> {
 
     let mut sun = load_scene("window_env");
     let env = sun.environment.as_mut().unwrap();
-    let peak = env
-        .radiance
-        .iter()
-        .map(|l| l.max_element())
-        .fold(0.0, f32::max);
-    let w = env.width as usize;
-    env.radiance[env.height as usize / 4 * w + w / 3] = Vec3::splat(peak * 1e6);
+    let (x, y) = (env.width as usize / 3, env.height as usize / 4);
+    add_sun(env, x, y, 1e6);
     scenes.push(("1e6:1 environment", sun));
 
     let mut grazing = desk.clone();

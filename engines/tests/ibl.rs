@@ -37,13 +37,7 @@ fn object_far_away_leaves_the_visible_scene_unchanged() {
 fn sun_map() -> EnvironmentMap {
     let mut env = load_scene("window_env").environment.unwrap();
     env = resample(&env, 64);
-    let peak = env
-        .radiance
-        .iter()
-        .map(|l| l.max_element())
-        .fold(0.0, f32::max);
-    let w = env.width as usize;
-    env.radiance[5 * w + 20] = Vec3::splat(peak * 1e6);
+    support::add_sun(&mut env, 20, 5, 1e6);
     env
 }
 

@@ -5,7 +5,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use glam::Vec3;
-use relight_core::scene::Scene;
+use relight_core::scene::{EnvironmentMap, Scene};
 use relight_core::{Frame, Image, PixelFormat, Timestamp};
 use relight_engines::reference::{ReferenceImages, ReferenceSettings, render_reference};
 use relight_engines::{Engine, EngineRegistry, RelitFrame, SceneFrame};
@@ -121,6 +121,16 @@ pub fn max_abs(delta: &[Vec3]) -> f32 {
         .iter()
         .map(|d| d.abs().max_element())
         .fold(0.0, f32::max)
+}
+
+/// A sun-like spot in `env`: texel (`x`, `y`) set to `ratio` times the map's brightest texel.
+pub fn add_sun(env: &mut EnvironmentMap, x: usize, y: usize, ratio: f32) {
+    let peak = env
+        .radiance
+        .iter()
+        .map(|l| l.max_element())
+        .fold(0.0, f32::max);
+    env.radiance[y * env.width as usize + x] = Vec3::splat(peak * ratio);
 }
 
 /// `scene` with its virtual object(s) moved 50 m away along +x, far from everything visible.

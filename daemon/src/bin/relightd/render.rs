@@ -155,13 +155,7 @@ fn render_engine(
     // a still frame accumulated into it. `bench` measures the accumulation.
     let registry = relight_engines::EngineRegistry::new();
     let mut params = crate::params::parse_params(params)?;
-    if registry
-        .spec(engine)?
-        .schema
-        .params
-        .iter()
-        .any(|p| p.name == "accumulate")
-    {
+    if registry.spec(engine)?.schema.has("accumulate") {
         params.entry("accumulate").or_insert(1.into());
     }
     let mut built = registry.build(engine, &params)?;
