@@ -745,7 +745,7 @@ fn shade_work(pixels: u64, lights: u32, sample: Sample) -> Work {
 
 /// Linear f32 RGBA → the frame's Rgba16F Δ; non-finite values become 0 (they never should)
 /// and are counted, as are values beyond f16's range (clamped to its largest).
-fn write_delta(bytes: &[u8], delta: &mut Image) -> usize {
+pub(crate) fn write_delta(bytes: &[u8], delta: &mut Image) -> usize {
     let Some(out) = delta.as_u16_mut() else {
         return 0;
     };
@@ -774,7 +774,8 @@ fn write_delta(bytes: &[u8], delta: &mut Image) -> usize {
     non_finite
 }
 
-fn write_composite(bytes: &[u8], composite: &mut Image) {
+/// RGBA8 → the frame's RGB8 composite (alpha dropped).
+pub(crate) fn write_composite(bytes: &[u8], composite: &mut Image) {
     debug_assert_eq!(composite.format(), PixelFormat::Rgb8);
     let Some(out) = composite.as_u8_mut() else {
         return;

@@ -71,6 +71,9 @@ pub struct RelitFrame {
     /// f16's range (clamped to it): no non-finite value reaches a sink, and this says one was
     /// computed (0 on a healthy frame).
     pub non_finite: usize,
+    /// The engine's own estimate of its Δ's relative L2 error over real pixels, where it has
+    /// one: `pt`'s Monte Carlo standard error. `None` for the engines whose error is bias.
+    pub estimated_relative_error: Option<f64>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -140,6 +143,7 @@ impl RelitFrame {
         self.timings.clear();
         self.work.clear();
         self.non_finite = 0;
+        self.estimated_relative_error = None;
         self.composite.reshape(width, height, PixelFormat::Rgb8);
         self.delta.reshape(width, height, PixelFormat::Rgba16F);
         if let Some(delta) = self.delta.as_u16_mut() {

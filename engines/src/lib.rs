@@ -5,6 +5,7 @@
 //! `depth_preview`); the GPU context, reconstruction and the paper engines (differential, DLPV,
 //! DVCT, DIR, IBL) plug into the same trait and registry.
 
+pub mod camera_motion;
 pub mod deferred;
 pub mod differential;
 pub mod dir;
@@ -18,6 +19,7 @@ pub mod ibl;
 pub mod live_scene;
 pub mod offline;
 pub mod params;
+pub mod pt;
 pub mod recon_gpu;
 pub mod reference_cache;
 pub mod registry;

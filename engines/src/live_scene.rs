@@ -67,6 +67,9 @@ pub struct LiveScene {
     shadow_proxy: HeldProxy,
     /// The depth stage said the next frame's surface is the last one's ([`Self::hold_surface`]).
     surface_held: bool,
+    /// [`Scene::surface_revision`] of the depth surface: advanced on every frame the depth
+    /// stage did not hold the surface.
+    surface_revision: u64,
 }
 
 impl LiveScene {
@@ -107,6 +110,7 @@ impl LiveScene {
             environment_sh: None,
             shadow_proxy: HeldProxy::new(ProxyHold::default()),
             surface_held: false,
+            surface_revision: 0,
         }
     }
 
@@ -272,6 +276,10 @@ impl LiveScene {
                         &world_from_camera,
                         surface_held,
                     ));
+                    if !surface_held {
+                        self.surface_revision += 1;
+                    }
+                    scene.surface_revision = Some(self.surface_revision);
                     scene.meshes.insert(0, mesh);
                 }
                 None if !self.proxy.is_empty() => {
@@ -450,6 +458,7 @@ mod tests {
             environment: None,
             environment_lights: Vec::new(),
             shadow_proxy: None,
+            surface_revision: None,
         };
         let live = LiveScene::new(base, RealGeometry::Depth, 0.5, Some(camera()), 1);
         (depth, live)

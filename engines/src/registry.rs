@@ -15,6 +15,7 @@ use crate::gpu::{GpuError, SharedGpu};
 use crate::ibl::Ibl;
 use crate::params::{ParamError, ParamsSchema};
 use crate::passthrough::Passthrough;
+use crate::pt::Pt;
 
 /// One registered engine: its name, what it does, its parameters, and how to build it.
 #[derive(Debug, Clone)]
@@ -123,6 +124,13 @@ impl EngineRegistry {
                     gpu: true,
                     build: |gpu| Ok(Box::new(Ibl::new(gpu.get()?)?)),
                 },
+                EngineSpec {
+                    name: Pt::NAME,
+                    description: "progressive differential path tracing: the reference's estimator on the GPU, correlated L^ρ/L^μ paths, accumulated while the scene and camera hold still, samples per frame fitted to budget_ms",
+                    schema: Pt::schema(),
+                    gpu: true,
+                    build: |gpu| Ok(Box::new(Pt::new(gpu.get()?)?)),
+                },
             ],
             gpu: Arc::new(SharedGpu::default()),
         }
@@ -181,7 +189,7 @@ mod tests {
             .unwrap();
         assert_eq!(
             err.to_string(),
-            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential, dlpv, dvct, dir, ibl"
+            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential, dlpv, dvct, dir, ibl, pt"
         );
     }
 

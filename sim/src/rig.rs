@@ -1066,6 +1066,7 @@ pub(crate) mod tests {
             environment: None,
             environment_lights: Vec::new(),
             shadow_proxy: None,
+            surface_revision: None,
         }
     }
 

@@ -187,6 +187,7 @@ fn scene() -> Scene {
         environment: None,
         environment_lights: Vec::new(),
         shadow_proxy: None,
+        surface_revision: None,
     }
 }
 

@@ -58,6 +58,7 @@ fn floor_scene() -> Scene {
         environment: None,
         environment_lights: Vec::new(),
         shadow_proxy: None,
+        surface_revision: None,
     }
 }
 

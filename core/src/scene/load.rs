@@ -357,6 +357,7 @@ impl Scene {
             environment,
             environment_lights: Vec::new(),
             shadow_proxy: None,
+            surface_revision: None,
         })
     }
 }

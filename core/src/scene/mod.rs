@@ -98,6 +98,11 @@ pub struct Scene {
     /// holds, so the maps of a still scene need not be redrawn. `None`: the real meshes
     /// themselves. Only the rasterising engines use it; the reference ignores it.
     pub shadow_proxy: Option<Arc<Mesh>>,
+    /// For a live depth surface: a count the temporal depth merge advances whenever it resets
+    /// (the real surface materially changed). Equal revisions are the same surface up to
+    /// sensor noise, so an engine that accumulates over frames (`pt`) keeps what it traced.
+    /// `None` for a scene file: its real meshes are compared themselves.
+    pub surface_revision: Option<u64>,
 }
 
 impl Mesh {

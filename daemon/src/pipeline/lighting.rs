@@ -268,6 +268,7 @@ mod tests {
             environment: None,
             environment_lights: Vec::new(),
             shadow_proxy: None,
+            surface_revision: None,
         };
         let mut scene_lights = SceneLights::new(&scene, None);
         assert_eq!(scene_lights.reference_point, Vec3::new(0.0, 0.1, 0.0));

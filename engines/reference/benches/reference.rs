@@ -99,6 +99,7 @@ fn bench_scene(width: u32, height: u32) -> Scene {
         }),
         environment_lights: Vec::new(),
         shadow_proxy: None,
+        surface_revision: None,
     }
 }
 

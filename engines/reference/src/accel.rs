@@ -11,7 +11,7 @@
 
 use bvh::aabb::{Aabb, Bounded};
 use bvh::bounding_hierarchy::BHShape;
-use bvh::bvh::Bvh;
+use bvh::bvh::{Bvh, BvhNode};
 use glam::Vec3;
 use nalgebra::{Point3, Vector3};
 use relight_core::scene::{Mesh, Scene};
@@ -57,6 +57,22 @@ impl BHShape<f32, 3> for Triangle {
 
 fn point(v: Vec3) -> Point3<f32> {
     Point3::new(v.x, v.y, v.z)
+}
+
+/// A child of a [`FlatNode`]: another inner node (its position in the list) or a triangle (its
+/// position in [`Geometry::triangles`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Child {
+    Inner(u32),
+    Triangle(u32),
+}
+
+/// An inner node of [`Geometry::flat_bvh`]: the boxes of its two children, and the children.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FlatNode {
+    pub min: [Vec3; 2],
+    pub max: [Vec3; 2],
+    pub children: [Child; 2],
 }
 
 /// A ray hit: distance, which triangle, and its barycentric coordinates.
@@ -137,6 +153,47 @@ impl Geometry {
 
     pub fn triangles(&self) -> &[Triangle] {
         &self.triangles
+    }
+
+    /// The hierarchy as a list of inner nodes, each with both children's boxes, and where
+    /// traversal starts (`None` without triangles): what the GPU path tracer (`pt`) uploads,
+    /// so that it traverses this same tree.
+    pub fn flat_bvh(&self) -> (Vec<FlatNode>, Option<Child>) {
+        let Some(bvh) = &self.bvh else {
+            return (Vec::new(), None);
+        };
+        let mut inner = vec![0u32; bvh.nodes.len()];
+        let mut count = 0;
+        for (i, node) in bvh.nodes.iter().enumerate() {
+            if matches!(node, BvhNode::Node { .. }) {
+                inner[i] = count;
+                count += 1;
+            }
+        }
+        let child = |i: usize| match bvh.nodes[i] {
+            BvhNode::Leaf { shape_index, .. } => Child::Triangle(shape_index as u32),
+            BvhNode::Node { .. } => Child::Inner(inner[i]),
+        };
+        let vec3 = |p: Point3<f32>| Vec3::new(p.x, p.y, p.z);
+        let nodes = bvh
+            .nodes
+            .iter()
+            .filter_map(|node| match *node {
+                BvhNode::Node {
+                    child_l_index,
+                    child_l_aabb,
+                    child_r_index,
+                    child_r_aabb,
+                    ..
+                } => Some(FlatNode {
+                    min: [vec3(child_l_aabb.min), vec3(child_r_aabb.min)],
+                    max: [vec3(child_l_aabb.max), vec3(child_r_aabb.max)],
+                    children: [child(child_l_index), child(child_r_index)],
+                }),
+                BvhNode::Leaf { .. } => None,
+            })
+            .collect();
+        (nodes, Some(child(0)))
     }
 
     /// Closest hit with t in (t_min, t_max); ties go to the lower triangle index.

@@ -101,8 +101,8 @@ pub enum ReferenceError {
 /// [`relight_core::light::Light::validate`] are dropped
 /// (with a warning), and non-finite or negative albedo, specular, shininess, emission and
 /// environment radiance become zero. These are physical bounds, not firefly clamps: nothing
-/// finite and non-negative is changed.
-fn sanitized(scene: &Scene) -> Scene {
+/// finite and non-negative is changed. The GPU path tracer (`pt`) traces the same copy.
+pub fn sanitized(scene: &Scene) -> Scene {
     let clean = |v: Vec3| {
         Vec3::from_array(
             v.to_array()
@@ -456,6 +456,7 @@ mod tests {
             environment: Some(environment),
             environment_lights: Vec::new(),
             shadow_proxy: None,
+            surface_revision: None,
         }
     }
 

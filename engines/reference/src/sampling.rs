@@ -127,6 +127,16 @@ impl EnvSampler {
         })
     }
 
+    /// The sampling tables in one array, as the GPU path tracer (`pt`) reads them: the
+    /// marginal CDF over rows (height + 1 values), the conditional CDF of each row
+    /// (height × (width + 1)), then each texel's probability (height × width).
+    pub fn tables(&self) -> Vec<f32> {
+        let mut tables = self.row_cdf.clone();
+        tables.extend_from_slice(&self.col_cdf);
+        tables.extend_from_slice(&self.texel_p);
+        tables
+    }
+
     /// A direction and its solid-angle pdf.
     pub fn sample(&self, u1: f32, u2: f32) -> (Vec3, f32) {
         let y = find(&self.row_cdf, u1 * self.row_cdf[self.height]).min(self.height - 1);

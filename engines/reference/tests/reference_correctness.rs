@@ -38,6 +38,7 @@ fn scene(name: &str, camera: SceneCamera) -> Scene {
         environment: None,
         environment_lights: Vec::new(),
         shadow_proxy: None,
+        surface_revision: None,
     }
 }
 

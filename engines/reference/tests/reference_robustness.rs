@@ -146,6 +146,7 @@ fn nasty_scene() -> Scene {
         environment: Some(environment),
         environment_lights: Vec::new(),
         shadow_proxy: None,
+        surface_revision: None,
     }
 }
 

@@ -454,6 +454,7 @@ mod tests {
             environment: None,
             environment_lights: Vec::new(),
             shadow_proxy: None,
+            surface_revision: None,
         };
         let levels = specular_levels(&scene, 8);
         assert_eq!(levels.len(), 8);

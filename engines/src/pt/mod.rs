@@ -1,0 +1,618 @@
+//! `pt`: progressive differential path tracing on the GPU, the accuracy ceiling of the engines.
+//!
+//! Each frame traces a number of samples per pixel of L^ρ and, from the same random numbers,
+//! L^μ (correlated sampling, as the CPU reference: L^μ is traced only where the ρ path touched
+//! the virtual object, so Δ is exactly zero wherever the object plays no part) with the
+//! reference's estimator (`shaders/pt_trace.wgsl`), over the reference's own triangles and BVH
+//! ([`scene::PtScene`]). The samples are folded into per-pixel running means, so while the
+//! scene, the lights and the camera hold still the picture converges to the reference's; any
+//! change starts the means again (no reprojection: a moved camera sees other paths).
+//!
+//! What counts as a change:
+//! - the geometry, materials, lights or environment map (hashed; a live depth surface by its
+//!   [`Scene::surface_revision`], which the temporal depth merge advances only when it resets,
+//!   so sensor noise on a held surface does not restart the means);
+//! - the camera moving by more than [`STILL_PX`] of image motion at the object's depth
+//!   ([`crate::camera_motion`]); below that the held pose is traced, so a tracked camera's
+//!   jitter does not restart them either;
+//! - the image size or any parameter.
+//!
+//! Samples per frame follow `budget_ms` (measured per sample, so the frame fits the budget on
+//! whatever adapter runs it) or are fixed by `spp`; after `max_spp` the means are kept. Sample
+//! `s` of pixel `i` always draws from the stream seeded by (seed, i, s), so the picture after n
+//! samples does not depend on how they were split between frames, and the same seed renders
+//! the same image. The composite follows DLPV's Algorithm 1 per sample: L^ρ where the sample's
+//! camera ray met the object, the background plus Δ elsewhere (so silhouettes are
+//! area-sampled). Each frame reports its own Monte Carlo error
+//! ([`RelitFrame::estimated_relative_error`]): the standard error of Δ over the real pixels
+//! relative to Δ itself.
+
+pub mod scene;
+
+use std::hash::{DefaultHasher, Hash, Hasher};
+use std::sync::Arc;
+use std::time::Instant;
+
+use bytemuck::{Pod, Zeroable};
+use relight_core::scene::{Scene, SceneCamera};
+use serde_json::{Map, Value};
+
+use self::scene::PtScene;
+use crate::camera_motion::{focus_depth_m, image_shift_px};
+use crate::deferred::KeptInputs;
+use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
+use crate::gpu::{GpuContext, GpuError};
+use crate::params::{ParamSpec, ParamsSchema};
+use crate::roofline::{PassWork, Work};
+use crate::shaders;
+use crate::timer::GpuTimer;
+
+/// Image motion (pixels) under which the camera counts as still and the held pose is traced.
+pub const STILL_PX: f32 = 0.25;
+
+/// Samples per pixel in one dispatch at most (a frame may submit several).
+const DISPATCH_SPP: u32 = 64;
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct Params {
+    size: [u32; 4],
+    options: [u32; 4],
+    seed: [u32; 4],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct PtCamera {
+    position: [f32; 4],
+    right: [f32; 4],
+    up: [f32; 4],
+    back: [f32; 4],
+}
+
+/// [`Pt::statistics`]: the running means, per pixel, row-major from the top-left.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PtStatistics {
+    pub spp: u32,
+    /// Δ = L^ρ − L^μ, the mean over the pixel's samples (its area).
+    pub delta: Vec<glam::Vec3>,
+    /// The standard error of `delta` from the samples' variance; ∞ below 2 samples.
+    pub delta_std_error: Vec<glam::Vec3>,
+    /// The share of the pixel's samples whose camera ray met the virtual object.
+    pub coverage: Vec<f32>,
+}
+
+/// The parameters (see [`Pt::schema`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Settings {
+    budget_ms: f64,
+    spp: u32,
+    max_spp: u32,
+    bounces: u32,
+    seed: u64,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Self {
+            budget_ms: 33.0,
+            spp: 0,
+            max_spp: 4096,
+            bounces: 8,
+            seed: 0,
+        }
+    }
+}
+
+/// Russian roulette from this bounce on, as the reference's default.
+const RR_START_BOUNCE: u32 = 3;
+
+/// Per-size buffers.
+#[derive(Debug)]
+struct FrameBuffers {
+    width: u32,
+    height: u32,
+    accum: wgpu::Buffer,
+    background: wgpu::Buffer,
+    delta: wgpu::Buffer,
+    composite: wgpu::Buffer,
+    delta_staging: wgpu::Buffer,
+    composite_staging: wgpu::Buffer,
+}
+
+/// What the running means were traced from.
+#[derive(Debug, Clone, Copy)]
+struct Accumulated {
+    /// The scene's key ([`scene_key`]) and the parameters.
+    key: u64,
+    /// The camera traced (held while the real one moves less than [`STILL_PX`]).
+    camera: SceneCamera,
+    spp: u32,
+}
+
+#[derive(Debug)]
+pub struct Pt {
+    ctx: Arc<GpuContext>,
+    pipeline: wgpu::ComputePipeline,
+    params: wgpu::Buffer,
+    camera: wgpu::Buffer,
+    settings: Settings,
+    /// The uploaded scene, the `Arc` it came from and its key.
+    scene: Option<(Arc<Scene>, u64, PtScene)>,
+    frame: Option<FrameBuffers>,
+    accumulated: Option<Accumulated>,
+    /// Measured cost of one sample per pixel, and of a frame's fixed part (upload, resolve,
+    /// read-back), milliseconds (running averages).
+    ms_per_spp: Option<f64>,
+    overhead_ms: Option<f64>,
+    background: Vec<u32>,
+    timer: Option<GpuTimer>,
+}
+
+impl Pt {
+    pub const NAME: &'static str = "pt";
+
+    pub fn schema() -> ParamsSchema {
+        ParamsSchema::new(vec![
+            ParamSpec::float(
+                "budget_ms",
+                "frame time the samples per frame are fitted to (with spp = 0)",
+                1.0,
+                60_000.0,
+                33.0,
+            ),
+            ParamSpec::int(
+                "spp",
+                "samples per pixel each frame; 0 follows budget_ms",
+                0,
+                4096,
+                0,
+            ),
+            ParamSpec::int(
+                "max_spp",
+                "samples per pixel after which a still picture is kept as it is",
+                1,
+                1 << 20,
+                4096,
+            ),
+            ParamSpec::int(
+                "bounces",
+                "scattering events after the first hit (the reference's max_bounces)",
+                0,
+                64,
+                8,
+            ),
+            ParamSpec::int("seed", "seeds every sample's random stream", 0, 1 << 31, 0),
+        ])
+    }
+
+    pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
+        let pipeline = shaders::compute_pipeline(&ctx.device, "pt trace", shaders::PT_TRACE);
+        let uniform = |label, size| {
+            ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        ctx.check()?;
+        Ok(Self {
+            pipeline,
+            params: uniform("pt params", size_of::<Params>() as u64),
+            camera: uniform("pt camera", size_of::<PtCamera>() as u64),
+            settings: Settings::default(),
+            scene: None,
+            frame: None,
+            accumulated: None,
+            ms_per_spp: None,
+            overhead_ms: None,
+            background: Vec::new(),
+            timer: GpuTimer::new(&ctx),
+            ctx,
+        })
+    }
+
+    /// Samples per pixel in the running means.
+    pub fn samples(&self) -> u32 {
+        self.accumulated.map_or(0, |a| a.spp)
+    }
+
+    /// The running means as they stand after the last frame, read back: per pixel Δ and its
+    /// standard error per channel (as the reference's [`ReferenceImages`] gives them), and
+    /// the object's coverage.
+    ///
+    /// [`ReferenceImages`]: relight_reference::ReferenceImages
+    pub fn statistics(&self) -> Result<PtStatistics, GpuError> {
+        let spp = self.samples();
+        let Some(frame) = &self.frame else {
+            return Ok(PtStatistics::default());
+        };
+        let pixels = u64::from(frame.width) * u64::from(frame.height);
+        let staging = self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("pt means staging"),
+            size: pixels * 48,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        self.ctx
+            .read_back(&frame.accum, &staging, pixels * 48, |bytes| {
+                let means: &[[[f32; 4]; 3]] = bytemuck::cast_slice(bytes);
+                let n = f64::from(spp);
+                let std_error = |m2: f32| {
+                    if spp < 2 {
+                        f32::INFINITY
+                    } else {
+                        (f64::from(m2.max(0.0)) / (n - 1.0) / n).sqrt() as f32
+                    }
+                };
+                PtStatistics {
+                    spp,
+                    delta: means
+                        .iter()
+                        .map(|[_, d, _]| glam::Vec3::new(d[0], d[1], d[2]))
+                        .collect(),
+                    delta_std_error: means
+                        .iter()
+                        .map(|[_, _, m2]| {
+                            glam::Vec3::new(std_error(m2[0]), std_error(m2[1]), std_error(m2[2]))
+                        })
+                        .collect(),
+                    coverage: means.iter().map(|[overlay, _, _]| overlay[3]).collect(),
+                }
+            })
+    }
+
+    /// Samples to trace this frame, `remaining` short of `max_spp`.
+    fn samples_this_frame(&self, remaining: u32) -> u32 {
+        let wanted = match (self.settings.spp, self.ms_per_spp) {
+            (0, None) => 1,
+            (0, Some(per_spp)) => {
+                let left = self.settings.budget_ms - self.overhead_ms.unwrap_or(0.0);
+                (left / per_spp.max(1e-6)).floor().clamp(1.0, 4096.0) as u32
+            }
+            (spp, _) => spp,
+        };
+        wanted.min(remaining)
+    }
+
+    /// Upload the scene if it changed; its key.
+    fn upload(&mut self, scene: &Arc<Scene>) -> u64 {
+        if let Some((held, key, _)) = &self.scene
+            && Arc::ptr_eq(held, scene)
+        {
+            return *key;
+        }
+        let key = scene_key(scene);
+        match &mut self.scene {
+            Some((held, held_key, _)) if *held_key == key => *held = scene.clone(),
+            _ => self.scene = Some((scene.clone(), key, PtScene::new(&self.ctx, scene))),
+        }
+        key
+    }
+}
+
+/// A hash of what the traced picture depends on besides the camera: the geometry (a live
+/// depth surface by its revision), the materials, the lights and the environment map.
+fn scene_key(scene: &Scene) -> u64 {
+    let mut hasher = DefaultHasher::new();
+    let floats = |v: &[glam::Vec3], hasher: &mut DefaultHasher| {
+        for p in v {
+            p.to_array().map(f32::to_bits).hash(hasher);
+        }
+    };
+    scene.surface_revision.hash(&mut hasher);
+    for mesh in &scene.meshes {
+        if scene.surface_revision.is_some() && !mesh.is_virtual {
+            continue;
+        }
+        (mesh.is_virtual, mesh.material).hash(&mut hasher);
+        floats(&mesh.positions_in_world, &mut hasher);
+        floats(&mesh.normals_in_world, &mut hasher);
+        floats(&mesh.vertex_albedo, &mut hasher);
+        bytemuck::cast_slice::<_, u8>(&mesh.triangles).hash(&mut hasher);
+    }
+    for m in &scene.materials {
+        floats(&[m.albedo, m.specular, m.emission], &mut hasher);
+        m.shininess.to_bits().hash(&mut hasher);
+    }
+    format!("{:?}", scene.lights).hash(&mut hasher);
+    if let Some(env) = &scene.environment {
+        (env.width, env.height).hash(&mut hasher);
+        floats(&env.radiance, &mut hasher);
+    }
+    hasher.finish()
+}
+
+impl FrameBuffers {
+    fn new(ctx: &GpuContext, width: u32, height: u32) -> Self {
+        let pixels = u64::from(width) * u64::from(height);
+        let buffer = |label, size, usage| {
+            ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        use wgpu::BufferUsages as U;
+        Self {
+            width,
+            height,
+            accum: buffer(
+                "pt means",
+                pixels * 48,
+                U::STORAGE | U::COPY_DST | U::COPY_SRC,
+            ),
+            background: buffer("pt background", pixels * 4, U::STORAGE | U::COPY_DST),
+            delta: buffer("pt delta", pixels * 16, U::STORAGE | U::COPY_SRC),
+            composite: buffer("pt composite", pixels * 4, U::STORAGE | U::COPY_SRC),
+            delta_staging: buffer("pt delta staging", pixels * 16, U::MAP_READ | U::COPY_DST),
+            composite_staging: buffer(
+                "pt composite staging",
+                pixels * 4,
+                U::MAP_READ | U::COPY_DST,
+            ),
+        }
+    }
+}
+
+fn camera_uniform(camera: &SceneCamera, width: u32, height: u32) -> PtCamera {
+    let pose = camera.world_from_camera;
+    let axis = |v: glam::Vec3| pose.rotation.mul_vec3(v);
+    PtCamera {
+        position: pose
+            .translation
+            .extend((camera.yfov_rad / 2.0).tan())
+            .to_array(),
+        right: axis(glam::Vec3::X)
+            .extend(width as f32 / height.max(1) as f32)
+            .to_array(),
+        up: axis(glam::Vec3::Y).extend(0.0).to_array(),
+        back: axis(glam::Vec3::Z).extend(0.0).to_array(),
+    }
+}
+
+/// What one sample per pixel costs at most, for the roofline: a path of up to `bounces + 2`
+/// rays per solution, each a BVH walk of about 2·log2(triangles) box tests (40 operations) and
+/// a few triangle tests (60), plus a shadow ray per light and the environment; the means read
+/// and written once.
+fn trace_work(pixels: u64, spp: u32, triangles: u32, lights: u32, bounces: u32) -> Work {
+    let walk = 2.0 * f64::from(triangles.max(2)).log2() * 40.0 + 4.0 * 60.0;
+    let rays_per_path = f64::from(bounces + 2) * (1.0 + f64::from(lights) + 1.0);
+    Work::new(
+        48.0 * 2.0 + 20.0,
+        walk * rays_per_path * 2.0 * f64::from(spp),
+    )
+    .times(pixels as f64)
+}
+
+impl Engine for Pt {
+    fn name(&self) -> &'static str {
+        Self::NAME
+    }
+
+    fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
+        let started = Instant::now();
+        let color = out.begin(Self::NAME, frame)?;
+        let scene = frame.scene.as_ref().ok_or(EngineError::MissingInput {
+            engine: Self::NAME,
+            stream: "scene",
+        })?;
+        let (width, height) = (color.width(), color.height());
+        let ctx = self.ctx.clone();
+        ctx.require(
+            "max_storage_buffer_binding_size",
+            u64::from(width) * u64::from(height) * 48,
+            "the camera resolution",
+        )?;
+        if !self
+            .frame
+            .as_ref()
+            .is_some_and(|f| f.width == width && f.height == height)
+        {
+            self.frame = Some(FrameBuffers::new(&ctx, width, height));
+            self.accumulated = None;
+        }
+        // The estimator's own settings; the budget and the sample counts change how fast the
+        // means converge, not what to.
+        let scene_key = KeptInputs::hash_of(&[
+            &self.upload(scene).to_le_bytes(),
+            &self.settings.bounces.to_le_bytes(),
+            &self.settings.seed.to_le_bytes(),
+        ]);
+        let depth = focus_depth_m(
+            &scene.camera,
+            scene.virtual_bounds().or_else(|| scene.real_bounds()),
+        );
+        let still = self.accumulated.filter(|a| {
+            a.key == scene_key
+                && image_shift_px(&a.camera, &scene.camera, height, depth) <= STILL_PX
+        });
+        let mut accumulated = still.unwrap_or(Accumulated {
+            key: scene_key,
+            camera: scene.camera,
+            spp: 0,
+        });
+        if still.is_none() {
+            let frame_res = self.frame.as_ref().ok_or(EngineError::NotPrepared)?;
+            let mut encoder = ctx
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("pt reset"),
+                });
+            encoder.clear_buffer(&frame_res.accum, 0, None);
+            ctx.queue.submit([encoder.finish()]);
+        }
+        let spp = self.samples_this_frame(self.settings.max_spp.saturating_sub(accumulated.spp));
+        let (Some(frame_res), Some((_, _, gpu_scene))) = (&self.frame, &self.scene) else {
+            return Err(EngineError::NotPrepared);
+        };
+        self.background.clear();
+        if let Some(rgb) = color.as_u8() {
+            self.background.extend(
+                rgb.chunks_exact(3)
+                    .map(|px| u32::from_le_bytes([px[0], px[1], px[2], 255])),
+            );
+        }
+        ctx.queue.write_buffer(
+            &frame_res.background,
+            0,
+            bytemuck::cast_slice(&self.background),
+        );
+        ctx.queue.write_buffer(
+            &self.camera,
+            0,
+            bytemuck::bytes_of(&camera_uniform(&accumulated.camera, width, height)),
+        );
+        let group = shaders::bind_group(
+            &ctx.device,
+            "pt trace",
+            &self.pipeline.get_bind_group_layout(0),
+            &[
+                self.params.as_entire_binding(),
+                self.camera.as_entire_binding(),
+                gpu_scene.tris.as_entire_binding(),
+                gpu_scene.shades.as_entire_binding(),
+                gpu_scene.nodes.as_entire_binding(),
+                gpu_scene.materials.as_entire_binding(),
+                gpu_scene.lights.as_entire_binding(),
+                gpu_scene.env_radiance.as_entire_binding(),
+                gpu_scene.env_tables.as_entire_binding(),
+                frame_res.accum.as_entire_binding(),
+                frame_res.background.as_entire_binding(),
+                frame_res.delta.as_entire_binding(),
+                frame_res.composite.as_entire_binding(),
+            ],
+        );
+        if let Some(timer) = self.timer.as_mut() {
+            timer.reset();
+        }
+        let trace_started = Instant::now();
+        let mut traced = 0;
+        // At least one dispatch: with no samples left it only resolves the composite.
+        loop {
+            let batch = (spp - traced).min(DISPATCH_SPP);
+            let params = Params {
+                size: [width, height, batch, accumulated.spp + traced],
+                options: [
+                    self.settings.bounces,
+                    RR_START_BOUNCE,
+                    gpu_scene.light_count,
+                    gpu_scene.root,
+                ],
+                seed: [
+                    self.settings.seed as u32,
+                    (self.settings.seed >> 32) as u32,
+                    gpu_scene.env_size.0,
+                    gpu_scene.env_size.1,
+                ],
+            };
+            ctx.queue
+                .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+            let mut encoder = ctx
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("pt trace"),
+                });
+            {
+                let last = traced + batch >= spp;
+                let timestamps = if last {
+                    self.timer.as_mut().and_then(|t| t.compute("gpu.trace"))
+                } else {
+                    None
+                };
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("pt trace"),
+                    timestamp_writes: timestamps,
+                });
+                pass.set_pipeline(&self.pipeline);
+                pass.set_bind_group(0, &group, &[]);
+                pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+            }
+            ctx.queue.submit([encoder.finish()]);
+            traced += batch;
+            if traced >= spp {
+                break;
+            }
+            // Each batch's parameters must reach the GPU before the next overwrites them.
+            ctx.wait()?;
+        }
+        ctx.wait()?;
+        let trace_ms = trace_started.elapsed().as_secs_f64() * 1e3;
+        out.work.push(PassWork {
+            pass: "trace",
+            work: trace_work(
+                u64::from(width) * u64::from(height),
+                spp,
+                gpu_scene.triangles,
+                gpu_scene.light_count,
+                self.settings.bounces,
+            ),
+        });
+        accumulated.spp += spp;
+        self.accumulated = Some(accumulated);
+        let pixels = u64::from(width) * u64::from(height);
+        // The composite's alpha holds the object's coverage: pixels under half covered are
+        // the real ones Δ's error is estimated over.
+        let real = ctx.read_back(
+            &frame_res.composite,
+            &frame_res.composite_staging,
+            pixels * 4,
+            |bytes| {
+                crate::deferred::write_composite(bytes, &mut out.composite);
+                bytes
+                    .chunks_exact(4)
+                    .map(|px| px[3] < 128)
+                    .collect::<Vec<bool>>()
+            },
+        )?;
+        let (variance, square) = ctx.read_back(
+            &frame_res.delta,
+            &frame_res.delta_staging,
+            pixels * 16,
+            |bytes| {
+                out.non_finite = crate::deferred::write_delta(bytes, &mut out.delta);
+                let values: &[[f32; 4]] = bytemuck::cast_slice(bytes);
+                values.iter().zip(&real).filter(|(_, real)| **real).fold(
+                    (0.0, 0.0),
+                    |(variance, square), (v, _)| {
+                        let delta = glam::Vec3::new(v[0], v[1], v[2]);
+                        (
+                            variance + f64::from(v[3].max(0.0)),
+                            square + f64::from(delta.length_squared()),
+                        )
+                    },
+                )
+            },
+        )?;
+        out.estimated_relative_error =
+            (accumulated.spp >= 2 && square > 0.0).then(|| (variance / square).sqrt());
+        out.timings.push(PassTiming {
+            pass: "trace",
+            ms: trace_ms,
+        });
+        if let Some(timer) = &self.timer {
+            timer.read(&ctx, &mut out.timings)?;
+        }
+        let total_ms = started.elapsed().as_secs_f64() * 1e3;
+        if spp > 0 {
+            let per_spp = trace_ms / f64::from(spp);
+            self.ms_per_spp = Some(self.ms_per_spp.map_or(per_spp, |m| 0.5 * (m + per_spp)));
+            let overhead = (total_ms - trace_ms).max(0.0);
+            self.overhead_ms = Some(self.overhead_ms.map_or(overhead, |m| 0.5 * (m + overhead)));
+        }
+        Ok(())
+    }
+
+    fn set_params(&mut self, params: &Map<String, Value>) {
+        let schema = Self::schema();
+        self.settings = Settings {
+            budget_ms: schema.float(params, "budget_ms"),
+            spp: schema.int(params, "spp") as u32,
+            max_spp: schema.int(params, "max_spp") as u32,
+            bounces: schema.int(params, "bounces") as u32,
+            seed: schema.int(params, "seed") as u64,
+        };
+    }
+}
