@@ -15,7 +15,9 @@ pub fn image_shift_px(a: &SceneCamera, b: &SceneCamera, height_px: u32, depth_m:
     }
     let (pa, pb) = (a.world_from_camera, b.world_from_camera);
     let focal_px = height_px as f32 / (2.0 * (a.yfov_rad / 2.0).tan());
-    let turned_rad = pa.rotation.angle_between(pb.rotation);
+    // Quat::angle_between goes through acos, which loses small angles in f32.
+    let relative = pa.rotation.inverse() * pb.rotation;
+    let turned_rad = 2.0 * relative.xyz().length().atan2(relative.w.abs());
     let moved_m = pa.translation.distance(pb.translation);
     let shift = focal_px * (turned_rad + moved_m / depth_m.max(1e-3));
     if shift.is_finite() {

@@ -743,33 +743,34 @@ fn shade_work(pixels: u64, lights: u32, sample: Sample) -> Work {
         .times(pixels as f64)
 }
 
-/// Linear f32 RGBA → the frame's Rgba16F Δ; non-finite values become 0 (they never should)
-/// and are counted, as are values beyond f16's range (clamped to its largest).
+/// Linear f32 RGBA → the frame's Rgba16F Δ (alpha 1); non-finite values become 0 (they never
+/// should) and are counted, as are values beyond f16's range (clamped to its largest). The
+/// source's alpha is ignored (`pt` keeps its variance there).
 pub(crate) fn write_delta(bytes: &[u8], delta: &mut Image) -> usize {
     let Some(out) = delta.as_u16_mut() else {
         return 0;
     };
     let mut non_finite = 0;
-    for (o, chunk) in out.iter_mut().zip(bytes.chunks_exact(4)) {
-        let v = f32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
-        let v = if v.is_finite() {
-            v
-        } else {
-            non_finite += 1;
-            0.0
-        };
-        let h = half::f16::from_f32(v);
-        *o = if h.is_finite() {
-            h
-        } else {
-            non_finite += 1;
-            half::f16::MAX.copysign(h)
+    for (o, px) in out.chunks_exact_mut(4).zip(bytes.chunks_exact(16)) {
+        for (o, chunk) in o[..3].iter_mut().zip(px.chunks_exact(4)) {
+            let v = f32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
+            let v = if v.is_finite() {
+                v
+            } else {
+                non_finite += 1;
+                0.0
+            };
+            let h = half::f16::from_f32(v);
+            *o = if h.is_finite() {
+                h
+            } else {
+                non_finite += 1;
+                half::f16::MAX.copysign(h)
+            }
+            .to_bits();
         }
-        .to_bits();
-    }
-    // Alpha is 1 where Δ is defined (everywhere).
-    for px in out.chunks_exact_mut(4) {
-        px[3] = half::f16::ONE.to_bits();
+        // Alpha is 1 where Δ is defined (everywhere); what the source held there is not Δ.
+        o[3] = half::f16::ONE.to_bits();
     }
     non_finite
 }
@@ -864,7 +865,8 @@ mod tests {
 
     #[test]
     fn non_finite_and_out_of_range_delta_is_counted_and_never_written() {
-        let values = [0.5f32, f32::NAN, f32::INFINITY, -1e6, 0.0, 0.0, 0.0, 0.0];
+        // Pixel 0: finite, NaN, ∞ and an alpha that is not Δ (ignored); pixel 1: beyond f16.
+        let values = [0.5f32, f32::NAN, f32::INFINITY, -1e6, -1e6, 0.0, 0.0, 7.0];
         let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
         let mut delta = Image::new(2, 1, PixelFormat::Rgba16F);
         assert_eq!(write_delta(&bytes, &mut delta), 3);
@@ -874,15 +876,8 @@ mod tests {
             .iter()
             .map(|&b| half::f16::from_bits(b).to_f32())
             .collect();
-        assert_eq!(written, [0.5, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
-        // -1e6 is beyond f16: clamped to its largest negative value.
-        let mut bytes = bytes;
-        bytes[..4].copy_from_slice(&(-1e6f32).to_le_bytes());
-        write_delta(&bytes, &mut delta);
-        assert_eq!(
-            half::f16::from_bits(delta.as_u16().unwrap()[0]),
-            -half::f16::MAX
-        );
+        let largest = half::f16::MAX.to_f32();
+        assert_eq!(written, [0.5, 0.0, 0.0, 1.0, -largest, 0.0, 0.0, 1.0]);
     }
 
     #[test]

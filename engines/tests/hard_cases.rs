@@ -1,6 +1,6 @@
-//! Numerically hard scenes through every GPU engine (issue 18 §5): a 1e6:1 environment, a light
-//! grazing the floor, holes in the real geometry, the object sunk into the floor, a mirror-like
-//! object, a light inside the object. Each frame must compute no NaN or ∞ anywhere
+//! Numerically hard scenes through every GPU engine (issue 18 §5, issue 20 §4): a 1e6:1
+//! environment, a light grazing the floor, holes in the real geometry, the object sunk into the
+//! floor, a mirror-like object, degenerate triangles, a light inside the object. Each frame must compute no NaN or ∞ anywhere
 //! (`RelitFrame::non_finite`, counted before Δ is written), give a finite composite, and keep
 //! the invariants that hold whatever the light: Δ = 0 without a virtual object.
 
@@ -60,6 +60,18 @@ fn hard_scenes() -> Vec<(&'static str, Scene)> {
     }
     scenes.push(("mirror-like object", mirror));
 
+    let mut degenerate = desk.clone();
+    for mesh in &mut degenerate.meshes {
+        let n = mesh.positions_in_world.len() as u32;
+        let (a, b) = (0, n / 2);
+        // Two corners the same, and three corners on one line: zero area, no normal.
+        mesh.positions_in_world
+            .push((mesh.positions_in_world[0] + mesh.positions_in_world[b as usize]) / 2.0);
+        mesh.normals_in_world.push(Vec3::ZERO);
+        mesh.triangles.extend([[a, a, b], [a, b, n], [b, n, a]]);
+    }
+    scenes.push(("degenerate triangles", degenerate));
+
     let mut inside = desk;
     inside.lights.push(Light::Point {
         position_in_world: (lo + hi) / 2.0,
@@ -78,6 +90,7 @@ fn every_engine_stays_finite_on_hard_scenes() {
         ("dvct", serde_json::json!({ "volume_size": 16 })),
         ("dir", serde_json::json!({ "vpl_count": 64 })),
         ("ibl", serde_json::json!({ "map_size": 16 })),
+        ("pt", serde_json::json!({ "spp": 4 })),
     ];
     for (case, scene) in hard_scenes() {
         let with_object = Arc::new(scene.clone());

@@ -78,8 +78,10 @@ pub struct PtStatistics {
     pub delta: Vec<glam::Vec3>,
     /// The standard error of `delta` from the samples' variance; ∞ below 2 samples.
     pub delta_std_error: Vec<glam::Vec3>,
-    /// The share of the pixel's samples whose camera ray met the virtual object.
-    pub coverage: Vec<f32>,
+    /// The overlay the composite is made of: the mean over the pixel's samples of L^ρ where
+    /// the sample's camera ray met the virtual object and Δ where it did not (rgb), and the
+    /// share of samples that met the object (w). Where w is 1, rgb is L^ρ.
+    pub overlay: Vec<glam::Vec4>,
 }
 
 /// The parameters (see [`Pt::schema`]).
@@ -220,7 +222,7 @@ impl Pt {
 
     /// The running means as they stand after the last frame, read back: per pixel Δ and its
     /// standard error per channel (as the reference's [`ReferenceImages`] gives them), and
-    /// the object's coverage.
+    /// the overlay with the object's coverage.
     ///
     /// [`ReferenceImages`]: relight_reference::ReferenceImages
     pub fn statistics(&self) -> Result<PtStatistics, GpuError> {
@@ -258,7 +260,10 @@ impl Pt {
                             glam::Vec3::new(std_error(m2[0]), std_error(m2[1]), std_error(m2[2]))
                         })
                         .collect(),
-                    coverage: means.iter().map(|[overlay, _, _]| overlay[3]).collect(),
+                    overlay: means
+                        .iter()
+                        .map(|[overlay, _, _]| glam::Vec4::from_array(*overlay))
+                        .collect(),
                 }
             })
     }
