@@ -74,6 +74,9 @@ pub struct RelitFrame {
     /// The engine's own estimate of its Δ's relative L2 error over real pixels, where it has
     /// one: `pt`'s Monte Carlo standard error. `None` for the engines whose error is bias.
     pub estimated_relative_error: Option<f64>,
+    /// Path samples per pixel in this frame's picture (`pt`'s running means); 0 for the
+    /// engines that trace none.
+    pub path_samples: u32,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -112,6 +115,12 @@ pub trait Engine: Send {
     fn render(&mut self, scene: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError>;
     /// Apply already-validated parameters (see [`crate::ParamsSchema::validate`]).
     fn set_params(&mut self, params: &serde_json::Map<String, serde_json::Value>);
+    /// What the engine decided and why, for the daemon's status (`auto`: the engine it chose,
+    /// the scene's features, the predicted error and cost). `None` for an engine with no
+    /// decisions of its own.
+    fn status(&self) -> Option<serde_json::Value> {
+        None
+    }
 }
 
 impl RelitFrame {
@@ -144,6 +153,7 @@ impl RelitFrame {
         self.work.clear();
         self.non_finite = 0;
         self.estimated_relative_error = None;
+        self.path_samples = 0;
         self.composite.reshape(width, height, PixelFormat::Rgb8);
         self.delta.reshape(width, height, PixelFormat::Rgba16F);
         if let Some(delta) = self.delta.as_u16_mut() {

@@ -5,7 +5,8 @@
 //! `depth_preview`); the GPU context, reconstruction and the paper engines (differential, DLPV,
 //! DVCT, DIR, IBL) plug into the same trait and registry.
 
-pub mod camera_motion;
+pub mod auto;
+pub mod change;
 pub mod deferred;
 pub mod differential;
 pub mod dir;

@@ -5,6 +5,7 @@ use std::sync::Arc;
 
 use serde_json::{Map, Value};
 
+use crate::auto::Auto;
 use crate::depth_preview::DepthPreview;
 use crate::differential::Differential;
 use crate::dir::Dir;
@@ -25,7 +26,7 @@ pub struct EngineSpec {
     pub schema: ParamsSchema,
     /// Whether it runs on the GPU (and so needs an adapter).
     pub gpu: bool,
-    build: fn(&SharedGpu) -> Result<Box<dyn Engine>, GpuError>,
+    build: fn(&EngineRegistry) -> Result<Box<dyn Engine>, GpuError>,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -94,42 +95,49 @@ impl EngineRegistry {
                     description: "direct light only, shadow maps with and without the object (the no-indirect baseline)",
                     schema: Differential::schema(),
                     gpu: true,
-                    build: |gpu| Ok(Box::new(Differential::new(gpu.get()?)?)),
+                    build: |registry| Ok(Box::new(Differential::new(registry.gpu()?)?)),
                 },
                 EngineSpec {
                     name: Dlpv::NAME,
                     description: "Delta Light Propagation Volumes: V^Δ from R^ρ − R^μ injection and propagation (Franke 2013)",
                     schema: Dlpv::schema(),
                     gpu: true,
-                    build: |gpu| Ok(Box::new(Dlpv::new(gpu.get()?)?)),
+                    build: |registry| Ok(Box::new(Dlpv::new(registry.gpu()?)?)),
                 },
                 EngineSpec {
                     name: Dvct::NAME,
                     description: "Delta Voxel Cone Tracing: split-injected V^Δ/V^ρ mip chains, 9 diffuse + 1 glossy cone, shadow cones as antiradiance (Franke 2014)",
                     schema: Dvct::schema(),
                     gpu: true,
-                    build: |gpu| Ok(Box::new(Dvct::new(gpu.get()?)?)),
+                    build: |registry| Ok(Box::new(Dvct::new(registry.gpu()?)?)),
                 },
                 EngineSpec {
                     name: Dir::NAME,
                     description: "Differential Instant Radiosity: real/virtual-flagged VPLs from the RSMs, imperfect shadow maps, L_rv − L_r in one gather (Knecht 2012)",
                     schema: Dir::schema(),
                     gpu: true,
-                    build: |gpu| Ok(Box::new(Dir::new(gpu.get()?)?)),
+                    build: |registry| Ok(Box::new(Dir::new(registry.gpu()?)?)),
                 },
                 EngineSpec {
                     name: Ibl::NAME,
                     description: "reflection-map convolution: full convolution of the HDR environment into diffuse and Phong maps, median-cut shadow lights for Δ and ambient occlusion (Kan et al.)",
                     schema: Ibl::schema(),
                     gpu: true,
-                    build: |gpu| Ok(Box::new(Ibl::new(gpu.get()?)?)),
+                    build: |registry| Ok(Box::new(Ibl::new(registry.gpu()?)?)),
+                },
+                EngineSpec {
+                    name: Auto::NAME,
+                    description: "chooses the engine: the least predicted error (from the scene's shadow, bleeding, occlusion and gloss) among the candidates whose measured frame time fits budget_ms, or the cheapest that meets max_error; switches with hysteresis, builds off the render thread",
+                    schema: Auto::schema(),
+                    gpu: true,
+                    build: |registry| Ok(Box::new(Auto::new(registry)?)),
                 },
                 EngineSpec {
                     name: Pt::NAME,
                     description: "progressive differential path tracing: the reference's estimator on the GPU, correlated L^ρ/L^μ paths, accumulated while the scene and camera hold still, samples per frame fitted to budget_ms",
                     schema: Pt::schema(),
                     gpu: true,
-                    build: |gpu| Ok(Box::new(Pt::new(gpu.get()?)?)),
+                    build: |registry| Ok(Box::new(Pt::new(registry.gpu()?)?)),
                 },
             ],
             gpu: Arc::new(SharedGpu::default()),
@@ -168,7 +176,7 @@ impl EngineRegistry {
     ) -> Result<BuiltEngine, RegistryError> {
         let spec = self.spec(name)?;
         let params = spec.schema.validate(&spec.schema.defaults(), params)?;
-        let mut engine = (spec.build)(&self.gpu).map_err(|source| RegistryError::Gpu {
+        let mut engine = (spec.build)(self).map_err(|source| RegistryError::Gpu {
             name: name.to_owned(),
             source,
         })?;
@@ -189,7 +197,7 @@ mod tests {
             .unwrap();
         assert_eq!(
             err.to_string(),
-            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential, dlpv, dvct, dir, ibl, pt"
+            "unknown engine `dlvp`; known engines: passthrough, depth_preview, differential, dlpv, dvct, dir, ibl, auto, pt"
         );
     }
 

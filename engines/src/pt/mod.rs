@@ -13,7 +13,7 @@
 //!   [`Scene::surface_revision`], which the temporal depth merge advances only when it resets,
 //!   so sensor noise on a held surface does not restart the means);
 //! - the camera moving by more than [`STILL_PX`] of image motion at the object's depth
-//!   ([`crate::camera_motion`]); below that the held pose is traced, so a tracked camera's
+//!   ([`crate::change`]); below that the held pose is traced, so a tracked camera's
 //!   jitter does not restart them either;
 //! - the image size or any parameter.
 //!
@@ -29,7 +29,6 @@
 
 pub mod scene;
 
-use std::hash::{DefaultHasher, Hash, Hasher};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -38,7 +37,7 @@ use relight_core::scene::{Scene, SceneCamera};
 use serde_json::{Map, Value};
 
 use self::scene::PtScene;
-use crate::camera_motion::{focus_depth_m, image_shift_px};
+use crate::change::{focus_depth_m, image_shift_px, scene_key};
 use crate::deferred::KeptInputs;
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gpu::{GpuContext, GpuError};
@@ -297,38 +296,6 @@ impl Pt {
     }
 }
 
-/// A hash of what the traced picture depends on besides the camera: the geometry (a live
-/// depth surface by its revision), the materials, the lights and the environment map.
-fn scene_key(scene: &Scene) -> u64 {
-    let mut hasher = DefaultHasher::new();
-    let floats = |v: &[glam::Vec3], hasher: &mut DefaultHasher| {
-        for p in v {
-            p.to_array().map(f32::to_bits).hash(hasher);
-        }
-    };
-    scene.surface_revision.hash(&mut hasher);
-    for mesh in &scene.meshes {
-        if scene.surface_revision.is_some() && !mesh.is_virtual {
-            continue;
-        }
-        (mesh.is_virtual, mesh.material).hash(&mut hasher);
-        floats(&mesh.positions_in_world, &mut hasher);
-        floats(&mesh.normals_in_world, &mut hasher);
-        floats(&mesh.vertex_albedo, &mut hasher);
-        bytemuck::cast_slice::<_, u8>(&mesh.triangles).hash(&mut hasher);
-    }
-    for m in &scene.materials {
-        floats(&[m.albedo, m.specular, m.emission], &mut hasher);
-        m.shininess.to_bits().hash(&mut hasher);
-    }
-    format!("{:?}", scene.lights).hash(&mut hasher);
-    if let Some(env) = &scene.environment {
-        (env.width, env.height).hash(&mut hasher);
-        floats(&env.radiance, &mut hasher);
-    }
-    hasher.finish()
-}
-
 impl FrameBuffers {
     fn new(ctx: &GpuContext, width: u32, height: u32) -> Self {
         let pixels = u64::from(width) * u64::from(height);
@@ -421,7 +388,7 @@ impl Engine for Pt {
         }
         // The estimator's own settings; the budget and the sample counts change how fast the
         // means converge, not what to.
-        let scene_key = KeptInputs::hash_of(&[
+        let key = KeptInputs::hash_of(&[
             &self.upload(scene).to_le_bytes(),
             &self.settings.bounces.to_le_bytes(),
             &self.settings.seed.to_le_bytes(),
@@ -431,11 +398,10 @@ impl Engine for Pt {
             scene.virtual_bounds().or_else(|| scene.real_bounds()),
         );
         let still = self.accumulated.filter(|a| {
-            a.key == scene_key
-                && image_shift_px(&a.camera, &scene.camera, height, depth) <= STILL_PX
+            a.key == key && image_shift_px(&a.camera, &scene.camera, height, depth) <= STILL_PX
         });
         let mut accumulated = still.unwrap_or(Accumulated {
-            key: scene_key,
+            key,
             camera: scene.camera,
             spp: 0,
         });
@@ -591,6 +557,7 @@ impl Engine for Pt {
                 )
             },
         )?;
+        out.path_samples = accumulated.spp;
         out.estimated_relative_error =
             (accumulated.spp >= 2 && square > 0.0).then(|| (variance / square).sqrt());
         out.timings.push(PassTiming {

@@ -1,9 +1,46 @@
-//! How far the picture moved between two camera poses, in pixels: the test of "the camera is
-//! still" that `pt` accumulates under and the `auto` governor decides by. A tracked camera's
-//! pose jitters by fractions of a millimetre and a degree, so equality is the wrong test.
+//! What counts as a change of a picture's inputs, for what is kept over frames (`pt`'s running
+//! means) and for the `auto` governor's still/moving state: how far the picture moved between
+//! two camera poses, in pixels (a tracked camera's pose jitters by fractions of a millimetre
+//! and a degree, so equality is the wrong test), and a key of the scene's content besides the
+//! camera (a live depth surface by its revision, so sensor noise on a held surface is no
+//! change).
+
+use std::hash::{DefaultHasher, Hash, Hasher};
 
 use glam::Vec3;
-use relight_core::scene::SceneCamera;
+use relight_core::scene::{Scene, SceneCamera};
+
+/// A hash of what a picture of `scene` depends on besides the camera: the geometry (a live
+/// depth surface by its [`Scene::surface_revision`]), the materials, the lights and the
+/// environment map.
+pub fn scene_key(scene: &Scene) -> u64 {
+    let mut hasher = DefaultHasher::new();
+    let floats = |v: &[Vec3], hasher: &mut DefaultHasher| {
+        for p in v {
+            p.to_array().map(f32::to_bits).hash(hasher);
+        }
+    };
+    scene.surface_revision.hash(&mut hasher);
+    for mesh in &scene.meshes {
+        if scene.surface_revision.is_some() && !mesh.is_virtual {
+            continue;
+        }
+        (mesh.is_virtual, mesh.material, &mesh.triangles).hash(&mut hasher);
+        floats(&mesh.positions_in_world, &mut hasher);
+        floats(&mesh.normals_in_world, &mut hasher);
+        floats(&mesh.vertex_albedo, &mut hasher);
+    }
+    for m in &scene.materials {
+        floats(&[m.albedo, m.specular, m.emission], &mut hasher);
+        m.shininess.to_bits().hash(&mut hasher);
+    }
+    format!("{:?}", scene.lights).hash(&mut hasher);
+    if let Some(env) = &scene.environment {
+        (env.width, env.height).hash(&mut hasher);
+        floats(&env.radiance, &mut hasher);
+    }
+    hasher.finish()
+}
 
 /// Upper bound of the image motion, in pixels of an image `height_px` tall, of a point
 /// `depth_m` in front of the camera when the camera moves from `a` to `b`: the rotation

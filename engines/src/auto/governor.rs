@@ -1,0 +1,615 @@
+//! The `auto` engine's decisions, apart from any GPU: per candidate (an engine with parameters)
+//! a predicted error from the scene's features and a measured cost per frame, and which
+//! candidate to run, with hysteresis.
+//!
+//! **Predicted error.** Δ has four parts ([`SceneFeatures`]): the shadow S, the object's
+//! bleeding B, the real indirect light it hides O, and its glossy reflection G. A rasterising
+//! engine gets each part wrong by a share of its own ([`ErrorModel::Raster`]): the shadow by
+//! its edges (pixel centres while moving; converged over sub-pixel offsets while still) and,
+//! under an environment map, by how coarsely it cuts the map into lights; the indirect parts by
+//! how much of them it models (1 for the direct-light engines). With the parts independent,
+//! e² = Σ (share · part)² / Σ part². The shares are from the bench's region errors on the five
+//! scenes (docs/ALGORITHMS.md). `pt` has no bias: its error is its noise, k / √n for n samples
+//! per pixel, with k measured from its own standard error while it runs (a prior before), and n
+//! the samples it fits into the budget per frame, times [`Settings::horizon_frames`] while the
+//! camera is still (its means accumulate) or once while it moves.
+//!
+//! **Cost.** The frame time of each candidate, tracked per motion state (a still scene lets
+//! engines keep work between frames) as a running average of its own frames, first measured by
+//! a short probe. A candidate whose cost is not known yet is probed only when it would be chosen
+//! were it to fit, and only when the cost ratios in [`ErrorModel::relative_cost`] (lavapipe's,
+//! a rough prior) do not put it far over the budget.
+//!
+//! **Choice.** Among the candidates that fit the budget, the lowest predicted error, where
+//! errors within [`TIE`] count as equal and the cheaper wins (so a shadow-only scene gets the
+//! cheapest shadow engine); with `max_error`, the cheapest that is predicted to meet it. None
+//! fits: the cheapest. **Hysteresis**: a switch needs a predicted error lower by [`MARGIN`] (or
+//! a cost lower by [`COST_MARGIN`] under `max_error`) and [`MIN_DWELL`] frames on the current
+//! candidate, unless the current one has been over budget for [`OVER_BUDGET_FRAMES`] frames. A
+//! probe runs its candidate for [`PROBE_FRAMES`] steady frames; then the choice is made afresh
+//! (a probe measures, it does not decide).
+
+use serde::Serialize;
+use serde_json::{Map, Value};
+
+use super::features::SceneFeatures;
+
+/// Errors within 5 % (relative) or 0.005 of each other count as equal.
+pub const TIE: f64 = 0.05;
+/// A switch for accuracy needs a predicted error 10 % and 0.005 lower.
+pub const MARGIN: f64 = 0.10;
+/// Under `max_error`, a switch for cost needs a candidate 20 % cheaper.
+pub const COST_MARGIN: f64 = 0.20;
+/// Frames on a candidate before another switch (except when over budget).
+pub const MIN_DWELL: u32 = 10;
+/// Frames over budget (by 10 %) that force a switch to one that fits.
+pub const OVER_BUDGET_FRAMES: u32 = 3;
+/// A candidate predicted at more than this many budgets is not probed.
+const PROBE_LIMIT: f64 = 3.0;
+/// Steady frames (after the first, which allocates and uploads) a probe measures.
+pub const PROBE_FRAMES: u32 = 2;
+/// pt's noise at one sample per pixel (relative L2 of Δ) before it has run: measured 0.45–3.3
+/// on the five scenes (docs/ALGORITHMS.md).
+const PT_NOISE_PRIOR: f64 = 2.0;
+
+/// Whether the picture's inputs held since the last frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Motion {
+    Moving,
+    Still,
+}
+
+impl Motion {
+    fn index(self) -> usize {
+        match self {
+            Motion::Moving => 0,
+            Motion::Still => 1,
+        }
+    }
+}
+
+/// How a candidate's error follows from the scene's features.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ErrorModel {
+    /// Shares of each part of Δ a rasterising engine gets wrong.
+    Raster {
+        /// The shadow's edges: pixel centres (moving) and converged to the pixel's area (still).
+        edge_moving: f64,
+        edge_still: f64,
+        /// The shadow under an environment map cut into a few lights.
+        environment: f64,
+        bleeding: f64,
+        occlusion: f64,
+        glossy: f64,
+        /// Frame cost relative to `differential` (moving, still), on lavapipe at 160 × 120.
+        relative_cost: [f64; 2],
+    },
+    /// `pt`: unbiased, noise only. Cost relative to `differential` of one sample per pixel.
+    PathTraced { relative_cost: [f64; 2] },
+}
+
+impl ErrorModel {
+    fn relative_cost(&self, motion: Motion) -> f64 {
+        match self {
+            ErrorModel::Raster { relative_cost, .. } | ErrorModel::PathTraced { relative_cost } => {
+                relative_cost[motion.index()]
+            }
+        }
+    }
+}
+
+/// One engine with parameters the governor may run.
+#[derive(Debug, Clone)]
+pub struct Candidate {
+    /// The engine and its parameters, as `relightd bench` labels a setting.
+    pub label: String,
+    pub engine: &'static str,
+    pub params: Map<String, Value>,
+    pub model: ErrorModel,
+}
+
+impl Candidate {
+    pub fn new(engine: &'static str, params: Value, model: ErrorModel) -> Self {
+        let params = params.as_object().cloned().unwrap_or_default();
+        let label = std::iter::once(engine.to_owned())
+            .chain(
+                params
+                    .iter()
+                    .map(|(k, v)| format!("{k}={}", v.to_string().trim_matches('"'))),
+            )
+            .collect::<Vec<_>>()
+            .join(" ");
+        Self {
+            label,
+            engine,
+            params,
+            model,
+        }
+    }
+
+    pub fn is_path_traced(&self) -> bool {
+        matches!(self.model, ErrorModel::PathTraced { .. })
+    }
+}
+
+/// The candidates `auto` chooses from: every engine that relights at its defaults, `dir` also
+/// with a quarter of its VPLs, and `pt` (whose budget the runner sets). Without an environment
+/// map `ibl` predicts as `differential`, so it is never probed for accuracy there. The shares are the
+/// bench's region errors on the project's five scenes, rounded (docs/ALGORITHMS.md, "Where the
+/// error is"); the relative costs are its frame times there.
+pub fn candidates() -> Vec<Candidate> {
+    let raster = |environment, bleeding, occlusion, glossy, relative_cost| ErrorModel::Raster {
+        edge_moving: 0.30,
+        edge_still: 0.10,
+        environment,
+        bleeding,
+        occlusion,
+        glossy,
+        relative_cost,
+    };
+    vec![
+        Candidate::new(
+            "differential",
+            serde_json::json!({}),
+            raster(0.25, 1.0, 1.0, 1.0, [1.0, 1.0]),
+        ),
+        Candidate::new(
+            "ibl",
+            serde_json::json!({}),
+            raster(0.12, 1.0, 1.0, 1.0, [1.3, 1.0]),
+        ),
+        Candidate::new(
+            "dlpv",
+            serde_json::json!({}),
+            raster(0.25, 0.65, 0.8, 1.0, [18.0, 1.5]),
+        ),
+        Candidate::new(
+            "dvct",
+            serde_json::json!({}),
+            raster(0.25, 0.85, 0.85, 0.7, [25.0, 30.0]),
+        ),
+        Candidate::new(
+            "dir",
+            serde_json::json!({ "vpl_count": 64 }),
+            raster(0.12, 0.9, 0.55, 1.0, [6.0, 6.0]),
+        ),
+        Candidate::new(
+            "dir",
+            serde_json::json!({}),
+            raster(0.12, 0.8, 0.45, 1.0, [12.0, 12.0]),
+        ),
+        Candidate::new(
+            "pt",
+            serde_json::json!({}),
+            ErrorModel::PathTraced {
+                relative_cost: [3.0, 9.0],
+            },
+        ),
+    ]
+}
+
+/// What the governor knows of one candidate now.
+#[derive(Debug, Clone, Serialize)]
+pub struct Assessment {
+    pub candidate: String,
+    pub predicted_error: f64,
+    /// Measured frame time in the current motion state; `None` before it has run in it.
+    pub cost_ms: Option<f64>,
+    /// An estimate from the cost ratios when not measured.
+    pub estimated_cost_ms: Option<f64>,
+    pub fits: Option<bool>,
+}
+
+/// What to do next.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Action {
+    Stay,
+    /// Run this candidate from the next frame on.
+    Switch(usize),
+    /// Run this candidate for a few frames to measure its cost.
+    Probe(usize),
+}
+
+/// The budget and the target.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Settings {
+    pub budget_ms: f64,
+    pub max_error: Option<f64>,
+    /// Frames a still camera is expected to stay still: `pt`'s samples accumulate over them.
+    pub horizon_frames: u32,
+}
+
+/// The governor's state.
+#[derive(Debug)]
+pub struct Governor {
+    candidates: Vec<Candidate>,
+    /// Running-average frame time per candidate, per motion state.
+    costs: Vec<[Option<f64>; 2]>,
+    /// Candidates that failed to build (left out from then on).
+    unavailable: Vec<bool>,
+    settings: Settings,
+    features: SceneFeatures,
+    /// `pt`: its noise at one sample per pixel, and its cost per sample per pixel (ms).
+    pt_noise: Option<f64>,
+    pt_ms_per_spp: Option<f64>,
+    current: usize,
+    frames_on_current: u32,
+    over_budget: u32,
+    /// The candidate being probed (switched to, or waiting for its build), and its steady
+    /// frames so far.
+    probing: Option<(usize, u32)>,
+    switches: u64,
+    reason: String,
+}
+
+impl Governor {
+    pub fn new(candidates: Vec<Candidate>, current: usize, settings: Settings) -> Self {
+        let n = candidates.len();
+        Self {
+            candidates,
+            costs: vec![[None, None]; n],
+            unavailable: vec![false; n],
+            settings,
+            features: SceneFeatures::default(),
+            pt_noise: None,
+            pt_ms_per_spp: None,
+            current,
+            frames_on_current: 0,
+            over_budget: 0,
+            probing: None,
+            switches: 0,
+            reason: "starting on the cheapest engine".into(),
+        }
+    }
+
+    pub fn candidates(&self) -> &[Candidate] {
+        &self.candidates
+    }
+
+    pub fn current(&self) -> usize {
+        self.current
+    }
+
+    pub fn settings(&self) -> Settings {
+        self.settings
+    }
+
+    pub fn features(&self) -> &SceneFeatures {
+        &self.features
+    }
+
+    pub fn switches(&self) -> u64 {
+        self.switches
+    }
+
+    pub fn reason(&self) -> &str {
+        &self.reason
+    }
+
+    pub fn set_settings(&mut self, settings: Settings) {
+        self.settings = settings;
+    }
+
+    pub fn set_features(&mut self, features: SceneFeatures) {
+        self.features = features;
+    }
+
+    /// Forget every measured cost (the image size changed: costs scale with it).
+    pub fn forget_costs(&mut self) {
+        for cost in &mut self.costs {
+            *cost = [None, None];
+        }
+        self.pt_ms_per_spp = None;
+    }
+
+    /// A candidate could not be built: never choose it.
+    pub fn mark_unavailable(&mut self, candidate: usize) {
+        if let Some(flag) = self.unavailable.get_mut(candidate) {
+            *flag = true;
+        }
+        if self.probing.is_some_and(|(c, _)| c == candidate) {
+            self.probing = None;
+        }
+    }
+
+    /// The candidate being probed, if any.
+    pub fn probing(&self) -> Option<usize> {
+        self.probing.map(|(c, _)| c)
+    }
+
+    /// `candidate` rendered a frame in `motion` in `ms`. `path_samples` and `estimated_error`
+    /// are what the frame reported (`pt`'s samples per pixel so far, and its own error
+    /// estimate); `samples_added` how many it traced this frame. `steady`: not the first frame
+    /// after a switch (which allocates and uploads), so it counts towards the cost.
+    pub fn observe(
+        &mut self,
+        candidate: usize,
+        motion: Motion,
+        ms: f64,
+        steady: bool,
+        pt: Option<PtFrame>,
+    ) {
+        if candidate == self.current {
+            self.frames_on_current = self.frames_on_current.saturating_add(1);
+            let over = ms > 1.1 * self.settings.budget_ms;
+            self.over_budget = if over && steady {
+                self.over_budget + 1
+            } else {
+                0
+            };
+        }
+        if !(steady && ms.is_finite()) {
+            return;
+        }
+        if let Some((probed, frames)) = &mut self.probing
+            && *probed == candidate
+        {
+            *frames += 1;
+        }
+        if let Some(cost) = self.costs.get_mut(candidate) {
+            let slot = &mut cost[motion.index()];
+            *slot = Some(slot.map_or(ms, |old| 0.7 * old + 0.3 * ms));
+        }
+        if let Some(pt) = pt {
+            if pt.samples_added > 0 {
+                let per_spp = ms / f64::from(pt.samples_added);
+                self.pt_ms_per_spp = Some(
+                    self.pt_ms_per_spp
+                        .map_or(per_spp, |old| 0.7 * old + 0.3 * per_spp),
+                );
+            }
+            if let Some(error) = pt.estimated_error.filter(|e| e.is_finite())
+                && pt.path_samples >= 4
+            {
+                let noise = error * f64::from(pt.path_samples).sqrt();
+                self.pt_noise = Some(self.pt_noise.map_or(noise, |old| 0.7 * old + 0.3 * noise));
+            }
+        }
+    }
+
+    /// Samples per pixel `pt` fits into a frame of the budget, when its cost is known.
+    fn pt_spp_per_frame(&self) -> Option<f64> {
+        self.pt_ms_per_spp
+            .map(|ms| (self.settings.budget_ms / ms.max(1e-6)).floor())
+    }
+
+    /// The predicted error of `candidate` for this scene in `motion`.
+    pub fn predicted_error(&self, candidate: usize, motion: Motion) -> f64 {
+        let f = &self.features;
+        match self.candidates[candidate].model {
+            ErrorModel::Raster {
+                edge_moving,
+                edge_still,
+                environment,
+                bleeding,
+                occlusion,
+                glossy,
+                ..
+            } => {
+                let total = f.total();
+                if total <= 0.0 {
+                    return 0.0;
+                }
+                let edge = match motion {
+                    Motion::Moving => edge_moving,
+                    Motion::Still => edge_still,
+                };
+                let shadow = if f.environment {
+                    edge.hypot(environment)
+                } else {
+                    edge
+                };
+                ((shadow * f.shadow).powi(2)
+                    + (bleeding * f.bleeding).powi(2)
+                    + (occlusion * f.occlusion).powi(2)
+                    + (glossy * f.glossy).powi(2))
+                .sqrt()
+                    / total
+            }
+            ErrorModel::PathTraced { .. } => {
+                if f.total() <= 0.0 {
+                    return 0.0;
+                }
+                let per_frame = self.pt_spp_per_frame().unwrap_or(1.0).max(1.0);
+                let frames = match motion {
+                    Motion::Moving => 1.0,
+                    Motion::Still => f64::from(self.settings.horizon_frames.max(1)),
+                };
+                self.pt_noise.unwrap_or(PT_NOISE_PRIOR) / (per_frame * frames).sqrt()
+            }
+        }
+    }
+
+    /// Measured cost of `candidate` in `motion`. `pt` costs its budget (it fits its samples
+    /// to it) once one sample per pixel is known to fit, else what one sample costs.
+    fn cost(&self, candidate: usize, motion: Motion) -> Option<f64> {
+        if self.candidates[candidate].is_path_traced() {
+            let one = self.pt_ms_per_spp?;
+            return Some(if one <= self.settings.budget_ms {
+                self.costs[candidate][motion.index()]
+                    .unwrap_or(self.settings.budget_ms)
+                    .min(self.settings.budget_ms)
+            } else {
+                one
+            });
+        }
+        self.costs[candidate][motion.index()]
+    }
+
+    /// A cost from the ratios to a measured candidate, for one not measured yet.
+    fn estimated_cost(&self, candidate: usize, motion: Motion) -> Option<f64> {
+        let (known, ms) = (0..self.candidates.len())
+            .filter_map(|c| Some((c, self.cost(c, motion)?)))
+            .find(|(c, _)| !self.candidates[*c].is_path_traced())?;
+        let ratio = self.candidates[candidate].model.relative_cost(motion)
+            / self.candidates[known].model.relative_cost(motion);
+        Some(ms * ratio)
+    }
+
+    /// Every candidate as the governor sees it now.
+    pub fn assess(&self, motion: Motion) -> Vec<Assessment> {
+        (0..self.candidates.len())
+            .map(|c| {
+                let cost = self.cost(c, motion);
+                Assessment {
+                    candidate: self.candidates[c].label.clone(),
+                    predicted_error: self.predicted_error(c, motion),
+                    cost_ms: cost,
+                    estimated_cost_ms: cost
+                        .is_none()
+                        .then(|| self.estimated_cost(c, motion))
+                        .flatten(),
+                    fits: cost.map(|ms| ms <= self.settings.budget_ms),
+                }
+            })
+            .collect()
+    }
+
+    /// The candidate to run among those whose cost is known, and why.
+    fn choose(&self, motion: Motion) -> (usize, String) {
+        let budget = self.settings.budget_ms;
+        let known: Vec<(usize, f64, f64)> = (0..self.candidates.len())
+            .filter(|&c| !self.unavailable[c])
+            .filter_map(|c| Some((c, self.predicted_error(c, motion), self.cost(c, motion)?)))
+            .collect();
+        let cheapest =
+            |set: &[(usize, f64, f64)]| set.iter().copied().min_by(|a, b| a.2.total_cmp(&b.2));
+        let fitting: Vec<_> = known.iter().copied().filter(|k| k.2 <= budget).collect();
+        let state = match motion {
+            Motion::Moving => "moving",
+            Motion::Still => "still",
+        };
+        if fitting.is_empty() {
+            let Some((c, _, ms)) = cheapest(&known) else {
+                return (self.current, "no candidate measured yet".into());
+            };
+            return (
+                c,
+                format!("nothing measured fits {budget:.0} ms ({state}): the cheapest, {ms:.1} ms"),
+            );
+        }
+        if let Some(target) = self.settings.max_error {
+            let meeting: Vec<_> = fitting.iter().copied().filter(|k| k.1 <= target).collect();
+            if let Some((c, error, ms)) = cheapest(&meeting) {
+                return (
+                    c,
+                    format!(
+                        "the cheapest ({ms:.1} ms of {budget:.0}, {state}) predicted to meet \
+                         max_error {target}: {error:.3}"
+                    ),
+                );
+            }
+        }
+        let best = fitting.iter().map(|k| k.1).fold(f64::INFINITY, f64::min);
+        let tied: Vec<_> = fitting
+            .iter()
+            .copied()
+            .filter(|k| k.1 <= best * (1.0 + TIE) + 0.005)
+            .collect();
+        let (c, error, ms) = cheapest(&tied).expect("the best is among the tied");
+        let why = if tied.len() > 1 {
+            format!(
+                "lowest predicted error ({error:.3}) within {budget:.0} ms ({state}), the \
+                 cheapest of {} that tie: {ms:.1} ms",
+                tied.len()
+            )
+        } else {
+            format!(
+                "lowest predicted error ({error:.3}) within {budget:.0} ms ({state}): {ms:.1} ms"
+            )
+        };
+        (c, why)
+    }
+
+    /// What to do after this frame, with the scene in `motion`. `building`: a candidate is
+    /// being built for a switch (no probe starts).
+    pub fn decide(&mut self, motion: Motion, building: bool) -> Action {
+        if let Some((probed, frames)) = self.probing {
+            if probed != self.current || frames < PROBE_FRAMES {
+                return Action::Stay;
+            }
+            // A probe is a measurement, not a decision: choose afresh, without hysteresis.
+            self.probing = None;
+            let (choice, why) = self.choose(motion);
+            self.reason = why;
+            return if choice == self.current {
+                Action::Stay
+            } else {
+                Action::Switch(choice)
+            };
+        }
+        let (choice, why) = self.choose(motion);
+        let current_error = self.predicted_error(self.current, motion);
+        let over = self.over_budget >= OVER_BUDGET_FRAMES;
+        // A candidate not measured yet that would win were it to fit, and that the cost
+        // ratios do not put far over the budget.
+        let target = self.predicted_error(choice, motion);
+        let probe = (0..self.candidates.len())
+            .filter(|&c| !self.unavailable[c] && self.cost(c, motion).is_none())
+            .filter(|&c| self.predicted_error(c, motion) < target * (1.0 - MARGIN) - 0.005)
+            .filter(|&c| {
+                self.estimated_cost(c, motion)
+                    .is_none_or(|ms| ms <= PROBE_LIMIT * self.settings.budget_ms)
+            })
+            .min_by(|&a, &b| {
+                self.predicted_error(a, motion)
+                    .total_cmp(&self.predicted_error(b, motion))
+            });
+        if !building
+            && self.cost(self.current, motion).is_some()
+            && let Some(candidate) = probe
+        {
+            self.probing = Some((candidate, 0));
+            self.reason = format!(
+                "probing {}: predicted error {:.3}, cost not measured yet",
+                self.candidates[candidate].label,
+                self.predicted_error(candidate, motion)
+            );
+            return Action::Probe(candidate);
+        }
+        if choice == self.current {
+            self.reason = why;
+            return Action::Stay;
+        }
+        let better = match self.settings.max_error {
+            Some(target) if current_error <= target => {
+                let (now, then) = (self.cost(self.current, motion), self.cost(choice, motion));
+                matches!((now, then), (Some(now), Some(then)) if then < now * (1.0 - COST_MARGIN))
+            }
+            _ => self.predicted_error(choice, motion) < current_error * (1.0 - MARGIN) - 0.005,
+        };
+        let current_fits = self
+            .cost(self.current, motion)
+            .is_some_and(|ms| ms <= self.settings.budget_ms);
+        let dwelt = self.frames_on_current >= MIN_DWELL;
+        if !building && (over || (dwelt && (better || !current_fits))) {
+            self.reason = why;
+            return Action::Switch(choice);
+        }
+        Action::Stay
+    }
+
+    /// The runner switched to `candidate`.
+    pub fn switched(&mut self, candidate: usize) {
+        if candidate != self.current {
+            self.switches += 1;
+        }
+        self.current = candidate;
+        self.frames_on_current = 0;
+        self.over_budget = 0;
+    }
+
+    /// Whether the choice has settled: no probe under way and none due.
+    pub fn settled(&self) -> bool {
+        self.probing.is_none()
+    }
+}
+
+/// What a `pt` frame reported, for [`Governor::observe`].
+#[derive(Debug, Clone, Copy)]
+pub struct PtFrame {
+    pub path_samples: u32,
+    pub samples_added: u32,
+    pub estimated_error: Option<f64>,
+}

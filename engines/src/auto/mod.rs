@@ -1,0 +1,367 @@
+//! `auto`: the engine that chooses the engine. It runs one of a list of candidates (engines
+//! with parameters, [`governor::candidates`]) and switches between them, per scene and adapter,
+//! to meet a frame budget (`budget_ms`) with the least predicted error, or, with `max_error`,
+//! at the least cost that is predicted to meet it ([`governor`] says how).
+//!
+//! Per frame it renders with the running candidate and times it; tracks whether the picture's
+//! inputs held (the camera within a quarter pixel, the scene's content unchanged:
+//! [`crate::change`]), since a still scene lets engines keep work and `pt` accumulate; and
+//! re-estimates the scene's features ([`features`]) when the scene's content changes or the
+//! camera has moved far. Candidates are built the way the daemon's hot-swap builds an engine:
+//! off the render thread (a builder thread here), and swapped in at a frame boundary once
+//! built, while the running candidate goes on rendering, so no frame is dropped or stalled by a
+//! build. Built candidates are kept, so switching back costs no build.
+//!
+//! [`Engine::status`] reports the choice and why: the features, each candidate's predicted
+//! error and measured cost, the probe under way, the number of switches.
+
+pub mod features;
+pub mod governor;
+
+use std::sync::mpsc::{Receiver, Sender, channel};
+use std::time::Instant;
+
+use relight_core::scene::SceneCamera;
+use serde_json::{Map, Value, json};
+
+use self::features::scene_features;
+use self::governor::{Action, Governor, Motion, PtFrame, Settings};
+use crate::change::{focus_depth_m, image_shift_px, scene_key};
+use crate::engine::{Engine, EngineError, RelitFrame, SceneFrame};
+use crate::gpu::GpuError;
+use crate::params::{ParamSpec, ParamsSchema};
+use crate::pt::STILL_PX;
+use crate::registry::{EngineRegistry, RegistryError};
+
+/// The camera must move this far (pixels) before the features are estimated again.
+const FEATURES_MOVED_PX: f32 = 20.0;
+/// ... and at most this often, in frames.
+const FEATURES_EVERY: u32 = 10;
+
+type Built = (usize, Result<Box<dyn Engine>, String>);
+
+/// Builds candidates off the render thread.
+struct Builder {
+    requests: Sender<(usize, String, Map<String, Value>)>,
+    built: Receiver<Built>,
+    /// The candidate being built.
+    pending: Option<usize>,
+}
+
+impl Builder {
+    fn new(registry: EngineRegistry) -> Self {
+        let (requests, jobs) = channel::<(usize, String, Map<String, Value>)>();
+        let (done, built) = channel();
+        std::thread::Builder::new()
+            .name("auto-builder".into())
+            .spawn(move || {
+                for (candidate, engine, params) in jobs {
+                    let result = registry
+                        .build(&engine, &params)
+                        .map(|b| b.engine)
+                        .map_err(|e| e.to_string());
+                    if done.send((candidate, result)).is_err() {
+                        break;
+                    }
+                }
+            })
+            .map_or_else(
+                |error| tracing::warn!(%error, "auto: no builder thread; candidates stay unbuilt"),
+                drop,
+            );
+        Self {
+            requests,
+            built,
+            pending: None,
+        }
+    }
+}
+
+/// Whether the picture's inputs held from frame to frame.
+#[derive(Debug, Default)]
+struct Stillness {
+    last: Option<(u64, SceneCamera)>,
+}
+
+impl Stillness {
+    fn update(&mut self, key: u64, camera: SceneCamera, height: u32, depth_m: f32) -> Motion {
+        let still = self.last.is_some_and(|(last_key, last_camera)| {
+            last_key == key && image_shift_px(&last_camera, &camera, height, depth_m) <= STILL_PX
+        });
+        self.last = Some((key, camera));
+        if still { Motion::Still } else { Motion::Moving }
+    }
+}
+
+pub struct Auto {
+    governor: Governor,
+    engines: Vec<Option<Box<dyn Engine>>>,
+    builder: Builder,
+    /// Frames the running candidate has rendered since it was switched in.
+    frames_on_current: u32,
+    stillness: Stillness,
+    motion: Motion,
+    /// The scene key and camera the features were estimated for, and frames since.
+    features_for: Option<(u64, SceneCamera)>,
+    frames_since_features: u32,
+    size: (u32, u32),
+    /// `pt`'s samples per pixel after the last frame it rendered.
+    pt_samples: u32,
+    status: Value,
+}
+
+impl std::fmt::Debug for Auto {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Auto")
+            .field("governor", &self.governor)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Auto {
+    pub const NAME: &'static str = "auto";
+
+    pub fn schema() -> ParamsSchema {
+        ParamsSchema::new(vec![
+            ParamSpec::float(
+                "budget_ms",
+                "frame time to stay within (33: a 30 Hz sensor)",
+                1.0,
+                60_000.0,
+                33.0,
+            ),
+            ParamSpec::float(
+                "max_error",
+                "predicted relative L2 of Δ to meet at the least cost (0: the least error the budget allows)",
+                0.0,
+                10.0,
+                0.0,
+            ),
+            ParamSpec::int(
+                "horizon_frames",
+                "frames a still camera is expected to stay still (pt accumulates over them)",
+                1,
+                100_000,
+                30,
+            ),
+        ])
+    }
+
+    /// Starts on the cheapest candidate (`differential`), built here; the others are built
+    /// when the governor first wants them.
+    pub fn new(registry: &EngineRegistry) -> Result<Self, GpuError> {
+        let candidates = governor::candidates();
+        let first = &candidates[0];
+        let engine = match registry.build(first.engine, &first.params) {
+            Ok(built) => built.engine,
+            Err(RegistryError::Gpu { source, .. }) => return Err(source),
+            Err(other) => return Err(GpuError::Validation(format!("auto: {other}"))),
+        };
+        let mut engines: Vec<Option<Box<dyn Engine>>> = std::iter::repeat_with(|| None)
+            .take(candidates.len())
+            .collect();
+        engines[0] = Some(engine);
+        let settings = Settings {
+            budget_ms: 33.0,
+            max_error: None,
+            horizon_frames: 30,
+        };
+        let mut auto = Self {
+            governor: Governor::new(candidates, 0, settings),
+            engines,
+            builder: Builder::new(registry.clone()),
+            frames_on_current: 0,
+            stillness: Stillness::default(),
+            motion: Motion::Moving,
+            features_for: None,
+            frames_since_features: 0,
+            size: (0, 0),
+            pt_samples: 0,
+            status: Value::Null,
+        };
+        auto.refresh_status(None);
+        Ok(auto)
+    }
+
+    /// `pt`'s parameters under this budget: it fits its samples to most of it.
+    fn params_for(&self, candidate: usize) -> Map<String, Value> {
+        let mut params = self.governor.candidates()[candidate].params.clone();
+        if self.governor.candidates()[candidate].is_path_traced() {
+            let budget = self.governor.settings().budget_ms;
+            params.insert("budget_ms".into(), json!((0.9 * budget).max(1.0)));
+        }
+        params
+    }
+
+    fn switch_to(&mut self, candidate: usize) {
+        self.governor.switched(candidate);
+        self.frames_on_current = 0;
+        self.pt_samples = 0;
+    }
+
+    /// Start running `candidate`: at once when it is built, else once the builder has it.
+    fn want(&mut self, candidate: usize) {
+        if self.engines[candidate].is_some() {
+            self.switch_to(candidate);
+            return;
+        }
+        if self.builder.pending.is_some() {
+            return;
+        }
+        let spec = &self.governor.candidates()[candidate];
+        let request = (
+            candidate,
+            spec.engine.to_owned(),
+            self.params_for(candidate),
+        );
+        if self.builder.requests.send(request).is_ok() {
+            self.builder.pending = Some(candidate);
+        } else {
+            self.governor.mark_unavailable(candidate);
+        }
+    }
+
+    /// Take up a candidate the builder finished.
+    fn collect_built(&mut self) {
+        while let Ok((candidate, result)) = self.builder.built.try_recv() {
+            self.builder.pending = None;
+            match result {
+                Ok(engine) => {
+                    self.engines[candidate] = Some(engine);
+                    self.switch_to(candidate);
+                }
+                Err(error) => {
+                    tracing::warn!(candidate = %self.governor.candidates()[candidate].label, %error, "auto: candidate not built; left out");
+                    self.governor.mark_unavailable(candidate);
+                }
+            }
+        }
+    }
+
+    fn refresh_status(&mut self, estimated: Option<f64>) {
+        let current = self.governor.current();
+        let candidates = self.governor.candidates();
+        let motion = self.motion;
+        let assessments = self.governor.assess(motion);
+        let chosen = &assessments[current];
+        self.status = json!({
+            "engine": candidates[current].engine,
+            "chosen": candidates[current].label,
+            "params": Value::Object(self.params_for(current)),
+            "reason": self.governor.reason(),
+            "motion": motion,
+            "budget_ms": self.governor.settings().budget_ms,
+            "max_error": self.governor.settings().max_error,
+            "predicted_error": chosen.predicted_error,
+            "predicted_ms": chosen.cost_ms.or(chosen.estimated_cost_ms),
+            "estimated_error": estimated,
+            "features": self.governor.features(),
+            "indirect_share": self.governor.features().indirect_share(),
+            "probing": self.governor.probing().map(|c| candidates[c].label.clone()),
+            "building": self.builder.pending.map(|c| candidates[c].label.clone()),
+            "switches": self.governor.switches(),
+            "candidates": assessments,
+        });
+    }
+}
+
+impl Engine for Auto {
+    fn name(&self) -> &'static str {
+        Self::NAME
+    }
+
+    fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
+        self.collect_built();
+        let scene = frame.scene.as_ref().ok_or(EngineError::MissingInput {
+            engine: Self::NAME,
+            stream: "scene",
+        })?;
+        let size = frame
+            .color
+            .as_ref()
+            .map_or((0, 0), |c| (c.payload.width(), c.payload.height()));
+        if size != self.size {
+            self.size = size;
+            self.governor.forget_costs();
+        }
+        let key = scene_key(scene);
+        let depth = focus_depth_m(
+            &scene.camera,
+            scene.virtual_bounds().or_else(|| scene.real_bounds()),
+        );
+        self.motion = self.stillness.update(key, scene.camera, size.1, depth);
+        self.frames_since_features = self.frames_since_features.saturating_add(1);
+        let stale = self.features_for.is_none_or(|(k, camera)| {
+            k != key || image_shift_px(&camera, &scene.camera, size.1, depth) > FEATURES_MOVED_PX
+        });
+        if stale && (self.features_for.is_none() || self.frames_since_features >= FEATURES_EVERY) {
+            self.governor.set_features(scene_features(scene));
+            self.features_for = Some((key, scene.camera));
+            self.frames_since_features = 0;
+        }
+
+        let current = self.governor.current();
+        let Some(engine) = self.engines[current].as_mut() else {
+            return Err(EngineError::NotPrepared);
+        };
+        let started = Instant::now();
+        engine.render(frame, out)?;
+        let ms = started.elapsed().as_secs_f64() * 1e3;
+        let steady = self.frames_on_current > 0;
+        self.frames_on_current = self.frames_on_current.saturating_add(1);
+        let pt = self.governor.candidates()[current]
+            .is_path_traced()
+            .then(|| {
+                let added = out.path_samples.saturating_sub(self.pt_samples);
+                let added = if out.path_samples < self.pt_samples {
+                    out.path_samples
+                } else {
+                    added
+                };
+                self.pt_samples = out.path_samples;
+                PtFrame {
+                    path_samples: out.path_samples,
+                    samples_added: added,
+                    estimated_error: out.estimated_relative_error,
+                }
+            });
+        self.governor.observe(current, self.motion, ms, steady, pt);
+        match self
+            .governor
+            .decide(self.motion, self.builder.pending.is_some())
+        {
+            Action::Stay => {}
+            Action::Switch(candidate) | Action::Probe(candidate) => self.want(candidate),
+        }
+        self.refresh_status(out.estimated_relative_error);
+        Ok(())
+    }
+
+    fn set_params(&mut self, params: &Map<String, Value>) {
+        let schema = Self::schema();
+        let max_error = schema.float(params, "max_error");
+        self.governor.set_settings(Settings {
+            budget_ms: schema.float(params, "budget_ms"),
+            max_error: (max_error > 0.0).then_some(max_error),
+            horizon_frames: schema.int(params, "horizon_frames") as u32,
+        });
+        // `pt` fits its samples to the budget.
+        for candidate in 0..self.engines.len() {
+            if self.governor.candidates()[candidate].is_path_traced() {
+                let params = self.params_for(candidate);
+                let schema = crate::pt::Pt::schema();
+                if let (Some(engine), Ok(params)) = (
+                    self.engines[candidate].as_mut(),
+                    schema.validate(&schema.defaults(), &params),
+                ) {
+                    engine.set_params(&params);
+                }
+            }
+        }
+        self.refresh_status(None);
+    }
+
+    fn status(&self) -> Option<Value> {
+        Some(self.status.clone())
+    }
+}
