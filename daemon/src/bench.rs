@@ -243,16 +243,16 @@ impl BenchRow {
 
 /// One of a scene's references: read from the cache or rendered, then refined while its noise
 /// is above a third of the best row's error, and cached once final.
-struct Truth {
+pub(crate) struct Truth {
     sampling: Sampling,
     cache: Option<(ReferenceCache, u64)>,
     /// The renderer it was rendered or refined with this run (a cached one starts afresh).
     renderer: Option<ReferenceRenderer>,
-    images: ReferenceImages,
+    pub(crate) images: ReferenceImages,
 }
 
 impl Truth {
-    fn new(
+    pub(crate) fn new(
         settings: &BenchSettings,
         dir: &Path,
         scene: &Scene,
@@ -301,7 +301,7 @@ impl Truth {
 
     /// Double the samples while the noise is above `best / 3` and below `max_spp` samples;
     /// whether any were added.
-    fn refine(
+    pub(crate) fn refine(
         &mut self,
         scene: &Scene,
         best: f64,
@@ -332,7 +332,7 @@ impl Truth {
     }
 
     /// Keep it in the cache if it was rendered this run.
-    fn store(&self, scene: &str) {
+    pub(crate) fn store(&self, scene: &str) {
         if self.renderer.is_some()
             && let Some((cache, key)) = &self.cache
             && let Err(error) = cache.store(*key, &self.images)

@@ -3,6 +3,7 @@ pub mod bench;
 pub mod config;
 pub mod control;
 pub mod devices;
+pub mod governor_bench;
 pub mod pipeline;
 pub mod score;
 pub mod sinks;

@@ -108,6 +108,7 @@ fn sample_status(engine: &str, recording: Option<PathBuf>) -> StatusReport {
             foxglove: Some("ws://127.0.0.1:8765".into()),
             page: Some("http://127.0.0.1:8080/".into()),
         }),
+        engine_status: Some(json!({ "chosen": "dir vpl_count=64", "predicted_error": 0.2 })),
     }
 }
 

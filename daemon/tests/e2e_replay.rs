@@ -401,6 +401,8 @@ fn gpu_engines_switch_live_while_replaying() {
             vec!["rsm_size=64", "vpl_count=32", "ism_points=2048"],
         ),
         ("ibl", vec!["rsm_size=64", "map_size=16", "env_lights=4"]),
+        ("pt", vec!["spp=1", "bounces=2"]),
+        ("auto", vec!["budget_ms=20"]),
     ] {
         let out = ctl(&socket, &["engine", "set", engine]);
         assert!(
@@ -437,6 +439,17 @@ fn gpu_engines_switch_live_while_replaying() {
                 .any(|s| s == "depth.recon upload" || s == "depth.cpu filter"),
             "{stages:?}"
         );
+        if engine == "auto" {
+            // What it chose and why, in status and as relightctl prints it.
+            let report = &status["engine_status"];
+            assert!(report["chosen"].is_string(), "{status}");
+            assert!(report["features"].is_object(), "{status}");
+            let out = ctl(&socket, &["status"]);
+            let text = String::from_utf8_lossy(&out.stdout);
+            assert!(text.contains("auto        chose"), "{text}");
+        } else {
+            assert!(status["engine_status"].is_null(), "{status}");
+        }
     }
 }
 

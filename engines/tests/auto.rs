@@ -1,31 +1,66 @@
+//! `auto`, the engine that chooses the engine, on the GPU: it renders every frame through its
+//! switches (candidates are built off the render thread), reports what it chose and why, moves
+//! to an indirect engine where the scene needs one and the budget allows, and back to what fits
+//! when the budget is cut. The choices themselves are tested without a GPU in
+//! `engines/src/auto/governor.rs`.
+
 mod support;
+
 use std::sync::Arc;
-use std::time::Instant;
-use support::*;
+use std::time::{Duration, Instant};
+
+use relight_engines::RelitFrame;
+use support::{engine_with, frame, load_scene};
 
 #[test]
-#[ignore]
-fn scratch_features() {
-    for name in [
-        "desk_box",
-        "glossy_floor",
-        "spot_bleed",
-        "touching_wall",
-        "window_env",
-    ] {
-        let scene = load_scene(name);
-        let started = Instant::now();
-        let f = relight_engines::auto::features::scene_features(&scene);
-        let ms = started.elapsed().as_secs_f64() * 1e3;
-        eprintln!(
-            "{name}: {ms:.1} ms S {:.2} B {:.2} O {:.2} G {:.2} share {:.2} n {}",
-            f.shadow,
-            f.bleeding,
-            f.occlusion,
-            f.glossy,
-            f.indirect_share(),
-            f.samples
+fn auto_moves_to_what_the_scene_needs_and_back_to_what_fits() {
+    let frame = frame(Arc::new(load_scene("spot_bleed")), 40, 30);
+    let mut auto = engine_with("auto", serde_json::json!({ "budget_ms": 1000.0 }));
+    let mut out = RelitFrame::default();
+    let status = |auto: &Box<dyn relight_engines::Engine>| auto.status().unwrap();
+    // Candidates build in the background (lavapipe compiles for seconds): frames go on.
+    let started = Instant::now();
+    let mut frames = 0;
+    while status(&auto)["chosen"] == "differential" {
+        auto.render(&frame, &mut out).unwrap();
+        frames += 1;
+        assert_eq!(out.composite.width(), 40, "frame {frames}");
+        assert!(
+            started.elapsed() < Duration::from_secs(120),
+            "still on differential after {frames} frames: {}",
+            status(&auto)
         );
-        let _ = Arc::new(scene);
     }
+    let report = status(&auto);
+    assert!(
+        report["features"]["shadow"].as_f64().unwrap() > 0.0,
+        "{report}"
+    );
+    assert!(
+        report["features"]["bleeding"].as_f64().unwrap() > 0.0,
+        "{report}"
+    );
+    assert_eq!(report["candidates"].as_array().unwrap().len(), 7);
+    assert!(report["reason"].as_str().is_some_and(|r| !r.is_empty()));
+    assert!(report["switches"].as_u64().unwrap() >= 1);
+
+    // A budget nothing meets: within a few frames over it, the cheapest measured candidate.
+    let mut params = relight_engines::auto::Auto::schema().defaults();
+    params.insert("budget_ms".into(), 1.0.into());
+    auto.set_params(&params);
+    for _ in 0..40 {
+        auto.render(&frame, &mut out).unwrap();
+    }
+    let report = status(&auto);
+    assert!(
+        ["differential", "ibl"].contains(&report["chosen"].as_str().unwrap()),
+        "{report}"
+    );
+    assert!(
+        report["reason"]
+            .as_str()
+            .unwrap()
+            .contains("nothing measured fits"),
+        "{report}"
+    );
 }

@@ -504,6 +504,60 @@ fn render_lights(estimate: &LightingEstimate) -> String {
     out
 }
 
+/// An engine's own report (`auto`: what it chose and why, and its candidates); other shapes
+/// as JSON.
+fn render_engine_status(engine: &Value) -> String {
+    let Some(chosen) = engine["chosen"].as_str() else {
+        return format!("engine says {engine}\n");
+    };
+    let number = |v: &Value, digits: usize| {
+        v.as_f64()
+            .map_or("-".to_owned(), |v| format!("{v:.digits$}"))
+    };
+    let mut out = format!(
+        "auto        chose {chosen}: {}\n            predicted error {}, {} ms of {} ({}), {} switches{}\n",
+        engine["reason"].as_str().unwrap_or("-"),
+        number(&engine["predicted_error"], 3),
+        number(&engine["predicted_ms"], 1),
+        number(&engine["budget_ms"], 0),
+        engine["motion"].as_str().unwrap_or("-"),
+        engine["switches"].as_u64().unwrap_or(0),
+        engine["probing"]
+            .as_str()
+            .map_or(String::new(), |p| format!(", probing {p}")),
+    );
+    let f = &engine["features"];
+    if f.is_object() {
+        out.push_str(&format!(
+            "            scene: shadow {}, bleeding {}, occlusion {}, gloss {} (indirect share {}){}\n",
+            number(&f["shadow"], 2),
+            number(&f["bleeding"], 2),
+            number(&f["occlusion"], 2),
+            number(&f["glossy"], 2),
+            number(&engine["indirect_share"], 2),
+            if f["environment"].as_bool() == Some(true) {
+                ", environment map"
+            } else {
+                ""
+            },
+        ));
+    }
+    for c in engine["candidates"].as_array().into_iter().flatten() {
+        let cost = match (c["cost_ms"].as_f64(), c["estimated_cost_ms"].as_f64()) {
+            (Some(ms), _) => format!("{ms:.1} ms"),
+            (None, Some(ms)) => format!("~{ms:.0} ms (not measured)"),
+            (None, None) => "not measured".to_owned(),
+        };
+        out.push_str(&format!(
+            "              {:<24} predicted {}  {}\n",
+            c["candidate"].as_str().unwrap_or("-"),
+            number(&c["predicted_error"], 3),
+            cost
+        ));
+    }
+    out
+}
+
 fn render_status(status: &StatusReport) -> String {
     let recording = match &status.recording {
         Some(r) => format!("{} ({} messages)", r.path.display(), r.messages),
@@ -551,6 +605,9 @@ fn render_status(status: &StatusReport) -> String {
             a.vertices,
             a.skipped_cells,
         ));
+    }
+    if let Some(engine) = &status.engine_status {
+        out.push_str(&render_engine_status(engine));
     }
     if let Some(live) = &status.live_view {
         let urls: Vec<&str> = [&live.foxglove, &live.page]

@@ -225,6 +225,11 @@ pub struct StatusReport {
     /// Where the live view listens (`[live_view]`, `--live-view`); none when it is off.
     #[serde(default)]
     pub live_view: Option<LiveViewStatus>,
+    /// What the running engine reports of its own decisions (`auto`: the engine it chose and
+    /// why, the scene's features, each candidate's predicted error and measured cost); none
+    /// for an engine without decisions of its own.
+    #[serde(default)]
+    pub engine_status: Option<Value>,
 }
 
 /// The live view's addresses, as a viewer opens them.

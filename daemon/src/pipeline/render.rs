@@ -136,7 +136,8 @@ impl RenderStage {
         slot: &EngineSlot,
         registry: &EngineRegistry,
     ) -> (Rendered, bool) {
-        let engine = if frame.tracking.is_usable() {
+        let tracked = frame.tracking.is_usable();
+        let engine = if tracked {
             &mut self.engine
         } else {
             &mut self.passthrough
@@ -147,6 +148,9 @@ impl RenderStage {
         }
         let rendered = engine.render(&frame.scene, &mut self.relit);
         self.timer.record(start.elapsed().as_secs_f64() * 1e3);
+        if tracked {
+            counters.engine_status(engine.status());
+        }
         match rendered {
             Ok(()) => {
                 self.passes.record(&self.relit.timings);

@@ -47,6 +47,9 @@ pub struct Counters {
     /// The last frame's registration and albedo measurement.
     tracking: Mutex<Option<TrackingReport>>,
     albedo: Mutex<Option<AlbedoReport>>,
+    /// The running engine's own report ([`relight_engines::Engine::status`]) after its last
+    /// frame.
+    engine_status: Mutex<Option<serde_json::Value>>,
 }
 
 impl Counters {
@@ -65,7 +68,13 @@ impl Counters {
             rendered_at: Mutex::new(VecDeque::new()),
             tracking: Mutex::new(None),
             albedo: Mutex::new(None),
+            engine_status: Mutex::new(None),
         }
+    }
+
+    /// The engine's report after a frame it rendered.
+    pub fn engine_status(&self, status: Option<serde_json::Value>) {
+        *lock(&self.engine_status) = status;
     }
 
     pub fn set_sync_streams(&self, streams: Vec<SyncStreamStatus>) {
@@ -258,5 +267,6 @@ pub(super) fn report(shared: &Shared) -> StatusReport {
             }
         }),
         live_view: shared.live_view.get().cloned(),
+        engine_status: lock(&counters.engine_status).clone(),
     }
 }

@@ -8,11 +8,13 @@
 //! its edges (pixel centres while moving; converged over sub-pixel offsets while still) and,
 //! under an environment map, by how coarsely it cuts the map into lights; the indirect parts by
 //! how much of them it models (1 for the direct-light engines). With the parts independent,
-//! e² = Σ (share · part)² / Σ part². The shares are from the bench's region errors on the five
-//! scenes (docs/ALGORITHMS.md). `pt` has no bias: its error is its noise, k / √n for n samples
-//! per pixel, with k measured from its own standard error while it runs (a prior before), and n
-//! the samples it fits into the budget per frame, times [`Settings::horizon_frames`] while the
-//! camera is still (its means accumulate) or once while it moves.
+//! e² = Σ (share · part)² / Σ part² ([`candidates`] says where the shares come from); while the
+//! camera is still, the edges' share falls as 1/√frames over the frames the horizon holds
+//! ([`Settings::horizon_ms`], at the sensor's rate or the engine's own, 32 at most). `pt` has no
+//! bias: its error is its noise, k / √n for n samples per pixel, with k measured from its own
+//! standard error while it runs (a prior before), and n the samples it fits into the budget per
+//! frame, times the frames of the horizon while the camera is still (its means accumulate), or
+//! once while it moves.
 //!
 //! **Cost.** The frame time of each candidate, tracked per motion state (a still scene lets
 //! engines keep work between frames) as a running average of its own frames, first measured by
@@ -23,8 +25,8 @@
 //! **Choice.** Among the candidates that fit the budget, the lowest predicted error, where
 //! errors within [`TIE`] count as equal and the cheaper wins (so a shadow-only scene gets the
 //! cheapest shadow engine); with `max_error`, the cheapest that is predicted to meet it. None
-//! fits: the cheapest. **Hysteresis**: a switch needs a predicted error lower by [`MARGIN`] (or
-//! a cost lower by [`COST_MARGIN`] under `max_error`) and [`MIN_DWELL`] frames on the current
+//! fits: the cheapest. **Hysteresis**: a switch needs a predicted error lower by [`MARGIN`], or
+//! a cost lower by [`COST_MARGIN`] at an error within [`TIE`] (or under `max_error`), and [`MIN_DWELL`] frames on the current
 //! candidate, unless the current one has been over budget for [`OVER_BUDGET_FRAMES`] frames. A
 //! probe runs its candidate for [`PROBE_FRAMES`] steady frames; then the choice is made afresh
 //! (a probe measures, it does not decide).
@@ -38,7 +40,7 @@ use super::features::SceneFeatures;
 pub const TIE: f64 = 0.05;
 /// A switch for accuracy needs a predicted error 10 % and 0.005 lower.
 pub const MARGIN: f64 = 0.10;
-/// Under `max_error`, a switch for cost needs a candidate 20 % cheaper.
+/// A switch for cost (to a candidate as accurate, or under `max_error`) needs one 20 % cheaper.
 pub const COST_MARGIN: f64 = 0.20;
 /// Frames on a candidate before another switch (except when over budget).
 pub const MIN_DWELL: u32 = 10;
@@ -48,9 +50,14 @@ pub const OVER_BUDGET_FRAMES: u32 = 3;
 const PROBE_LIMIT: f64 = 3.0;
 /// Steady frames (after the first, which allocates and uploads) a probe measures.
 pub const PROBE_FRAMES: u32 = 2;
-/// pt's noise at one sample per pixel (relative L2 of Δ) before it has run: measured 0.45–3.3
-/// on the five scenes (docs/ALGORITHMS.md).
-const PT_NOISE_PRIOR: f64 = 2.0;
+/// pt's noise at one sample per pixel (relative L2 of Δ) before it has run: the lowest measured
+/// on the five scenes (0.4–3.1, docs/ALGORITHMS.md), so that pt is probed wherever it could
+/// win; its own measurement replaces it once it has traced [`PT_PROBE_SAMPLES`].
+const PT_NOISE_PRIOR: f64 = 0.4;
+/// Samples per pixel a probe of `pt` traces before its noise counts as measured.
+pub const PT_PROBE_SAMPLES: u32 = 16;
+/// ... or this many frames, whichever comes first.
+const PT_PROBE_FRAMES: u32 = 30;
 
 /// Whether the picture's inputs held since the last frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -74,11 +81,11 @@ impl Motion {
 pub enum ErrorModel {
     /// Shares of each part of Δ a rasterising engine gets wrong.
     Raster {
-        /// The shadow's edges: pixel centres (moving) and converged to the pixel's area (still).
-        edge_moving: f64,
-        edge_still: f64,
-        /// The shadow under an environment map cut into a few lights.
-        environment: f64,
+        /// The shadow of point, spot and directional lights, converged over still frames (its
+        /// edges averaged over the pixel's area).
+        shadow: f64,
+        /// The shadow under an environment map, which the engine cuts into a few lights.
+        shadow_environment: f64,
         bleeding: f64,
         occlusion: f64,
         glossy: f64,
@@ -133,57 +140,72 @@ impl Candidate {
     }
 }
 
+/// What pixel-centre sampling adds to a rasterising engine's shadow error while the camera
+/// moves (frames are not averaged): the bench's centre-against-area error on the five scenes.
+const EDGE_MOVING: f64 = 0.20;
+/// The sensor's frame period: frames come no faster (30 Hz).
+pub const SENSOR_PERIOD_MS: f64 = 1000.0 / 30.0;
+/// Still frames the rasterisers average at most (their `accumulate` default).
+const ACCUMULATED_FRAMES: f64 = 32.0;
+
 /// The candidates `auto` chooses from: every engine that relights at its defaults, `dir` also
 /// with a quarter of its VPLs, and `pt` (whose budget the runner sets). Without an environment
-/// map `ibl` predicts as `differential`, so it is never probed for accuracy there. The shares are the
-/// bench's region errors on the project's five scenes, rounded (docs/ALGORITHMS.md, "Where the
-/// error is"); the relative costs are its frame times there.
+/// map `ibl` predicts as `differential`, so it is never probed for accuracy there.
+///
+/// The shares are fitted (least squares in log error) to the errors `relightd bench --governor`
+/// measured on the project's five scenes (30 still frames against the pixel-area reference),
+/// given their features: `differential` comes out near 1 on bleeding and occlusion, as an
+/// engine that models no indirect light must. Five scenes fit these few numbers only roughly
+/// (docs/ALGORITHMS.md gives the residuals), so a scene unlike them can mislead the choice
+/// among rasterisers, never the budget. The relative costs are lavapipe's frame times at
+/// 160 × 120.
 pub fn candidates() -> Vec<Candidate> {
-    let raster = |environment, bleeding, occlusion, glossy, relative_cost| ErrorModel::Raster {
-        edge_moving: 0.30,
-        edge_still: 0.10,
-        environment,
-        bleeding,
-        occlusion,
-        glossy,
-        relative_cost,
+    let raster = |shadow, shadow_environment, bleeding, occlusion, glossy, relative_cost| {
+        ErrorModel::Raster {
+            shadow,
+            shadow_environment,
+            bleeding,
+            occlusion,
+            glossy,
+            relative_cost,
+        }
     };
     vec![
         Candidate::new(
             "differential",
             serde_json::json!({}),
-            raster(0.25, 1.0, 1.0, 1.0, [1.0, 1.0]),
+            raster(0.08, 0.16, 1.0, 1.0, 1.0, [1.0, 1.0]),
         ),
         Candidate::new(
             "ibl",
             serde_json::json!({}),
-            raster(0.12, 1.0, 1.0, 1.0, [1.3, 1.0]),
+            raster(0.08, 0.10, 1.0, 1.0, 1.0, [1.3, 1.5]),
         ),
         Candidate::new(
             "dlpv",
             serde_json::json!({}),
-            raster(0.25, 0.65, 0.8, 1.0, [18.0, 1.5]),
+            raster(0.08, 0.22, 0.75, 1.15, 1.0, [18.0, 1.3]),
         ),
         Candidate::new(
             "dvct",
             serde_json::json!({}),
-            raster(0.25, 0.85, 0.85, 0.7, [25.0, 30.0]),
+            raster(0.08, 0.18, 0.8, 0.8, 0.7, [25.0, 40.0]),
         ),
         Candidate::new(
             "dir",
             serde_json::json!({ "vpl_count": 64 }),
-            raster(0.12, 0.9, 0.55, 1.0, [6.0, 6.0]),
+            raster(0.08, 0.10, 0.4, 1.1, 1.0, [6.0, 4.0]),
         ),
         Candidate::new(
             "dir",
             serde_json::json!({}),
-            raster(0.12, 0.8, 0.45, 1.0, [12.0, 12.0]),
+            raster(0.08, 0.10, 0.35, 0.95, 1.0, [12.0, 12.0]),
         ),
         Candidate::new(
             "pt",
             serde_json::json!({}),
             ErrorModel::PathTraced {
-                relative_cost: [3.0, 9.0],
+                relative_cost: [3.0, 10.0],
             },
         ),
     ]
@@ -216,8 +238,9 @@ pub enum Action {
 pub struct Settings {
     pub budget_ms: f64,
     pub max_error: Option<f64>,
-    /// Frames a still camera is expected to stay still: `pt`'s samples accumulate over them.
-    pub horizon_frames: u32,
+    /// How long a still camera is expected to stay still, milliseconds: what accumulates
+    /// over frames (`pt`'s samples, the rasterisers' sub-pixel edges) is judged at this age.
+    pub horizon_ms: f64,
 }
 
 /// The governor's state.
@@ -233,6 +256,8 @@ pub struct Governor {
     /// `pt`: its noise at one sample per pixel, and its cost per sample per pixel (ms).
     pt_noise: Option<f64>,
     pt_ms_per_spp: Option<f64>,
+    /// `pt`'s samples per pixel after its last frame.
+    pt_samples: u32,
     current: usize,
     frames_on_current: u32,
     over_budget: u32,
@@ -254,6 +279,7 @@ impl Governor {
             features: SceneFeatures::default(),
             pt_noise: None,
             pt_ms_per_spp: None,
+            pt_samples: 0,
             current,
             frames_on_current: 0,
             over_budget: 0,
@@ -352,6 +378,7 @@ impl Governor {
             *slot = Some(slot.map_or(ms, |old| 0.7 * old + 0.3 * ms));
         }
         if let Some(pt) = pt {
+            self.pt_samples = pt.path_samples;
             if pt.samples_added > 0 {
                 let per_spp = ms / f64::from(pt.samples_added);
                 self.pt_ms_per_spp = Some(
@@ -368,20 +395,13 @@ impl Governor {
         }
     }
 
-    /// Samples per pixel `pt` fits into a frame of the budget, when its cost is known.
-    fn pt_spp_per_frame(&self) -> Option<f64> {
-        self.pt_ms_per_spp
-            .map(|ms| (self.settings.budget_ms / ms.max(1e-6)).floor())
-    }
-
     /// The predicted error of `candidate` for this scene in `motion`.
     pub fn predicted_error(&self, candidate: usize, motion: Motion) -> f64 {
         let f = &self.features;
         match self.candidates[candidate].model {
             ErrorModel::Raster {
-                edge_moving,
-                edge_still,
-                environment,
+                shadow,
+                shadow_environment,
                 bleeding,
                 occlusion,
                 glossy,
@@ -391,15 +411,25 @@ impl Governor {
                 if total <= 0.0 {
                     return 0.0;
                 }
-                let edge = match motion {
-                    Motion::Moving => edge_moving,
-                    Motion::Still => edge_still,
-                };
-                let shadow = if f.environment {
-                    edge.hypot(environment)
+                let converged = if f.environment {
+                    shadow_environment
                 } else {
-                    edge
+                    shadow
                 };
+                // Pixel-centre edges average out over the still frames the horizon holds (32 at
+                // most: the engines' `accumulate`), at the sensor's rate or the engine's own.
+                let frames = match motion {
+                    Motion::Moving => 1.0,
+                    Motion::Still => {
+                        let frame_ms = self
+                            .cost(candidate, motion)
+                            .or_else(|| self.estimated_cost(candidate, motion))
+                            .unwrap_or(SENSOR_PERIOD_MS)
+                            .max(SENSOR_PERIOD_MS);
+                        (self.settings.horizon_ms / frame_ms).clamp(1.0, ACCUMULATED_FRAMES)
+                    }
+                };
+                let shadow = converged.hypot(EDGE_MOVING / frames.sqrt());
                 ((shadow * f.shadow).powi(2)
                     + (bleeding * f.bleeding).powi(2)
                     + (occlusion * f.occlusion).powi(2)
@@ -411,25 +441,33 @@ impl Governor {
                 if f.total() <= 0.0 {
                     return 0.0;
                 }
-                let per_frame = self.pt_spp_per_frame().unwrap_or(1.0).max(1.0);
-                let frames = match motion {
-                    Motion::Moving => 1.0,
-                    Motion::Still => f64::from(self.settings.horizon_frames.max(1)),
+                // Before pt has run, its cost per sample from the ratios.
+                let per_spp = self
+                    .pt_ms_per_spp
+                    .or_else(|| self.estimated_cost(candidate, motion))
+                    .unwrap_or(self.settings.budget_ms)
+                    .max(1e-6);
+                let per_frame = (self.settings.budget_ms / per_spp).floor().max(1.0);
+                let samples = match motion {
+                    Motion::Moving => per_frame,
+                    // Frames come no faster than the sensor's, each with its budget's samples.
+                    Motion::Still => {
+                        let frame_ms = self.settings.budget_ms.max(SENSOR_PERIOD_MS);
+                        per_frame * (self.settings.horizon_ms / frame_ms).max(1.0)
+                    }
                 };
-                self.pt_noise.unwrap_or(PT_NOISE_PRIOR) / (per_frame * frames).sqrt()
+                self.pt_noise.unwrap_or(PT_NOISE_PRIOR) / samples.sqrt()
             }
         }
     }
 
-    /// Measured cost of `candidate` in `motion`. `pt` costs its budget (it fits its samples
-    /// to it) once one sample per pixel is known to fit, else what one sample costs.
+    /// Measured cost of `candidate` in `motion`. `pt` costs its budget (it fills it with
+    /// samples) once one sample per pixel is known to fit, else what one sample costs.
     fn cost(&self, candidate: usize, motion: Motion) -> Option<f64> {
         if self.candidates[candidate].is_path_traced() {
             let one = self.pt_ms_per_spp?;
             return Some(if one <= self.settings.budget_ms {
-                self.costs[candidate][motion.index()]
-                    .unwrap_or(self.settings.budget_ms)
-                    .min(self.settings.budget_ms)
+                self.settings.budget_ms
             } else {
                 one
             });
@@ -526,7 +564,10 @@ impl Governor {
     /// being built for a switch (no probe starts).
     pub fn decide(&mut self, motion: Motion, building: bool) -> Action {
         if let Some((probed, frames)) = self.probing {
-            if probed != self.current || frames < PROBE_FRAMES {
+            let measuring_noise = self.candidates[probed].is_path_traced()
+                && self.pt_samples < PT_PROBE_SAMPLES
+                && frames < PT_PROBE_FRAMES;
+            if probed != self.current || frames < PROBE_FRAMES || measuring_noise {
                 return Action::Stay;
             }
             // A probe is a measurement, not a decision: choose afresh, without hysteresis.
@@ -542,12 +583,12 @@ impl Governor {
         let (choice, why) = self.choose(motion);
         let current_error = self.predicted_error(self.current, motion);
         let over = self.over_budget >= OVER_BUDGET_FRAMES;
-        // A candidate not measured yet that would win were it to fit, and that the cost
-        // ratios do not put far over the budget.
+        // A candidate not measured yet that would win were it to fit (not merely tie), and
+        // that the cost ratios do not put far over the budget.
         let target = self.predicted_error(choice, motion);
         let probe = (0..self.candidates.len())
             .filter(|&c| !self.unavailable[c] && self.cost(c, motion).is_none())
-            .filter(|&c| self.predicted_error(c, motion) < target * (1.0 - MARGIN) - 0.005)
+            .filter(|&c| self.predicted_error(c, motion) * (1.0 + TIE) + 0.005 < target)
             .filter(|&c| {
                 self.estimated_cost(c, motion)
                     .is_none_or(|ms| ms <= PROBE_LIMIT * self.settings.budget_ms)
@@ -572,12 +613,18 @@ impl Governor {
             self.reason = why;
             return Action::Stay;
         }
+        let choice_error = self.predicted_error(choice, motion);
+        let cheaper = matches!(
+            (self.cost(self.current, motion), self.cost(choice, motion)),
+            (Some(now), Some(then)) if then < now * (1.0 - COST_MARGIN)
+        );
         let better = match self.settings.max_error {
-            Some(target) if current_error <= target => {
-                let (now, then) = (self.cost(self.current, motion), self.cost(choice, motion));
-                matches!((now, then), (Some(now), Some(then)) if then < now * (1.0 - COST_MARGIN))
+            Some(target) if current_error <= target => cheaper,
+            // As accurate (within a tie) and clearly cheaper, or clearly more accurate.
+            _ => {
+                (cheaper && choice_error <= current_error * (1.0 + TIE) + 0.005)
+                    || choice_error < current_error * (1.0 - MARGIN) - 0.005
             }
-            _ => self.predicted_error(choice, motion) < current_error * (1.0 - MARGIN) - 0.005,
         };
         let current_fits = self
             .cost(self.current, motion)
@@ -612,4 +659,238 @@ pub struct PtFrame {
     pub path_samples: u32,
     pub samples_added: u32,
     pub estimated_error: Option<f64>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const DIFFERENTIAL: usize = 0;
+    const IBL: usize = 1;
+    const DLPV: usize = 2;
+    const DIR64: usize = 4;
+    const DIR: usize = 5;
+    const PT: usize = 6;
+
+    fn features(shadow: f64, bleeding: f64, occlusion: f64) -> SceneFeatures {
+        SceneFeatures {
+            shadow,
+            bleeding,
+            occlusion,
+            blocks_light: shadow > 0.0,
+            ..SceneFeatures::default()
+        }
+    }
+
+    /// A governor on `features` at `budget_ms` whose candidates' costs are all measured (still,
+    /// ms): lavapipe's at 160 × 120, `pt` 40 ms per sample per pixel with noise 2.5.
+    fn measured(features: SceneFeatures, budget_ms: f64) -> Governor {
+        let mut governor = Governor::new(
+            candidates(),
+            DIFFERENTIAL,
+            Settings {
+                budget_ms,
+                max_error: None,
+                horizon_ms: 2000.0,
+            },
+        );
+        governor.set_features(features);
+        for (candidate, ms) in [5.0, 6.0, 6.0, 200.0, 20.0, 50.0].into_iter().enumerate() {
+            governor.observe(candidate, Motion::Still, ms, true, None);
+        }
+        governor.observe(
+            PT,
+            Motion::Still,
+            40.0,
+            true,
+            Some(PtFrame {
+                path_samples: 16,
+                samples_added: 1,
+                estimated_error: Some(0.625),
+            }),
+        );
+        governor
+    }
+
+    /// Run `decide` for `frames` frames on the current candidate, switching as told; the
+    /// candidates switched to.
+    fn run(governor: &mut Governor, motion: Motion, frames: u32) -> Vec<usize> {
+        let mut switches = Vec::new();
+        for _ in 0..frames {
+            let current = governor.current();
+            let ms = governor.cost(current, motion).unwrap_or(1.0);
+            governor.observe(current, motion, ms, true, None);
+            if let Action::Switch(c) | Action::Probe(c) = governor.decide(motion, false) {
+                governor.switched(c);
+                switches.push(c);
+            }
+        }
+        switches
+    }
+
+    #[test]
+    fn a_shadow_only_scene_chooses_the_cheapest_shadow_engine() {
+        // Every rasteriser predicts the same error on a shadow alone: the cheapest wins, and
+        // nothing is switched to (pt's sample does not fit 33 ms).
+        let mut governor = measured(features(10.0, 0.0, 0.0), 33.0);
+        let switches = run(&mut governor, Motion::Still, 40);
+        assert!(switches.is_empty(), "{switches:?}: {}", governor.reason());
+        assert_eq!(governor.current(), DIFFERENTIAL);
+        assert!(
+            governor.reason().contains("cheapest of"),
+            "{}",
+            governor.reason()
+        );
+        // Started on a dearer one that is no more accurate, it moves to the cheapest.
+        let mut governor = measured(features(10.0, 0.0, 0.0), 33.0);
+        governor.switched(DIR64);
+        run(&mut governor, Motion::Still, 40);
+        assert_eq!(governor.current(), DIFFERENTIAL);
+    }
+
+    #[test]
+    fn a_strong_bleeding_scene_chooses_an_indirect_engine() {
+        let bleeding = features(2.0, 6.0, 0.0);
+        let mut governor = measured(bleeding, 33.0);
+        run(&mut governor, Motion::Still, 40);
+        assert_eq!(governor.current(), DIR64, "{}", governor.reason());
+        let mut governor = measured(bleeding, 100.0);
+        run(&mut governor, Motion::Still, 40);
+        assert_eq!(governor.current(), DIR, "{}", governor.reason());
+        // Two seconds of a still camera hold 2 such frames: pt's 50 samples only tie dir.
+        let mut governor = measured(bleeding, 1000.0);
+        run(&mut governor, Motion::Still, 40);
+        assert_eq!(governor.current(), DIR, "{}", governor.reason());
+        // Twenty seconds: its 500 samples pass every bias.
+        governor.set_settings(Settings {
+            horizon_ms: 20_000.0,
+            ..governor.settings()
+        });
+        run(&mut governor, Motion::Still, 40);
+        assert_eq!(governor.current(), PT, "{}", governor.reason());
+        // The same budget with the camera moving: one frame's samples.
+        assert!(
+            governor.predicted_error(PT, Motion::Moving)
+                > 3.0 * governor.predicted_error(PT, Motion::Still)
+        );
+    }
+
+    #[test]
+    fn max_error_takes_the_cheapest_that_meets_it() {
+        let mut governor = measured(features(2.0, 6.0, 0.0), 1000.0);
+        let target = governor.predicted_error(DIR64, Motion::Still) * 1.01;
+        governor.set_settings(Settings {
+            max_error: Some(target),
+            ..governor.settings()
+        });
+        run(&mut governor, Motion::Still, 40);
+        assert_eq!(governor.current(), DIR64, "{}", governor.reason());
+    }
+
+    #[test]
+    fn unmeasured_candidates_that_would_win_are_probed_then_chosen_afresh() {
+        let mut governor = Governor::new(
+            candidates(),
+            DIFFERENTIAL,
+            Settings {
+                budget_ms: 33.0,
+                max_error: None,
+                horizon_ms: 2000.0,
+            },
+        );
+        governor.set_features(features(2.0, 6.0, 0.0));
+        // Nothing measured: no probe before the running candidate has a cost to scale from.
+        assert_eq!(governor.decide(Motion::Still, false), Action::Stay);
+        governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+        let Action::Probe(probed) = governor.decide(Motion::Still, false) else {
+            panic!("no probe: {}", governor.reason());
+        };
+        // dvct (40× differential's still cost) and dir (12×) are predicted far over 33 ms.
+        assert_eq!(probed, PT, "the most promising unmeasured within reach");
+        assert_eq!(
+            governor.decide(Motion::Still, true),
+            Action::Stay,
+            "waits for its build"
+        );
+        governor.switched(PT);
+        // pt's one sample costs 40 ms: over budget; once measured, back to the best that fits.
+        let mut action = Action::Stay;
+        for samples in 1..=PT_PROBE_SAMPLES {
+            governor.observe(
+                PT,
+                Motion::Still,
+                40.0,
+                samples > 1,
+                Some(PtFrame {
+                    path_samples: samples,
+                    samples_added: 1,
+                    estimated_error: Some(0.3),
+                }),
+            );
+            action = governor.decide(Motion::Still, false);
+            if action != Action::Stay {
+                break;
+            }
+        }
+        assert_eq!(
+            action,
+            Action::Switch(DIFFERENTIAL),
+            "{}",
+            governor.reason()
+        );
+        governor.switched(DIFFERENTIAL);
+        // Then the next promising one within three budgets: dir (12× differential: 60 ms).
+        assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR));
+    }
+
+    #[test]
+    fn it_does_not_flap_when_the_features_wobble_across_a_choice() {
+        // A little bleeding ties dlpv with differential (the cheaper is chosen); more makes
+        // dlpv the choice. The features alternate between the two every frame.
+        let (little, more) = (features(1.0, 0.05, 0.0), features(1.0, 0.3, 0.0));
+        let mut governor = measured(little, 10.0);
+        assert_eq!(governor.choose(Motion::Still).0, DIFFERENTIAL);
+        governor.set_features(more);
+        assert_eq!(governor.choose(Motion::Still).0, DLPV);
+        let mut switches = 0;
+        for frame in 0..200 {
+            governor.set_features(if frame % 2 == 0 { little } else { more });
+            switches += run(&mut governor, Motion::Still, 1).len();
+        }
+        assert!(switches <= 1, "{switches} switches");
+    }
+
+    #[test]
+    fn a_better_candidate_waits_for_the_dwell_and_over_budget_does_not() {
+        let mut governor = measured(features(2.0, 6.0, 0.0), 33.0);
+        governor.switched(DIFFERENTIAL);
+        // dir64 is far better, but a switch happened just now.
+        for _ in 1..MIN_DWELL {
+            governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+            assert_eq!(governor.decide(Motion::Still, false), Action::Stay);
+        }
+        governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+        assert_eq!(governor.decide(Motion::Still, false), Action::Switch(DIR64));
+        governor.switched(DIR64);
+        // The budget drops under dir64's cost: it leaves after OVER_BUDGET_FRAMES frames over,
+        // without waiting for the dwell.
+        governor.set_settings(Settings {
+            budget_ms: 10.0,
+            ..governor.settings()
+        });
+        let mut frames = 0;
+        loop {
+            frames += 1;
+            governor.observe(DIR64, Motion::Still, 20.0, true, None);
+            if let Action::Switch(c) = governor.decide(Motion::Still, false) {
+                assert!([DIFFERENTIAL, IBL, DLPV].contains(&c));
+                break;
+            }
+            assert!(
+                frames < 10,
+                "still on dir64 after {frames} frames over budget"
+            );
+        }
+        assert!(frames <= OVER_BUDGET_FRAMES, "{frames}");
+    }
 }

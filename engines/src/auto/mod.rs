@@ -18,7 +18,7 @@
 pub mod features;
 pub mod governor;
 
-use std::sync::mpsc::{Receiver, Sender, channel};
+use std::sync::mpsc::{Receiver, channel};
 use std::time::Instant;
 
 use relight_core::scene::SceneCamera;
@@ -40,40 +40,37 @@ const FEATURES_EVERY: u32 = 10;
 
 type Built = (usize, Result<Box<dyn Engine>, String>);
 
-/// Builds candidates off the render thread.
+/// Builds the candidates off the render thread, all of them, one after another, from the
+/// start: a probe or a switch then waits for no build (pipelines compile for seconds on
+/// lavapipe), and pipelines are all an unused candidate holds (engines allocate their buffers
+/// on their first frame).
 struct Builder {
-    requests: Sender<(usize, String, Map<String, Value>)>,
     built: Receiver<Built>,
-    /// The candidate being built.
-    pending: Option<usize>,
+    /// Candidates not built yet.
+    unbuilt: usize,
 }
 
 impl Builder {
-    fn new(registry: EngineRegistry) -> Self {
-        let (requests, jobs) = channel::<(usize, String, Map<String, Value>)>();
+    fn new(registry: EngineRegistry, jobs: Vec<(usize, &'static str, Map<String, Value>)>) -> Self {
+        let unbuilt = jobs.len();
         let (done, built) = channel();
-        std::thread::Builder::new()
+        let spawned = std::thread::Builder::new()
             .name("auto-builder".into())
             .spawn(move || {
                 for (candidate, engine, params) in jobs {
                     let result = registry
-                        .build(&engine, &params)
+                        .build(engine, &params)
                         .map(|b| b.engine)
                         .map_err(|e| e.to_string());
                     if done.send((candidate, result)).is_err() {
                         break;
                     }
                 }
-            })
-            .map_or_else(
-                |error| tracing::warn!(%error, "auto: no builder thread; candidates stay unbuilt"),
-                drop,
-            );
-        Self {
-            requests,
-            built,
-            pending: None,
+            });
+        if let Err(error) = spawned {
+            tracing::warn!(%error, "auto: no builder thread; only the first candidate runs");
         }
+        Self { built, unbuilt }
     }
 }
 
@@ -97,6 +94,8 @@ pub struct Auto {
     governor: Governor,
     engines: Vec<Option<Box<dyn Engine>>>,
     builder: Builder,
+    /// The candidate to switch to once it is built.
+    wanted: Option<usize>,
     /// Frames the running candidate has rendered since it was switched in.
     frames_on_current: u32,
     stillness: Stillness,
@@ -137,12 +136,12 @@ impl Auto {
                 10.0,
                 0.0,
             ),
-            ParamSpec::int(
-                "horizon_frames",
-                "frames a still camera is expected to stay still (pt accumulates over them)",
-                1,
-                100_000,
-                30,
+            ParamSpec::float(
+                "horizon_ms",
+                "how long a still camera is expected to stay still: what accumulates over frames (pt's samples, edges) is judged at this age",
+                1.0,
+                3_600_000.0,
+                2000.0,
             ),
         ])
     }
@@ -164,12 +163,19 @@ impl Auto {
         let settings = Settings {
             budget_ms: 33.0,
             max_error: None,
-            horizon_frames: 30,
+            horizon_ms: 2000.0,
         };
+        let jobs = candidates
+            .iter()
+            .enumerate()
+            .skip(1)
+            .map(|(i, c)| (i, c.engine, c.params.clone()))
+            .collect();
         let mut auto = Self {
             governor: Governor::new(candidates, 0, settings),
             engines,
-            builder: Builder::new(registry.clone()),
+            builder: Builder::new(registry.clone(), jobs),
+            wanted: None,
             frames_on_current: 0,
             stillness: Stillness::default(),
             motion: Motion::Moving,
@@ -183,6 +189,18 @@ impl Auto {
         Ok(auto)
     }
 
+    /// Block until every candidate is built (the builder works in the background from
+    /// [`Auto::new`] on): for measurements that should not count the builds, which a running
+    /// daemon does not wait for.
+    pub fn wait_for_builds(&mut self) {
+        while self.builder.unbuilt > 0 {
+            match self.builder.built.recv() {
+                Ok(built) => self.take_built(built),
+                Err(_) => break,
+            }
+        }
+    }
+
     /// `pt`'s parameters under this budget: it fits its samples to most of it.
     fn params_for(&self, candidate: usize) -> Map<String, Value> {
         let mut params = self.governor.candidates()[candidate].params.clone();
@@ -191,6 +209,17 @@ impl Auto {
             params.insert("budget_ms".into(), json!((0.9 * budget).max(1.0)));
         }
         params
+    }
+
+    /// Give a built candidate the parameters it runs with here (`pt` its share of the budget).
+    fn configure(&self, candidate: usize, engine: &mut dyn Engine) {
+        if !self.governor.candidates()[candidate].is_path_traced() {
+            return;
+        }
+        let schema = crate::pt::Pt::schema();
+        if let Ok(params) = schema.validate(&schema.defaults(), &self.params_for(candidate)) {
+            engine.set_params(&params);
+        }
     }
 
     fn switch_to(&mut self, candidate: usize) {
@@ -202,37 +231,37 @@ impl Auto {
     /// Start running `candidate`: at once when it is built, else once the builder has it.
     fn want(&mut self, candidate: usize) {
         if self.engines[candidate].is_some() {
+            self.wanted = None;
             self.switch_to(candidate);
-            return;
-        }
-        if self.builder.pending.is_some() {
-            return;
-        }
-        let spec = &self.governor.candidates()[candidate];
-        let request = (
-            candidate,
-            spec.engine.to_owned(),
-            self.params_for(candidate),
-        );
-        if self.builder.requests.send(request).is_ok() {
-            self.builder.pending = Some(candidate);
         } else {
-            self.governor.mark_unavailable(candidate);
+            self.wanted = Some(candidate);
         }
     }
 
-    /// Take up a candidate the builder finished.
+    /// Take up the candidates the builder finished; switch to the wanted one when it is there.
     fn collect_built(&mut self) {
-        while let Ok((candidate, result)) = self.builder.built.try_recv() {
-            self.builder.pending = None;
-            match result {
-                Ok(engine) => {
-                    self.engines[candidate] = Some(engine);
-                    self.switch_to(candidate);
-                }
-                Err(error) => {
-                    tracing::warn!(candidate = %self.governor.candidates()[candidate].label, %error, "auto: candidate not built; left out");
-                    self.governor.mark_unavailable(candidate);
+        while let Ok(built) = self.builder.built.try_recv() {
+            self.take_built(built);
+        }
+        if let Some(candidate) = self.wanted
+            && self.engines[candidate].is_some()
+        {
+            self.want(candidate);
+        }
+    }
+
+    fn take_built(&mut self, (candidate, result): Built) {
+        self.builder.unbuilt = self.builder.unbuilt.saturating_sub(1);
+        match result {
+            Ok(mut engine) => {
+                self.configure(candidate, engine.as_mut());
+                self.engines[candidate] = Some(engine);
+            }
+            Err(error) => {
+                tracing::warn!(candidate = %self.governor.candidates()[candidate].label, %error, "auto: candidate not built; left out");
+                self.governor.mark_unavailable(candidate);
+                if self.wanted == Some(candidate) {
+                    self.wanted = None;
                 }
             }
         }
@@ -258,7 +287,8 @@ impl Auto {
             "features": self.governor.features(),
             "indirect_share": self.governor.features().indirect_share(),
             "probing": self.governor.probing().map(|c| candidates[c].label.clone()),
-            "building": self.builder.pending.map(|c| candidates[c].label.clone()),
+            "waiting_for": self.wanted.map(|c| candidates[c].label.clone()),
+            "unbuilt": self.builder.unbuilt,
             "switches": self.governor.switches(),
             "candidates": assessments,
         });
@@ -326,10 +356,7 @@ impl Engine for Auto {
                 }
             });
         self.governor.observe(current, self.motion, ms, steady, pt);
-        match self
-            .governor
-            .decide(self.motion, self.builder.pending.is_some())
-        {
+        match self.governor.decide(self.motion, self.wanted.is_some()) {
             Action::Stay => {}
             Action::Switch(candidate) | Action::Probe(candidate) => self.want(candidate),
         }
@@ -343,19 +370,12 @@ impl Engine for Auto {
         self.governor.set_settings(Settings {
             budget_ms: schema.float(params, "budget_ms"),
             max_error: (max_error > 0.0).then_some(max_error),
-            horizon_frames: schema.int(params, "horizon_frames") as u32,
+            horizon_ms: schema.float(params, "horizon_ms"),
         });
-        // `pt` fits its samples to the budget.
         for candidate in 0..self.engines.len() {
-            if self.governor.candidates()[candidate].is_path_traced() {
-                let params = self.params_for(candidate);
-                let schema = crate::pt::Pt::schema();
-                if let (Some(engine), Ok(params)) = (
-                    self.engines[candidate].as_mut(),
-                    schema.validate(&schema.defaults(), &params),
-                ) {
-                    engine.set_params(&params);
-                }
+            if let Some(mut engine) = self.engines[candidate].take() {
+                self.configure(candidate, engine.as_mut());
+                self.engines[candidate] = Some(engine);
             }
         }
         self.refresh_status(None);

@@ -52,12 +52,37 @@ pub struct Args {
     /// each pass's achieved fraction of them (roofline.csv, roofline.json).
     #[arg(long)]
     roofline: bool,
+    /// Instead of the engine table: the `auto` engine against every fixed engine that fits
+    /// each budget (`--budget`), on the scenes (a still camera) and on `--recording` (a moving
+    /// one), and `pt`'s error against time beside the CPU reference's (governor.csv,
+    /// governor.json, governor.svg, pt_curve.svg).
+    #[arg(long)]
+    governor: bool,
+    /// Frame budgets for `--governor`, milliseconds.
+    #[arg(long = "budget", value_delimiter = ',', default_values_t = [10.0, 33.0, 100.0, 1000.0])]
+    budgets: Vec<f64>,
+    /// Seconds each engine renders a still scene under `--governor` (at most 30 frames a
+    /// second): the picture is judged this long after the scene appears.
+    #[arg(long, default_value_t = 2.0)]
+    governor_seconds: f64,
+    /// A simulated recording with ground truth for `--governor`, with the scene it was made
+    /// from (`--recording-scene`); the bundled one by default. `none`: scenes only.
+    #[arg(long, default_value = "tests/fixtures/demo.mcap")]
+    recording: String,
+    #[arg(long, default_value = "tests/scenes/desk_box")]
+    recording_scene: PathBuf,
+    /// Samples per pixel of the recording's truth renders.
+    #[arg(long, default_value_t = 16)]
+    recording_reference_spp: u32,
+    /// Seconds of `pt`'s and the CPU reference's error-against-time curves per scene (0: none).
+    #[arg(long, default_value_t = 5.0)]
+    curve_seconds: f64,
     /// Where bench.csv, bench.json and bench.svg (or ibl_maps.csv) are written.
     #[arg(long, default_value = "target/bench")]
     out: PathBuf,
 }
 
-pub fn run(args: Args) -> Result<()> {
+pub fn run(mut args: Args) -> Result<()> {
     if !args.ibl_maps.is_empty() {
         println!("size     input texels  maps  median ms");
         let mut csv = String::from("size,input_texels,maps,median_ms\n");
@@ -93,8 +118,11 @@ pub fn run(args: Args) -> Result<()> {
         found.sort();
         found
     } else {
-        args.scenes
+        std::mem::take(&mut args.scenes)
     };
+    if args.governor {
+        return governor(args, scenes);
+    }
     let all_cases = bench::default_cases(args.sweep);
     let mut benched: Vec<&str> = all_cases.iter().map(|c| c.engine.as_str()).collect();
     benched.dedup();
@@ -192,5 +220,54 @@ pub fn run(args: Args) -> Result<()> {
         bench::write_roofline(&rates, &roofline, &args.out, &adapter)?;
         println!("wrote {}/roofline.{{csv,json}}", args.out.display());
     }
+    Ok(())
+}
+
+fn governor(args: Args, scenes: Vec<PathBuf>) -> Result<()> {
+    use relight_daemon::governor_bench::{self, GovernorProgress, GovernorSettings};
+    let settings = GovernorSettings {
+        bench: BenchSettings {
+            scenes,
+            width: args.width,
+            height: args.height,
+            reference_spp: args.reference_spp,
+            max_reference_spp: args.max_reference_spp,
+            reference_cache: (!args.no_reference_cache).then_some(args.reference_cache),
+            frames: args.frames,
+            accumulate: None,
+            cases: Vec::new(),
+        },
+        budgets_ms: args.budgets,
+        seconds: args.governor_seconds,
+        recording: (args.recording != "none")
+            .then(|| (PathBuf::from(&args.recording), args.recording_scene)),
+        recording_reference_spp: args.recording_reference_spp,
+        curve_seconds: args.curve_seconds,
+    };
+    let adapter = relight_engines::gpu::GpuContext::new()
+        .map(|c| format!("{} ({:?})", c.info.name, c.info.backend))
+        .unwrap_or_else(|e| format!("no GPU: {e}"));
+    eprintln!("governor bench on {adapter}");
+    let report = governor_bench::run(&settings, |event| match event {
+        GovernorProgress::Reference(bench::BenchProgress::Reference {
+            scene, spp, cached, ..
+        }) => eprintln!(
+            "{scene}: {} the pixel-area reference ({spp} spp)",
+            if cached { "cached" } else { "rendering" }
+        ),
+        GovernorProgress::Reference(_) => {}
+        GovernorProgress::Run { scene, engine } => eprintln!("{scene}: {engine}"),
+    })?;
+    print!("{}", governor_bench::table(&report));
+    governor_bench::write_outputs(&report, &args.out, &adapter)?;
+    println!(
+        "wrote {}/governor.{{csv,json,svg}}{}",
+        args.out.display(),
+        if report.curve.is_empty() {
+            ""
+        } else {
+            " and pt_curve.svg"
+        }
+    );
     Ok(())
 }

@@ -1,0 +1,746 @@
+//! `relightd bench --governor`: does `auto` meet a frame budget with the least error? For each
+//! scene and budget, `auto`'s error at its frame time against every fixed engine (the governor's
+//! candidates at their parameters, `pt` at the budget) that fits the budget, on the adapter at
+//! hand; and `pt`'s error against time beside the CPU reference's at equal time.
+//!
+//! **Scenes (a still camera): the picture [`GovernorSettings::seconds`] after the scene
+//! appears.** Each engine is built (`auto` with all its candidates, as a daemon builds an engine
+//! before it swaps it in), then renders the scene's frame for that long, no faster than a 30 Hz
+//! sensor delivers frames: everything it accumulates (the rasterisers' sub-pixel edges, `pt`'s
+//! samples) and, for `auto`, its probes and switches happen on that clock. Its time is the
+//! median frame; its error that of the last frame's Δ (relative L2 over real pixels) against the
+//! reference over each pixel's area (what a camera sees, and what still frames converge to).
+//! `auto`'s horizon is set to the same time. A fixed engine fits when its median frame is
+//! within the budget; `auto` **matches** the best one that fits when its error is at most
+//! [`MATCH_TOLERANCE`] above it (the references' noise is reported beside).
+//!
+//! **The bundled recording (a moving camera).** `relightd score` per engine (every frame's
+//! inputs change): the median Δ error against the recording's truth, the mean render time.
+//!
+//! **pt's curve.** `pt` at one sample per pixel per frame, accumulating; the CPU reference
+//! (another seed than the truth's) doubling its samples; each point the error after that much
+//! wall-clock time.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use glam::Vec3;
+use plotters::prelude::*;
+use relight_core::scene::Scene;
+use relight_engines::auto::Auto;
+use relight_engines::auto::governor::candidates;
+use relight_engines::offline::{Sampling, background, delta_error, delta_pixels, scene_frame};
+use relight_engines::reference::{ReferenceImages, ReferenceRenderer, ReferenceSettings};
+use relight_engines::{Engine, EngineRegistry, RelitFrame, SceneFrame};
+use serde::Serialize;
+use serde_json::{Map, Value, json};
+
+use crate::bench::{BenchProgress, BenchSettings, Truth};
+use crate::score::{ScoreSettings, default_config};
+
+/// `auto` matches the best fixed engine within 5 % of its error.
+pub const MATCH_TOLERANCE: f64 = 0.05;
+/// Frames come no faster than a 30 Hz sensor's.
+const SENSOR_PERIOD: Duration = Duration::from_nanos(1_000_000_000 / 30);
+
+#[derive(Debug, Clone)]
+pub struct GovernorSettings {
+    /// Scenes, size and references (its `cases` are not used).
+    pub bench: BenchSettings,
+    pub budgets_ms: Vec<f64>,
+    /// How long each engine renders a still scene, seconds (`auto`'s horizon too).
+    pub seconds: f64,
+    /// A simulated recording and its scene, run through the live path per engine.
+    pub recording: Option<(PathBuf, PathBuf)>,
+    /// Samples per pixel of the recording's truth renders.
+    pub recording_reference_spp: u32,
+    /// Wall-clock seconds of `pt`'s and the reference's error curves (0: none).
+    pub curve_seconds: f64,
+}
+
+/// One engine's run on one scene.
+#[derive(Debug, Clone, Serialize)]
+pub struct EngineRun {
+    pub scene: String,
+    /// The setting (`auto budget_ms=33` for auto).
+    pub engine: String,
+    pub budget_ms: Option<f64>,
+    pub median_ms: f64,
+    pub relative_l2: f64,
+    /// Frames rendered in the run.
+    pub frames: usize,
+    /// For `auto`: what it chose and its switches.
+    pub chosen: Option<String>,
+    pub switches: Option<u64>,
+    /// `auto`'s status after its run: the features, every candidate's prediction and cost.
+    pub status: Option<Value>,
+}
+
+/// The comparison at one budget on one scene (the JSON rows).
+#[derive(Debug, Clone, Serialize)]
+pub struct GovernorRow {
+    pub scene: String,
+    pub budget_ms: f64,
+    pub auto_engine: String,
+    pub auto_relative_l2: f64,
+    pub auto_ms: f64,
+    /// The fixed engine with the least error among those whose median frame fits the
+    /// budget; `None` when none fits.
+    pub best_fixed_engine: Option<String>,
+    pub best_fixed_relative_l2: Option<f64>,
+    pub best_fixed_ms: Option<f64>,
+    pub fixed_that_fit: usize,
+    /// `beats`, `matches` (within [`MATCH_TOLERANCE`]), `worse`, or `none fits`.
+    pub verdict: &'static str,
+    /// The truth's own noise in the metric (the scenes' area reference; NaN for the
+    /// recording, whose truth frames are rendered at `recording_reference_spp`).
+    pub reference_noise: f64,
+}
+
+/// A point of an error-against-time curve.
+#[derive(Debug, Clone, Serialize)]
+pub struct CurvePoint {
+    pub scene: String,
+    /// `pt` or `reference` (the CPU path tracer).
+    pub renderer: &'static str,
+    pub seconds: f64,
+    pub spp: u32,
+    pub relative_l2: f64,
+}
+
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct GovernorReport {
+    pub rows: Vec<GovernorRow>,
+    pub runs: Vec<EngineRun>,
+    pub curve: Vec<CurvePoint>,
+}
+
+/// What the run is doing, for a progress display.
+#[derive(Debug)]
+pub enum GovernorProgress<'a> {
+    Reference(BenchProgress<'a>),
+    Run { scene: &'a str, engine: String },
+}
+
+/// Median of `times` (sorted in place).
+fn median(times: &mut [f64]) -> f64 {
+    times.sort_by(f64::total_cmp);
+    times.get(times.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+/// Render `frame` for `seconds` of wall-clock time, no faster than the sensor's rate (a frame
+/// that takes less waits for the next): the median frame time, the frames and the last frame.
+fn timeline(
+    engine: &mut dyn Engine,
+    frame: &SceneFrame,
+    seconds: f64,
+) -> Result<(f64, usize, RelitFrame)> {
+    let mut out = RelitFrame::default();
+    let mut times = Vec::new();
+    let started = Instant::now();
+    loop {
+        let frame_started = Instant::now();
+        engine.render(frame, &mut out)?;
+        let took = frame_started.elapsed();
+        times.push(took.as_secs_f64() * 1e3);
+        if started.elapsed().as_secs_f64() >= seconds {
+            break;
+        }
+        std::thread::sleep(SENSOR_PERIOD.saturating_sub(took));
+    }
+    let frames = times.len();
+    Ok((median(&mut times), frames, out))
+}
+
+/// The fixed settings compared at `budget`: the governor's candidates, `pt` at the budget.
+fn fixed_settings(budget_ms: f64) -> Vec<(String, &'static str, Map<String, Value>)> {
+    candidates()
+        .into_iter()
+        .map(|c| {
+            let mut params = c.params.clone();
+            let mut label = c.label.clone();
+            if c.is_path_traced() {
+                params.insert("budget_ms".into(), json!(budget_ms));
+                label = format!("pt budget_ms={budget_ms}");
+            }
+            (label, c.engine, params)
+        })
+        .collect()
+}
+
+/// The comparison of `auto` with the fixed runs at one budget.
+fn compare(
+    scene: &str,
+    budget_ms: f64,
+    auto: &EngineRun,
+    fixed: &[&EngineRun],
+    reference_noise: f64,
+) -> GovernorRow {
+    let fitting: Vec<&&EngineRun> = fixed
+        .iter()
+        .filter(|r| r.median_ms <= budget_ms && r.relative_l2.is_finite())
+        .collect();
+    let best = fitting
+        .iter()
+        .min_by(|a, b| a.relative_l2.total_cmp(&b.relative_l2));
+    let verdict = match best {
+        None => "none fits",
+        Some(b) if auto.relative_l2 < b.relative_l2 => "beats",
+        Some(b) if auto.relative_l2 <= b.relative_l2 * (1.0 + MATCH_TOLERANCE) => "matches",
+        Some(_) => "worse",
+    };
+    GovernorRow {
+        scene: scene.to_owned(),
+        budget_ms,
+        auto_engine: auto.chosen.clone().unwrap_or_default(),
+        auto_relative_l2: auto.relative_l2,
+        auto_ms: auto.median_ms,
+        best_fixed_engine: best.map(|b| b.engine.clone()),
+        best_fixed_relative_l2: best.map(|b| b.relative_l2),
+        best_fixed_ms: best.map(|b| b.median_ms),
+        fixed_that_fit: fitting.len(),
+        verdict,
+        reference_noise,
+    }
+}
+
+/// Every scene and budget, the recording, and the curves.
+pub fn run(
+    settings: &GovernorSettings,
+    mut progress: impl FnMut(GovernorProgress<'_>),
+) -> Result<GovernorReport> {
+    let registry = EngineRegistry::new();
+    let mut report = GovernorReport::default();
+    for dir in &settings.bench.scenes {
+        let scene = Arc::new(Scene::load(dir)?);
+        let name = scene.name.clone();
+        let mut truth = Truth::new(&settings.bench, dir, &scene, Sampling::Area, &mut |p| {
+            progress(GovernorProgress::Reference(p))
+        })?;
+        let frame = scene_frame(scene.clone(), background(&truth.images));
+        // Each run keeps its last Δ until the truth is final.
+        let mut runs: Vec<(EngineRun, Vec<Vec3>)> = Vec::new();
+        let measure = |engine: &str,
+                       params: &Map<String, Value>,
+                       label: String,
+                       budget_ms: Option<f64>,
+                       progress: &mut dyn FnMut(GovernorProgress<'_>)|
+         -> Result<(EngineRun, Vec<Vec3>)> {
+            progress(GovernorProgress::Run {
+                scene: &name,
+                engine: label.clone(),
+            });
+            // Built before the run starts, as a running daemon builds an engine before it swaps
+            // it in; `auto`'s candidates too.
+            let mut built: Box<dyn Engine> = if engine == Auto::NAME {
+                let mut auto = Auto::new(&registry).context("auto")?;
+                let schema = Auto::schema();
+                let mut params = schema.validate(&schema.defaults(), params)?;
+                params.insert("horizon_ms".into(), json!(settings.seconds * 1e3));
+                auto.set_params(&params);
+                auto.wait_for_builds();
+                Box::new(auto)
+            } else {
+                registry
+                    .build(engine, params)
+                    .with_context(|| label.clone())?
+                    .engine
+            };
+            let (median_ms, frames, out) = timeline(built.as_mut(), &frame, settings.seconds)?;
+            let status = built.status();
+            Ok((
+                EngineRun {
+                    scene: name.clone(),
+                    engine: label,
+                    budget_ms,
+                    median_ms,
+                    relative_l2: f64::NAN,
+                    frames,
+                    chosen: status
+                        .as_ref()
+                        .and_then(|s| s["chosen"].as_str().map(str::to_owned)),
+                    switches: status.as_ref().and_then(|s| s["switches"].as_u64()),
+                    status,
+                },
+                delta_pixels(&out.delta),
+            ))
+        };
+        let mut fixed_seen = Vec::new();
+        for &budget in &settings.budgets_ms {
+            for (label, engine, params) in fixed_settings(budget) {
+                // A fixed engine's run does not depend on the budget, but `pt`'s does.
+                if fixed_seen.contains(&label) {
+                    continue;
+                }
+                fixed_seen.push(label.clone());
+                let budget_of = params.contains_key("budget_ms").then_some(budget);
+                match measure(engine, &params, label, budget_of, &mut progress) {
+                    Ok(run) => runs.push(run),
+                    Err(error) => tracing::warn!("{name}: skipped: {error:#}"),
+                }
+            }
+            let params = json!({ "budget_ms": budget });
+            let params = params.as_object().cloned().unwrap_or_default();
+            let label = format!("auto budget_ms={budget}");
+            runs.push(measure(
+                Auto::NAME,
+                &params,
+                label,
+                Some(budget),
+                &mut progress,
+            )?);
+        }
+        let score = |runs: &mut Vec<(EngineRun, Vec<Vec3>)>, truth: &ReferenceImages| {
+            for (run, delta) in runs {
+                run.relative_l2 = delta_error(delta, &truth.delta, &truth.virtual_mask).0;
+            }
+        };
+        score(&mut runs, &truth.images);
+        let best = runs
+            .iter()
+            .map(|(r, _)| r.relative_l2)
+            .filter(|e| e.is_finite())
+            .fold(f64::INFINITY, f64::min);
+        if truth.refine(&scene, best, settings.bench.max_reference_spp, &mut |p| {
+            progress(GovernorProgress::Reference(p))
+        })? {
+            score(&mut runs, &truth.images);
+        }
+        truth.store(&name);
+        let noise = relight_engines::offline::reference_noise(&truth.images);
+        for &budget in &settings.budgets_ms {
+            let fixed: Vec<&EngineRun> = runs
+                .iter()
+                .map(|(r, _)| r)
+                .filter(|r| !r.engine.starts_with("auto"))
+                .filter(|r| r.budget_ms.is_none_or(|b| b == budget))
+                .collect();
+            if let Some((auto, _)) = runs
+                .iter()
+                .find(|(r, _)| r.engine.starts_with("auto") && r.budget_ms == Some(budget))
+            {
+                report
+                    .rows
+                    .push(compare(&name, budget, auto, &fixed, noise));
+            }
+        }
+        if settings.curve_seconds > 0.0 {
+            report
+                .curve
+                .extend(curves(&registry, &scene, &frame, &truth.images, settings)?);
+        }
+        report.runs.extend(runs.into_iter().map(|(r, _)| r));
+    }
+    if let Some((recording, scene)) = &settings.recording {
+        let (rows, runs) = recording_rows(recording, scene, settings, &mut progress)?;
+        report.rows.extend(rows);
+        report.runs.extend(runs);
+    }
+    Ok(report)
+}
+
+/// `pt` accumulating one sample per pixel per frame, and the CPU reference (seed 1; the
+/// truth's is 0) doubling its samples, until `curve_seconds` each: the error after each step.
+fn curves(
+    registry: &EngineRegistry,
+    scene: &Arc<Scene>,
+    frame: &SceneFrame,
+    truth: &ReferenceImages,
+    settings: &GovernorSettings,
+) -> Result<Vec<CurvePoint>> {
+    let mut points = Vec::new();
+    let error = |delta: &[Vec3]| delta_error(delta, &truth.delta, &truth.virtual_mask).0;
+    let params = json!({ "spp": 1, "max_spp": 1 << 20 });
+    let mut pt = registry
+        .build("pt", params.as_object().unwrap_or(&Map::new()))?
+        .engine;
+    let mut out = RelitFrame::default();
+    // The first frame compiles and uploads; time from the second on, as a running engine.
+    pt.render(frame, &mut out)?;
+    let started = Instant::now();
+    let mut next_point = 1;
+    while started.elapsed().as_secs_f64() < settings.curve_seconds {
+        pt.render(frame, &mut out)?;
+        if out.path_samples >= next_point {
+            points.push(CurvePoint {
+                scene: scene.name.clone(),
+                renderer: "pt",
+                seconds: started.elapsed().as_secs_f64(),
+                spp: out.path_samples,
+                relative_l2: error(&delta_pixels(&out.delta)),
+            });
+            next_point *= 2;
+        }
+    }
+    let (width, height) = (settings.bench.width, settings.bench.height);
+    let mut cpu = ReferenceRenderer::new(
+        scene,
+        ReferenceSettings {
+            seed: 1,
+            size: Some((width, height)),
+            ..ReferenceSettings::default()
+        },
+    )?;
+    let started = Instant::now();
+    let mut spp = 1;
+    while started.elapsed().as_secs_f64() < settings.curve_seconds {
+        cpu.add_samples(spp - cpu.spp());
+        points.push(CurvePoint {
+            scene: scene.name.clone(),
+            renderer: "reference",
+            seconds: started.elapsed().as_secs_f64(),
+            spp: cpu.spp(),
+            relative_l2: error(&cpu.images().delta),
+        });
+        spp *= 2;
+    }
+    Ok(points)
+}
+
+/// The recording through the live path per engine (`relightd score`): rows per budget.
+fn recording_rows(
+    recording: &Path,
+    scene: &Path,
+    settings: &GovernorSettings,
+    progress: &mut impl FnMut(GovernorProgress<'_>),
+) -> Result<(Vec<GovernorRow>, Vec<EngineRun>)> {
+    let name = format!(
+        "recording:{}",
+        recording
+            .file_stem()
+            .and_then(|s| s.to_str())
+            .unwrap_or("?")
+    );
+    let score = |engine: &str, params: Map<String, Value>, label: String, budget: Option<f64>| {
+        let report = crate::score::run(
+            &ScoreSettings {
+                recording: recording.to_owned(),
+                scene: scene.to_owned(),
+                engine: engine.to_owned(),
+                params,
+                reference_spp: settings.recording_reference_spp,
+                out: None,
+                config: default_config(),
+            },
+            |_, _| {},
+        )?;
+        anyhow::Ok(EngineRun {
+            scene: name.clone(),
+            engine: label,
+            budget_ms: budget,
+            median_ms: report.timings_ms.get("render").copied().unwrap_or(f64::NAN),
+            relative_l2: report
+                .measures
+                .get("delta_rel_l2")
+                .map_or(f64::NAN, |s| s.median),
+            frames: report.frames,
+            chosen: None,
+            switches: None,
+            status: None,
+        })
+    };
+    let mut runs = Vec::new();
+    let mut fixed_seen = Vec::new();
+    for &budget in &settings.budgets_ms {
+        for (label, engine, params) in fixed_settings(budget) {
+            if fixed_seen.contains(&label) {
+                continue;
+            }
+            fixed_seen.push(label.clone());
+            progress(GovernorProgress::Run {
+                scene: &name,
+                engine: label.clone(),
+            });
+            let budget_of = params.contains_key("budget_ms").then_some(budget);
+            runs.push(score(engine, params, label, budget_of)?);
+        }
+        let label = format!("auto budget_ms={budget}");
+        progress(GovernorProgress::Run {
+            scene: &name,
+            engine: label.clone(),
+        });
+        let params = json!({ "budget_ms": budget });
+        let mut run = score(
+            "auto",
+            params.as_object().cloned().unwrap_or_default(),
+            label,
+            Some(budget),
+        )?;
+        run.chosen = Some("(per frame; see its status)".into());
+        runs.push(run);
+    }
+    let rows = settings
+        .budgets_ms
+        .iter()
+        .filter_map(|&budget| {
+            let fixed: Vec<&EngineRun> = runs
+                .iter()
+                .filter(|r| !r.engine.starts_with("auto"))
+                .filter(|r| r.budget_ms.is_none_or(|b| b == budget))
+                .collect();
+            let auto = runs
+                .iter()
+                .find(|r| r.engine.starts_with("auto") && r.budget_ms == Some(budget))?;
+            Some(compare(&name, budget, auto, &fixed, f64::NAN))
+        })
+        .collect();
+    Ok((rows, runs))
+}
+
+pub fn table(report: &GovernorReport) -> String {
+    let mut s = format!(
+        "{:<24} {:>9}  {:<30} {:>9} {:>9}  {:<30} {:>9} {:>9} {:>4}  {:<9} {:>9}\n",
+        "scene",
+        "budget",
+        "auto chose",
+        "auto L2",
+        "auto ms",
+        "best fixed that fits",
+        "fixed L2",
+        "fixed ms",
+        "fit",
+        "verdict",
+        "ref noise"
+    );
+    let or_dash = |v: Option<f64>, digits: usize| v.map_or("-".into(), |v| format!("{v:.digits$}"));
+    for r in &report.rows {
+        s.push_str(&format!(
+            "{:<24} {:>9.0}  {:<30} {:>9.4} {:>9.1}  {:<30} {:>9} {:>9} {:>4}  {:<9} {:>9.4}\n",
+            r.scene,
+            r.budget_ms,
+            r.auto_engine,
+            r.auto_relative_l2,
+            r.auto_ms,
+            r.best_fixed_engine.as_deref().unwrap_or("-"),
+            or_dash(r.best_fixed_relative_l2, 4),
+            or_dash(r.best_fixed_ms, 1),
+            r.fixed_that_fit,
+            r.verdict,
+            r.reference_noise
+        ));
+    }
+    for budget in report
+        .rows
+        .iter()
+        .map(|r| r.budget_ms)
+        .fold(Vec::<f64>::new(), |mut v, b| {
+            if !v.contains(&b) {
+                v.push(b);
+            }
+            v
+        })
+    {
+        let scenes: Vec<&GovernorRow> = report
+            .rows
+            .iter()
+            .filter(|r| r.budget_ms == budget && !r.scene.starts_with("recording:"))
+            .collect();
+        let good = scenes
+            .iter()
+            .filter(|r| matches!(r.verdict, "beats" | "matches" | "none fits"))
+            .count();
+        s.push_str(&format!(
+            "{budget:>6.0} ms: auto matches or beats the best fixed engine that fits on {good} of {} scenes\n",
+            scenes.len()
+        ));
+    }
+    s
+}
+
+/// `governor.csv`, `governor.json` (rows, runs, curve), `governor.svg` (error against budget)
+/// and `pt_curve.svg` (error against time) in `dir`.
+pub fn write_outputs(report: &GovernorReport, dir: &Path, adapter: &str) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let or_empty = |v: Option<f64>| v.map_or(String::new(), |e| e.to_string());
+    let mut csv = String::from(
+        "scene,budget_ms,auto_engine,auto_relative_l2,auto_ms,best_fixed_engine,best_fixed_relative_l2,best_fixed_ms,fixed_that_fit,verdict,reference_noise\n",
+    );
+    for r in &report.rows {
+        csv.push_str(&format!(
+            "{},{},\"{}\",{},{},\"{}\",{},{},{},{},{}\n",
+            r.scene,
+            r.budget_ms,
+            r.auto_engine,
+            r.auto_relative_l2,
+            r.auto_ms,
+            r.best_fixed_engine.as_deref().unwrap_or(""),
+            or_empty(r.best_fixed_relative_l2),
+            or_empty(r.best_fixed_ms),
+            r.fixed_that_fit,
+            r.verdict,
+            r.reference_noise
+        ));
+    }
+    std::fs::write(dir.join("governor.csv"), csv)?;
+    std::fs::write(
+        dir.join("governor.json"),
+        serde_json::to_string_pretty(&json!({
+            "adapter": adapter,
+            "rows": report.rows,
+            "runs": report.runs,
+            "curve": report.curve,
+        }))?,
+    )?;
+    plot_budgets(report, &dir.join("governor.svg"), adapter)?;
+    if !report.curve.is_empty() {
+        plot_curve(report, &dir.join("pt_curve.svg"), adapter)?;
+    }
+    Ok(())
+}
+
+fn plot_error(e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow::anyhow!("{e}")
+}
+
+/// The scenes' panels on one drawing: one per name, three columns.
+fn panels<'a>(
+    path: &'a Path,
+    count: usize,
+    title: &str,
+) -> Result<Vec<DrawingArea<SVGBackend<'a>, plotters::coord::Shift>>> {
+    let columns = count.clamp(1, 3);
+    let rows = count.div_ceil(columns).max(1);
+    let root =
+        SVGBackend::new(path, (420 * columns as u32, 340 * rows as u32 + 40)).into_drawing_area();
+    root.fill(&WHITE).map_err(plot_error)?;
+    let root = root.titled(title, ("sans-serif", 18)).map_err(plot_error)?;
+    Ok(root.split_evenly((rows, columns)))
+}
+
+fn plot_budgets(report: &GovernorReport, path: &Path, adapter: &str) -> Result<()> {
+    let mut scenes: Vec<&str> = report.rows.iter().map(|r| r.scene.as_str()).collect();
+    scenes.dedup();
+    let areas = panels(
+        path,
+        scenes.len(),
+        &format!("auto against the best fixed engine that fits, by budget ({adapter})"),
+    )?;
+    for (scene, area) in scenes.iter().zip(&areas) {
+        let rows: Vec<&GovernorRow> = report.rows.iter().filter(|r| r.scene == *scene).collect();
+        let (lo, hi) = rows.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), r| {
+            (lo.min(r.budget_ms), hi.max(r.budget_ms))
+        });
+        let top = rows
+            .iter()
+            .flat_map(|r| [Some(r.auto_relative_l2), r.best_fixed_relative_l2])
+            .flatten()
+            .filter(|e| e.is_finite())
+            .fold(0.1, f64::max)
+            * 1.15;
+        let mut chart = ChartBuilder::on(area)
+            .caption(*scene, ("sans-serif", 14))
+            .margin(10)
+            .x_label_area_size(32)
+            .y_label_area_size(44)
+            .build_cartesian_2d((lo / 1.5..hi * 1.5).log_scale(), 0.0..top)
+            .map_err(plot_error)?;
+        chart
+            .configure_mesh()
+            .x_desc("budget (ms, log)")
+            .y_desc("relative L2 of Δ")
+            .draw()
+            .map_err(plot_error)?;
+        let auto: Vec<(f64, f64)> = rows
+            .iter()
+            .map(|r| (r.budget_ms, r.auto_relative_l2))
+            .collect();
+        chart
+            .draw_series(LineSeries::new(auto.clone(), BLUE.stroke_width(2)))
+            .map_err(plot_error)?
+            .label("auto")
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], BLUE));
+        chart
+            .draw_series(auto.iter().map(|p| Circle::new(*p, 3, BLUE.filled())))
+            .map_err(plot_error)?;
+        let fixed: Vec<(f64, f64)> = rows
+            .iter()
+            .filter_map(|r| Some((r.budget_ms, r.best_fixed_relative_l2?)))
+            .collect();
+        chart
+            .draw_series(LineSeries::new(fixed.clone(), RED.stroke_width(1)))
+            .map_err(plot_error)?
+            .label("best fixed that fits")
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], RED));
+        chart
+            .draw_series(fixed.iter().map(|p| Cross::new(*p, 4, RED)))
+            .map_err(plot_error)?;
+        chart
+            .configure_series_labels()
+            .border_style(BLACK)
+            .background_style(WHITE.mix(0.8))
+            .draw()
+            .map_err(plot_error)?;
+    }
+    Ok(())
+}
+
+fn plot_curve(report: &GovernorReport, path: &Path, adapter: &str) -> Result<()> {
+    let mut scenes: Vec<&str> = report.curve.iter().map(|p| p.scene.as_str()).collect();
+    scenes.dedup();
+    let areas = panels(
+        path,
+        scenes.len(),
+        &format!("error against time: pt ({adapter}) and the CPU reference"),
+    )?;
+    for (scene, area) in scenes.iter().zip(&areas) {
+        let points: Vec<&CurvePoint> = report
+            .curve
+            .iter()
+            .filter(|p| p.scene == *scene && p.relative_l2.is_finite() && p.relative_l2 > 0.0)
+            .collect();
+        let (t_lo, t_hi, e_lo, e_hi) = points.iter().fold(
+            (f64::INFINITY, 0.0f64, f64::INFINITY, 0.0f64),
+            |(a, b, c, d), p| {
+                (
+                    a.min(p.seconds),
+                    b.max(p.seconds),
+                    c.min(p.relative_l2),
+                    d.max(p.relative_l2),
+                )
+            },
+        );
+        if points.is_empty() {
+            continue;
+        }
+        let mut chart = ChartBuilder::on(area)
+            .caption(*scene, ("sans-serif", 14))
+            .margin(10)
+            .x_label_area_size(32)
+            .y_label_area_size(44)
+            .build_cartesian_2d(
+                (t_lo.max(1e-4) / 1.5..t_hi * 1.5).log_scale(),
+                (e_lo / 1.5..e_hi * 1.5).log_scale(),
+            )
+            .map_err(plot_error)?;
+        chart
+            .configure_mesh()
+            .x_desc("seconds (log)")
+            .y_desc("relative L2 of Δ (log)")
+            .draw()
+            .map_err(plot_error)?;
+        for (renderer, colour) in [("pt", BLUE), ("reference", RED)] {
+            let line: Vec<(f64, f64)> = points
+                .iter()
+                .filter(|p| p.renderer == renderer)
+                .map(|p| (p.seconds.max(1e-4), p.relative_l2))
+                .collect();
+            chart
+                .draw_series(LineSeries::new(line.clone(), colour.stroke_width(2)))
+                .map_err(plot_error)?
+                .label(renderer)
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 16, y)], colour));
+            chart
+                .draw_series(line.iter().map(|p| Circle::new(*p, 3, colour.filled())))
+                .map_err(plot_error)?;
+        }
+        chart
+            .configure_series_labels()
+            .border_style(BLACK)
+            .background_style(WHITE.mix(0.8))
+            .draw()
+            .map_err(plot_error)?;
+    }
+    Ok(())
+}
