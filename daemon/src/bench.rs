@@ -74,6 +74,7 @@ pub fn default_cases(sweep: bool) -> Vec<BenchCase> {
         BenchCase::new("dvct", json!({ "shadows": "cones" })),
         BenchCase::new("dir", json!({})),
         BenchCase::new("ibl", json!({})),
+        BenchCase::new("pt", json!({})),
     ];
     if sweep {
         for rsm in [256, 1024] {

@@ -17,21 +17,21 @@ fn auto_moves_to_what_the_scene_needs_and_back_to_what_fits() {
     let frame = frame(Arc::new(load_scene("spot_bleed")), 40, 30);
     let mut auto = engine_with("auto", serde_json::json!({ "budget_ms": 1000.0 }));
     let mut out = RelitFrame::default();
-    let status = |auto: &Box<dyn relight_engines::Engine>| auto.status().unwrap();
+    let status = |auto: &dyn relight_engines::Engine| auto.status().unwrap();
     // Candidates build in the background (lavapipe compiles for seconds): frames go on.
     let started = Instant::now();
     let mut frames = 0;
-    while status(&auto)["chosen"] == "differential" {
+    while status(auto.as_ref())["chosen"] == "differential" {
         auto.render(&frame, &mut out).unwrap();
         frames += 1;
         assert_eq!(out.composite.width(), 40, "frame {frames}");
         assert!(
             started.elapsed() < Duration::from_secs(120),
             "still on differential after {frames} frames: {}",
-            status(&auto)
+            status(auto.as_ref())
         );
     }
-    let report = status(&auto);
+    let report = status(auto.as_ref());
     assert!(
         report["features"]["shadow"].as_f64().unwrap() > 0.0,
         "{report}"
@@ -51,7 +51,7 @@ fn auto_moves_to_what_the_scene_needs_and_back_to_what_fits() {
     for _ in 0..40 {
         auto.render(&frame, &mut out).unwrap();
     }
-    let report = status(&auto);
+    let report = status(auto.as_ref());
     assert!(
         ["differential", "ibl"].contains(&report["chosen"].as_str().unwrap()),
         "{report}"

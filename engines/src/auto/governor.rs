@@ -17,8 +17,8 @@
 //! once while it moves.
 //!
 //! **Cost.** The frame time of each candidate, tracked per motion state (a still scene lets
-//! engines keep work between frames) as a running average of its own frames, first measured by
-//! a short probe. A candidate whose cost is not known yet is probed only when it would be chosen
+//! engines keep work between frames) as the median of its last frames, first measured by a
+//! short probe. A candidate whose cost is not known yet is probed only when it would be chosen
 //! were it to fit, and only when the cost ratios in [`ErrorModel::relative_cost`] (lavapipe's,
 //! a rough prior) do not put it far over the budget.
 //!
@@ -36,9 +36,11 @@ use serde_json::{Map, Value};
 
 use super::features::SceneFeatures;
 
-/// Errors within 5 % (relative) or 0.005 of each other count as equal.
+/// Errors within 5 % (relative, and 0.002 absolute) of each other count as equal.
 pub const TIE: f64 = 0.05;
-/// A switch for accuracy needs a predicted error 10 % and 0.005 lower.
+/// The absolute part of a tie and of a margin.
+const SLACK: f64 = 0.002;
+/// A switch for accuracy needs a predicted error 10 % (and 0.002) lower.
 pub const MARGIN: f64 = 0.10;
 /// A switch for cost (to a candidate as accurate, or under `max_error`) needs one 20 % cheaper.
 pub const COST_MARGIN: f64 = 0.20;
@@ -46,10 +48,10 @@ pub const COST_MARGIN: f64 = 0.20;
 pub const MIN_DWELL: u32 = 10;
 /// Frames over budget (by 10 %) that force a switch to one that fits.
 pub const OVER_BUDGET_FRAMES: u32 = 3;
-/// A candidate predicted at more than this many budgets is not probed.
-const PROBE_LIMIT: f64 = 3.0;
+/// A candidate estimated at more than this many budgets is not probed.
+const PROBE_LIMIT: f64 = 1.5;
 /// Steady frames (after the first, which allocates and uploads) a probe measures.
-pub const PROBE_FRAMES: u32 = 2;
+pub const PROBE_FRAMES: u32 = 3;
 /// pt's noise at one sample per pixel (relative L2 of Δ) before it has run: the lowest measured
 /// on the five scenes (0.4–3.1, docs/ALGORITHMS.md), so that pt is probed wherever it could
 /// win; its own measurement replaces it once it has traced [`PT_PROBE_SAMPLES`].
@@ -58,6 +60,28 @@ const PT_NOISE_PRIOR: f64 = 0.4;
 pub const PT_PROBE_SAMPLES: u32 = 16;
 /// ... or this many frames, whichever comes first.
 const PT_PROBE_FRAMES: u32 = 30;
+
+/// A candidate's last [`FrameTimes::KEPT`] frame times: their median is its cost, robust to
+/// the odd slow frame (a shared machine, a frame that rebuilt something).
+#[derive(Debug, Clone, Default)]
+struct FrameTimes(std::collections::VecDeque<f64>);
+
+impl FrameTimes {
+    const KEPT: usize = 9;
+
+    fn push(&mut self, ms: f64) {
+        if self.0.len() == Self::KEPT {
+            self.0.pop_front();
+        }
+        self.0.push_back(ms);
+    }
+
+    fn median(&self) -> Option<f64> {
+        let mut sorted: Vec<f64> = self.0.iter().copied().collect();
+        sorted.sort_by(f64::total_cmp);
+        sorted.get(sorted.len() / 2).copied()
+    }
+}
 
 /// Whether the picture's inputs held since the last frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -205,7 +229,7 @@ pub fn candidates() -> Vec<Candidate> {
             "pt",
             serde_json::json!({}),
             ErrorModel::PathTraced {
-                relative_cost: [3.0, 10.0],
+                relative_cost: [2.0, 5.0],
             },
         ),
     ]
@@ -247,8 +271,8 @@ pub struct Settings {
 #[derive(Debug)]
 pub struct Governor {
     candidates: Vec<Candidate>,
-    /// Running-average frame time per candidate, per motion state.
-    costs: Vec<[Option<f64>; 2]>,
+    /// Recent frame times per candidate, per motion state.
+    costs: Vec<[FrameTimes; 2]>,
     /// Candidates that failed to build (left out from then on).
     unavailable: Vec<bool>,
     settings: Settings,
@@ -273,7 +297,7 @@ impl Governor {
         let n = candidates.len();
         Self {
             candidates,
-            costs: vec![[None, None]; n],
+            costs: vec![[FrameTimes::default(), FrameTimes::default()]; n],
             unavailable: vec![false; n],
             settings,
             features: SceneFeatures::default(),
@@ -324,7 +348,7 @@ impl Governor {
     /// Forget every measured cost (the image size changed: costs scale with it).
     pub fn forget_costs(&mut self) {
         for cost in &mut self.costs {
-            *cost = [None, None];
+            *cost = [FrameTimes::default(), FrameTimes::default()];
         }
         self.pt_ms_per_spp = None;
     }
@@ -374,8 +398,7 @@ impl Governor {
             *frames += 1;
         }
         if let Some(cost) = self.costs.get_mut(candidate) {
-            let slot = &mut cost[motion.index()];
-            *slot = Some(slot.map_or(ms, |old| 0.7 * old + 0.3 * ms));
+            cost[motion.index()].push(ms);
         }
         if let Some(pt) = pt {
             self.pt_samples = pt.path_samples;
@@ -472,7 +495,7 @@ impl Governor {
                 one
             });
         }
-        self.costs[candidate][motion.index()]
+        self.costs[candidate][motion.index()].median()
     }
 
     /// A cost from the ratios to a measured candidate, for one not measured yet.
@@ -543,7 +566,7 @@ impl Governor {
         let tied: Vec<_> = fitting
             .iter()
             .copied()
-            .filter(|k| k.1 <= best * (1.0 + TIE) + 0.005)
+            .filter(|k| k.1 <= best * (1.0 + TIE) + SLACK)
             .collect();
         let (c, error, ms) = cheapest(&tied).expect("the best is among the tied");
         let why = if tied.len() > 1 {
@@ -564,7 +587,11 @@ impl Governor {
     /// being built for a switch (no probe starts).
     pub fn decide(&mut self, motion: Motion, building: bool) -> Action {
         if let Some((probed, frames)) = self.probing {
+            // pt's noise is worth measuring only where one sample fits the budget.
             let measuring_noise = self.candidates[probed].is_path_traced()
+                && self
+                    .pt_ms_per_spp
+                    .is_none_or(|ms| ms <= self.settings.budget_ms)
                 && self.pt_samples < PT_PROBE_SAMPLES
                 && frames < PT_PROBE_FRAMES;
             if probed != self.current || frames < PROBE_FRAMES || measuring_noise {
@@ -588,7 +615,7 @@ impl Governor {
         let target = self.predicted_error(choice, motion);
         let probe = (0..self.candidates.len())
             .filter(|&c| !self.unavailable[c] && self.cost(c, motion).is_none())
-            .filter(|&c| self.predicted_error(c, motion) * (1.0 + TIE) + 0.005 < target)
+            .filter(|&c| self.predicted_error(c, motion) * (1.0 + TIE) + SLACK < target)
             .filter(|&c| {
                 self.estimated_cost(c, motion)
                     .is_none_or(|ms| ms <= PROBE_LIMIT * self.settings.budget_ms)
@@ -622,8 +649,8 @@ impl Governor {
             Some(target) if current_error <= target => cheaper,
             // As accurate (within a tie) and clearly cheaper, or clearly more accurate.
             _ => {
-                (cheaper && choice_error <= current_error * (1.0 + TIE) + 0.005)
-                    || choice_error < current_error * (1.0 - MARGIN) - 0.005
+                (cheaper && choice_error <= current_error * (1.0 + TIE) + SLACK)
+                    || choice_error < current_error * (1.0 - MARGIN) - SLACK
             }
         };
         let current_fits = self
@@ -793,7 +820,7 @@ mod tests {
             candidates(),
             DIFFERENTIAL,
             Settings {
-                budget_ms: 33.0,
+                budget_ms: 50.0,
                 max_error: None,
                 horizon_ms: 2000.0,
             },
@@ -802,44 +829,46 @@ mod tests {
         // Nothing measured: no probe before the running candidate has a cost to scale from.
         assert_eq!(governor.decide(Motion::Still, false), Action::Stay);
         governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
-        let Action::Probe(probed) = governor.decide(Motion::Still, false) else {
-            panic!("no probe: {}", governor.reason());
-        };
-        // dvct (40× differential's still cost) and dir (12×) are predicted far over 33 ms.
-        assert_eq!(probed, PT, "the most promising unmeasured within reach");
+        // pt is the most promising, and its sample is estimated at 5× differential's still
+        // frame (25 ms), within reach of the budget; dvct (40×) is not.
+        assert_eq!(governor.decide(Motion::Still, false), Action::Probe(PT));
         assert_eq!(
             governor.decide(Motion::Still, true),
             Action::Stay,
             "waits for its build"
         );
         governor.switched(PT);
-        // pt's one sample costs 40 ms: over budget; once measured, back to the best that fits.
-        let mut action = Action::Stay;
-        for samples in 1..=PT_PROBE_SAMPLES {
+        // Its sample costs 60 ms: it does not fit, so its noise is not worth measuring and the
+        // probe ends after its steady frames; the choice is made afresh, without hysteresis.
+        let mut frames = 0;
+        let action = loop {
+            frames += 1;
             governor.observe(
                 PT,
                 Motion::Still,
-                40.0,
-                samples > 1,
+                60.0,
+                frames > 1,
                 Some(PtFrame {
-                    path_samples: samples,
+                    path_samples: frames,
                     samples_added: 1,
                     estimated_error: Some(0.3),
                 }),
             );
-            action = governor.decide(Motion::Still, false);
+            let action = governor.decide(Motion::Still, false);
             if action != Action::Stay {
-                break;
+                break action;
             }
-        }
+            assert!(frames < 10, "{}", governor.reason());
+        };
         assert_eq!(
             action,
             Action::Switch(DIFFERENTIAL),
             "{}",
             governor.reason()
         );
+        assert_eq!(frames, PROBE_FRAMES + 1);
         governor.switched(DIFFERENTIAL);
-        // Then the next promising one within three budgets: dir (12× differential: 60 ms).
+        // Then the next most promising within reach: dir (12×: 60 ms).
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR));
     }
 

@@ -201,12 +201,14 @@ impl Auto {
         }
     }
 
-    /// `pt`'s parameters under this budget: it fits its samples to most of it.
+    /// A candidate's parameters under this budget: `pt` fits its samples to it.
     fn params_for(&self, candidate: usize) -> Map<String, Value> {
         let mut params = self.governor.candidates()[candidate].params.clone();
         if self.governor.candidates()[candidate].is_path_traced() {
-            let budget = self.governor.settings().budget_ms;
-            params.insert("budget_ms".into(), json!((0.9 * budget).max(1.0)));
+            params.insert(
+                "budget_ms".into(),
+                json!(self.governor.settings().budget_ms),
+            );
         }
         params
     }

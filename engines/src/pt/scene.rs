@@ -91,8 +91,13 @@ impl PtScene {
                 } else {
                     fallback
                 };
-                let flags = u32::from(t.is_virtual) * FLAG_TRI_VIRTUAL
-                    | u32::from(t.albedo.is_some()) * FLAG_TRI_ALBEDO;
+                let virtual_flag = if t.is_virtual { FLAG_TRI_VIRTUAL } else { 0 };
+                let albedo_flag = if t.albedo.is_some() {
+                    FLAG_TRI_ALBEDO
+                } else {
+                    0
+                };
+                let flags = virtual_flag | albedo_flag;
                 Tri {
                     v0: t.v0.extend(f32::from_bits(material)).to_array(),
                     e1: t.e1.extend(f32::from_bits(flags)).to_array(),

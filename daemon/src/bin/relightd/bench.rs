@@ -63,7 +63,7 @@ pub struct Args {
     budgets: Vec<f64>,
     /// Seconds each engine renders a still scene under `--governor` (at most 30 frames a
     /// second): the picture is judged this long after the scene appears.
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, default_value_t = 4.0)]
     governor_seconds: f64,
     /// A simulated recording with ground truth for `--governor`, with the scene it was made
     /// from (`--recording-scene`); the bundled one by default. `none`: scenes only.
