@@ -436,9 +436,15 @@ fn recording_rows(
                 .get("delta_rel_l2")
                 .map_or(f64::NAN, |s| s.median),
             frames: report.frames,
-            chosen: None,
-            switches: None,
-            status: None,
+            chosen: report
+                .engine_status
+                .as_ref()
+                .and_then(|s| s["chosen"].as_str().map(str::to_owned)),
+            switches: report
+                .engine_status
+                .as_ref()
+                .and_then(|s| s["switches"].as_u64()),
+            status: report.engine_status,
         })
     };
     let mut runs = Vec::new();
@@ -462,13 +468,12 @@ fn recording_rows(
             engine: label.clone(),
         });
         let params = json!({ "budget_ms": budget });
-        let mut run = score(
+        let run = score(
             "auto",
             params.as_object().cloned().unwrap_or_default(),
             label,
             Some(budget),
         )?;
-        run.chosen = Some("(per frame; see its status)".into());
         runs.push(run);
     }
     let rows = settings

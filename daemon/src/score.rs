@@ -109,6 +109,9 @@ pub struct ScoreReport {
     /// Mean milliseconds per frame set of each live stage.
     pub timings_ms: BTreeMap<String, f64>,
     pub per_frame: Vec<FrameScore>,
+    /// The engine's own report after the last frame ([`relight_engines::Engine::status`]:
+    /// `auto`'s choice); `None` for an engine without one.
+    pub engine_status: Option<Value>,
 }
 
 /// The measures in report order (the `--json` keys).
@@ -406,6 +409,7 @@ pub fn run(
     for set in synchronizer.flush() {
         score_set(set, &mut live, &mut add_ms)?;
     }
+    let engine_status = engine.status();
     let measures = MEASURES
         .iter()
         .map(|name| (*name, summarise(&per_frame, name)))
@@ -422,6 +426,7 @@ pub fn run(
             .map(|(name, (sum, n))| (name, sum / n.max(1) as f64))
             .collect(),
         per_frame,
+        engine_status,
     })
 }
 

@@ -36,12 +36,14 @@ use serde_json::{Map, Value};
 
 use super::features::SceneFeatures;
 
-/// Errors within 5 % (relative, and 0.002 absolute) of each other count as equal.
-pub const TIE: f64 = 0.05;
+/// Errors within 10 % (relative, and 0.002 absolute) of each other count as equal: the error
+/// model's own spread on the five scenes it was fitted to (rms of the log error 0.02–0.15 per
+/// engine, docs/ALGORITHMS.md).
+pub const TIE: f64 = 0.10;
 /// The absolute part of a tie and of a margin.
 const SLACK: f64 = 0.002;
-/// A switch for accuracy needs a predicted error 10 % (and 0.002) lower.
-pub const MARGIN: f64 = 0.10;
+/// A switch for accuracy needs a predicted error 15 % (and 0.002) lower.
+pub const MARGIN: f64 = 0.15;
 /// A switch for cost (to a candidate as accurate, or under `max_error`) needs one 20 % cheaper.
 pub const COST_MARGIN: f64 = 0.20;
 /// Frames on a candidate before another switch (except when over budget).
@@ -282,6 +284,9 @@ pub struct Governor {
     pt_ms_per_spp: Option<f64>,
     /// `pt`'s samples per pixel after its last frame.
     pt_samples: u32,
+    /// `pt` was probed in this motion state (its noise may stay unmeasured: one sample per
+    /// frame of a moving camera gives no variance).
+    pt_probed: [bool; 2],
     current: usize,
     frames_on_current: u32,
     over_budget: u32,
@@ -304,6 +309,7 @@ impl Governor {
             pt_noise: None,
             pt_ms_per_spp: None,
             pt_samples: 0,
+            pt_probed: [false; 2],
             current,
             frames_on_current: 0,
             over_budget: 0,
@@ -351,6 +357,7 @@ impl Governor {
             *cost = [FrameTimes::default(), FrameTimes::default()];
         }
         self.pt_ms_per_spp = None;
+        self.pt_probed = [false; 2];
     }
 
     /// A candidate could not be built: never choose it.
@@ -498,6 +505,16 @@ impl Governor {
         self.costs[candidate][motion.index()].median()
     }
 
+    /// Whether the governor knows what it needs of `candidate` in `motion`: its cost, and for
+    /// `pt` its noise (or it was probed here and its noise could not be measured).
+    fn measured(&self, candidate: usize, motion: Motion) -> bool {
+        if self.candidates[candidate].is_path_traced() {
+            return self.pt_probed[motion.index()]
+                || (self.cost(candidate, motion).is_some() && self.pt_noise.is_some());
+        }
+        self.cost(candidate, motion).is_some()
+    }
+
     /// A cost from the ratios to a measured candidate, for one not measured yet.
     fn estimated_cost(&self, candidate: usize, motion: Motion) -> Option<f64> {
         let (known, ms) = (0..self.candidates.len())
@@ -530,8 +547,10 @@ impl Governor {
     /// The candidate to run among those whose cost is known, and why.
     fn choose(&self, motion: Motion) -> (usize, String) {
         let budget = self.settings.budget_ms;
+        // pt's error is only known once its noise is (the prior is for probing).
         let known: Vec<(usize, f64, f64)> = (0..self.candidates.len())
             .filter(|&c| !self.unavailable[c])
+            .filter(|&c| !self.candidates[c].is_path_traced() || self.pt_noise.is_some())
             .filter_map(|c| Some((c, self.predicted_error(c, motion), self.cost(c, motion)?)))
             .collect();
         let cheapest =
@@ -587,8 +606,10 @@ impl Governor {
     /// being built for a switch (no probe starts).
     pub fn decide(&mut self, motion: Motion, building: bool) -> Action {
         if let Some((probed, frames)) = self.probing {
-            // pt's noise is worth measuring only where one sample fits the budget.
+            // pt's noise is measured over its accumulating samples: while still, and only where
+            // one sample fits the budget.
             let measuring_noise = self.candidates[probed].is_path_traced()
+                && motion == Motion::Still
                 && self
                     .pt_ms_per_spp
                     .is_none_or(|ms| ms <= self.settings.budget_ms)
@@ -614,7 +635,7 @@ impl Governor {
         // that the cost ratios do not put far over the budget.
         let target = self.predicted_error(choice, motion);
         let probe = (0..self.candidates.len())
-            .filter(|&c| !self.unavailable[c] && self.cost(c, motion).is_none())
+            .filter(|&c| !self.unavailable[c] && !self.measured(c, motion))
             .filter(|&c| self.predicted_error(c, motion) * (1.0 + TIE) + SLACK < target)
             .filter(|&c| {
                 self.estimated_cost(c, motion)
@@ -629,6 +650,9 @@ impl Governor {
             && let Some(candidate) = probe
         {
             self.probing = Some((candidate, 0));
+            if self.candidates[candidate].is_path_traced() {
+                self.pt_probed[motion.index()] = true;
+            }
             self.reason = format!(
                 "probing {}: predicted error {:.3}, cost not measured yet",
                 self.candidates[candidate].label,

@@ -104,8 +104,6 @@ pub struct Auto {
     features_for: Option<(u64, SceneCamera)>,
     frames_since_features: u32,
     size: (u32, u32),
-    /// `pt`'s samples per pixel after the last frame it rendered.
-    pt_samples: u32,
     status: Value,
 }
 
@@ -182,7 +180,6 @@ impl Auto {
             features_for: None,
             frames_since_features: 0,
             size: (0, 0),
-            pt_samples: 0,
             status: Value::Null,
         };
         auto.refresh_status(None);
@@ -227,7 +224,6 @@ impl Auto {
     fn switch_to(&mut self, candidate: usize) {
         self.governor.switched(candidate);
         self.frames_on_current = 0;
-        self.pt_samples = 0;
     }
 
     /// Start running `candidate`: at once when it is built, else once the builder has it.
@@ -343,19 +339,10 @@ impl Engine for Auto {
         self.frames_on_current = self.frames_on_current.saturating_add(1);
         let pt = self.governor.candidates()[current]
             .is_path_traced()
-            .then(|| {
-                let added = out.path_samples.saturating_sub(self.pt_samples);
-                let added = if out.path_samples < self.pt_samples {
-                    out.path_samples
-                } else {
-                    added
-                };
-                self.pt_samples = out.path_samples;
-                PtFrame {
-                    path_samples: out.path_samples,
-                    samples_added: added,
-                    estimated_error: out.estimated_relative_error,
-                }
+            .then_some(PtFrame {
+                path_samples: out.path_samples,
+                samples_added: out.path_samples_traced,
+                estimated_error: out.estimated_relative_error,
             });
         self.governor.observe(current, self.motion, ms, steady, pt);
         match self.governor.decide(self.motion, self.wanted.is_some()) {

@@ -558,6 +558,7 @@ impl Engine for Pt {
             },
         )?;
         out.path_samples = accumulated.spp;
+        out.path_samples_traced = spp;
         out.estimated_relative_error =
             (accumulated.spp >= 2 && square > 0.0).then(|| (variance / square).sqrt());
         out.timings.push(PassTiming {
