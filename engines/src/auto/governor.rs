@@ -54,9 +54,9 @@ pub const OVER_BUDGET_FRAMES: u32 = 3;
 const PROBE_LIMIT: f64 = 1.5;
 /// Steady frames (after the first, which allocates and uploads) a probe measures.
 pub const PROBE_FRAMES: u32 = 3;
-/// pt's noise at one sample per pixel (relative L2 of Δ) before it has run: the lowest measured
-/// on the five scenes (0.4–3.1, docs/ALGORITHMS.md), so that pt is probed wherever it could
-/// win; its own measurement replaces it once it has traced [`PT_PROBE_SAMPLES`].
+/// pt's noise at one sample per pixel (relative L2 of Δ) before it has run: the lowest of the
+/// five scenes' (0.4 on glossy_floor; about 3 on desk_box), so that pt is probed wherever it
+/// could win; its own measurement replaces it once it has traced [`PT_PROBE_SAMPLES`].
 const PT_NOISE_PRIOR: f64 = 0.4;
 /// Samples per pixel a probe of `pt` traces before its noise counts as measured.
 pub const PT_PROBE_SAMPLES: u32 = 16;
