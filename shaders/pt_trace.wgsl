@@ -174,10 +174,11 @@ fn inverse_direction(d: vec3<f32>) -> vec3<f32> {
     return 1.0 / select(d, tiny, abs(d) < vec3<f32>(1e-20));
 }
 
-// Closest hit with t in (0, t_max); ties go to the lower triangle index, so the choice depends
-// only on the set of triangles met. `real_only` skips the virtual triangles (L^μ): on a ray the
-// object does not meet, both answers are bitwise equal.
-fn intersect(o: vec3<f32>, d: vec3<f32>, t_max: f32, real_only: bool) -> Hit {
+// The closest hit with t in (0, t_max), or with `any_hit` the first one found (near child
+// first either way). Ties go to the lower triangle index, so the closest hit depends only on the
+// set of triangles met. `real_only` skips the virtual triangles (L^μ): on a ray the object does
+// not meet, both answers are bitwise equal.
+fn trace_ray(o: vec3<f32>, d: vec3<f32>, t_max: f32, real_only: bool, any_hit: bool) -> Hit {
     var best = Hit(t_max, NONE, 0.0, 0.0);
     if params.options.w == NONE {
         return best;
@@ -193,6 +194,9 @@ fn intersect(o: vec3<f32>, d: vec3<f32>, t_max: f32, real_only: bool) -> Hit {
                 let h = moller_trumbore(i, o, d);
                 if h.x > 0.0 && (h.x < best.t || (h.x == best.t && i < best.tri)) {
                     best = Hit(h.x, i, h.y, h.z);
+                    if any_hit {
+                        return best;
+                    }
                 }
             }
         } else {
@@ -228,54 +232,13 @@ fn intersect(o: vec3<f32>, d: vec3<f32>, t_max: f32, real_only: bool) -> Hit {
     return best;
 }
 
-// The first triangle found on the segment (0, t_max), NONE when it is clear.
+fn intersect(o: vec3<f32>, d: vec3<f32>, t_max: f32, real_only: bool) -> Hit {
+    return trace_ray(o, d, t_max, real_only, false);
+}
+
+// A triangle on the segment (0, t_max), NONE when it is clear.
 fn occluder(o: vec3<f32>, d: vec3<f32>, t_max: f32, real_only: bool) -> u32 {
-    if params.options.w == NONE {
-        return NONE;
-    }
-    let inv_d = inverse_direction(d);
-    var stack: array<u32, STACK>;
-    var sp = 0u;
-    var node = params.options.w;
-    loop {
-        if (node & LEAF) != 0u {
-            let i = node & ~LEAF;
-            if !(real_only && (tri_flags(i) & FLAG_TRI_VIRTUAL) != 0u) {
-                let h = moller_trumbore(i, o, d);
-                if h.x > 0.0 && h.x < t_max {
-                    return i;
-                }
-            }
-        } else {
-            let n = nodes[node];
-            let tl = box_entry(n.lmin.xyz, n.lmax.xyz, o, inv_d, t_max);
-            let tr = box_entry(n.rmin.xyz, n.rmax.xyz, o, inv_d, t_max);
-            let l = bitcast<u32>(n.lmin.w);
-            let r = bitcast<u32>(n.rmin.w);
-            if tl < 3.0e38 && tr < 3.0e38 {
-                if sp < STACK {
-                    stack[sp] = r;
-                    sp += 1u;
-                }
-                node = l;
-                continue;
-            }
-            if tl < 3.0e38 {
-                node = l;
-                continue;
-            }
-            if tr < 3.0e38 {
-                node = r;
-                continue;
-            }
-        }
-        if sp == 0u {
-            break;
-        }
-        sp -= 1u;
-        node = stack[sp];
-    }
-    return NONE;
+    return trace_ray(o, d, t_max, real_only, true).tri;
 }
 
 fn luminance(c: vec3<f32>) -> f32 {

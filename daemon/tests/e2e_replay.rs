@@ -164,7 +164,9 @@ fn daemon_serves_control_requests_survives_hostile_ones_and_records_frame_exact(
             "dlpv",
             "dvct",
             "dir",
-            "ibl"
+            "ibl",
+            "auto",
+            "pt"
         ]
     );
     let unknown = ctl(&socket, &["engine", "set", "dlvp"]);

@@ -789,14 +789,7 @@ pub(crate) fn write_composite(bytes: &[u8], composite: &mut Image) {
 impl FrameResources {
     fn new(ctx: &GpuContext, width: u32, height: u32) -> Self {
         let pixels = u64::from(width) * u64::from(height);
-        let buffer = |label, size, usage| {
-            ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage,
-                mapped_at_creation: false,
-            })
-        };
+        let buffer = |label, size, usage| ctx.buffer(label, size, usage);
         use wgpu::BufferUsages as U;
         Self {
             width,

@@ -337,6 +337,16 @@ impl GpuContext {
         self.check()
     }
 
+    /// An uninitialised buffer of `size` bytes.
+    pub fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage,
+            mapped_at_creation: false,
+        })
+    }
+
     /// Copy `size` bytes of `source` into `staging` (MAP_READ | COPY_DST, at least `size`),
     /// wait, and hand the bytes to `read`.
     pub fn read_back<T>(

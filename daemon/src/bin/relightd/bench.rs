@@ -136,17 +136,7 @@ pub fn run(mut args: Args) -> Result<()> {
         .into_iter()
         .filter(|c| args.engines.is_empty() || args.engines.contains(&c.engine))
         .collect();
-    let settings = BenchSettings {
-        scenes,
-        width: args.width,
-        height: args.height,
-        reference_spp: args.reference_spp,
-        max_reference_spp: args.max_reference_spp,
-        reference_cache: (!args.no_reference_cache).then_some(args.reference_cache),
-        frames: args.frames,
-        accumulate: args.accumulate,
-        cases,
-    };
+    let settings = bench_settings(&args, scenes, cases);
     let context = relight_engines::gpu::GpuContext::new();
     let adapter = context
         .as_ref()
@@ -223,20 +213,29 @@ pub fn run(mut args: Args) -> Result<()> {
     Ok(())
 }
 
+/// The scenes, size, references and frames the arguments ask for.
+fn bench_settings(
+    args: &Args,
+    scenes: Vec<PathBuf>,
+    cases: Vec<bench::BenchCase>,
+) -> BenchSettings {
+    BenchSettings {
+        scenes,
+        width: args.width,
+        height: args.height,
+        reference_spp: args.reference_spp,
+        max_reference_spp: args.max_reference_spp,
+        reference_cache: (!args.no_reference_cache).then(|| args.reference_cache.clone()),
+        frames: args.frames,
+        accumulate: args.accumulate,
+        cases,
+    }
+}
+
 fn governor(args: Args, scenes: Vec<PathBuf>) -> Result<()> {
     use relight_daemon::governor_bench::{self, GovernorProgress, GovernorSettings};
     let settings = GovernorSettings {
-        bench: BenchSettings {
-            scenes,
-            width: args.width,
-            height: args.height,
-            reference_spp: args.reference_spp,
-            max_reference_spp: args.max_reference_spp,
-            reference_cache: (!args.no_reference_cache).then_some(args.reference_cache),
-            frames: args.frames,
-            accumulate: None,
-            cases: Vec::new(),
-        },
+        bench: bench_settings(&args, scenes, Vec::new()),
         budgets_ms: args.budgets,
         seconds: args.governor_seconds,
         recording: (args.recording != "none")
