@@ -1,8 +1,10 @@
 //! Numerically hard scenes through every GPU engine (issue 18 §5, issue 20 §4): a 1e6:1
 //! environment, a light grazing the floor, holes in the real geometry, the object sunk into the
-//! floor, a mirror-like object, degenerate triangles, a light inside the object. Each frame must compute no NaN or ∞ anywhere
-//! (`RelitFrame::non_finite`, counted before Δ is written), give a finite composite, and keep
-//! the invariants that hold whatever the light: Δ = 0 without a virtual object.
+//! floor, a mirror-like object, degenerate triangles, a light inside the object. Each frame must
+//! compute no NaN or ∞ anywhere (`RelitFrame::non_finite`, counted before Δ is written), give a
+//! finite composite, and keep the invariants that hold whatever the light: Δ = 0 without a
+//! virtual object. Each must also stay within a stated tolerance of the reference
+//! ([`within_tolerance`]).
 
 mod support;
 
@@ -11,7 +13,8 @@ use std::sync::Arc;
 use glam::Vec3;
 use relight_core::light::Light;
 use relight_core::scene::Scene;
-use support::{add_sun, delta_of, engine_with, frame, load_scene, max_abs};
+use relight_engines::offline::object_error;
+use support::{add_sun, delta_of, engine_with, frame, load_scene, max_abs, reference_full};
 
 fn hard_scenes() -> Vec<(&'static str, Scene)> {
     let desk = load_scene("desk_box");
@@ -81,17 +84,21 @@ fn hard_scenes() -> Vec<(&'static str, Scene)> {
     scenes
 }
 
-#[test]
-fn every_engine_stays_finite_on_hard_scenes() {
-    let small = serde_json::json!({ "volume_size": 16, "steps": 8 });
-    let engines = [
+/// Every engine at small settings (16³ volumes, 64 VPLs), `pt` at `pt_spp` samples.
+fn engines(pt_spp: u32) -> [(&'static str, serde_json::Value); 6] {
+    [
         ("differential", serde_json::json!({})),
-        ("dlpv", small),
+        ("dlpv", serde_json::json!({ "volume_size": 16, "steps": 8 })),
         ("dvct", serde_json::json!({ "volume_size": 16 })),
         ("dir", serde_json::json!({ "vpl_count": 64 })),
         ("ibl", serde_json::json!({ "map_size": 16 })),
-        ("pt", serde_json::json!({ "spp": 4 })),
-    ];
+        ("pt", serde_json::json!({ "spp": pt_spp })),
+    ]
+}
+
+#[test]
+fn every_engine_stays_finite_on_hard_scenes() {
+    let engines = engines(4);
     for (case, scene) in hard_scenes() {
         let with_object = Arc::new(scene.clone());
         let without = Arc::new(scene.without_virtual());
@@ -108,6 +115,92 @@ fn every_engine_stays_finite_on_hard_scenes() {
                 largest == 0.0,
                 "{name}, {case}: Δ {largest} without an object"
             );
+        }
+    }
+}
+
+/// Δ's error may be this fraction of Δ where Δ is a visible part of the picture: the bench's
+/// metric on the project's scenes reads 0.12–0.58 for the engines at their defaults (pixel
+/// centres against pixel centres), so a hard case may not make an engine worse than that.
+const DELTA_TOLERANCE: f64 = 0.6;
+/// Where Δ is smaller than this fraction of the real picture's radiance (a grazing light's
+/// shadow, a sunk object's faint bleeding), its relative error means nothing; the wrong light an
+/// engine adds may then be at most this fraction of the picture.
+const VISIBLE: f64 = 0.02;
+/// The object's pixels may be this far from L^ρ where the engines can draw it (it keeps the
+/// base scene's material and light): 0.14–0.37 measured there.
+const OBJECT_TOLERANCE: f64 = 0.5;
+
+/// ‖v‖ over the pixels where `keep` holds.
+fn norm(values: &[Vec3], mask: &[bool], keep: bool) -> f64 {
+    values
+        .iter()
+        .zip(mask)
+        .filter(|(_, m)| **m == keep)
+        .map(|(v, _)| f64::from(v.length_squared()))
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// Whether Δ over the real pixels is within tolerance of the reference's: ‖Δ − Δ_ref‖ at most
+/// max(DELTA_TOLERANCE · ‖Δ_ref‖, VISIBLE · ‖L^μ_ref‖), once the comparison's own noise is added
+/// as it adds to a squared error (‖σ‖² of the reference, and of the engine when it is Monte
+/// Carlo), with half of it again as a margin (over thousands of pixel values the squared noise
+/// varies by a few per cent). Returns the measured error and the bound.
+fn within_tolerance(
+    delta: &[Vec3],
+    reference: &relight_engines::reference::ReferenceImages,
+    engine_noise: f64,
+) -> (f64, f64) {
+    let mask = &reference.virtual_mask;
+    let error: Vec<Vec3> = delta
+        .iter()
+        .zip(&reference.delta)
+        .map(|(d, r)| *d - *r)
+        .collect();
+    let allowed = (DELTA_TOLERANCE * norm(&reference.delta, mask, false))
+        .max(VISIBLE * norm(&reference.l_mu, mask, false));
+    let noise_sq = norm(&reference.delta_std_error, mask, false).powi(2) + engine_noise.powi(2);
+    (
+        norm(&error, mask, false),
+        (allowed.powi(2) + 1.5 * noise_sq).sqrt(),
+    )
+}
+
+#[test]
+fn every_engine_stays_within_tolerance_of_the_reference_on_hard_scenes() {
+    let (w, h) = (64, 48);
+    for (case, scene) in hard_scenes() {
+        let reference = reference_full(&scene, w, h, 256);
+        // The object keeps the base scene's material and is lit from outside: every engine
+        // can draw it. Not so the mirror (no engine reflects the room but `pt`), the light
+        // inside it (the 16³ volumes leak it through the walls), the 1e6:1 sun (the 8-bit
+        // composite saturates) or the grazing light (the object is black).
+        let object_drawable = matches!(
+            case,
+            "holes in the real geometry" | "object sunk into the floor" | "degenerate triangles"
+        );
+        let scene = Arc::new(scene);
+        for (name, params) in engines(256) {
+            let mut engine = engine_with(name, params);
+            let (delta, out) = delta_of(&mut engine, &frame(scene.clone(), w, h));
+            let noise = out
+                .estimated_relative_error
+                .map_or(0.0, |e| e * norm(&delta, &reference.virtual_mask, false));
+            let (error, bound) = within_tolerance(&delta, &reference, noise);
+            assert!(
+                error <= bound,
+                "{name}, {case}: ‖Δ − Δ_ref‖ {error:.4} beyond {bound:.4}"
+            );
+            if object_drawable {
+                let object =
+                    object_error(&out.composite, &reference.l_rho, &reference.virtual_mask)
+                        .expect("the composite has the reference's size");
+                assert!(
+                    object <= OBJECT_TOLERANCE,
+                    "{name}, {case}: object relative L2 {object:.3}"
+                );
+            }
         }
     }
 }
