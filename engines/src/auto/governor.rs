@@ -28,7 +28,8 @@
 //! fits: the cheapest. **Hysteresis**: a switch needs a predicted error lower by [`MARGIN`], or
 //! a cost lower by [`COST_MARGIN`] at an error within [`TIE`] (or under `max_error`), and [`MIN_DWELL`] frames on the current
 //! candidate, unless the current one has been over budget for [`OVER_BUDGET_FRAMES`] frames. A
-//! probe runs its candidate for [`PROBE_FRAMES`] steady frames; then the choice is made afresh
+//! probe runs its candidate for [`PROBE_FRAMES`] steady frames (after [`WARM_UP_FRAMES`], which
+//! no cost counts); then the choice is made afresh
 //! (a probe measures, it does not decide).
 
 use serde::Serialize;
@@ -52,7 +53,12 @@ pub const MIN_DWELL: u32 = 10;
 pub const OVER_BUDGET_FRAMES: u32 = 3;
 /// A candidate estimated at more than this many budgets is not probed.
 const PROBE_LIMIT: f64 = 1.5;
-/// Steady frames (after the first, which allocates and uploads) a probe measures.
+/// Frames after a switch whose times are not the candidate's cost: the first allocates and
+/// uploads, and the next ones still run slow on lavapipe (measured on spot_bleed at 160 × 120:
+/// `pt` 64, 47, 43, then 29–41 ms; `dir` 64 VPLs 100, then 17–30 ms). Counting them priced
+/// `pt` out of a 33 ms budget it fits.
+pub const WARM_UP_FRAMES: u32 = 3;
+/// Steady frames (after [`WARM_UP_FRAMES`]) a probe measures.
 pub const PROBE_FRAMES: u32 = 3;
 /// pt's noise at one sample per pixel (relative L2 of Δ) before it has run: the lowest of the
 /// five scenes' (0.4 on glossy_floor; about 3 on desk_box), so that pt is probed wherever it
@@ -64,12 +70,15 @@ pub const PT_PROBE_SAMPLES: u32 = 16;
 const PT_PROBE_FRAMES: u32 = 30;
 
 /// A candidate's last [`FrameTimes::KEPT`] frame times: their median is its cost, robust to
-/// the odd slow frame (a shared machine, a frame that rebuilt something).
+/// slow frames from outside (a shared machine: bursts of 4–5 frames at 1.5–2.5× were seen on
+/// lavapipe, which a median of 9 let price a fitting `pt` out of its budget) and to a frame
+/// that rebuilt something. Half a second at 30 Hz; a sustained overload switches sooner, by
+/// [`OVER_BUDGET_FRAMES`].
 #[derive(Debug, Clone, Default)]
 struct FrameTimes(std::collections::VecDeque<f64>);
 
 impl FrameTimes {
-    const KEPT: usize = 9;
+    const KEPT: usize = 15;
 
     fn push(&mut self, ms: f64) {
         if self.0.len() == Self::KEPT {
@@ -281,7 +290,7 @@ pub struct Governor {
     features: SceneFeatures,
     /// `pt`: its noise at one sample per pixel, and its cost per sample per pixel (ms).
     pt_noise: Option<f64>,
-    pt_ms_per_spp: Option<f64>,
+    pt_ms_per_spp: FrameTimes,
     /// `pt`'s samples per pixel after its last frame.
     pt_samples: u32,
     /// `pt` was probed in this motion state (its noise may stay unmeasured: one sample per
@@ -307,7 +316,7 @@ impl Governor {
             settings,
             features: SceneFeatures::default(),
             pt_noise: None,
-            pt_ms_per_spp: None,
+            pt_ms_per_spp: FrameTimes::default(),
             pt_samples: 0,
             pt_probed: [false; 2],
             current,
@@ -356,7 +365,7 @@ impl Governor {
         for cost in &mut self.costs {
             *cost = [FrameTimes::default(), FrameTimes::default()];
         }
-        self.pt_ms_per_spp = None;
+        self.pt_ms_per_spp = FrameTimes::default();
         self.pt_probed = [false; 2];
     }
 
@@ -377,8 +386,8 @@ impl Governor {
 
     /// `candidate` rendered a frame in `motion` in `ms`. `path_samples` and `estimated_error`
     /// are what the frame reported (`pt`'s samples per pixel so far, and its own error
-    /// estimate); `samples_added` how many it traced this frame. `steady`: not the first frame
-    /// after a switch (which allocates and uploads), so it counts towards the cost.
+    /// estimate); `samples_added` how many it traced this frame. `steady`: past the
+    /// [`WARM_UP_FRAMES`] after a switch, so it counts towards the cost.
     pub fn observe(
         &mut self,
         candidate: usize,
@@ -410,11 +419,7 @@ impl Governor {
         if let Some(pt) = pt {
             self.pt_samples = pt.path_samples;
             if pt.samples_added > 0 {
-                let per_spp = ms / f64::from(pt.samples_added);
-                self.pt_ms_per_spp = Some(
-                    self.pt_ms_per_spp
-                        .map_or(per_spp, |old| 0.7 * old + 0.3 * per_spp),
-                );
+                self.pt_ms_per_spp.push(ms / f64::from(pt.samples_added));
             }
             if let Some(error) = pt.estimated_error.filter(|e| e.is_finite())
                 && pt.path_samples >= 4
@@ -474,6 +479,7 @@ impl Governor {
                 // Before pt has run, its cost per sample from the ratios.
                 let per_spp = self
                     .pt_ms_per_spp
+                    .median()
                     .or_else(|| self.estimated_cost(candidate, motion))
                     .unwrap_or(self.settings.budget_ms)
                     .max(1e-6);
@@ -495,7 +501,7 @@ impl Governor {
     /// samples) once one sample per pixel is known to fit, else what one sample costs.
     fn cost(&self, candidate: usize, motion: Motion) -> Option<f64> {
         if self.candidates[candidate].is_path_traced() {
-            let one = self.pt_ms_per_spp?;
+            let one = self.pt_ms_per_spp.median()?;
             return Some(if one <= self.settings.budget_ms {
                 self.settings.budget_ms
             } else {
@@ -612,6 +618,7 @@ impl Governor {
                 && motion == Motion::Still
                 && self
                     .pt_ms_per_spp
+                    .median()
                     .is_none_or(|ms| ms <= self.settings.budget_ms)
                 && self.pt_samples < PT_PROBE_SAMPLES
                 && frames < PT_PROBE_FRAMES;
@@ -871,7 +878,7 @@ mod tests {
                 PT,
                 Motion::Still,
                 60.0,
-                frames > 1,
+                frames > WARM_UP_FRAMES,
                 Some(PtFrame {
                     path_samples: frames,
                     samples_added: 1,
@@ -890,7 +897,7 @@ mod tests {
             "{}",
             governor.reason()
         );
-        assert_eq!(frames, PROBE_FRAMES + 1);
+        assert_eq!(frames, WARM_UP_FRAMES + PROBE_FRAMES);
         governor.switched(DIFFERENTIAL);
         // Then the next most promising within reach: dir (12×: 60 ms).
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR));

@@ -335,7 +335,7 @@ impl Engine for Auto {
         let started = Instant::now();
         engine.render(frame, out)?;
         let ms = started.elapsed().as_secs_f64() * 1e3;
-        let steady = self.frames_on_current > 0;
+        let steady = self.frames_on_current >= governor::WARM_UP_FRAMES;
         self.frames_on_current = self.frames_on_current.saturating_add(1);
         let pt = self.governor.candidates()[current]
             .is_path_traced()
