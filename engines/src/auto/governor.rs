@@ -29,7 +29,8 @@
 //! a cost lower by [`COST_MARGIN`] at an error within [`TIE`] (or under `max_error`), and [`MIN_DWELL`] frames on the current
 //! candidate, unless the current one has been over budget for [`OVER_BUDGET_FRAMES`] frames. A
 //! probe runs its candidate for [`PROBE_FRAMES`] steady frames (after [`WARM_UP_FRAMES`], which
-//! no cost counts); then the choice is made afresh
+//! no cost counts; a candidate measured over the budget is probed again after
+//! [`REPROBE_FRAMES`]); then the choice is made afresh
 //! (a probe measures, it does not decide).
 
 use serde::Serialize;
@@ -60,6 +61,11 @@ const PROBE_LIMIT: f64 = 1.5;
 pub const WARM_UP_FRAMES: u32 = 3;
 /// Steady frames (after [`WARM_UP_FRAMES`]) a probe measures.
 pub const PROBE_FRAMES: u32 = 3;
+/// Frames after which a candidate measured over the budget (but within [`PROBE_LIMIT`]) that
+/// would win were it to fit is probed again: ten seconds at 30 Hz. The adapter's speed drifts
+/// (a shared machine's phases, a GPU's clocks, another process), and a cost measured in a slow
+/// spell would otherwise keep the best candidate out for good.
+pub const REPROBE_FRAMES: u64 = 300;
 /// pt's noise at one sample per pixel (relative L2 of Δ) before it has run: the lowest of the
 /// five scenes' (0.4 on glossy_floor; about 3 on desk_box), so that pt is probed wherever it
 /// could win; its own measurement replaces it once it has traced [`PT_PROBE_SAMPLES`].
@@ -284,6 +290,9 @@ pub struct Governor {
     candidates: Vec<Candidate>,
     /// Recent frame times per candidate, per motion state.
     costs: Vec<[FrameTimes; 2]>,
+    /// The frame (counted by [`Governor::observe`]) each of those was last measured on.
+    measured_on: Vec<[u64; 2]>,
+    frame: u64,
     /// Candidates that failed to build (left out from then on).
     unavailable: Vec<bool>,
     settings: Settings,
@@ -312,6 +321,8 @@ impl Governor {
         Self {
             candidates,
             costs: vec![[FrameTimes::default(), FrameTimes::default()]; n],
+            measured_on: vec![[0; 2]; n],
+            frame: 0,
             unavailable: vec![false; n],
             settings,
             features: SceneFeatures::default(),
@@ -396,6 +407,7 @@ impl Governor {
         steady: bool,
         pt: Option<PtFrame>,
     ) {
+        self.frame += 1;
         if candidate == self.current {
             self.frames_on_current = self.frames_on_current.saturating_add(1);
             let over = ms > 1.1 * self.settings.budget_ms;
@@ -415,6 +427,7 @@ impl Governor {
         }
         if let Some(cost) = self.costs.get_mut(candidate) {
             cost[motion.index()].push(ms);
+            self.measured_on[candidate][motion.index()] = self.frame;
         }
         if let Some(pt) = pt {
             self.pt_samples = pt.path_samples;
@@ -519,6 +532,14 @@ impl Governor {
                 || (self.cost(candidate, motion).is_some() && self.pt_noise.is_some());
         }
         self.cost(candidate, motion).is_some()
+    }
+
+    /// Whether `candidate` was measured over the budget in `motion` more than
+    /// [`REPROBE_FRAMES`] ago: worth measuring again where it would win.
+    fn stale(&self, candidate: usize, motion: Motion) -> bool {
+        self.cost(candidate, motion)
+            .is_some_and(|ms| ms > self.settings.budget_ms)
+            && self.frame - self.measured_on[candidate][motion.index()] > REPROBE_FRAMES
     }
 
     /// A cost from the ratios to a measured candidate, for one not measured yet.
@@ -642,10 +663,13 @@ impl Governor {
         // that the cost ratios do not put far over the budget.
         let target = self.predicted_error(choice, motion);
         let probe = (0..self.candidates.len())
-            .filter(|&c| !self.unavailable[c] && !self.measured(c, motion))
+            .filter(|&c| {
+                !self.unavailable[c] && (!self.measured(c, motion) || self.stale(c, motion))
+            })
             .filter(|&c| self.predicted_error(c, motion) * (1.0 + TIE) + SLACK < target)
             .filter(|&c| {
-                self.estimated_cost(c, motion)
+                self.cost(c, motion)
+                    .or_else(|| self.estimated_cost(c, motion))
                     .is_none_or(|ms| ms <= PROBE_LIMIT * self.settings.budget_ms)
             })
             .min_by(|&a, &b| {
@@ -656,12 +680,20 @@ impl Governor {
             && self.cost(self.current, motion).is_some()
             && let Some(candidate) = probe
         {
+            let why = if self.stale(candidate, motion) {
+                "over the budget when last measured"
+            } else {
+                "cost not measured yet"
+            };
             self.probing = Some((candidate, 0));
+            // Measured afresh: the probe's frames are its cost.
+            self.costs[candidate][motion.index()] = FrameTimes::default();
             if self.candidates[candidate].is_path_traced() {
                 self.pt_probed[motion.index()] = true;
+                self.pt_ms_per_spp = FrameTimes::default();
             }
             self.reason = format!(
-                "probing {}: predicted error {:.3}, cost not measured yet",
+                "probing {}: predicted error {:.3}, {why}",
                 self.candidates[candidate].label,
                 self.predicted_error(candidate, motion)
             );
@@ -726,6 +758,7 @@ mod tests {
     const DIFFERENTIAL: usize = 0;
     const IBL: usize = 1;
     const DLPV: usize = 2;
+    const DVCT: usize = 3;
     const DIR64: usize = 4;
     const DIR: usize = 5;
     const PT: usize = 6;
@@ -901,6 +934,59 @@ mod tests {
         governor.switched(DIFFERENTIAL);
         // Then the next most promising within reach: dir (12×: 60 ms).
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR));
+    }
+
+    #[test]
+    fn a_candidate_priced_out_in_a_slow_spell_is_probed_again_later() {
+        let mut governor = Governor::new(
+            candidates(),
+            DIFFERENTIAL,
+            Settings {
+                budget_ms: 33.0,
+                max_error: None,
+                horizon_ms: 2000.0,
+            },
+        );
+        governor.set_features(features(2.0, 6.0, 0.0));
+        for candidate in [IBL, DLPV, DVCT, DIR, PT] {
+            governor.mark_unavailable(candidate);
+        }
+        governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+        assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR64));
+        governor.switched(DIR64);
+        // Probed in a slow spell (45 ms): over the budget, so back to differential.
+        let mut frames = 0;
+        loop {
+            frames += 1;
+            governor.observe(DIR64, Motion::Still, 45.0, frames > WARM_UP_FRAMES, None);
+            match governor.decide(Motion::Still, false) {
+                Action::Stay => assert!(frames < 10, "{}", governor.reason()),
+                action => {
+                    assert_eq!(action, Action::Switch(DIFFERENTIAL));
+                    governor.switched(DIFFERENTIAL);
+                    break;
+                }
+            }
+        }
+        // Not probed again within REPROBE_FRAMES ...
+        let switches = run(&mut governor, Motion::Still, REPROBE_FRAMES as u32 - 10);
+        assert!(switches.is_empty(), "{switches:?}: {}", governor.reason());
+        // ... but after them; the spell has passed (20 ms), so it is kept.
+        let mut probed = false;
+        for _ in 0..40 {
+            let current = governor.current();
+            let ms = if current == DIR64 { 20.0 } else { 5.0 };
+            governor.observe(current, Motion::Still, ms, true, None);
+            if let Action::Switch(c) | Action::Probe(c) = governor.decide(Motion::Still, false) {
+                probed |= governor
+                    .reason()
+                    .contains("over the budget when last measured");
+                governor.switched(c);
+            }
+        }
+        assert!(probed);
+        assert_eq!(governor.current(), DIR64, "{}", governor.reason());
+        assert_eq!(governor.cost(DIR64, Motion::Still), Some(20.0));
     }
 
     #[test]
