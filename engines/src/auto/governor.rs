@@ -28,7 +28,7 @@
 //! fits: the cheapest. **Hysteresis**: a switch needs a predicted error lower by [`MARGIN`], or
 //! a cost lower by [`COST_MARGIN`] at an error within [`TIE`] (or under `max_error`), and [`MIN_DWELL`] frames on the current
 //! candidate, unless the current one has been over budget for [`OVER_BUDGET_FRAMES`] frames. A
-//! probe runs its candidate for [`PROBE_FRAMES`] steady frames (after [`WARM_UP_FRAMES`], which
+//! probe runs its candidate for [`PROBE_FRAMES`] steady frames (after [`WARM_UP_MS`], which
 //! no cost counts; a candidate measured over the budget is probed again after
 //! [`REPROBE_FRAMES`]); then the choice is made afresh
 //! (a probe measures, it does not decide).
@@ -54,12 +54,16 @@ pub const MIN_DWELL: u32 = 10;
 pub const OVER_BUDGET_FRAMES: u32 = 3;
 /// A candidate estimated at more than this many budgets is not probed.
 const PROBE_LIMIT: f64 = 1.5;
-/// Frames after a switch whose times are not the candidate's cost: the first allocates and
-/// uploads, and the next ones still run slow on lavapipe (measured on spot_bleed at 160 × 120:
-/// `pt` 64, 47, 43, then 29–41 ms; `dir` 64 VPLs 100, then 17–30 ms). Counting them priced
-/// `pt` out of a 33 ms budget it fits.
+/// The warm-up after a switch, whose frames are not the candidate's cost: the first frame
+/// (it allocates and uploads), then frames until [`WARM_UP_MS`] of rendering or
+/// [`WARM_UP_FRAMES`] frames, whichever comes first. On lavapipe the first frames still run
+/// slow (measured on spot_bleed at 160 × 120: `pt` 64, 47, 43, then 27–41 ms; `dir` 64 VPLs
+/// 100, then 17–30 ms); counting them priced `pt` out of a 33 ms budget it fits. A candidate
+/// whose frames take a second warms up in one; one whose frames take a millisecond, in three.
+pub const WARM_UP_MS: f64 = 150.0;
+/// See [`WARM_UP_MS`].
 pub const WARM_UP_FRAMES: u32 = 3;
-/// Steady frames (after [`WARM_UP_FRAMES`]) a probe measures.
+/// Steady frames (after the warm-up) a probe measures.
 pub const PROBE_FRAMES: u32 = 3;
 /// Frames after which a candidate measured over the budget (but within [`PROBE_LIMIT`]) that
 /// would win were it to fit is probed again: ten seconds at 30 Hz. The adapter's speed drifts
@@ -398,7 +402,7 @@ impl Governor {
     /// `candidate` rendered a frame in `motion` in `ms`. `path_samples` and `estimated_error`
     /// are what the frame reported (`pt`'s samples per pixel so far, and its own error
     /// estimate); `samples_added` how many it traced this frame. `steady`: past the
-    /// [`WARM_UP_FRAMES`] after a switch, so it counts towards the cost.
+    /// [`WARM_UP_MS`] after a switch, so it counts towards the cost.
     pub fn observe(
         &mut self,
         candidate: usize,
@@ -762,6 +766,8 @@ mod tests {
     const DIR64: usize = 4;
     const DIR: usize = 5;
     const PT: usize = 6;
+    /// Frames the runner flags as warm-up after a switch.
+    const WARM_UP: u32 = WARM_UP_FRAMES;
 
     fn features(shadow: f64, bleeding: f64, occlusion: f64) -> SceneFeatures {
         SceneFeatures {
@@ -911,7 +917,7 @@ mod tests {
                 PT,
                 Motion::Still,
                 60.0,
-                frames > WARM_UP_FRAMES,
+                frames > WARM_UP,
                 Some(PtFrame {
                     path_samples: frames,
                     samples_added: 1,
@@ -930,7 +936,7 @@ mod tests {
             "{}",
             governor.reason()
         );
-        assert_eq!(frames, WARM_UP_FRAMES + PROBE_FRAMES);
+        assert_eq!(frames, WARM_UP + PROBE_FRAMES);
         governor.switched(DIFFERENTIAL);
         // Then the next most promising within reach: dir (12×: 60 ms).
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR));
@@ -958,7 +964,7 @@ mod tests {
         let mut frames = 0;
         loop {
             frames += 1;
-            governor.observe(DIR64, Motion::Still, 45.0, frames > WARM_UP_FRAMES, None);
+            governor.observe(DIR64, Motion::Still, 45.0, frames > WARM_UP, None);
             match governor.decide(Motion::Still, false) {
                 Action::Stay => assert!(frames < 10, "{}", governor.reason()),
                 action => {

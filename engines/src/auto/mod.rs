@@ -96,8 +96,9 @@ pub struct Auto {
     builder: Builder,
     /// The candidate to switch to once it is built.
     wanted: Option<usize>,
-    /// Frames the running candidate has rendered since it was switched in.
+    /// Frames the running candidate has rendered since it was switched in, and their time (ms).
     frames_on_current: u32,
+    ms_on_current: f64,
     stillness: Stillness,
     motion: Motion,
     /// The scene key and camera the features were estimated for, and frames since.
@@ -175,6 +176,7 @@ impl Auto {
             builder: Builder::new(registry.clone(), jobs),
             wanted: None,
             frames_on_current: 0,
+            ms_on_current: 0.0,
             stillness: Stillness::default(),
             motion: Motion::Moving,
             features_for: None,
@@ -224,6 +226,7 @@ impl Auto {
     fn switch_to(&mut self, candidate: usize) {
         self.governor.switched(candidate);
         self.frames_on_current = 0;
+        self.ms_on_current = 0.0;
     }
 
     /// Start running `candidate`: at once when it is built, else once the builder has it.
@@ -335,8 +338,11 @@ impl Engine for Auto {
         let started = Instant::now();
         engine.render(frame, out)?;
         let ms = started.elapsed().as_secs_f64() * 1e3;
-        let steady = self.frames_on_current >= governor::WARM_UP_FRAMES;
+        let steady = self.frames_on_current > 0
+            && (self.ms_on_current >= governor::WARM_UP_MS
+                || self.frames_on_current >= governor::WARM_UP_FRAMES);
         self.frames_on_current = self.frames_on_current.saturating_add(1);
+        self.ms_on_current += ms;
         let pt = self.governor.candidates()[current]
             .is_path_traced()
             .then_some(PtFrame {
