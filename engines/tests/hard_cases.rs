@@ -14,7 +14,9 @@ use glam::Vec3;
 use relight_core::light::Light;
 use relight_core::scene::Scene;
 use relight_engines::offline::object_error;
-use support::{add_sun, delta_of, engine_with, frame, load_scene, max_abs, reference_full};
+use support::{
+    add_sun, delta_of, engine_with, frame, load_scene, max_abs, real_norm, reference_full,
+};
 
 fn hard_scenes() -> Vec<(&'static str, Scene)> {
     let desk = load_scene("desk_box");
@@ -131,17 +133,6 @@ const VISIBLE: f64 = 0.02;
 /// base scene's material and light): 0.14–0.37 measured there.
 const OBJECT_TOLERANCE: f64 = 0.5;
 
-/// ‖v‖ over the pixels where `keep` holds.
-fn norm(values: &[Vec3], mask: &[bool], keep: bool) -> f64 {
-    values
-        .iter()
-        .zip(mask)
-        .filter(|(_, m)| **m == keep)
-        .map(|(v, _)| f64::from(v.length_squared()))
-        .sum::<f64>()
-        .sqrt()
-}
-
 /// Whether Δ over the real pixels is within tolerance of the reference's: ‖Δ − Δ_ref‖ at most
 /// max(DELTA_TOLERANCE · ‖Δ_ref‖, VISIBLE · ‖L^μ_ref‖), once the comparison's own noise is added
 /// as it adds to a squared error (‖σ‖² of the reference, and of the engine when it is Monte
@@ -158,11 +149,11 @@ fn within_tolerance(
         .zip(&reference.delta)
         .map(|(d, r)| *d - *r)
         .collect();
-    let allowed = (DELTA_TOLERANCE * norm(&reference.delta, mask, false))
-        .max(VISIBLE * norm(&reference.l_mu, mask, false));
-    let noise_sq = norm(&reference.delta_std_error, mask, false).powi(2) + engine_noise.powi(2);
+    let allowed = (DELTA_TOLERANCE * real_norm(&reference.delta, mask))
+        .max(VISIBLE * real_norm(&reference.l_mu, mask));
+    let noise_sq = real_norm(&reference.delta_std_error, mask).powi(2) + engine_noise.powi(2);
     (
-        norm(&error, mask, false),
+        real_norm(&error, mask),
         (allowed.powi(2) + 1.5 * noise_sq).sqrt(),
     )
 }
@@ -186,7 +177,7 @@ fn every_engine_stays_within_tolerance_of_the_reference_on_hard_scenes() {
             let (delta, out) = delta_of(&mut engine, &frame(scene.clone(), w, h));
             let noise = out
                 .estimated_relative_error
-                .map_or(0.0, |e| e * norm(&delta, &reference.virtual_mask, false));
+                .map_or(0.0, |e| e * real_norm(&delta, &reference.virtual_mask));
             let (error, bound) = within_tolerance(&delta, &reference, noise);
             assert!(
                 error <= bound,

@@ -14,7 +14,7 @@ use relight_engines::gpu::GpuContext;
 use relight_engines::pt::{Pt, PtStatistics};
 use relight_engines::reference::{ReferenceSettings, render_reference};
 use relight_engines::{Engine, RelitFrame, SceneFrame};
-use support::{frame, load_scene};
+use support::{frame, load_scene, real_norm};
 
 const SCENES: [&str; 5] = [
     "desk_box",
@@ -252,16 +252,8 @@ fn four_times_the_samples_halve_the_error() {
     let mut truth = pt(&ctx, serde_json::json!({ "spp": 1024, "seed": 99 }));
     render(&mut truth, &frame);
     let truth = truth.statistics().unwrap();
-    let real: Vec<bool> = truth.overlay.iter().map(|o| o.w == 0.0).collect();
-    let rms = |values: &[Vec3]| {
-        values
-            .iter()
-            .zip(&real)
-            .filter(|(_, real)| **real)
-            .map(|(v, _)| f64::from(v.length_squared()))
-            .sum::<f64>()
-            .sqrt()
-    };
+    let virtual_mask: Vec<bool> = truth.overlay.iter().map(|o| o.w != 0.0).collect();
+    let rms = |values: &[Vec3]| real_norm(values, &virtual_mask);
     let estimated = rms(&at_64.delta_std_error) / rms(&at_16.delta_std_error);
     let distance = |s: &PtStatistics| {
         let d: Vec<Vec3> = s

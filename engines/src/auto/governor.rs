@@ -766,8 +766,6 @@ mod tests {
     const DIR64: usize = 4;
     const DIR: usize = 5;
     const PT: usize = 6;
-    /// Frames the runner flags as warm-up after a switch.
-    const WARM_UP: u32 = WARM_UP_FRAMES;
 
     fn features(shadow: f64, bleeding: f64, occlusion: f64) -> SceneFeatures {
         SceneFeatures {
@@ -823,6 +821,27 @@ mod tests {
             }
         }
         switches
+    }
+
+    /// Run the probed `candidate` at `ms` a frame, its first [`WARM_UP_FRAMES`] flagged as
+    /// warm-up as `Auto` flags them (`pt` tracing a sample a frame), until the governor acts:
+    /// the action and the frames it took.
+    fn probe(governor: &mut Governor, candidate: usize, ms: f64) -> (Action, u32) {
+        let mut frames = 0;
+        loop {
+            frames += 1;
+            let pt = (candidate == PT).then_some(PtFrame {
+                path_samples: frames,
+                samples_added: 1,
+                estimated_error: Some(0.3),
+            });
+            governor.observe(candidate, Motion::Still, ms, frames > WARM_UP_FRAMES, pt);
+            let action = governor.decide(Motion::Still, false);
+            if action != Action::Stay {
+                return (action, frames);
+            }
+            assert!(frames < 10, "{}", governor.reason());
+        }
     }
 
     #[test]
@@ -910,33 +929,14 @@ mod tests {
         governor.switched(PT);
         // Its sample costs 60 ms: it does not fit, so its noise is not worth measuring and the
         // probe ends after its steady frames; the choice is made afresh, without hysteresis.
-        let mut frames = 0;
-        let action = loop {
-            frames += 1;
-            governor.observe(
-                PT,
-                Motion::Still,
-                60.0,
-                frames > WARM_UP,
-                Some(PtFrame {
-                    path_samples: frames,
-                    samples_added: 1,
-                    estimated_error: Some(0.3),
-                }),
-            );
-            let action = governor.decide(Motion::Still, false);
-            if action != Action::Stay {
-                break action;
-            }
-            assert!(frames < 10, "{}", governor.reason());
-        };
+        let (action, frames) = probe(&mut governor, PT, 60.0);
         assert_eq!(
             action,
             Action::Switch(DIFFERENTIAL),
             "{}",
             governor.reason()
         );
-        assert_eq!(frames, WARM_UP + PROBE_FRAMES);
+        assert_eq!(frames, WARM_UP_FRAMES + PROBE_FRAMES);
         governor.switched(DIFFERENTIAL);
         // Then the next most promising within reach: dir (12×: 60 ms).
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR));
@@ -961,19 +961,9 @@ mod tests {
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR64));
         governor.switched(DIR64);
         // Probed in a slow spell (45 ms): over the budget, so back to differential.
-        let mut frames = 0;
-        loop {
-            frames += 1;
-            governor.observe(DIR64, Motion::Still, 45.0, frames > WARM_UP, None);
-            match governor.decide(Motion::Still, false) {
-                Action::Stay => assert!(frames < 10, "{}", governor.reason()),
-                action => {
-                    assert_eq!(action, Action::Switch(DIFFERENTIAL));
-                    governor.switched(DIFFERENTIAL);
-                    break;
-                }
-            }
-        }
+        let (action, _) = probe(&mut governor, DIR64, 45.0);
+        assert_eq!(action, Action::Switch(DIFFERENTIAL));
+        governor.switched(DIFFERENTIAL);
         // Not probed again within REPROBE_FRAMES ...
         let switches = run(&mut governor, Motion::Still, REPROBE_FRAMES as u32 - 10);
         assert!(switches.is_empty(), "{switches:?}: {}", governor.reason());

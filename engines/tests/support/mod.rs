@@ -80,14 +80,18 @@ pub fn reference_full(scene: &Scene, width: u32, height: u32, spp: u32) -> Refer
 /// ‖Δ − Δ_ref‖ / ‖Δ_ref‖ over real pixels (the bench's metric), and ‖Δ_ref‖ itself.
 pub fn relative_l2(delta: &[Vec3], reference: &[Vec3], virtual_mask: &[bool]) -> (f32, f32) {
     let (error, _) = relight_engines::offline::delta_error(delta, reference, virtual_mask);
-    let norm = reference
+    (error as f32, real_norm(reference, virtual_mask) as f32)
+}
+
+/// ‖v‖₂ over the real pixels (where `virtual_mask` is false).
+pub fn real_norm(values: &[Vec3], virtual_mask: &[bool]) -> f64 {
+    values
         .iter()
         .zip(virtual_mask)
         .filter(|(_, v)| !**v)
-        .map(|(r, _)| f64::from(r.length_squared()))
+        .map(|(v, _)| f64::from(v.length_squared()))
         .sum::<f64>()
-        .sqrt();
-    (error as f32, norm as f32)
+        .sqrt()
 }
 
 /// Pixels whose 8-neighbourhood in `delta` spans more than `fraction` of the image's largest
