@@ -1,20 +1,29 @@
 // Progressive differential path tracing (engines/src/pt): one thread per pixel traces this
 // dispatch's samples of L^ρ and, where the path touched the virtual object, L^μ from the same
-// random numbers (correlated sampling), folds them into the pixel's running means, and writes
-// Δ and the composite. The estimator is the reference's (engines/reference/src/integrator.rs),
+// random numbers (correlated sampling), and folds them into the pixel's running means
+// (`pt_resolve.wgsl` turns those into Δ and the composite). The estimator is the reference's (engines/reference/src/integrator.rs),
 // step for step: next-event estimation of point, spot and directional lights, the environment
 // by importance sampling combined with BSDF sampling by MIS (power heuristic, both halves at the
-// last vertex), emission where a ray hits, Russian roulette from `rr_start`. Samples-per-dispatch
-// 0 only resolves: the composite over a new background, the means unchanged.
+// last vertex), emission where a ray hits, Russian roulette from `rr_start`.
+//
+// Work comes in units: unit u is one sample for the pixels of the 8 × 8 tiles (this workgroup
+// size; row-major tile index) ≡ u (mod phases), so a frame can trace a share of a sample per
+// pixel where a whole one does not fit its budget. A dispatch traces units [first, first +
+// count) over a grid of (tile slots, phases covered) workgroups, so its cost follows the tiles
+// it traces (the whole image's invocations cost 9 ms a dispatch on lavapipe at 160 × 120 even
+// when they trace nothing). Each pixel draws its samples in its own order: sample s of pixel i
+// from stream (seed, i, s), s its own count so far, kept in `delta_mean.w`.
 
 struct Params {
-    // width, height, samples this dispatch, samples already in the means.
+    // width, height, units this dispatch (≥ 1), the first unit's index.
     size: vec4<u32>,
     // x: max bounces; y: Russian roulette from this bounce; z: light count; w: root node
     // reference (an inner node's index, LEAF | triangle, or NONE without triangles).
     options: vec4<u32>,
     // x, y: seed (low, high word); z, w: environment map width, height (0: none).
     seed: vec4<u32>,
+    // x: the tile phases a sample is split into.
+    units: vec4<u32>,
 }
 
 // The camera, glTF convention (looks down −Z): its axes in the world.
@@ -65,8 +74,8 @@ struct PtMaterial {
 }
 
 // Per pixel, the running means: the overlay (L^ρ where the sample's camera ray met the object,
-// Δ elsewhere) with the object's coverage in w; Δ's mean and its sum of squared deviations
-// (Welford).
+// Δ elsewhere) with the object's coverage in w; Δ's mean (the pixel's sample count in w) and
+// its sum of squared deviations (Welford).
 struct Accum {
     overlay: vec4<f32>,
     delta_mean: vec4<f32>,
@@ -85,11 +94,6 @@ struct Accum {
 @group(0) @binding(7) var<storage, read> env_radiance: array<vec4<f32>>;
 @group(0) @binding(8) var<storage, read> env_tables: array<f32>;
 @group(0) @binding(9) var<storage, read_write> accum: array<Accum>;
-@group(0) @binding(10) var<storage, read> background: array<u32>;
-// rgb: Δ; w: the variance of its mean, summed over the channels (−1 below two samples).
-@group(0) @binding(11) var<storage, read_write> delta_out: array<vec4<f32>>;
-// sRGB composite; alpha: the object's coverage.
-@group(0) @binding(12) var<storage, read_write> composite_out: array<u32>;
 
 const LEAF: u32 = 0x80000000u;
 const NONE: u32 = 0xffffffffu;
@@ -618,24 +622,34 @@ fn camera_ray(x: u32, y: u32, jx: f32, jy: f32) -> vec3<f32> {
     return normalize(camera.right.xyz * d.x + camera.up.xyz * d.y + camera.back.xyz * d.z);
 }
 
-fn unpack_background(i: u32) -> vec3<f32> {
-    return srgb_to_linear(unpack4x8unorm(background[i]).rgb);
-}
-
 @compute @workgroup_size(8, 8)
-fn main(@builtin(global_invocation_id) id: vec3<u32>) {
-    if id.x >= params.size.x || id.y >= params.size.y {
+fn main(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(local_invocation_id) local: vec3<u32>,
+) {
+    // Workgroup (slot, j) traces the slot-th tile of phase (first + j) mod phases.
+    let phases = params.units.x;
+    let first = params.size.w;
+    let phase = (first + group.y) % phases;
+    let tiles_x = (params.size.x + 7u) / 8u;
+    let tile = group.x * phases + phase;
+    let x = (tile % tiles_x) * 8u + local.x;
+    let y = (tile / tiles_x) * 8u + local.y;
+    if x >= params.size.x || y >= params.size.y {
         return;
     }
-    let i = id.y * params.size.x + id.x;
+    let i = y * params.size.x + x;
     var acc = accum[i];
-    let first = params.size.w;
-    for (var s = 0u; s < params.size.z; s++) {
-        let sample = first + s;
+    // The units of this dispatch that fall on this phase.
+    let end = first + params.size.z;
+    let samples = (end + phases - 1u - phase) / phases - (first + phases - 1u - phase) / phases;
+    let before = u32(acc.delta_mean.w);
+    for (var s = 0u; s < samples; s++) {
+        let sample = before + s;
         var rng = rng_new(i, sample);
         let jx = rng_next(&rng);
         let jy = rng_next(&rng);
-        let dir = camera_ray(id.x, id.y, jx, jy);
+        let dir = camera_ray(x, y, jx, jy);
         var rng_mu = rng;
         let rho = radiance(camera.position.xyz, dir, false, &rng);
         var l_mu = rho.radiance;
@@ -647,25 +661,8 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         let overlay = select(vec4<f32>(delta, 0.0), vec4<f32>(rho.radiance, 1.0), rho.first_virtual);
         acc.overlay += (overlay - acc.overlay) / n;
         let dev = delta - acc.delta_mean.xyz;
-        acc.delta_mean = vec4<f32>(acc.delta_mean.xyz + dev / n, 0.0);
+        acc.delta_mean = vec4<f32>(acc.delta_mean.xyz + dev / n, n);
         acc.delta_m2 = vec4<f32>(acc.delta_m2.xyz + dev * (delta - acc.delta_mean.xyz), 0.0);
     }
-    if params.size.z > 0u {
-        accum[i] = acc;
-    }
-    let n = f32(first + params.size.z);
-    var variance = -1.0;
-    if n >= 2.0 {
-        let v = acc.delta_m2.xyz / (n - 1.0) / n;
-        variance = v.x + v.y + v.z;
-    }
-    delta_out[i] = vec4<f32>(acc.delta_mean.xyz, variance);
-    var composite = unpack_background(i);
-    var coverage = 0.0;
-    if n >= 1.0 {
-        coverage = acc.overlay.w;
-        composite = acc.overlay.rgb + (1.0 - coverage) * composite;
-    }
-    // Alpha: the object's coverage of the pixel.
-    composite_out[i] = pack4x8unorm(vec4<f32>(linear_to_srgb(composite), coverage));
+    accum[i] = acc;
 }

@@ -71,6 +71,8 @@ pub struct EngineRun {
     pub relative_l2: f64,
     /// Frames rendered in the run.
     pub frames: usize,
+    /// Path samples per pixel in the last frame's picture (`pt`, or `auto` running it).
+    pub path_samples: f64,
     /// For `auto`: what it chose and its switches.
     pub chosen: Option<String>,
     pub switches: Option<u64>,
@@ -130,44 +132,93 @@ fn median(times: &mut [f64]) -> f64 {
     times.get(times.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
-/// Render `frame` for `seconds` of wall-clock time, no faster than the sensor's rate (a frame
-/// that takes less waits for the next): the median frame time, the frames and the last frame.
-fn timeline(
-    engine: &mut dyn Engine,
-    frame: &SceneFrame,
-    seconds: f64,
-) -> Result<(f64, usize, RelitFrame)> {
-    let mut out = RelitFrame::default();
-    let mut times = Vec::new();
-    let started = Instant::now();
-    loop {
-        let frame_started = Instant::now();
-        engine.render(frame, &mut out)?;
-        let took = frame_started.elapsed();
-        times.push(took.as_secs_f64() * 1e3);
-        if started.elapsed().as_secs_f64() >= seconds {
-            break;
-        }
-        std::thread::sleep(SENSOR_PERIOD.saturating_sub(took));
+/// One engine's run on a scene: frames no faster than the sensor's, on the engine's own clock.
+struct Timeline {
+    label: String,
+    /// The budget the setting depends on (`pt`'s and `auto`'s).
+    budget_ms: Option<f64>,
+    engine: Box<dyn Engine>,
+    /// Its clock: each frame advances it by the frame's time or the sensor's period, whichever
+    /// is longer (a frame that takes less waits for the next).
+    clock: Duration,
+    times: Vec<f64>,
+    out: RelitFrame,
+}
+
+/// Render `frame` with every engine for `seconds` of each engine's own clock (as
+/// [`Timeline::clock`] runs), the engines taking their frames in turn, so that a slow spell of
+/// a shared machine falls on all of them alike (run one after another, two runs of one engine
+/// were seen 8 % apart in error). Each engine renders a first frame before its clock starts:
+/// it allocates and uploads, and on lavapipe takes from 0.6 s (`dir` alone) to 3.7 s (`dir`
+/// beside the other engines), which would leave a slow engine a frame or two of the run.
+fn run_in_turn(lines: &mut [Timeline], frame: &SceneFrame, seconds: f64) -> Result<()> {
+    for line in lines.iter_mut() {
+        line.engine.render(frame, &mut line.out)?;
     }
-    let frames = times.len();
-    Ok((median(&mut times), frames, out))
+    let end = Duration::from_secs_f64(seconds);
+    // The engine furthest behind renders next.
+    while let Some(line) = lines
+        .iter_mut()
+        .filter(|l| l.clock < end)
+        .min_by_key(|l| l.clock)
+    {
+        let started = Instant::now();
+        line.engine.render(frame, &mut line.out)?;
+        let took = started.elapsed();
+        line.times.push(took.as_secs_f64() * 1e3);
+        line.clock += took.max(SENSOR_PERIOD);
+    }
+    Ok(())
+}
+
+/// An engine with parameters, as the bench runs it.
+struct Setting {
+    label: String,
+    engine: &'static str,
+    params: Map<String, Value>,
+    /// The budget the setting depends on.
+    budget_ms: Option<f64>,
 }
 
 /// The fixed settings compared at `budget`: the governor's candidates, `pt` at the budget.
-fn fixed_settings(budget_ms: f64) -> Vec<(String, &'static str, Map<String, Value>)> {
+fn fixed_settings(budget_ms: f64) -> Vec<Setting> {
     candidates()
         .into_iter()
         .map(|c| {
-            let mut params = c.params.clone();
-            let mut label = c.label.clone();
+            let mut setting = Setting {
+                label: c.label.clone(),
+                engine: c.engine,
+                params: c.params.clone(),
+                budget_ms: None,
+            };
             if c.is_path_traced() {
-                params.insert("budget_ms".into(), json!(budget_ms));
-                label = format!("pt budget_ms={budget_ms}");
+                setting.params.insert("budget_ms".into(), json!(budget_ms));
+                setting.label = format!("pt budget_ms={budget_ms}");
+                setting.budget_ms = Some(budget_ms);
             }
-            (label, c.engine, params)
+            setting
         })
         .collect()
+}
+
+/// Every fixed setting once (only `pt`'s depends on the budget), and `auto` per budget.
+fn settings_to_run(budgets_ms: &[f64]) -> Vec<Setting> {
+    let mut to_run: Vec<Setting> = Vec::new();
+    for &budget in budgets_ms {
+        for setting in fixed_settings(budget) {
+            if !to_run.iter().any(|s| s.label == setting.label) {
+                to_run.push(setting);
+            }
+        }
+        let params = json!({ "budget_ms": budget });
+        to_run.push(Setting {
+            label: format!("auto budget_ms={budget}"),
+            engine: Auto::NAME,
+            params: params.as_object().cloned().unwrap_or_default(),
+            budget_ms: Some(budget),
+        });
+    }
+    to_run
 }
 
 /// The comparison of `auto` with the fixed runs at one budget.
@@ -220,78 +271,64 @@ pub fn run(
             progress(GovernorProgress::Reference(p))
         })?;
         let frame = scene_frame(scene.clone(), background(&truth.images));
-        // Each run keeps its last Δ until the truth is final.
-        let mut runs: Vec<(EngineRun, Vec<Vec3>)> = Vec::new();
-        let measure = |engine: &str,
-                       params: &Map<String, Value>,
-                       label: String,
-                       budget_ms: Option<f64>,
-                       progress: &mut dyn FnMut(GovernorProgress<'_>)|
-         -> Result<(EngineRun, Vec<Vec3>)> {
+        // Built before the runs start, as a running daemon builds an engine before it swaps it
+        // in; `auto`'s candidates too.
+        let build = |engine: &str, params: &Map<String, Value>| -> Result<Box<dyn Engine>> {
+            if engine != Auto::NAME {
+                return Ok(registry.build(engine, params)?.engine);
+            }
+            let mut auto = Auto::new(&registry).context("auto")?;
+            let schema = Auto::schema();
+            let mut params = schema.validate(&schema.defaults(), params)?;
+            params.insert("horizon_ms".into(), json!(settings.seconds * 1e3));
+            auto.set_params(&params);
+            auto.wait_for_builds();
+            Ok(Box::new(auto))
+        };
+        let mut lines = Vec::new();
+        for setting in settings_to_run(&settings.budgets_ms) {
             progress(GovernorProgress::Run {
                 scene: &name,
-                engine: label.clone(),
+                engine: setting.label.clone(),
             });
-            // Built before the run starts, as a running daemon builds an engine before it swaps
-            // it in; `auto`'s candidates too.
-            let mut built: Box<dyn Engine> = if engine == Auto::NAME {
-                let mut auto = Auto::new(&registry).context("auto")?;
-                let schema = Auto::schema();
-                let mut params = schema.validate(&schema.defaults(), params)?;
-                params.insert("horizon_ms".into(), json!(settings.seconds * 1e3));
-                auto.set_params(&params);
-                auto.wait_for_builds();
-                Box::new(auto)
-            } else {
-                registry
-                    .build(engine, params)
-                    .with_context(|| label.clone())?
-                    .engine
-            };
-            let (median_ms, frames, out) = timeline(built.as_mut(), &frame, settings.seconds)?;
-            let status = built.status();
-            Ok((
-                EngineRun {
-                    scene: name.clone(),
-                    engine: label,
-                    budget_ms,
-                    median_ms,
-                    relative_l2: f64::NAN,
-                    frames,
-                    chosen: status
-                        .as_ref()
-                        .and_then(|s| s["chosen"].as_str().map(str::to_owned)),
-                    switches: status.as_ref().and_then(|s| s["switches"].as_u64()),
-                    status,
-                },
-                delta_pixels(&out.delta),
-            ))
-        };
-        let mut fixed_seen = Vec::new();
-        for &budget in &settings.budgets_ms {
-            for (label, engine, params) in fixed_settings(budget) {
-                // A fixed engine's run does not depend on the budget, but `pt`'s does.
-                if fixed_seen.contains(&label) {
-                    continue;
-                }
-                fixed_seen.push(label.clone());
-                let budget_of = params.contains_key("budget_ms").then_some(budget);
-                match measure(engine, &params, label, budget_of, &mut progress) {
-                    Ok(run) => runs.push(run),
-                    Err(error) => tracing::warn!("{name}: skipped: {error:#}"),
-                }
+            match build(setting.engine, &setting.params) {
+                Ok(engine) => lines.push(Timeline {
+                    label: setting.label,
+                    budget_ms: setting.budget_ms,
+                    engine,
+                    clock: Duration::ZERO,
+                    times: Vec::new(),
+                    out: RelitFrame::default(),
+                }),
+                Err(error) if setting.engine == Auto::NAME => return Err(error),
+                Err(error) => tracing::warn!("{name}: {} skipped: {error:#}", setting.label),
             }
-            let params = json!({ "budget_ms": budget });
-            let params = params.as_object().cloned().unwrap_or_default();
-            let label = format!("auto budget_ms={budget}");
-            runs.push(measure(
-                Auto::NAME,
-                &params,
-                label,
-                Some(budget),
-                &mut progress,
-            )?);
         }
+        run_in_turn(&mut lines, &frame, settings.seconds)?;
+        // Each run keeps its last Δ until the truth is final.
+        let mut runs: Vec<(EngineRun, Vec<Vec3>)> = lines
+            .into_iter()
+            .map(|mut line| {
+                let status = line.engine.status();
+                (
+                    EngineRun {
+                        scene: name.clone(),
+                        engine: line.label,
+                        budget_ms: line.budget_ms,
+                        median_ms: median(&mut line.times),
+                        relative_l2: f64::NAN,
+                        frames: line.times.len(),
+                        path_samples: line.out.path_samples,
+                        chosen: status
+                            .as_ref()
+                            .and_then(|s| s["chosen"].as_str().map(str::to_owned)),
+                        switches: status.as_ref().and_then(|s| s["switches"].as_u64()),
+                        status,
+                    },
+                    delta_pixels(&line.out.delta),
+                )
+            })
+            .collect();
         let score = |runs: &mut Vec<(EngineRun, Vec<Vec3>)>, truth: &ReferenceImages| {
             for (run, delta) in runs {
                 run.relative_l2 = delta_error(delta, &truth.delta, &truth.virtual_mask).0;
@@ -360,7 +397,7 @@ fn curves(
     // The first frame compiles and uploads; time from the second on, as a running engine.
     pt.render(frame, &mut out)?;
     let started = Instant::now();
-    let mut next_point = 1;
+    let mut next_point = 1.0;
     while started.elapsed().as_secs_f64() < settings.curve_seconds {
         pt.render(frame, &mut out)?;
         if out.path_samples >= next_point {
@@ -368,10 +405,10 @@ fn curves(
                 scene: scene.name.clone(),
                 renderer: "pt",
                 seconds: started.elapsed().as_secs_f64(),
-                spp: out.path_samples,
+                spp: out.path_samples as u32,
                 relative_l2: error(&delta_pixels(&out.delta)),
             });
-            next_point *= 2;
+            next_point *= 2.0;
         }
     }
     let (width, height) = (settings.bench.width, settings.bench.height);
@@ -436,6 +473,8 @@ fn recording_rows(
                 .get("delta_rel_l2")
                 .map_or(f64::NAN, |s| s.median),
             frames: report.frames,
+            // A moving camera's picture holds one frame's samples.
+            path_samples: f64::NAN,
             chosen: report
                 .engine_status
                 .as_ref()
@@ -448,33 +487,17 @@ fn recording_rows(
         })
     };
     let mut runs = Vec::new();
-    let mut fixed_seen = Vec::new();
-    for &budget in &settings.budgets_ms {
-        for (label, engine, params) in fixed_settings(budget) {
-            if fixed_seen.contains(&label) {
-                continue;
-            }
-            fixed_seen.push(label.clone());
-            progress(GovernorProgress::Run {
-                scene: &name,
-                engine: label.clone(),
-            });
-            let budget_of = params.contains_key("budget_ms").then_some(budget);
-            runs.push(score(engine, params, label, budget_of)?);
-        }
-        let label = format!("auto budget_ms={budget}");
+    for setting in settings_to_run(&settings.budgets_ms) {
         progress(GovernorProgress::Run {
             scene: &name,
-            engine: label.clone(),
+            engine: setting.label.clone(),
         });
-        let params = json!({ "budget_ms": budget });
-        let run = score(
-            "auto",
-            params.as_object().cloned().unwrap_or_default(),
-            label,
-            Some(budget),
-        )?;
-        runs.push(run);
+        runs.push(score(
+            setting.engine,
+            setting.params,
+            setting.label,
+            setting.budget_ms,
+        )?);
     }
     let rows = settings
         .budgets_ms

@@ -75,9 +75,10 @@ pub struct RelitFrame {
     /// one: `pt`'s Monte Carlo standard error. `None` for the engines whose error is bias.
     pub estimated_relative_error: Option<f64>,
     /// Path samples per pixel in this frame's picture (`pt`'s running means), and those traced
-    /// this frame; 0 for the engines that trace none.
-    pub path_samples: u32,
-    pub path_samples_traced: u32,
+    /// this frame, averaged over the pixels (a frame may trace a sample for a share of them);
+    /// 0 for the engines that trace none.
+    pub path_samples: f64,
+    pub path_samples_traced: f64,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -154,8 +155,8 @@ impl RelitFrame {
         self.work.clear();
         self.non_finite = 0;
         self.estimated_relative_error = None;
-        self.path_samples = 0;
-        self.path_samples_traced = 0;
+        self.path_samples = 0.0;
+        self.path_samples_traced = 0.0;
         self.composite.reshape(width, height, PixelFormat::Rgb8);
         self.delta.reshape(width, height, PixelFormat::Rgba16F);
         if let Some(delta) = self.delta.as_u16_mut() {

@@ -31,6 +31,7 @@ pub const DIR_GATHER: &str = pass!("dir_gather.wgsl");
 pub const IBL_CONVOLVE: &str = pass!("ibl_convolve.wgsl");
 pub const IBL_SHADE: &str = pass!("ibl_shade.wgsl");
 pub const PT_TRACE: &str = pass!("pt_trace.wgsl");
+pub const PT_RESOLVE: &str = pass!("pt_resolve.wgsl");
 /// The depth-reconstruction passes (`recon_gpu`) share `recon_common.wgsl` after `common.wgsl`.
 macro_rules! recon_pass {
     ($file:literal) => {
@@ -72,6 +73,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("ibl_convolve.wgsl", IBL_CONVOLVE),
     ("ibl_shade.wgsl", IBL_SHADE),
     ("pt_trace.wgsl", PT_TRACE),
+    ("pt_resolve.wgsl", PT_RESOLVE),
     ("recon_common.wgsl", pass!("recon_common.wgsl")),
     ("recon_moments.wgsl", RECON_MOMENTS),
     ("recon_solve.wgsl", RECON_SOLVE),

@@ -11,7 +11,7 @@ use std::sync::Arc;
 use glam::{DVec3, Quat, Vec3};
 use relight_core::scene::Scene;
 use relight_engines::gpu::GpuContext;
-use relight_engines::pt::{Pt, PtStatistics};
+use relight_engines::pt::{Pt, PtStatistics, TILE_PHASES};
 use relight_engines::reference::{ReferenceSettings, render_reference};
 use relight_engines::{Engine, RelitFrame, SceneFrame};
 use support::{frame, load_scene, real_norm};
@@ -168,8 +168,9 @@ fn delta_is_exactly_zero_without_the_object_or_far_from_it() {
     }
 }
 
-/// Sample s of pixel i draws from its own stream: 3 + 5 samples over two frames are the 8 of
-/// one frame bit for bit, and another seed gives another image.
+/// Sample s of pixel i draws from its own stream: 3 + 5 samples over two frames, or tile
+/// phases' shares of a sample over frames that follow a budget, are the 8 of one frame bit for
+/// bit, and another seed gives another image.
 #[test]
 fn the_same_seed_renders_the_same_image_however_the_samples_are_split() {
     let ctx = context();
@@ -185,6 +186,22 @@ fn the_same_seed_renders_the_same_image_however_the_samples_are_split() {
     let split = render(&mut split, &frame);
     assert_eq!(bits(&whole.delta), bits(&split.delta));
     assert_eq!(bits(&whole.composite), bits(&split.composite));
+    // Shares of a sample: following a budget, the first frame traces one tile phase's.
+    let mut shares = pt(&ctx, serde_json::json!({ "budget_ms": 1.0, "max_spp": 8 }));
+    let first = render(&mut shares, &frame);
+    assert_eq!(first.path_samples, 1.0 / f64::from(TILE_PHASES));
+    assert_eq!(first.path_samples_traced, first.path_samples);
+    for _ in 0..3 {
+        render(&mut shares, &frame);
+    }
+    let mut rest = Pt::schema().defaults();
+    rest.insert("spp".into(), 8.into());
+    rest.insert("max_spp".into(), 8.into());
+    shares.set_params(&rest);
+    let shares = render(&mut shares, &frame);
+    assert_eq!(shares.path_samples, 8.0);
+    assert_eq!(bits(&whole.delta), bits(&shares.delta));
+    assert_eq!(bits(&whole.composite), bits(&shares.composite));
     let mut other = pt(&ctx, serde_json::json!({ "spp": 8, "seed": 1 }));
     let other = render(&mut other, &frame);
     assert_ne!(bits(&whole.delta), bits(&other.delta));

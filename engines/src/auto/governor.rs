@@ -37,6 +37,7 @@ use serde::Serialize;
 use serde_json::{Map, Value};
 
 use super::features::SceneFeatures;
+use crate::pt::TILE_PHASES;
 
 /// Errors within 10 % (relative, and 0.002 absolute) of each other count as equal: the error
 /// model's own spread on the five scenes it was fitted to (rms of the log error 0.02–0.15 per
@@ -75,7 +76,7 @@ pub const REPROBE_FRAMES: u64 = 300;
 /// could win; its own measurement replaces it once it has traced [`PT_PROBE_SAMPLES`].
 const PT_NOISE_PRIOR: f64 = 0.4;
 /// Samples per pixel a probe of `pt` traces before its noise counts as measured.
-pub const PT_PROBE_SAMPLES: u32 = 16;
+pub const PT_PROBE_SAMPLES: f64 = 16.0;
 /// ... or this many frames, whichever comes first.
 const PT_PROBE_FRAMES: u32 = 30;
 
@@ -305,7 +306,7 @@ pub struct Governor {
     pt_noise: Option<f64>,
     pt_ms_per_spp: FrameTimes,
     /// `pt`'s samples per pixel after its last frame.
-    pt_samples: u32,
+    pt_samples: f64,
     /// `pt` was probed in this motion state (its noise may stay unmeasured: one sample per
     /// frame of a moving camera gives no variance).
     pt_probed: [bool; 2],
@@ -332,7 +333,7 @@ impl Governor {
             features: SceneFeatures::default(),
             pt_noise: None,
             pt_ms_per_spp: FrameTimes::default(),
-            pt_samples: 0,
+            pt_samples: 0.0,
             pt_probed: [false; 2],
             current,
             frames_on_current: 0,
@@ -435,13 +436,13 @@ impl Governor {
         }
         if let Some(pt) = pt {
             self.pt_samples = pt.path_samples;
-            if pt.samples_added > 0 {
-                self.pt_ms_per_spp.push(ms / f64::from(pt.samples_added));
+            if pt.samples_added > 0.0 {
+                self.pt_ms_per_spp.push(ms / pt.samples_added);
             }
             if let Some(error) = pt.estimated_error.filter(|e| e.is_finite())
-                && pt.path_samples >= 4
+                && pt.path_samples >= 4.0
             {
-                let noise = error * f64::from(pt.path_samples).sqrt();
+                let noise = error * pt.path_samples.sqrt();
                 self.pt_noise = Some(self.pt_noise.map_or(noise, |old| 0.7 * old + 0.3 * noise));
             }
         }
@@ -500,7 +501,9 @@ impl Governor {
                     .or_else(|| self.estimated_cost(candidate, motion))
                     .unwrap_or(self.settings.budget_ms)
                     .max(1e-6);
-                let per_frame = (self.settings.budget_ms / per_spp).floor().max(1.0);
+                // pt traces a share of a sample per pixel where a whole one does not fit.
+                let per_frame =
+                    (self.settings.budget_ms / per_spp).max(1.0 / f64::from(TILE_PHASES));
                 let samples = match motion {
                     Motion::Moving => per_frame,
                     // Frames come no faster than the sensor's, each with its budget's samples.
@@ -515,17 +518,23 @@ impl Governor {
     }
 
     /// Measured cost of `candidate` in `motion`. `pt` costs its budget (it fills it with
-    /// samples) once one sample per pixel is known to fit, else what one sample costs.
+    /// samples) once its least step, a sample for one tile phase, is known to fit, else that
+    /// step's cost.
     fn cost(&self, candidate: usize, motion: Motion) -> Option<f64> {
         if self.candidates[candidate].is_path_traced() {
-            let one = self.pt_ms_per_spp.median()?;
-            return Some(if one <= self.settings.budget_ms {
+            let step = self.pt_step_ms()?;
+            return Some(if step <= self.settings.budget_ms {
                 self.settings.budget_ms
             } else {
-                one
+                step
             });
         }
         self.costs[candidate][motion.index()].median()
+    }
+
+    /// What `pt`'s least step costs: a sample per pixel for one tile phase.
+    fn pt_step_ms(&self) -> Option<f64> {
+        Some(self.pt_ms_per_spp.median()? / f64::from(TILE_PHASES))
     }
 
     /// Whether the governor knows what it needs of `candidate` in `motion`: its cost, and for
@@ -554,6 +563,17 @@ impl Governor {
         let ratio = self.candidates[candidate].model.relative_cost(motion)
             / self.candidates[known].model.relative_cost(motion);
         Some(ms * ratio)
+    }
+
+    /// The least frame a candidate not measured yet is estimated to cost: `pt`'s least step
+    /// (a tile phase's share of a sample), another's frame.
+    fn estimated_least_cost(&self, candidate: usize, motion: Motion) -> Option<f64> {
+        let ms = self.estimated_cost(candidate, motion)?;
+        Some(if self.candidates[candidate].is_path_traced() {
+            ms / f64::from(TILE_PHASES)
+        } else {
+            ms
+        })
     }
 
     /// Every candidate as the governor sees it now.
@@ -638,12 +658,11 @@ impl Governor {
     pub fn decide(&mut self, motion: Motion, building: bool) -> Action {
         if let Some((probed, frames)) = self.probing {
             // pt's noise is measured over its accumulating samples: while still, and only where
-            // one sample fits the budget.
+            // its least step fits the budget.
             let measuring_noise = self.candidates[probed].is_path_traced()
                 && motion == Motion::Still
                 && self
-                    .pt_ms_per_spp
-                    .median()
+                    .pt_step_ms()
                     .is_none_or(|ms| ms <= self.settings.budget_ms)
                 && self.pt_samples < PT_PROBE_SAMPLES
                 && frames < PT_PROBE_FRAMES;
@@ -673,7 +692,7 @@ impl Governor {
             .filter(|&c| self.predicted_error(c, motion) * (1.0 + TIE) + SLACK < target)
             .filter(|&c| {
                 self.cost(c, motion)
-                    .or_else(|| self.estimated_cost(c, motion))
+                    .or_else(|| self.estimated_least_cost(c, motion))
                     .is_none_or(|ms| ms <= PROBE_LIMIT * self.settings.budget_ms)
             })
             .min_by(|&a, &b| {
@@ -750,8 +769,8 @@ impl Governor {
 /// What a `pt` frame reported, for [`Governor::observe`].
 #[derive(Debug, Clone, Copy)]
 pub struct PtFrame {
-    pub path_samples: u32,
-    pub samples_added: u32,
+    pub path_samples: f64,
+    pub samples_added: f64,
     pub estimated_error: Option<f64>,
 }
 
@@ -799,8 +818,8 @@ mod tests {
             40.0,
             true,
             Some(PtFrame {
-                path_samples: 16,
-                samples_added: 1,
+                path_samples: 16.0,
+                samples_added: 1.0,
                 estimated_error: Some(0.625),
             }),
         );
@@ -831,8 +850,8 @@ mod tests {
         loop {
             frames += 1;
             let pt = (candidate == PT).then_some(PtFrame {
-                path_samples: frames,
-                samples_added: 1,
+                path_samples: f64::from(frames),
+                samples_added: 1.0,
                 estimated_error: Some(0.3),
             });
             governor.observe(candidate, Motion::Still, ms, frames > WARM_UP_FRAMES, pt);
@@ -847,7 +866,7 @@ mod tests {
     #[test]
     fn a_shadow_only_scene_chooses_the_cheapest_shadow_engine() {
         // Every rasteriser predicts the same error on a shadow alone: the cheapest wins, and
-        // nothing is switched to (pt's sample does not fit 33 ms).
+        // nothing is switched to (pt fits 33 ms, but its noise is far above their error).
         let mut governor = measured(features(10.0, 0.0, 0.0), 33.0);
         let switches = run(&mut governor, Motion::Still, 40);
         assert!(switches.is_empty(), "{switches:?}: {}", governor.reason());
@@ -927,9 +946,10 @@ mod tests {
             "waits for its build"
         );
         governor.switched(PT);
-        // Its sample costs 60 ms: it does not fit, so its noise is not worth measuring and the
-        // probe ends after its steady frames; the choice is made afresh, without hysteresis.
-        let (action, frames) = probe(&mut governor, PT, 60.0);
+        // Its sample costs 1.6 s: not even a tile phase's share of one (100 ms) fits, so its
+        // noise is not worth measuring and the probe ends after its steady frames; the choice
+        // is made afresh, without hysteresis.
+        let (action, frames) = probe(&mut governor, PT, 1600.0);
         assert_eq!(
             action,
             Action::Switch(DIFFERENTIAL),
@@ -940,6 +960,53 @@ mod tests {
         governor.switched(DIFFERENTIAL);
         // Then the next most promising within reach: dir (12×: 60 ms).
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR));
+    }
+
+    #[test]
+    fn pt_fits_a_budget_under_its_sample_by_tracing_a_share_of_one() {
+        let mut governor = Governor::new(
+            candidates(),
+            DIFFERENTIAL,
+            Settings {
+                budget_ms: 33.0,
+                max_error: None,
+                horizon_ms: 2000.0,
+            },
+        );
+        governor.set_features(features(2.0, 6.0, 0.0));
+        for candidate in [IBL, DLPV, DVCT, DIR64, DIR] {
+            governor.mark_unavailable(candidate);
+        }
+        governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+        assert_eq!(governor.decide(Motion::Still, false), Action::Probe(PT));
+        governor.switched(PT);
+        // A sample per pixel costs 40 ms, over the budget: a frame traces 33/40 of one, and
+        // the probe measures pt's noise (1.2 at a sample) until it holds 16.
+        let share = 33.0 / 40.0;
+        let mut samples = 0.0;
+        let mut frames = 0;
+        while governor.probing().is_some() {
+            frames += 1;
+            samples += share;
+            let pt = PtFrame {
+                path_samples: samples,
+                samples_added: share,
+                estimated_error: Some(1.2 / f64::sqrt(samples)),
+            };
+            governor.observe(PT, Motion::Still, 33.0, frames > WARM_UP_FRAMES, Some(pt));
+            assert_eq!(governor.decide(Motion::Still, false), Action::Stay);
+            assert!(frames < 40, "{}", governor.reason());
+        }
+        assert!(samples >= PT_PROBE_SAMPLES, "{samples}");
+        // It fits, and is kept: 33/40 of a sample a frame for the horizon's 60 frames.
+        assert_eq!(governor.cost(PT, Motion::Still), Some(33.0));
+        assert_eq!(governor.current(), PT, "{}", governor.reason());
+        let predicted = governor.predicted_error(PT, Motion::Still);
+        let expected = 1.2 / (share * 2000.0 / 33.0).sqrt();
+        assert!(
+            (predicted - expected).abs() < 1e-3,
+            "{predicted} vs {expected}"
+        );
     }
 
     #[test]
@@ -1025,7 +1092,8 @@ mod tests {
             frames += 1;
             governor.observe(DIR64, Motion::Still, 20.0, true, None);
             if let Action::Switch(c) = governor.decide(Motion::Still, false) {
-                assert!([DIFFERENTIAL, IBL, DLPV].contains(&c));
+                // pt fits any budget its least step does (its noise grows as it must).
+                assert!([DIFFERENTIAL, IBL, DLPV, PT].contains(&c));
                 break;
             }
             assert!(

@@ -18,10 +18,11 @@
 pub mod features;
 pub mod governor;
 
+use std::sync::Arc;
 use std::sync::mpsc::{Receiver, channel};
 use std::time::Instant;
 
-use relight_core::scene::SceneCamera;
+use relight_core::scene::{Scene, SceneCamera};
 use serde_json::{Map, Value, json};
 
 use self::features::scene_features;
@@ -100,6 +101,9 @@ pub struct Auto {
     frames_on_current: u32,
     ms_on_current: f64,
     stillness: Stillness,
+    /// The last scene and its key: hashing a scene (an environment map's every texel) each
+    /// frame costs milliseconds, and an unchanged scene is the same `Arc`.
+    scene_key: Option<(Arc<Scene>, u64)>,
     motion: Motion,
     /// The scene key and camera the features were estimated for, and frames since.
     features_for: Option<(u64, SceneCamera)>,
@@ -178,6 +182,7 @@ impl Auto {
             frames_on_current: 0,
             ms_on_current: 0.0,
             stillness: Stillness::default(),
+            scene_key: None,
             motion: Motion::Moving,
             features_for: None,
             frames_since_features: 0,
@@ -315,7 +320,14 @@ impl Engine for Auto {
             self.size = size;
             self.governor.forget_costs();
         }
-        let key = scene_key(scene);
+        let key = match &self.scene_key {
+            Some((held, key)) if Arc::ptr_eq(held, scene) => *key,
+            _ => {
+                let key = scene_key(scene);
+                self.scene_key = Some((scene.clone(), key));
+                key
+            }
+        };
         let depth = focus_depth_m(
             &scene.camera,
             scene.virtual_bounds().or_else(|| scene.real_bounds()),

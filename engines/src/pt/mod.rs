@@ -18,10 +18,15 @@
 //! - the image size or any parameter.
 //!
 //! Samples per frame follow `budget_ms` (measured per sample, so the frame fits the budget on
-//! whatever adapter runs it) or are fixed by `spp`; after `max_spp` the means are kept. Sample
-//! `s` of pixel `i` always draws from the stream seeded by (seed, i, s), so the picture after n
-//! samples does not depend on how they were split between frames, and the same seed renders
-//! the same image. The composite follows DLPV's Algorithm 1 per sample: L^ρ where the sample's
+//! whatever adapter runs it) or are fixed by `spp`; after `max_spp` the means are kept. A
+//! sample is traced in [`TILE_PHASES`] units, each the 8 × 8 tiles of one phase (tile index
+//! mod [`TILE_PHASES`]), and a frame traces as many units as fit: where one sample per pixel
+//! costs more than the budget (`pt` on a CPU adapter costs 27–41 ms a sample at 160 × 120), a
+//! frame traces a share of one and still fits, and no pixel is more than one sample ahead of
+//! another.
+//! Sample `s` of pixel `i` always draws from the stream seeded by (seed, i, s), so the picture
+//! after n samples does not depend on how they were split between frames, and the same seed
+//! renders the same image. The composite follows DLPV's Algorithm 1 per sample: L^ρ where the sample's
 //! camera ray met the object, the background plus Δ elsewhere (so silhouettes are
 //! area-sampled). Each frame reports its own Monte Carlo error
 //! ([`RelitFrame::estimated_relative_error`]): the standard error of Δ over the real pixels
@@ -52,12 +57,21 @@ pub const STILL_PX: f32 = 0.25;
 /// Samples per pixel in one dispatch at most (a frame may submit several).
 const DISPATCH_SPP: u32 = 64;
 
+/// The units a sample per pixel is traced in: unit u traces the 8 × 8 tiles (row-major index)
+/// ≡ u (mod this).
+pub const TILE_PHASES: u32 = 16;
+
+/// A frame aims at this share of the budget, after its fixed part: a frame's cost drifts by a
+/// few per cent from the one it was fitted to, and the budget is a limit, not a target.
+const BUDGET_SHARE: f64 = 0.95;
+
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct Params {
     size: [u32; 4],
     options: [u32; 4],
     seed: [u32; 4],
+    units: [u32; 4],
 }
 
 #[repr(C)]
@@ -72,10 +86,11 @@ struct PtCamera {
 /// [`Pt::statistics`]: the running means, per pixel, row-major from the top-left.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct PtStatistics {
+    /// Samples in every pixel (a pixel may hold one more).
     pub spp: u32,
     /// Δ = L^ρ − L^μ, the mean over the pixel's samples (its area).
     pub delta: Vec<glam::Vec3>,
-    /// The standard error of `delta` from the samples' variance; ∞ below 2 samples.
+    /// The standard error of `delta` from the pixel's samples' variance; ∞ below 2 samples.
     pub delta_std_error: Vec<glam::Vec3>,
     /// The overlay the composite is made of: the mean over the pixel's samples of L^ρ where
     /// the sample's camera ray met the virtual object and Δ where it did not (rgb), and the
@@ -128,13 +143,15 @@ struct Accumulated {
     key: u64,
     /// The camera traced (held while the real one moves less than [`STILL_PX`]).
     camera: SceneCamera,
-    spp: u32,
+    /// Units traced ([`TILE_PHASES`] to a sample per pixel).
+    units: u32,
 }
 
 #[derive(Debug)]
 pub struct Pt {
     ctx: Arc<GpuContext>,
     pipeline: wgpu::ComputePipeline,
+    resolve: wgpu::ComputePipeline,
     params: wgpu::Buffer,
     camera: wgpu::Buffer,
     settings: Settings,
@@ -142,10 +159,13 @@ pub struct Pt {
     scene: Option<(Arc<Scene>, u64, PtScene)>,
     frame: Option<FrameBuffers>,
     accumulated: Option<Accumulated>,
-    /// Measured cost of one sample per pixel, and of a frame's fixed part (upload, resolve,
-    /// read-back), milliseconds (running averages).
-    ms_per_spp: Option<f64>,
+    /// Measured cost of one unit, and of a frame's fixed part (upload, resolve, read-back),
+    /// milliseconds (running averages).
+    ms_per_unit: Option<f64>,
     overhead_ms: Option<f64>,
+    /// Whether a frame has traced: the first compiles the pipeline on some adapters (seconds
+    /// on lavapipe), and is not what a unit costs.
+    traced_once: bool,
     background: Vec<u32>,
     timer: Option<GpuTimer>,
 }
@@ -189,6 +209,7 @@ impl Pt {
 
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
         let pipeline = shaders::compute_pipeline(&ctx.device, "pt trace", shaders::PT_TRACE);
+        let resolve = shaders::compute_pipeline(&ctx.device, "pt resolve", shaders::PT_RESOLVE);
         let uniform = |label, size| {
             ctx.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -200,23 +221,25 @@ impl Pt {
         ctx.check()?;
         Ok(Self {
             pipeline,
+            resolve,
             params: uniform("pt params", size_of::<Params>() as u64),
             camera: uniform("pt camera", size_of::<PtCamera>() as u64),
             settings: Settings::default(),
             scene: None,
             frame: None,
             accumulated: None,
-            ms_per_spp: None,
+            ms_per_unit: None,
             overhead_ms: None,
+            traced_once: false,
             background: Vec::new(),
             timer: GpuTimer::new(&ctx),
             ctx,
         })
     }
 
-    /// Samples per pixel in the running means.
+    /// Samples in every pixel of the running means (a pixel may hold one more).
     pub fn samples(&self) -> u32 {
-        self.accumulated.map_or(0, |a| a.spp)
+        self.accumulated.map_or(0, |a| a.units / TILE_PHASES)
     }
 
     /// The running means as they stand after the last frame, read back: per pixel Δ and its
@@ -239,9 +262,10 @@ impl Pt {
         self.ctx
             .read_back(&frame.accum, &staging, pixels * 48, |bytes| {
                 let means: &[[[f32; 4]; 3]] = bytemuck::cast_slice(bytes);
-                let n = f64::from(spp);
-                let std_error = |m2: f32| {
-                    if spp < 2 {
+                // The pixel's own sample count is the w of its Δ mean.
+                let std_error = |n: f32, m2: f32| {
+                    let n = f64::from(n);
+                    if n < 2.0 {
                         f32::INFINITY
                     } else {
                         (f64::from(m2.max(0.0)) / (n - 1.0) / n).sqrt() as f32
@@ -255,8 +279,10 @@ impl Pt {
                         .collect(),
                     delta_std_error: means
                         .iter()
-                        .map(|[_, _, m2]| {
-                            glam::Vec3::new(std_error(m2[0]), std_error(m2[1]), std_error(m2[2]))
+                        .map(|[_, d, m2]| {
+                            glam::Vec3::from_array(
+                                [m2[0], m2[1], m2[2]].map(|m| std_error(d[3], m)),
+                            )
                         })
                         .collect(),
                     overlay: means
@@ -267,15 +293,17 @@ impl Pt {
             })
     }
 
-    /// Samples to trace this frame, `remaining` short of `max_spp`.
-    fn samples_this_frame(&self, remaining: u32) -> u32 {
-        let wanted = match (self.settings.spp, self.ms_per_spp) {
+    /// Units to trace this frame, `remaining` short of `max_spp`: at least one while any remain.
+    fn units_this_frame(&self, remaining: u32) -> u32 {
+        let wanted = match (self.settings.spp, self.ms_per_unit) {
             (0, None) => 1,
-            (0, Some(per_spp)) => {
-                let left = self.settings.budget_ms - self.overhead_ms.unwrap_or(0.0);
-                (left / per_spp.max(1e-6)).floor().clamp(1.0, 4096.0) as u32
+            (0, Some(per_unit)) => {
+                let left = BUDGET_SHARE * self.settings.budget_ms - self.overhead_ms.unwrap_or(0.0);
+                (left / per_unit.max(1e-6))
+                    .floor()
+                    .clamp(1.0, f64::from(4096 * TILE_PHASES)) as u32
             }
-            (spp, _) => spp,
+            (spp, _) => spp * TILE_PHASES,
         };
         wanted.min(remaining)
     }
@@ -338,18 +366,15 @@ fn camera_uniform(camera: &SceneCamera, width: u32, height: u32) -> PtCamera {
     }
 }
 
-/// What one sample per pixel costs at most, for the roofline: a path of up to `bounces + 2`
+/// What `spp` samples per pixel (a share of one where a frame traces some of the rows) cost at
+/// most, for the roofline: per sample a path of up to `bounces + 2`
 /// rays per solution, each a BVH walk of about 2·log2(triangles) box tests (40 operations) and
 /// a few triangle tests (60), plus a shadow ray per light and the environment; the means read
 /// and written once.
-fn trace_work(pixels: u64, spp: u32, triangles: u32, lights: u32, bounces: u32) -> Work {
+fn trace_work(pixels: u64, spp: f64, triangles: u32, lights: u32, bounces: u32) -> Work {
     let walk = 2.0 * f64::from(triangles.max(2)).log2() * 40.0 + 4.0 * 60.0;
     let rays_per_path = f64::from(bounces + 2) * (1.0 + f64::from(lights) + 1.0);
-    Work::new(
-        48.0 * 2.0 + 20.0,
-        walk * rays_per_path * 2.0 * f64::from(spp),
-    )
-    .times(pixels as f64)
+    Work::new(48.0 * 2.0 + 20.0, walk * rays_per_path * 2.0 * spp).times(pixels as f64)
 }
 
 impl Engine for Pt {
@@ -396,7 +421,7 @@ impl Engine for Pt {
         let mut accumulated = still.unwrap_or(Accumulated {
             key,
             camera: scene.camera,
-            spp: 0,
+            units: 0,
         });
         if still.is_none() {
             let frame_res = self.frame.as_ref().ok_or(EngineError::NotPrepared)?;
@@ -408,7 +433,9 @@ impl Engine for Pt {
             encoder.clear_buffer(&frame_res.accum, 0, None);
             ctx.queue.submit([encoder.finish()]);
         }
-        let spp = self.samples_this_frame(self.settings.max_spp.saturating_sub(accumulated.spp));
+        let units = self.units_this_frame(
+            (self.settings.max_spp * TILE_PHASES).saturating_sub(accumulated.units),
+        );
         let (Some(frame_res), Some((_, _, gpu_scene))) = (&self.frame, &self.scene) else {
             return Err(EngineError::NotPrepared);
         };
@@ -429,7 +456,23 @@ impl Engine for Pt {
             0,
             bytemuck::bytes_of(&camera_uniform(&accumulated.camera, width, height)),
         );
-        let group = shaders::bind_group(
+        let params = |batch: u32, first: u32| Params {
+            size: [width, height, batch, first],
+            options: [
+                self.settings.bounces,
+                RR_START_BOUNCE,
+                gpu_scene.light_count,
+                gpu_scene.root,
+            ],
+            seed: [
+                self.settings.seed as u32,
+                (self.settings.seed >> 32) as u32,
+                gpu_scene.env_size.0,
+                gpu_scene.env_size.1,
+            ],
+            units: [TILE_PHASES, 0, 0, 0],
+        };
+        let trace_group = shaders::bind_group(
             &ctx.device,
             "pt trace",
             &self.pipeline.get_bind_group_layout(0),
@@ -444,44 +487,29 @@ impl Engine for Pt {
                 gpu_scene.env_radiance.as_entire_binding(),
                 gpu_scene.env_tables.as_entire_binding(),
                 frame_res.accum.as_entire_binding(),
-                frame_res.background.as_entire_binding(),
-                frame_res.delta.as_entire_binding(),
-                frame_res.composite.as_entire_binding(),
             ],
         );
         if let Some(timer) = self.timer.as_mut() {
             timer.reset();
         }
+        // Tile slots per phase: the trace's workgroups along x.
+        let slots = (width.div_ceil(8) * height.div_ceil(8)).div_ceil(TILE_PHASES);
         let trace_started = Instant::now();
         let mut traced = 0;
-        // At least one dispatch: with no samples left it only resolves the composite.
-        loop {
-            let batch = (spp - traced).min(DISPATCH_SPP);
-            let params = Params {
-                size: [width, height, batch, accumulated.spp + traced],
-                options: [
-                    self.settings.bounces,
-                    RR_START_BOUNCE,
-                    gpu_scene.light_count,
-                    gpu_scene.root,
-                ],
-                seed: [
-                    self.settings.seed as u32,
-                    (self.settings.seed >> 32) as u32,
-                    gpu_scene.env_size.0,
-                    gpu_scene.env_size.1,
-                ],
-            };
-            ctx.queue
-                .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        while traced < units {
+            let batch = (units - traced).min(DISPATCH_SPP * TILE_PHASES);
+            ctx.queue.write_buffer(
+                &self.params,
+                0,
+                bytemuck::bytes_of(&params(batch, accumulated.units + traced)),
+            );
             let mut encoder = ctx
                 .device
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                     label: Some("pt trace"),
                 });
             {
-                let last = traced + batch >= spp;
-                let timestamps = if last {
+                let timestamps = if traced + batch >= units {
                     self.timer.as_mut().and_then(|t| t.compute("gpu.trace"))
                 } else {
                     None
@@ -491,31 +519,59 @@ impl Engine for Pt {
                     timestamp_writes: timestamps,
                 });
                 pass.set_pipeline(&self.pipeline);
-                pass.set_bind_group(0, &group, &[]);
-                pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+                pass.set_bind_group(0, &trace_group, &[]);
+                pass.dispatch_workgroups(slots, batch.min(TILE_PHASES), 1);
             }
             ctx.queue.submit([encoder.finish()]);
             traced += batch;
-            if traced >= spp {
-                break;
-            }
             // Each batch's parameters must reach the GPU before the next overwrites them.
             ctx.wait()?;
         }
-        ctx.wait()?;
         let trace_ms = trace_started.elapsed().as_secs_f64() * 1e3;
-        out.work.push(PassWork {
-            pass: "trace",
-            work: trace_work(
-                u64::from(width) * u64::from(height),
-                spp,
-                gpu_scene.triangles,
-                gpu_scene.light_count,
-                self.settings.bounces,
-            ),
-        });
-        accumulated.spp += spp;
+        if units > 0 {
+            out.work.push(PassWork {
+                pass: "trace",
+                work: trace_work(
+                    u64::from(width) * u64::from(height),
+                    f64::from(units) / f64::from(TILE_PHASES),
+                    gpu_scene.triangles,
+                    gpu_scene.light_count,
+                    self.settings.bounces,
+                ),
+            });
+        }
+        accumulated.units += units;
         self.accumulated = Some(accumulated);
+        // Every frame resolves: the background is new even when the means are not.
+        ctx.queue
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params(0, 0)));
+        let resolve_group = shaders::bind_group(
+            &ctx.device,
+            "pt resolve",
+            &self.resolve.get_bind_group_layout(0),
+            &[
+                self.params.as_entire_binding(),
+                frame_res.accum.as_entire_binding(),
+                frame_res.background.as_entire_binding(),
+                frame_res.delta.as_entire_binding(),
+                frame_res.composite.as_entire_binding(),
+            ],
+        );
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("pt resolve"),
+            });
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("pt resolve"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.resolve);
+            pass.set_bind_group(0, &resolve_group, &[]);
+            pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+        }
+        ctx.queue.submit([encoder.finish()]);
         let pixels = u64::from(width) * u64::from(height);
         // The composite's alpha holds the object's coverage: pixels under half covered are
         // the real ones Δ's error is estimated over.
@@ -550,10 +606,11 @@ impl Engine for Pt {
                 )
             },
         )?;
-        out.path_samples = accumulated.spp;
-        out.path_samples_traced = spp;
-        out.estimated_relative_error =
-            (accumulated.spp >= 2 && square > 0.0).then(|| (variance / square).sqrt());
+        let phases = f64::from(TILE_PHASES);
+        out.path_samples = f64::from(accumulated.units) / phases;
+        out.path_samples_traced = f64::from(units) / phases;
+        out.estimated_relative_error = (accumulated.units >= 2 * TILE_PHASES && square > 0.0)
+            .then(|| (variance / square).sqrt());
         out.timings.push(PassTiming {
             pass: "trace",
             ms: trace_ms,
@@ -562,9 +619,9 @@ impl Engine for Pt {
             timer.read(&ctx, &mut out.timings)?;
         }
         let total_ms = started.elapsed().as_secs_f64() * 1e3;
-        if spp > 0 {
-            let per_spp = trace_ms / f64::from(spp);
-            self.ms_per_spp = Some(self.ms_per_spp.map_or(per_spp, |m| 0.5 * (m + per_spp)));
+        if units > 0 && std::mem::replace(&mut self.traced_once, true) {
+            let per_unit = trace_ms / f64::from(units);
+            self.ms_per_unit = Some(self.ms_per_unit.map_or(per_unit, |m| 0.5 * (m + per_unit)));
             let overhead = (total_ms - trace_ms).max(0.0);
             self.overhead_ms = Some(self.overhead_ms.map_or(overhead, |m| 0.5 * (m + overhead)));
         }
