@@ -5,11 +5,13 @@
 //!
 //! **Scenes (a still camera): the picture [`GovernorSettings::seconds`] after the scene
 //! appears.** Each engine is built (`auto` with all its candidates, as a daemon builds an engine
-//! before it swaps it in), then renders the scene's frame for that long, no faster than a 30 Hz
-//! sensor delivers frames: everything it accumulates (the rasterisers' sub-pixel edges, `pt`'s
-//! samples) and, for `auto`, its probes and switches happen on that clock. Its time is the
-//! median frame; its error that of the last frame's Δ (relative L2 over real pixels) against the
-//! reference over each pixel's area (what a camera sees, and what still frames converge to).
+//! before it swaps it in) and renders a first frame; then each renders the scene's frame for
+//! that long on its own clock, no faster than a 30 Hz sensor delivers frames: everything it
+//! accumulates (the rasterisers' sub-pixel edges, `pt`'s samples) and, for `auto`, its probes
+//! and switches happen on that clock. The engines take their frames in turn, so a slow spell
+//! of the machine falls on all of them alike. Its time is the median frame; its error that of
+//! the last frame's Δ (relative L2 over real pixels) against the reference over each pixel's
+//! area (what a camera sees, and what still frames converge to).
 //! `auto`'s horizon is set to the same time. A fixed engine fits when its median frame is
 //! within the budget; `auto` **matches** the best one that fits when its error is at most
 //! [`MATCH_TOLERANCE`] above it (the references' noise is reported beside).

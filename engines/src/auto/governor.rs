@@ -19,8 +19,11 @@
 //! **Cost.** The frame time of each candidate, tracked per motion state (a still scene lets
 //! engines keep work between frames) as the median of its last frames, first measured by a
 //! short probe. A candidate whose cost is not known yet is probed only when it would be chosen
-//! were it to fit, and only when the cost ratios in [`ErrorModel::relative_cost`] (lavapipe's,
-//! a rough prior) do not put it far over the budget.
+//! were it to fit, only when the cost ratios in [`ErrorModel::relative_cost`] (lavapipe's,
+//! a rough prior) do not put it far over the budget, and only once the running candidate has
+//! [`PROBE_FRAMES`] steady frames of its own. `pt` fills whatever budget it is given (it
+//! traces a share of a sample per pixel where a whole one does not fit), so it costs its
+//! budget wherever its least step fits.
 //!
 //! **Choice.** Among the candidates that fit the budget, the lowest predicted error, where
 //! errors within [`TIE`] count as equal and the cheaper wins (so a shadow-only scene gets the
@@ -699,8 +702,12 @@ impl Governor {
                 self.predicted_error(a, motion)
                     .total_cmp(&self.predicted_error(b, motion))
             });
+        // The running candidate's cost is what the others' are scaled from and what they are
+        // chosen against: measured over as many steady frames as a probe's first (a fresh
+        // engine's first frames run slow on lavapipe: `differential` read 13.8 ms against 10
+        // over one, 7.4 ms later, and lost a budget it fits).
         if !building
-            && self.cost(self.current, motion).is_some()
+            && self.costs[self.current][motion.index()].0.len() >= PROBE_FRAMES as usize
             && let Some(candidate) = probe
         {
             let why = if self.stale(candidate, motion) {
@@ -934,8 +941,13 @@ mod tests {
             },
         );
         governor.set_features(features(2.0, 6.0, 0.0));
-        // Nothing measured: no probe before the running candidate has a cost to scale from.
+        // Nothing measured: no probe before the running candidate has a cost to scale from,
+        // measured over as many steady frames as a probe's.
         assert_eq!(governor.decide(Motion::Still, false), Action::Stay);
+        for _ in 1..PROBE_FRAMES {
+            governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+            assert_eq!(governor.decide(Motion::Still, false), Action::Stay);
+        }
         governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
         // pt is the most promising, and its sample is estimated at 5× differential's still
         // frame (25 ms), within reach of the budget; dvct (40×) is not.
@@ -977,7 +989,9 @@ mod tests {
         for candidate in [IBL, DLPV, DVCT, DIR64, DIR] {
             governor.mark_unavailable(candidate);
         }
-        governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+        for _ in 0..PROBE_FRAMES {
+            governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+        }
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(PT));
         governor.switched(PT);
         // A sample per pixel costs 40 ms, over the budget: a frame traces 33/40 of one, and
@@ -1024,7 +1038,9 @@ mod tests {
         for candidate in [IBL, DLPV, DVCT, DIR, PT] {
             governor.mark_unavailable(candidate);
         }
-        governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+        for _ in 0..PROBE_FRAMES {
+            governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+        }
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR64));
         governor.switched(DIR64);
         // Probed in a slow spell (45 ms): over the budget, so back to differential.

@@ -159,13 +159,15 @@ pub struct Pt {
     scene: Option<(Arc<Scene>, u64, PtScene)>,
     frame: Option<FrameBuffers>,
     accumulated: Option<Accumulated>,
-    /// Measured cost of one unit, and of a frame's fixed part (upload, resolve, read-back),
-    /// milliseconds (running averages).
-    ms_per_unit: Option<f64>,
+    /// The trace's measured time and units, each frame's added to half the sums before: their
+    /// ratio is a unit's cost, weighted by units, so that a frame of few units (whose time is
+    /// mostly the dispatch's fixed part) does not hold the next frames far under the budget. A
+    /// frame that costs under half that per unit starts the sums again: the first frame may
+    /// have compiled the pipeline (seconds on lavapipe).
+    trace_sums: Option<(f64, f64)>,
+    /// Measured cost of a frame's fixed part (upload, resolve, read-back), milliseconds (a
+    /// running average).
     overhead_ms: Option<f64>,
-    /// Whether a frame has traced: the first compiles the pipeline on some adapters (seconds
-    /// on lavapipe), and is not what a unit costs.
-    traced_once: bool,
     background: Vec<u32>,
     timer: Option<GpuTimer>,
 }
@@ -228,9 +230,8 @@ impl Pt {
             scene: None,
             frame: None,
             accumulated: None,
-            ms_per_unit: None,
+            trace_sums: None,
             overhead_ms: None,
-            traced_once: false,
             background: Vec::new(),
             timer: GpuTimer::new(&ctx),
             ctx,
@@ -295,7 +296,8 @@ impl Pt {
 
     /// Units to trace this frame, `remaining` short of `max_spp`: at least one while any remain.
     fn units_this_frame(&self, remaining: u32) -> u32 {
-        let wanted = match (self.settings.spp, self.ms_per_unit) {
+        let per_unit = self.trace_sums.map(|(ms, units)| ms / units);
+        let wanted = match (self.settings.spp, per_unit) {
             (0, None) => 1,
             (0, Some(per_unit)) => {
                 let left = BUDGET_SHARE * self.settings.budget_ms - self.overhead_ms.unwrap_or(0.0);
@@ -619,9 +621,13 @@ impl Engine for Pt {
             timer.read(&ctx, &mut out.timings)?;
         }
         let total_ms = started.elapsed().as_secs_f64() * 1e3;
-        if units > 0 && std::mem::replace(&mut self.traced_once, true) {
-            let per_unit = trace_ms / f64::from(units);
-            self.ms_per_unit = Some(self.ms_per_unit.map_or(per_unit, |m| 0.5 * (m + per_unit)));
+        if units > 0 {
+            let units = f64::from(units);
+            let (ms, traced) = self
+                .trace_sums
+                .filter(|(ms, traced)| trace_ms / units >= 0.5 * ms / traced)
+                .unwrap_or_default();
+            self.trace_sums = Some((0.5 * ms + trace_ms, 0.5 * traced + units));
             let overhead = (total_ms - trace_ms).max(0.0);
             self.overhead_ms = Some(self.overhead_ms.map_or(overhead, |m| 0.5 * (m + overhead)));
         }
