@@ -23,12 +23,11 @@
 //! mod [`TILE_PHASES`]), and a frame traces as many units as fit: where one sample per pixel
 //! costs more than the budget (`pt` on a CPU adapter costs 27–41 ms a sample at 160 × 120), a
 //! frame traces a share of one and still fits, and no pixel is more than one sample ahead of
-//! another.
-//! Sample `s` of pixel `i` always draws from the stream seeded by (seed, i, s), so the picture
-//! after n samples does not depend on how they were split between frames, and the same seed
-//! renders the same image. The composite follows DLPV's Algorithm 1 per sample: L^ρ where the sample's
-//! camera ray met the object, the background plus Δ elsewhere (so silhouettes are
-//! area-sampled). Each frame reports its own Monte Carlo error
+//! another. Sample `s` of pixel `i` always draws from the stream seeded by (seed, i, s), `s`
+//! the pixel's own count, so the picture after n samples does not depend on how they were
+//! split between frames, and the same seed renders the same image. The composite follows
+//! DLPV's Algorithm 1 per sample: L^ρ where the sample's camera ray met the object, the
+//! background plus Δ elsewhere (so silhouettes are area-sampled). Each frame reports its own Monte Carlo error
 //! ([`RelitFrame::estimated_relative_error`]): the standard error of Δ over the real pixels
 //! relative to Δ itself.
 
