@@ -20,10 +20,12 @@
 //! engines keep work between frames) as the median of its last frames, first measured by a
 //! short probe. A candidate whose cost is not known yet is probed only when it would be chosen
 //! were it to fit, only when the cost ratios in [`ErrorModel::relative_cost`] (lavapipe's,
-//! a rough prior) do not put it far over the budget, and only once the running candidate has
-//! [`PROBE_FRAMES`] steady frames of its own. `pt` fills whatever budget it is given (it
-//! traces a share of a sample per pixel where a whole one does not fit), so it costs its
-//! budget wherever its least step fits.
+//! a rough prior) do not put it far over the budget. A candidate counts as measured after
+//! [`PROBE_FRAMES`] steady frames. A rasteriser's cost is estimated from a measured
+//! rasteriser's, so with none measured the cheapest is measured first; `pt` measures its own
+//! and is probed at once. `pt` fills whatever budget it is given (it traces a share of a
+//! sample per pixel where a whole one does not fit), so it costs its budget wherever its least
+//! step fits.
 //!
 //! **Choice.** Among the candidates that fit the budget, the lowest predicted error, where
 //! errors within [`TIE`] count as equal and the cheaper wins (so a shadow-only scene gets the
@@ -547,7 +549,10 @@ impl Governor {
             return self.pt_probed[motion.index()]
                 || (self.cost(candidate, motion).is_some() && self.pt_noise.is_some());
         }
-        self.cost(candidate, motion).is_some()
+        // Over as many steady frames as a probe measures: a fresh engine's first frames run
+        // slow on lavapipe (`differential` read 13.8 ms against a 10 ms budget over one frame,
+        // 7.4 ms later, and lost a budget it fits).
+        self.costs[candidate][motion.index()].0.len() >= PROBE_FRAMES as usize
     }
 
     /// Whether `candidate` was measured over the budget in `motion` more than
@@ -560,12 +565,28 @@ impl Governor {
 
     /// A cost from the ratios to a measured candidate, for one not measured yet.
     fn estimated_cost(&self, candidate: usize, motion: Motion) -> Option<f64> {
-        let (known, ms) = (0..self.candidates.len())
-            .filter_map(|c| Some((c, self.cost(c, motion)?)))
-            .find(|(c, _)| !self.candidates[*c].is_path_traced())?;
+        let known = self.scale(motion)?;
+        let ms = self.cost(known, motion)?;
         let ratio = self.candidates[candidate].model.relative_cost(motion)
             / self.candidates[known].model.relative_cost(motion);
         Some(ms * ratio)
+    }
+
+    /// The measured rasteriser the others' costs are scaled from.
+    fn scale(&self, motion: Motion) -> Option<usize> {
+        (0..self.candidates.len())
+            .find(|&c| !self.candidates[c].is_path_traced() && self.measured(c, motion))
+    }
+
+    /// The available rasteriser the cost ratios call cheapest: where `auto` starts, and what
+    /// is measured first when nothing fits or a scale is wanted.
+    fn cheapest_by_ratio(&self, motion: Motion) -> Option<usize> {
+        (0..self.candidates.len())
+            .filter(|&c| !self.unavailable[c] && !self.candidates[c].is_path_traced())
+            .min_by(|&a, &b| {
+                let ratio = |c: usize| self.candidates[c].model.relative_cost(motion);
+                ratio(a).total_cmp(&ratio(b))
+            })
     }
 
     /// The least frame a candidate not measured yet is estimated to cost: `pt`'s least step
@@ -604,7 +625,13 @@ impl Governor {
         // pt's error is only known once its noise is (the prior is for probing).
         let known: Vec<(usize, f64, f64)> = (0..self.candidates.len())
             .filter(|&c| !self.unavailable[c])
-            .filter(|&c| !self.candidates[c].is_path_traced() || self.pt_noise.is_some())
+            .filter(|&c| {
+                if self.candidates[c].is_path_traced() {
+                    self.pt_noise.is_some()
+                } else {
+                    self.measured(c, motion)
+                }
+            })
             .filter_map(|c| Some((c, self.predicted_error(c, motion), self.cost(c, motion)?)))
             .collect();
         let cheapest =
@@ -615,6 +642,19 @@ impl Governor {
             Motion::Still => "still",
         };
         if fitting.is_empty() {
+            // Nothing measured fits: the cheapest rasteriser by the ratios while it is not
+            // measured yet, else the cheapest measured.
+            if let Some(c) = self
+                .cheapest_by_ratio(motion)
+                .filter(|&c| !self.measured(c, motion))
+            {
+                return (
+                    c,
+                    format!(
+                        "nothing measured fits {budget:.0} ms ({state}): the cheapest by the cost ratios"
+                    ),
+                );
+            }
             let Some((c, _, ms)) = cheapest(&known) else {
                 return (self.current, "no candidate measured yet".into());
             };
@@ -690,7 +730,9 @@ impl Governor {
         let target = self.predicted_error(choice, motion);
         let probe = (0..self.candidates.len())
             .filter(|&c| {
-                !self.unavailable[c] && (!self.measured(c, motion) || self.stale(c, motion))
+                c != self.current
+                    && !self.unavailable[c]
+                    && (!self.measured(c, motion) || self.stale(c, motion))
             })
             .filter(|&c| self.predicted_error(c, motion) * (1.0 + TIE) + SLACK < target)
             .filter(|&c| {
@@ -702,14 +744,17 @@ impl Governor {
                 self.predicted_error(a, motion)
                     .total_cmp(&self.predicted_error(b, motion))
             });
-        // The running candidate's cost is what the others' are scaled from and what they are
-        // chosen against: measured over as many steady frames as a probe measures (a fresh
-        // engine's first frames run slow on lavapipe: `differential` read 13.8 ms against 10
-        // over one, 7.4 ms later, and lost a budget it fits).
-        if !building
-            && self.costs[self.current][motion.index()].0.len() >= PROBE_FRAMES as usize
-            && let Some(candidate) = probe
-        {
+        // A rasteriser's cost is estimated from a measured one's: with none measured, the
+        // cheapest is measured first, as the scale; the running candidate is measured by
+        // running. `pt` measures its own, and is probed at once (every frame before it starts
+        // is one its means do not hold).
+        let probe = match probe {
+            Some(c) if !self.candidates[c].is_path_traced() && self.scale(motion).is_none() => self
+                .cheapest_by_ratio(motion)
+                .filter(|&c| c != self.current),
+            other => other,
+        };
+        if !building && let Some(candidate) = probe {
             let why = if self.stale(candidate, motion) {
                 "over the budget when last measured"
             } else {
@@ -816,7 +861,9 @@ mod tests {
         );
         governor.set_features(features);
         for (candidate, ms) in [5.0, 6.0, 6.0, 200.0, 20.0, 50.0].into_iter().enumerate() {
-            governor.observe(candidate, Motion::Still, ms, true, None);
+            for _ in 0..PROBE_FRAMES {
+                governor.observe(candidate, Motion::Still, ms, true, None);
+            }
         }
         governor.observe(
             PT,
@@ -940,16 +987,8 @@ mod tests {
             },
         );
         governor.set_features(features(2.0, 6.0, 0.0));
-        // Nothing measured: no probe before the running candidate has a cost to scale from,
-        // measured over as many steady frames as a probe's.
-        assert_eq!(governor.decide(Motion::Still, false), Action::Stay);
-        for _ in 1..PROBE_FRAMES {
-            governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
-            assert_eq!(governor.decide(Motion::Still, false), Action::Stay);
-        }
-        governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
-        // pt is the most promising, and its sample is estimated at 5× differential's still
-        // frame (25 ms), within reach of the budget; dvct (40×) is not.
+        // Nothing measured: pt, the most promising, measures its own cost, so it is probed
+        // at once.
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(PT));
         assert_eq!(
             governor.decide(Motion::Still, true),
@@ -959,7 +998,8 @@ mod tests {
         governor.switched(PT);
         // Its sample costs 1.6 s: not even a tile phase's share of one (100 ms) fits, so its
         // noise is not worth measuring and the probe ends after its steady frames; the choice
-        // is made afresh, without hysteresis.
+        // is made afresh, without hysteresis: with nothing measured that fits, the cheapest
+        // by the cost ratios.
         let (action, frames) = probe(&mut governor, PT, 1600.0);
         assert_eq!(
             action,
@@ -969,7 +1009,15 @@ mod tests {
         );
         assert_eq!(frames, WARM_UP_FRAMES + PROBE_FRAMES);
         governor.switched(DIFFERENTIAL);
-        // Then the next most promising within reach: dir (12×: 60 ms).
+        // A rasteriser's cost is estimated from the running candidate's, measured over as many
+        // steady frames as a probe's: until then no rasteriser is probed.
+        for _ in 1..PROBE_FRAMES {
+            governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+            assert_eq!(governor.decide(Motion::Still, false), Action::Stay);
+        }
+        governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
+        // Then the most promising within reach: dir (12× differential's 5 ms: 60 ms, within
+        // 1.5 budgets; dvct's 40× is not).
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR));
     }
 
