@@ -23,7 +23,7 @@
 //! a rough prior) do not put it far over the budget. A candidate counts as measured after
 //! [`PROBE_FRAMES`] steady frames. A rasteriser's cost is estimated from a measured
 //! rasteriser's, so with none measured the cheapest is measured first; `pt` measures its own
-//! and is probed at once. `pt` fills whatever budget it is given (it traces a share of a
+//! and is probed as soon as it would win (its prior needs a cost scale, though). `pt` fills whatever budget it is given (it traces a share of a
 //! sample per pixel where a whole one does not fit), so it costs its budget wherever its least
 //! step fits.
 //!
@@ -746,8 +746,8 @@ impl Governor {
             });
         // A rasteriser's cost is estimated from a measured one's: with none measured, the
         // cheapest is measured first, as the scale; the running candidate is measured by
-        // running. `pt` measures its own, and is probed at once (every frame before it starts
-        // is one its means do not hold).
+        // running. `pt` measures its own, and is probed as soon as it would win (every frame
+        // before it starts is one its means do not hold).
         let probe = match probe {
             Some(c) if !self.candidates[c].is_path_traced() && self.scale(motion).is_none() => self
                 .cheapest_by_ratio(motion)
