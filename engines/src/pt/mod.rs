@@ -473,10 +473,10 @@ impl Engine for Pt {
             ],
             units: [TILE_PHASES, 0, 0, 0],
         };
-        let trace_group = shaders::bind_group(
+        let trace_group = shaders::pipeline_bind_group(
             &ctx.device,
+            &self.pipeline,
             "pt trace",
-            &self.pipeline.get_bind_group_layout(0),
             &[
                 self.params.as_entire_binding(),
                 self.camera.as_entire_binding(),
@@ -546,10 +546,10 @@ impl Engine for Pt {
         // Every frame resolves: the background is new even when the means are not.
         ctx.queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params(0, 0)));
-        let resolve_group = shaders::bind_group(
+        let resolve_group = shaders::pipeline_bind_group(
             &ctx.device,
+            &self.resolve,
             "pt resolve",
-            &self.resolve.get_bind_group_layout(0),
             &[
                 self.params.as_entire_binding(),
                 frame_res.accum.as_entire_binding(),
