@@ -172,6 +172,57 @@ fn linear_to_srgb(c: vec3<f32>) -> vec3<f32> {
     return select(high, low, x <= vec3<f32>(0.0031308));
 }
 
+// Δ as the frame's Rgba16F texel, packed into two words, so the frame is read back at half the
+// bytes and copied, not converted, on the CPU. A channel that is not finite becomes 0 and one
+// that rounds beyond f16's range (from 65520 on) its largest value; the alpha, otherwise 1, is
+// 1 plus the number of channels so changed, which the reader counts and sets back to 1
+// (`deferred::unpack_delta`), as `deferred::write_delta` does on the CPU.
+const F16_MAX: f32 = 65504.0;
+const F16_OVERFLOW: f32 = 65520.0;
+fn pack_delta(d: vec3<f32>) -> vec2<u32> {
+    var v = d;
+    var changed = 0u;
+    for (var c = 0; c < 3; c++) {
+        if ((bitcast<u32>(v[c]) >> 23u) & 0xffu) == 0xffu {
+            v[c] = 0.0;
+            changed += 1u;
+        } else if abs(v[c]) >= F16_OVERFLOW {
+            v[c] = clamp(v[c], -F16_MAX, F16_MAX);
+            changed += 1u;
+        }
+    }
+    // 1 + changed is exact in f16: 0x3c00 is 1, 0x4000 2, 0x4200 3, 0x4400 4.
+    let alpha = array<u32, 4>(0x3c00u, 0x4000u, 0x4200u, 0x4400u)[changed];
+    return vec2<u32>(f16_bits(v.x) | (f16_bits(v.y) << 16u), f16_bits(v.z) | (alpha << 16u));
+}
+
+// The f16 nearest to a finite `x` within f16's range (ties to even, subnormals kept), by hand:
+// WGSL's pack2x16float needs a capability not every adapter has.
+fn f16_bits(x: f32) -> u32 {
+    let b = bitcast<u32>(x);
+    let sign = (b >> 16u) & 0x8000u;
+    let e = i32((b >> 23u) & 0xffu) - 112;
+    var m = b & 0x7fffffu;
+    var shift = 13u;
+    var h = 0u;
+    if e <= 0 {
+        if e < -10 {
+            return sign;
+        }
+        m |= 0x800000u;
+        shift = u32(14 - e);
+    } else {
+        h = u32(e) << 10u;
+    }
+    h |= m >> shift;
+    let rest = m & ((1u << shift) - 1u);
+    let half = 1u << (shift - 1u);
+    if rest > half || (rest == half && (h & 1u) == 1u) {
+        h += 1u;
+    }
+    return sign | h;
+}
+
 // Lambert plus normalised Phong (core::scene::Material), for light arriving along `wi` at a
 // surface with normal `n` seen from direction `wo` (both unit, pointing away from the surface).
 fn brdf(m: Material, albedo: vec3<f32>, n: vec3<f32>, wi: vec3<f32>, wo: vec3<f32>) -> vec3<f32> {

@@ -4,7 +4,8 @@
 //   virtual pixels: L^ρ = direct^ρ + indirect (the engine's V^ρ lookup);
 //   real pixels:    B + Δ, Δ = (direct^ρ − direct^μ when `options.y` is 1) + indirect (V^Δ);
 //   empty pixels:   B.
-// Δ is written per pixel (linear, may be negative); the composite as sRGB RGBA8.
+// Δ is written per pixel (linear, may be negative) as packed f16 (`pack_delta`); the composite
+// as sRGB RGBA8.
 //
 // Accumulation (`Accumulation` in deferred.rs): while the picture holds still, frames drawn at
 // sub-pixel offsets are averaged. The mean is kept as the overlay O (L^ρ on samples that hit
@@ -36,7 +37,7 @@ struct ShadeParams {
 @group(0) @binding(12) var rsm_mu: texture_2d_array<f32>;
 @group(0) @binding(13) var background: texture_2d<f32>;
 @group(0) @binding(14) var<storage, read> indirect: array<vec4<f32>>;
-@group(0) @binding(15) var<storage, read_write> delta: array<vec4<f32>>;
+@group(0) @binding(15) var<storage, read_write> delta: array<vec2<u32>>;
 @group(0) @binding(16) var<storage, read_write> composite: array<u32>;
 // Two vec4 a pixel: (O, c) and (Δ, 0).
 @group(0) @binding(17) var<storage, read_write> history: array<vec4<f32>>;
@@ -111,6 +112,6 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         history[2u * i + 1u] = vec4<f32>(d, 0.0);
     }
     let out = overlay.rgb + (1.0 - overlay.w) * background_linear;
-    delta[i] = vec4<f32>(d, 0.0);
+    delta[i] = pack_delta(d);
     composite[i] = pack4x8unorm(vec4<f32>(linear_to_srgb(out), 1.0));
 }

@@ -205,8 +205,8 @@ struct FrameResources {
     indirect: wgpu::Buffer,
     delta: wgpu::Buffer,
     composite: wgpu::Buffer,
-    delta_staging: wgpu::Buffer,
-    composite_staging: wgpu::Buffer,
+    /// Δ's packed f16 texels, then the composite: both read back in one copy.
+    staging: wgpu::Buffer,
     /// The running mean ([`Accumulation`]), two vec4 a pixel: the overlay (L^ρ on the
     /// object's samples, Δ on real ones) with the object's coverage, and Δ.
     history: wgpu::Buffer,
@@ -707,17 +707,18 @@ impl Deferred {
         }
         ctx.queue.submit([encoder.finish()]);
         let pixels = u64::from(width) * u64::from(height);
-        ctx.read_back(
-            &frame_res.delta,
-            &frame_res.delta_staging,
-            pixels * 16,
-            |bytes| out.non_finite = write_delta(bytes, &mut out.delta),
-        )?;
-        ctx.read_back(
-            &frame_res.composite,
-            &frame_res.composite_staging,
-            pixels * 4,
-            |bytes| write_composite(bytes, &mut out.composite),
+        let delta_bytes = pixels * 8;
+        ctx.read_back_all(
+            &[
+                (&frame_res.delta, delta_bytes),
+                (&frame_res.composite, pixels * 4),
+            ],
+            &frame_res.staging,
+            |bytes| {
+                let (delta, composite) = bytes.split_at(delta_bytes as usize);
+                out.non_finite = unpack_delta(delta, &mut out.delta);
+                write_composite(composite, &mut out.composite);
+            },
         )?;
         out.timings.push(PassTiming {
             pass: "shade+readback",
@@ -775,6 +776,26 @@ pub(crate) fn write_delta(bytes: &[u8], delta: &mut Image) -> usize {
     non_finite
 }
 
+/// The shading pass's packed f16 Δ (`pack_delta` in common.wgsl) → the frame's Rgba16F Δ: a
+/// copy, then each alpha that is not 1 counted as that many channels the pass found not finite
+/// or beyond f16's range (it wrote 0 or f16's largest value there) and set back to 1.
+pub(crate) fn unpack_delta(bytes: &[u8], delta: &mut Image) -> usize {
+    let Some(out) = delta.as_u16_mut() else {
+        return 0;
+    };
+    let one = half::f16::ONE.to_bits();
+    let mut non_finite = 0;
+    let n = out.len().min(bytes.len() / 2);
+    bytemuck::cast_slice_mut::<u16, u8>(&mut out[..n]).copy_from_slice(&bytes[..2 * n]);
+    for alpha in out[..n].iter_mut().skip(3).step_by(4) {
+        if *alpha != one {
+            non_finite += (half::f16::from_bits(*alpha).to_f32() - 1.0).round() as usize;
+            *alpha = one;
+        }
+    }
+    non_finite
+}
+
 /// RGBA8 → the frame's RGB8 composite (alpha dropped).
 pub(crate) fn write_composite(bytes: &[u8], composite: &mut Image) {
     debug_assert_eq!(composite.format(), PixelFormat::Rgb8);
@@ -811,10 +832,9 @@ impl FrameResources {
                 view_formats: &[],
             }),
             indirect: buffer("indirect", pixels * 16, U::STORAGE | U::COPY_DST),
-            delta: buffer("delta", pixels * 16, U::STORAGE | U::COPY_SRC),
+            delta: buffer("delta", pixels * 8, U::STORAGE | U::COPY_SRC),
             composite: buffer("composite", pixels * 4, U::STORAGE | U::COPY_SRC),
-            delta_staging: buffer("delta staging", pixels * 16, U::MAP_READ | U::COPY_DST),
-            composite_staging: buffer("composite staging", pixels * 4, U::MAP_READ | U::COPY_DST),
+            staging: buffer("frame staging", pixels * 12, U::MAP_READ | U::COPY_DST),
             history: buffer("accumulated", pixels * 32, U::STORAGE),
         }
     }
@@ -855,6 +875,7 @@ impl LightResources {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use wgpu::util::DeviceExt;
 
     #[test]
     fn non_finite_and_out_of_range_delta_is_counted_and_never_written() {
@@ -871,6 +892,81 @@ mod tests {
             .collect();
         let largest = half::f16::MAX.to_f32();
         assert_eq!(written, [0.5, 0.0, 0.0, 1.0, -largest, 0.0, 0.0, 1.0]);
+    }
+
+    /// `pack_delta` on the GPU, then `unpack_delta`, give what `write_delta` gives on the CPU
+    /// (the `half` crate's conversion): special values, ties, subnormals and a sweep of both
+    /// signs over f16's whole range.
+    #[test]
+    fn packed_delta_is_write_delta_on_the_gpu() {
+        let ctx = GpuContext::new().expect("a GPU adapter (lavapipe in CI)");
+        let kernel = concat!(
+            include_str!("../../shaders/common.wgsl"),
+            "@group(0) @binding(0) var<storage, read> input: array<vec4<f32>>;
+            @group(0) @binding(1) var<storage, read_write> output: array<vec2<u32>>;
+            @compute @workgroup_size(1)
+            fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+                output[id.x] = pack_delta(input[id.x].xyz);
+            }"
+        );
+        let mut values = vec![
+            [0.5f32, f32::NAN, f32::INFINITY, 0.0],
+            [-1e6, -0.25, f32::NEG_INFINITY, 0.0],
+            [1e-3, 65504.0, -65519.0, 0.0],
+            // A subnormal, a tie between 2048 and 2050 (to even: 2048), an inexact fraction.
+            [1e-6, 2049.0, 0.1, 0.0],
+            [6e-8, -3e-8, 65520.0, 0.0],
+        ];
+        values.extend((0..3000).map(|i| {
+            let v = 1e-8f32 * 1.0065f32.powi(i);
+            [v, -v * 1.37, v * 0.71, 0.0]
+        }));
+        let bytes: Vec<u8> = bytemuck::cast_slice(&values).to_vec();
+        let mut expected = Image::new(values.len() as u32, 1, PixelFormat::Rgba16F);
+        let expected_non_finite = write_delta(&bytes, &mut expected);
+        let input = ctx
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("values"),
+                contents: &bytes,
+                usage: wgpu::BufferUsages::STORAGE,
+            });
+        use wgpu::BufferUsages as U;
+        let size = 8 * values.len() as u64;
+        let output = ctx.buffer("packed", size, U::STORAGE | U::COPY_SRC);
+        let staging = ctx.buffer("staging", size, U::MAP_READ | U::COPY_DST);
+        let pipeline = shaders::compute_pipeline(&ctx.device, "pack_delta", kernel);
+        let group = shaders::pipeline_bind_group(
+            &ctx.device,
+            &pipeline,
+            "pack_delta",
+            &[input.as_entire_binding(), output.as_entire_binding()],
+        );
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&pipeline);
+            pass.set_bind_group(0, &group, &[]);
+            pass.dispatch_workgroups(values.len() as u32, 1, 1);
+        }
+        ctx.queue.submit([encoder.finish()]);
+        let mut delta = Image::new(values.len() as u32, 1, PixelFormat::Rgba16F);
+        let non_finite = ctx
+            .read_back(&output, &staging, size, |bytes| {
+                unpack_delta(bytes, &mut delta)
+            })
+            .unwrap();
+        assert_eq!((non_finite, expected_non_finite), (5, 5));
+        let (got, want) = (delta.as_u16().unwrap(), expected.as_u16().unwrap());
+        let wrong: Vec<_> = got
+            .iter()
+            .zip(want)
+            .enumerate()
+            .filter(|(_, (g, w))| g != w)
+            .map(|(i, (g, w))| (values[i / 4][i % 4], *g, *w))
+            .take(5)
+            .collect();
+        assert!(wrong.is_empty(), "(value, gpu bits, cpu bits): {wrong:?}");
     }
 
     #[test]

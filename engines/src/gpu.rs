@@ -356,12 +356,27 @@ impl GpuContext {
         size: u64,
         read: impl FnOnce(&[u8]) -> T,
     ) -> Result<T, GpuError> {
+        self.read_back_all(&[(source, size)], staging, read)
+    }
+
+    /// [`read_back`](Self::read_back) of several buffers' first bytes (each size a multiple of
+    /// 4), laid end to end in `staging` in one copy and one wait: `read` gets them in order.
+    pub fn read_back_all<T>(
+        &self,
+        sources: &[(&wgpu::Buffer, u64)],
+        staging: &wgpu::Buffer,
+        read: impl FnOnce(&[u8]) -> T,
+    ) -> Result<T, GpuError> {
         let mut encoder = self
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("readback"),
             });
-        encoder.copy_buffer_to_buffer(source, 0, staging, 0, size);
+        let mut size = 0;
+        for (source, bytes) in sources {
+            encoder.copy_buffer_to_buffer(source, 0, staging, size, *bytes);
+            size += bytes;
+        }
         self.queue.submit([encoder.finish()]);
         let slice = staging.slice(..size);
         let done = Arc::new(AtomicBool::new(false));
