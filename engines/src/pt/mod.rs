@@ -375,7 +375,13 @@ fn camera_uniform(camera: &SceneCamera, width: u32, height: u32) -> PtCamera {
 fn trace_work(pixels: u64, spp: f64, triangles: u32, lights: u32, bounces: u32) -> Work {
     let walk = 2.0 * f64::from(triangles.max(2)).log2() * 40.0 + 4.0 * 60.0;
     let rays_per_path = f64::from(bounces + 2) * (1.0 + f64::from(lights) + 1.0);
-    Work::new(48.0 * 2.0 + 20.0, walk * rays_per_path * 2.0 * spp).times(pixels as f64)
+    Work::new(48.0 * 2.0, walk * rays_per_path * 2.0 * spp).times(pixels as f64)
+}
+
+/// The resolve pass over `pixels`: the running means (48 bytes) and the background read, Δ
+/// (16) and the composite (4) written; about 40 operations for the variance and the blend.
+fn resolve_work(pixels: u64) -> Work {
+    Work::new(48.0 + 4.0 + 16.0 + 4.0, 40.0).times(pixels as f64)
 }
 
 impl Engine for Pt {
@@ -510,14 +516,9 @@ impl Engine for Pt {
                     label: Some("pt trace"),
                 });
             {
-                let timestamps = if traced + batch >= units {
-                    self.timer.as_mut().and_then(|t| t.compute("gpu.trace"))
-                } else {
-                    None
-                };
                 let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("pt trace"),
-                    timestamp_writes: timestamps,
+                    timestamp_writes: self.timer.as_mut().and_then(|t| t.compute("gpu.trace")),
                 });
                 pass.set_pipeline(&self.pipeline);
                 pass.set_bind_group(0, &trace_group, &[]);
@@ -566,12 +567,19 @@ impl Engine for Pt {
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("pt resolve"),
-                timestamp_writes: None,
+                timestamp_writes: self.timer.as_mut().and_then(|t| t.compute("gpu.resolve")),
             });
             pass.set_pipeline(&self.resolve);
             pass.set_bind_group(0, &resolve_group, &[]);
             pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
         }
+        if let Some(timer) = &self.timer {
+            timer.resolve(&mut encoder);
+        }
+        out.work.push(PassWork {
+            pass: "resolve",
+            work: resolve_work(u64::from(width) * u64::from(height)),
+        });
         ctx.queue.submit([encoder.finish()]);
         let pixels = u64::from(width) * u64::from(height);
         // The composite's alpha holds the object's coverage: pixels under half covered are
