@@ -1,9 +1,14 @@
 // DVCT voxelisation (Franke 2014, Sec. 3.1): every triangle of the light-space geometry
 // (`Dvct.voxelized`: the object and the real scene's shadow proxy, or every mesh) marks each
 // level-0 cell it touches (conservative: the triangle–box overlap test of Akenine-Möller
-// 2001, 13 separating axes), bit 0 for real geometry, bit 1 for the virtual object. One thread per
-// triangle walks the cells of its bounding box, so a depth-derived mesh of many small
-// triangles costs a few tests each and a large floor quad costs its footprint.
+// 2001, 13 separating axes), bit 0 for real geometry, bit 1 for the virtual object.
+//
+// A triangle's candidate cells are the columns of its bounding box along its normal's dominant
+// axis, each only over the span its plane crosses there (plus a cell either side), so a tilted
+// wall costs its area in cells, not its bounding box's volume (n³ for one across the volume).
+// `Dvct.voxelized.z` threads share a triangle's columns: one on a CPU adapter, where threads are
+// SIMD lanes, more on a GPU, where one thread walking a large triangle alone would hold the
+// whole pass up.
 
 @group(0) @binding(0) var<uniform> dvct: Dvct;
 // The scene's vertex buffer (engines/src/gpu_scene.rs `GpuVertex`, 8 words each: position,
@@ -25,28 +30,37 @@ fn separated(axis: vec3<f32>, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>, h: f3
     return min(p.x, min(p.y, p.z)) > r || max(p.x, max(p.y, p.z)) < -r;
 }
 
+// Written out, without loops: lavapipe ends an invocation's loops after 65535 iterations of all
+// its loops together (llvmpipe's LP_MAX_TGSI_LOOP_ITERATIONS), which a loop here per tested cell
+// reached on a floor-sized triangle, leaving its far cells unmarked.
 fn overlaps(centre: vec3<f32>, h: f32, a: vec3<f32>, b: vec3<f32>, c: vec3<f32>) -> bool {
     let v0 = a - centre;
     let v1 = b - centre;
     let v2 = c - centre;
-    let edges = array<vec3<f32>, 3>(v1 - v0, v2 - v1, v0 - v2);
-    let units = array<vec3<f32>, 3>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0),
-                                    vec3<f32>(0.0, 0.0, 1.0));
-    for (var i = 0u; i < 3u; i++) {
-        for (var j = 0u; j < 3u; j++) {
-            if separated(cross(units[i], edges[j]), v0, v1, v2, h) {
-                return false;
-            }
-        }
-    }
-    // The box's own axes are covered by the bounding-box walk; the triangle's plane remains.
-    return !separated(cross(edges[0], edges[1]), v0, v1, v2, h);
+    let e0 = v1 - v0;
+    let e1 = v2 - v1;
+    let e2 = v0 - v2;
+    // The cross products of the box's axes x, y, z with each edge.
+    return !(separated(vec3<f32>(0.0, -e0.z, e0.y), v0, v1, v2, h)
+        || separated(vec3<f32>(0.0, -e1.z, e1.y), v0, v1, v2, h)
+        || separated(vec3<f32>(0.0, -e2.z, e2.y), v0, v1, v2, h)
+        || separated(vec3<f32>(e0.z, 0.0, -e0.x), v0, v1, v2, h)
+        || separated(vec3<f32>(e1.z, 0.0, -e1.x), v0, v1, v2, h)
+        || separated(vec3<f32>(e2.z, 0.0, -e2.x), v0, v1, v2, h)
+        || separated(vec3<f32>(-e0.y, e0.x, 0.0), v0, v1, v2, h)
+        || separated(vec3<f32>(-e1.y, e1.x, 0.0), v0, v1, v2, h)
+        || separated(vec3<f32>(-e2.y, e2.x, 0.0), v0, v1, v2, h)
+        // The box's own axes are covered by the bounding-box walk; the triangle's plane remains.
+        || separated(cross(e0, e1), v0, v1, v2, h));
 }
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     // Dispatched as (min(groups, 65535), ⌈groups / 65535⌉) workgroups of 64.
-    let k = id.x + id.y * 65535u * 64u;
+    let thread = id.x + id.y * 65535u * 64u;
+    let lanes = max(dvct.voxelized.z, 1u);
+    let k = thread / lanes;
+    let lane = thread % lanes;
     if k >= dvct.voxelized.y {
         return;
     }
@@ -57,21 +71,54 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let bit = select(1u, 2u, (vertices[8u * corner + 7u] & FLAG_VIRTUAL) != 0u);
     let n = i32(dvct.dims.x);
     let s = dvct.origin.w;
-    let lo = vec3<i32>(floor((min(a, min(b, c)) - dvct.origin.xyz) / s));
-    let hi = vec3<i32>(floor((max(a, max(b, c)) - dvct.origin.xyz) / s));
+    // Positions in cells from the volume's corner.
+    let pa = (a - dvct.origin.xyz) / s;
+    let pb = (b - dvct.origin.xyz) / s;
+    let pc = (c - dvct.origin.xyz) / s;
+    let lo = vec3<i32>(floor(min(pa, min(pb, pc))));
+    let hi = vec3<i32>(floor(max(pa, max(pb, pc))));
     if any(hi < vec3<i32>(0)) || any(lo >= vec3<i32>(n)) {
         return;
     }
     let first = max(lo, vec3<i32>(0));
     let last = min(hi, vec3<i32>(n - 1));
-    for (var z = first.z; z <= last.z; z++) {
-        for (var y = first.y; y <= last.y; y++) {
-            for (var x = first.x; x <= last.x; x++) {
-                let centre = dvct.origin.xyz + (vec3<f32>(f32(x), f32(y), f32(z)) + 0.5) * s;
-                if overlaps(centre, 0.5 * s, a, b, c) {
-                    atomicOr(&occupancy[(z * n + y) * n + x], bit);
-                }
+    let normal = cross(pb - pa, pc - pa);
+    let m = abs(normal);
+    var w = 2;
+    if m.x >= m.y && m.x >= m.z {
+        w = 0;
+    } else if m.y >= m.z {
+        w = 1;
+    }
+    let u = (w + 1) % 3;
+    let v = (w + 2) % 3;
+    for (var cv = first[v]; cv <= last[v]; cv++) {
+    for (var cu = first[u] + i32(lane); cu <= last[u]; cu += i32(lanes)) {
+        var cell = vec3<i32>(0);
+        cell[u] = cu;
+        cell[v] = cv;
+        var w_first = first[w];
+        var w_last = last[w];
+        if m[w] > 0.0 {
+            // The plane along w over the column's square, from its corner (cell[u], cell[v]):
+            // linear, so its extremes are at the square's corners.
+            let at_corner = (dot(normal, pa) - normal[u] * f32(cell[u]) - normal[v] * f32(cell[v]))
+                / normal[w];
+            let du = -normal[u] / normal[w];
+            let dv = -normal[v] / normal[w];
+            let low = at_corner + min(du, 0.0) + min(dv, 0.0);
+            let high = at_corner + max(du, 0.0) + max(dv, 0.0);
+            let bounds = vec2<f32>(f32(first[w]) - 1.0, f32(last[w]) + 1.0);
+            w_first = max(w_first, i32(clamp(floor(low), bounds.x, bounds.y)) - 1);
+            w_last = min(w_last, i32(clamp(floor(high), bounds.x, bounds.y)) + 1);
+        }
+        for (var along = w_first; along <= w_last; along++) {
+            cell[w] = along;
+            let centre = dvct.origin.xyz + (vec3<f32>(cell) + 0.5) * s;
+            if overlaps(centre, 0.5 * s, a, b, c) {
+                atomicOr(&occupancy[(cell.z * n + cell.y) * n + cell.x], bit);
             }
         }
     }
+}
 }

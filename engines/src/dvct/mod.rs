@@ -306,6 +306,18 @@ fn trace_work(settings: &DvctSettings, n: u32, pixels: u32, lights: u32, mip_cel
         + Work::new(96.0 + 8.0, 0.0).times(mip_cells)
 }
 
+/// Threads that share one triangle's cells in the voxelisation (`dvct_voxelize.wgsl`) of an
+/// `n`³ volume. On a GPU, 32: one thread walking a floor-sized triangle alone held the pass at
+/// 5 to 11 ms at 64³ (H200). On a CPU adapter threads are SIMD lanes of one core, so as few as
+/// keep each under lavapipe's 65535 loop iterations an invocation (about 7 a column of n²).
+fn voxelize_lanes(ctx: &GpuContext, n: u32) -> u32 {
+    let needed = (8 * n * n).div_ceil(65535).max(1);
+    match ctx.info.device_type {
+        wgpu::DeviceType::Cpu => needed,
+        _ => needed.max(32),
+    }
+}
+
 impl Engine for Dvct {
     fn name(&self) -> &'static str {
         Self::NAME
@@ -374,7 +386,7 @@ impl Engine for Dvct {
                         scale,
                     ],
                     offsets: offsets12,
-                    voxelized: [voxelized.start, triangles, 0, 0],
+                    voxelized: [voxelized.start, triangles, voxelize_lanes(&ctx, n), 0],
                 }),
             );
             self.volume_buffers()?;
@@ -489,7 +501,7 @@ impl Engine for Dvct {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.voxelize");
                     pass.set_pipeline(&self.voxelize);
                     pass.set_bind_group(0, &voxelize_group, &[]);
-                    let groups = triangles.div_ceil(64);
+                    let groups = (triangles * voxelize_lanes(&ctx, n)).div_ceil(64);
                     if groups > 0 {
                         pass.dispatch_workgroups(groups.min(65535), groups.div_ceil(65535), 1);
                     }
@@ -561,5 +573,197 @@ impl Engine for Dvct {
         };
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    /// Akenine-Möller's triangle–box test, as `dvct_voxelize.wgsl` has it.
+    fn overlaps(centre: Vec3, h: f32, [a, b, c]: [Vec3; 3]) -> bool {
+        let (v0, v1, v2) = (a - centre, b - centre, c - centre);
+        let separated = |axis: Vec3| {
+            let p = [axis.dot(v0), axis.dot(v1), axis.dot(v2)];
+            let r = h * axis.abs().element_sum();
+            p.iter().copied().fold(f32::INFINITY, f32::min) > r
+                || p.iter().copied().fold(f32::NEG_INFINITY, f32::max) < -r
+        };
+        let edges = [v1 - v0, v2 - v1, v0 - v2];
+        !(Vec3::AXES
+            .iter()
+            .any(|u| edges.iter().any(|e| separated(u.cross(*e))))
+            || separated(edges[0].cross(edges[1])))
+    }
+
+    /// The cells each triangle touches, by testing every cell of its bounding box.
+    fn voxelize_on_cpu(triangles: &[([Vec3; 3], bool)], origin: Vec3, s: f32, n: i32) -> Vec<u32> {
+        let mut occupancy = vec![0; (n * n * n) as usize];
+        for (t, virtual_object) in triangles {
+            let lo = ((t[0].min(t[1]).min(t[2]) - origin) / s).floor().as_ivec3();
+            let hi = ((t[0].max(t[1]).max(t[2]) - origin) / s).floor().as_ivec3();
+            let (lo, hi) = (lo.max(glam::IVec3::ZERO), hi.min(glam::IVec3::splat(n - 1)));
+            for z in lo.z..=hi.z {
+                for y in lo.y..=hi.y {
+                    for x in lo.x..=hi.x {
+                        let centre = origin + (Vec3::new(x as f32, y as f32, z as f32) + 0.5) * s;
+                        if overlaps(centre, 0.5 * s, *t) {
+                            occupancy[((z * n + y) * n + x) as usize] |=
+                                if *virtual_object { 2 } else { 1 };
+                        }
+                    }
+                }
+            }
+        }
+        occupancy
+    }
+
+    /// The column walk along each triangle's dominant axis marks exactly the cells the whole
+    /// bounding-box walk marks, with one thread a triangle (CPU adapters) and with 32.
+    #[test]
+    fn voxelization_marks_every_touched_cell_and_no_other() {
+        let ctx = GpuContext::new().expect("a GPU adapter (lavapipe in CI)");
+        // 64³: a floor-sized triangle walks 4096 columns, past lavapipe's loop limit had the
+        // overlap test loops of its own.
+        let (n, s, origin) = (64, 2.0 / 64.0, Vec3::new(-1.01, -0.98, -1.03));
+        let v = Vec3::new;
+        let triangles = [
+            // Tilted across the whole volume (its bounding box is all n³ cells).
+            (
+                [v(-1.2, -1.1, -0.9), v(1.1, 0.2, 1.2), v(-0.3, 1.15, 0.95)],
+                false,
+            ),
+            // A floor quad, partly outside the volume.
+            (
+                [
+                    v(-1.5, -0.61, -1.5),
+                    v(1.5, -0.61, -1.5),
+                    v(1.5, -0.61, 1.5),
+                ],
+                false,
+            ),
+            (
+                [
+                    v(-1.5, -0.61, -1.5),
+                    v(1.5, -0.61, 1.5),
+                    v(-1.5, -0.61, 1.5),
+                ],
+                false,
+            ),
+            // A steep wall and a small object triangle.
+            (
+                [v(0.31, -0.9, -0.8), v(0.37, 0.9, -0.7), v(0.43, 0.1, 0.9)],
+                false,
+            ),
+            (
+                [v(0.05, 0.02, 0.07), v(0.21, 0.09, 0.04), v(0.1, 0.23, 0.17)],
+                true,
+            ),
+            // A sliver (nearly degenerate) and one wholly outside.
+            (
+                [v(-0.7, 0.3, 0.2), v(0.7, 0.3001, 0.2), v(0.0, 0.3, 0.2002)],
+                false,
+            ),
+            (
+                [v(2.0, 2.0, 2.0), v(2.5, 2.0, 2.0), v(2.0, 2.5, 2.0)],
+                false,
+            ),
+            // On cell faces: a floor and a wall exactly between two layers of cells.
+            (
+                [
+                    v(-1.5, origin.y + 3.0 * s, -1.5),
+                    v(1.5, origin.y + 3.0 * s, -1.5),
+                    v(0.3, origin.y + 3.0 * s, 1.5),
+                ],
+                false,
+            ),
+            (
+                [
+                    v(origin.x + 5.0 * s, -1.5, -1.5),
+                    v(origin.x + 5.0 * s, 1.5, -1.5),
+                    v(origin.x + 5.0 * s, 0.3, 1.5),
+                ],
+                false,
+            ),
+            (
+                [
+                    v(-1.5, -1.5, origin.z + 9.0 * s),
+                    v(1.5, -1.5, origin.z + 9.0 * s),
+                    v(0.3, 1.5, origin.z + 9.0 * s),
+                ],
+                false,
+            ),
+        ];
+        let expected = voxelize_on_cpu(&triangles, origin, s, n);
+        assert!(expected.iter().filter(|c| **c != 0).count() > 10_000);
+        let mut words = Vec::new();
+        for (t, virtual_object) in &triangles {
+            for p in t {
+                let flags = if *virtual_object { 1u32 } else { 0 };
+                words.extend(p.to_array().map(f32::to_bits));
+                words.extend([0, 0, 0, 0, flags]);
+            }
+        }
+        use wgpu::util::DeviceExt;
+        let vertices = ctx
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("vertices"),
+                contents: bytemuck::cast_slice(&words),
+                usage: wgpu::BufferUsages::STORAGE,
+            });
+        let pipeline = shaders::compute_pipeline(&ctx.device, "voxelize", shaders::DVCT_VOXELIZE);
+        let size = 4 * (n * n * n) as u64;
+        use wgpu::BufferUsages as U;
+        let occupancy = ctx.buffer("occupancy", size, U::STORAGE | U::COPY_SRC | U::COPY_DST);
+        let staging = ctx.buffer("staging", size, U::MAP_READ | U::COPY_DST);
+        for lanes in [1, 32] {
+            let uniform = DvctUniform {
+                origin: origin.extend(s).to_array(),
+                dims: [n as u32, 1, 0, 0],
+                voxelized: [0, triangles.len() as u32, lanes, 0],
+                ..DvctUniform::zeroed()
+            };
+            let uniform = ctx
+                .device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("dvct"),
+                    contents: bytemuck::bytes_of(&uniform),
+                    usage: wgpu::BufferUsages::UNIFORM,
+                });
+            let group = shaders::pipeline_bind_group(
+                &ctx.device,
+                &pipeline,
+                "voxelize",
+                &[
+                    uniform.as_entire_binding(),
+                    vertices.as_entire_binding(),
+                    occupancy.as_entire_binding(),
+                ],
+            );
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            encoder.clear_buffer(&occupancy, 0, None);
+            {
+                let mut pass = encoder.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&pipeline);
+                pass.set_bind_group(0, &group, &[]);
+                pass.dispatch_workgroups((triangles.len() as u32 * lanes).div_ceil(64), 1, 1);
+            }
+            ctx.queue.submit([encoder.finish()]);
+            let got: Vec<u32> = ctx
+                .read_back(&occupancy, &staging, size, |b| {
+                    bytemuck::cast_slice(b).to_vec()
+                })
+                .unwrap();
+            let differing: Vec<usize> =
+                (0..got.len()).filter(|i| got[*i] != expected[*i]).collect();
+            assert!(
+                differing.is_empty(),
+                "{lanes} lanes: {} cells differ, e.g. {:?}",
+                differing.len(),
+                &differing[..differing.len().min(5)]
+            );
+        }
     }
 }
