@@ -140,6 +140,15 @@ impl LiveScene {
         self.albedo = Some(albedo);
     }
 
+    /// Make the albedo measurement's estimates on a thread of their own from now on
+    /// ([`SurfaceAlbedo::estimate_on_own_thread`]); nothing without a measurement.
+    pub fn albedo_on_own_thread(&mut self) -> std::io::Result<()> {
+        match self.albedo.as_mut() {
+            Some(albedo) => albedo.estimate_on_own_thread(),
+            None => Ok(()),
+        }
+    }
+
     /// What the albedo measurement did on the last frame, when it runs.
     pub fn albedo_report(&self) -> Option<AlbedoReport> {
         self.albedo.as_ref().map(SurfaceAlbedo::report)

@@ -20,9 +20,22 @@ const RED: Vec3 = Vec3::new(0.7, 0.1, 0.08);
 const WHITE: Vec3 = Vec3::new(0.75, 0.75, 0.75);
 const DEFAULT: f32 = 0.6;
 
-/// One static frame at 160 × 120 (16 spp colour): the live scene it gives, with or without
-/// albedo measurement, and the true albedo per pixel.
-fn live_frame(scene: &Scene, measure: bool) -> (std::sync::Arc<Scene>, Vec<Vec3>, Pinhole) {
+/// How the live scene gets its surface's albedo.
+#[derive(Clone, Copy, PartialEq)]
+enum Albedo {
+    /// The configured default.
+    Configured,
+    /// Measured on the frame, inline.
+    Measured,
+    /// Measured on the estimator's own thread, as the daemon does: the frame is given again
+    /// until an estimate has come back.
+    MeasuredOnOwnThread,
+}
+
+/// One static frame at 160 × 120 (16 spp colour): the live scene it gives, and the true albedo
+/// per pixel.
+fn live_frame(scene: &Scene, albedo: Albedo) -> (std::sync::Arc<Scene>, Vec<Vec3>, Pinhole) {
+    let measure = albedo != Albedo::Configured;
     let settings = SimSettings {
         width: 160,
         height: 120,
@@ -70,9 +83,24 @@ fn live_frame(scene: &Scene, measure: bool) -> (std::sync::Arc<Scene>, Vec<Vec3>
             1,
         ));
     }
-    let live_scene = live
+    if albedo == Albedo::MeasuredOnOwnThread {
+        live.albedo_on_own_thread().unwrap();
+    }
+    let mut live_scene = live
         .frame(depth.as_ref(), color.as_ref(), lamp.as_ref())
         .expect("a depth surface");
+    if albedo == Albedo::MeasuredOnOwnThread {
+        // The first frame only hands its inputs over; none waits for the estimate.
+        assert!(!live.albedo_report().unwrap().estimated);
+        let started = std::time::Instant::now();
+        while !live.albedo_report().unwrap().estimated {
+            assert!(started.elapsed().as_secs() < 120, "no estimate came back");
+            std::thread::sleep(std::time::Duration::from_millis(20));
+            live_scene = live
+                .frame(depth.as_ref(), color.as_ref(), lamp.as_ref())
+                .expect("a depth surface");
+        }
+    }
     if measure {
         let report = live.albedo_report().unwrap();
         println!("{report:?}");
@@ -105,7 +133,14 @@ fn delta_on(delta: &[Vec3], true_albedo: &[Vec3], albedo: Vec3) -> Vec3 {
 fn a_red_real_wall_bleeds_red_into_dirs_delta_on_a_live_frame() {
     let scene = load_scene("desk_box");
     let render = |measure: bool| {
-        let (live, true_albedo, _) = live_frame(&scene, measure);
+        let (live, true_albedo, _) = live_frame(
+            &scene,
+            if measure {
+                Albedo::Measured
+            } else {
+                Albedo::Configured
+            },
+        );
         let (delta, _) = delta_of(&mut engine("dir"), &frame(live, 160, 120));
         (delta_on(&delta, &true_albedo, RED), true_albedo)
     };
@@ -138,7 +173,7 @@ fn a_red_real_wall_bleeds_red_into_dirs_delta_on_a_live_frame() {
 #[test]
 fn measured_albedo_of_the_desk_rooms_walls_is_near_the_truth() {
     let scene = load_scene("desk_box");
-    let (live, true_albedo, camera) = live_frame(&scene, true);
+    let (live, true_albedo, camera) = live_frame(&scene, Albedo::Measured);
     let surface = &live.meshes[0];
     assert_eq!(
         surface.vertex_albedo.len(),
@@ -187,4 +222,24 @@ fn measured_albedo_of_the_desk_rooms_walls_is_near_the_truth() {
         let relative = ((median - albedo) / albedo).abs().max_element();
         assert!(relative < 0.12, "true {albedo}: estimate {median}");
     }
+}
+
+/// On its own thread the estimator makes the estimate it makes inline: the frame that takes it
+/// carries the same albedo on every vertex.
+#[test]
+fn albedo_estimated_on_its_own_thread_is_the_inline_estimate() {
+    let scene = load_scene("desk_box");
+    let (inline, _, _) = live_frame(&scene, Albedo::Measured);
+    let (threaded, _, _) = live_frame(&scene, Albedo::MeasuredOnOwnThread);
+    assert_eq!(
+        inline.meshes[0].vertex_albedo,
+        threaded.meshes[0].vertex_albedo
+    );
+    assert!(
+        inline.meshes[0]
+            .vertex_albedo
+            .iter()
+            .any(|a| (*a - Vec3::splat(DEFAULT)).abs().max_element() > 0.05),
+        "measured, not the default"
+    );
 }

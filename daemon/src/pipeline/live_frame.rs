@@ -196,6 +196,16 @@ impl LiveFrames {
         }
     }
 
+    /// Estimate the live surface's albedo on a thread of its own from now on (the daemon), so
+    /// eq. 1 never delays a frame: frames take the newest estimate. Without this it runs inline,
+    /// in frame order (`relightd score`).
+    pub fn albedo_on_own_thread(&mut self) -> std::io::Result<()> {
+        match self.live_scene.as_mut() {
+            Some(live) => live.albedo_on_own_thread(),
+            None => Ok(()),
+        }
+    }
+
     /// A report of the tracked lamp (every one, as it arrives): its disc is masked out of the
     /// probe's next estimates so the lamp counts once.
     pub fn lamp_report(&mut self, frame: &Frame<LampState>) {

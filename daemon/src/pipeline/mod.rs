@@ -15,6 +15,7 @@
 //!
 //! Threads, named after their stage: one per device (its [`DeviceRunner`]), `render` (ingest
 //! to outputs), `probe` (the light probe's estimates, [`LiveFrames::probe_on_own_thread`]),
+//! `albedo` (the live surface's albedo estimates, [`LiveFrames::albedo_on_own_thread`]),
 //! `image-writer` (outputs and snapshots), `recorder`, and the control server's. Commands from
 //! the control socket reach the render thread through shared slots that it reads at frame
 //! boundaries. The render thread never touches a file.
@@ -153,6 +154,7 @@ impl Pipeline {
             .with_context(|| format!("{}: [sync]", config.path.display()))?;
         let mut live = LiveFrames::new(&config, sources.meta.calibration.as_ref(), &registry)?;
         live.probe_on_own_thread()?;
+        live.albedo_on_own_thread()?;
         let passthrough = registry.build("passthrough", &Map::new())?.engine;
         let recorder = Recorder::spawn(&bus, config.recorder.queue_frames, sources.meta.clone())?;
         let autostart = config
