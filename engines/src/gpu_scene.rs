@@ -139,26 +139,32 @@ impl GpuScene {
                 fallback
             };
             let virtual_flag = if mesh.is_virtual { FLAG_VIRTUAL } else { 0 };
-            for tri in &mesh.triangles {
-                let corners = tri.map(|i| {
-                    let p = mesh.positions_in_world.get(i as usize).copied();
-                    let n = mesh.normals_in_world.get(i as usize).copied();
-                    (p, n, mesh.measured_albedo(i))
-                });
-                if corners
-                    .iter()
-                    .any(|(p, _, _)| !p.is_some_and(|p| p.is_finite()))
-                {
-                    continue;
-                }
-                for (p, n, albedo) in corners {
+            // Each vertex once (a depth mesh's is shared by six triangles), then copied to the
+            // corners that use it; `None` where its position is not finite.
+            let shared: Vec<Option<GpuVertex>> = mesh
+                .positions_in_world
+                .iter()
+                .enumerate()
+                .map(|(i, p)| {
+                    let n = mesh.normals_in_world.get(i).copied();
                     let n = n.filter(|n| n.is_finite()).unwrap_or(Vec3::ZERO);
-                    vertices.push(GpuVertex {
-                        position: p.unwrap_or(Vec3::ZERO).to_array(),
+                    p.is_finite().then(|| GpuVertex {
+                        position: p.to_array(),
                         normal: n.normalize_or_zero().to_array(),
                         material,
-                        flags: virtual_flag | albedo.map_or(0, pack_measured_albedo),
-                    });
+                        flags: virtual_flag
+                            | mesh
+                                .measured_albedo(i as u32)
+                                .map_or(0, pack_measured_albedo),
+                    })
+                })
+                .collect();
+            vertices.reserve(3 * mesh.triangles.len());
+            for tri in &mesh.triangles {
+                if let [Some(a), Some(b), Some(c)] =
+                    tri.map(|i| shared.get(i as usize).copied().flatten())
+                {
+                    vertices.extend([a, b, c]);
                 }
             }
         };
