@@ -462,6 +462,7 @@ fn recording_rows(
                 reference_spp: settings.recording_reference_spp,
                 out: None,
                 config: default_config(),
+                threads: false,
             },
             |_, _| {},
         )?;

@@ -56,6 +56,9 @@ pub struct ScoreSettings {
     /// The rest of the live path (`[scene]`, `[tracking]`, `[sync]`); source and engine are
     /// ignored.
     pub config: Config,
+    /// Probe and albedo estimates on threads of their own, as in the daemon (else inline, in
+    /// frame order, so the scores do not depend on thread timing).
+    pub threads: bool,
 }
 
 /// The measures of one truth frame. `None` where a measure does not apply (untracked: no pose).
@@ -223,6 +226,10 @@ pub fn run(
     config.engine.name.clone_from(&settings.engine);
     let registry = EngineRegistry::new();
     let mut live = LiveFrames::new(&config, calibration.as_ref(), &registry)?;
+    if settings.threads {
+        live.probe_on_own_thread()?;
+        live.albedo_on_own_thread()?;
+    }
     let mut engine = registry.build(&settings.engine, &settings.params)?.engine;
     let mut oracle_engine = registry.build(&settings.engine, &settings.params)?.engine;
     let mut passthrough = registry.build("passthrough", &Map::new())?.engine;

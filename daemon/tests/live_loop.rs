@@ -50,6 +50,7 @@ fn score(
             reference_spp,
             out: None,
             config,
+            threads: false,
         },
         |_, _| {},
     )

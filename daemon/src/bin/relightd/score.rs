@@ -36,6 +36,11 @@ pub struct Args {
     /// Print the summary only, not the table per frame.
     #[arg(long)]
     summary: bool,
+    /// Merge probe brackets and estimate the surface's albedo on threads of their own, as the
+    /// daemon does, instead of inline in frame order: the scores then depend on thread timing,
+    /// and the frames come as fast as they are scored, not at the sensor's rate.
+    #[arg(long)]
+    threads: bool,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -51,6 +56,7 @@ pub fn run(args: Args) -> Result<()> {
         reference_spp: args.reference_spp,
         out: args.out,
         config,
+        threads: args.threads,
     };
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template(
