@@ -595,6 +595,33 @@ impl Governor {
             .map_or(1.0, |shown| shown.clamp(0.0, 1.0))
     }
 
+    /// With one rasteriser measured (so the ratios' spread is unchecked,
+    /// [`Self::ratio_fidelity`]), the unmeasured rasteriser the ratios put dearest, of those
+    /// whose estimates are within reach of the budget and differ from the measured one's.
+    fn calibration_probe(&self, motion: Motion) -> Option<usize> {
+        let known = self.scale(motion)?;
+        let ratio = |c: usize| {
+            self.candidates[c].model.relative_cost(motion)
+                / self.candidates[known].model.relative_cost(motion)
+        };
+        let rasterisers =
+            (0..self.candidates.len()).filter(|&c| !self.candidates[c].is_path_traced());
+        let checked = rasterisers
+            .clone()
+            .any(|c| c != known && self.measured(c, motion) && (ratio(c) - 1.0).abs() > 0.25);
+        if checked {
+            return None;
+        }
+        rasterisers
+            .filter(|&c| c != self.current && !self.unavailable[c] && !self.measured(c, motion))
+            .filter(|&c| (ratio(c) - 1.0).abs() > 0.25)
+            .filter(|&c| {
+                self.estimated_cost(c, motion)
+                    .is_some_and(|ms| ms <= PROBE_LIMIT * self.settings.budget_ms)
+            })
+            .max_by(|&a, &b| ratio(a).total_cmp(&ratio(b)))
+    }
+
     /// The measured rasteriser the others' costs are scaled from.
     fn scale(&self, motion: Motion) -> Option<usize> {
         (0..self.candidates.len())
@@ -751,21 +778,35 @@ impl Governor {
         // A candidate not measured yet that would win were it to fit (not merely tie), and
         // that the cost ratios do not put far over the budget.
         let target = self.predicted_error(choice, motion);
-        let probe = (0..self.candidates.len())
+        let within_reach = |c: usize| {
+            self.cost(c, motion)
+                .or_else(|| self.estimated_least_cost(c, motion))
+                .is_none_or(|ms| ms <= PROBE_LIMIT * self.settings.budget_ms)
+        };
+        let winners: Vec<usize> = (0..self.candidates.len())
             .filter(|&c| {
                 c != self.current
                     && !self.unavailable[c]
                     && (!self.measured(c, motion) || self.stale(c, motion))
             })
             .filter(|&c| self.predicted_error(c, motion) * (1.0 + TIE) + SLACK < target)
-            .filter(|&c| {
-                self.cost(c, motion)
-                    .or_else(|| self.estimated_least_cost(c, motion))
-                    .is_none_or(|ms| ms <= PROBE_LIMIT * self.settings.budget_ms)
-            })
+            .collect();
+        let probe = winners
+            .iter()
+            .copied()
+            .filter(|&c| within_reach(c))
             .min_by(|&a, &b| {
                 self.predicted_error(a, motion)
                     .total_cmp(&self.predicted_error(b, motion))
+            })
+            .or_else(|| {
+                // Only the ratios, unchecked, keep a winner out of reach: measure the rasteriser
+                // they put dearest within reach, so the next estimates know how far to believe them.
+                winners
+                    .iter()
+                    .any(|&c| !self.candidates[c].is_path_traced())
+                    .then(|| self.calibration_probe(motion))
+                    .flatten()
             });
         // A rasteriser's cost is estimated from a measured one's: with none measured, the
         // cheapest is measured first, as the scale; the running candidate is measured by
@@ -1088,6 +1129,38 @@ mod tests {
             "{}",
             estimate(&governor)
         );
+    }
+
+    /// A winner priced out by the ratios alone, with no second rasteriser to check them by:
+    /// the one the ratios put dearest within reach is measured first (`ibl` here, no better
+    /// than `differential`), and measured alike, `dir` is then within reach and probed.
+    #[test]
+    fn unchecked_ratios_are_checked_before_they_keep_a_winner_out() {
+        let mut governor = Governor::new(
+            candidates(),
+            DIFFERENTIAL,
+            Settings {
+                budget_ms: 5.0,
+                max_error: None,
+                horizon_ms: 2000.0,
+            },
+        );
+        governor.set_features(features(2.0, 6.0, 0.0));
+        for c in [DLPV, PT] {
+            governor.mark_unavailable(c);
+        }
+        for _ in 0..PROBE_FRAMES {
+            governor.observe(DIFFERENTIAL, Motion::Still, 4.6, true, None);
+        }
+        let action = governor.decide(Motion::Still, false);
+        assert_eq!(action, Action::Probe(IBL), "{}", governor.reason());
+        governor.switched(IBL);
+        let (mut action, _) = probe(&mut governor, IBL, 4.6);
+        if let Action::Switch(c) = action {
+            governor.switched(c);
+            action = governor.decide(Motion::Still, false);
+        }
+        assert_eq!(action, Action::Probe(DIR), "{}", governor.reason());
     }
 
     /// A governor at 33 ms on a bleeding scene with only `differential` and `kept` available:
