@@ -22,7 +22,10 @@
 //! were it to fit, only when the cost ratios in [`ErrorModel::relative_cost`] (lavapipe's,
 //! a rough prior) do not put it far over the budget. A candidate counts as measured after
 //! [`PROBE_FRAMES`] steady frames. A rasteriser's cost is estimated from a measured
-//! rasteriser's, so with none measured the cheapest is measured first; `pt` measures its own
+//! rasteriser's, so with none measured the cheapest is measured first, and with the ratios'
+//! spread only as far as the measured rasterisers bear it out (`ratio_fidelity`; where only the
+//! unchecked ratios keep a winner out, one more rasteriser is measured to check them,
+//! `calibration_probe`); `pt` measures its own
 //! and is probed as soon as it would win (its prior needs a cost scale, though). `pt` fills whatever budget it is given (it traces a share of a
 //! sample per pixel where a whole one does not fit), so it costs its budget wherever its least
 //! step fits.
