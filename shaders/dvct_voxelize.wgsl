@@ -6,9 +6,8 @@
 // A triangle's candidate cells are the columns of its bounding box along its normal's dominant
 // axis, each only over the span its plane crosses there (plus a cell either side), so a tilted
 // wall costs its area in cells, not its bounding box's volume (n³ for one across the volume).
-// `Dvct.voxelized.z` threads share a triangle's columns: one on a CPU adapter, where threads are
-// SIMD lanes, more on a GPU, where one thread walking a large triangle alone would hold the
-// whole pass up.
+// `Dvct.voxelized.z` threads share a triangle's columns (`voxelize_lanes` in dvct/mod.rs): on a
+// GPU one thread walking a large triangle alone would hold the whole pass up.
 
 @group(0) @binding(0) var<uniform> dvct: Dvct;
 // The scene's vertex buffer (engines/src/gpu_scene.rs `GpuVertex`, 8 words each: position,
@@ -93,32 +92,32 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let u = (w + 1) % 3;
     let v = (w + 2) % 3;
     for (var cv = first[v]; cv <= last[v]; cv++) {
-    for (var cu = first[u] + i32(lane); cu <= last[u]; cu += i32(lanes)) {
-        var cell = vec3<i32>(0);
-        cell[u] = cu;
-        cell[v] = cv;
-        var w_first = first[w];
-        var w_last = last[w];
-        if m[w] > 0.0 {
-            // The plane along w over the column's square, from its corner (cell[u], cell[v]):
-            // linear, so its extremes are at the square's corners.
-            let at_corner = (dot(normal, pa) - normal[u] * f32(cell[u]) - normal[v] * f32(cell[v]))
-                / normal[w];
-            let du = -normal[u] / normal[w];
-            let dv = -normal[v] / normal[w];
-            let low = at_corner + min(du, 0.0) + min(dv, 0.0);
-            let high = at_corner + max(du, 0.0) + max(dv, 0.0);
-            let bounds = vec2<f32>(f32(first[w]) - 1.0, f32(last[w]) + 1.0);
-            w_first = max(w_first, i32(clamp(floor(low), bounds.x, bounds.y)) - 1);
-            w_last = min(w_last, i32(clamp(floor(high), bounds.x, bounds.y)) + 1);
-        }
-        for (var along = w_first; along <= w_last; along++) {
-            cell[w] = along;
-            let centre = dvct.origin.xyz + (vec3<f32>(cell) + 0.5) * s;
-            if overlaps(centre, 0.5 * s, a, b, c) {
-                atomicOr(&occupancy[(cell.z * n + cell.y) * n + cell.x], bit);
+        for (var cu = first[u] + i32(lane); cu <= last[u]; cu += i32(lanes)) {
+            var cell = vec3<i32>(0);
+            cell[u] = cu;
+            cell[v] = cv;
+            var w_first = first[w];
+            var w_last = last[w];
+            if m[w] > 0.0 {
+                // The plane along w over the column's square, from its corner (cu, cv): linear,
+                // so its extremes are at the square's corners.
+                let at_corner = (dot(normal, pa) - normal[u] * f32(cu) - normal[v] * f32(cv))
+                    / normal[w];
+                let du = -normal[u] / normal[w];
+                let dv = -normal[v] / normal[w];
+                let low = at_corner + min(du, 0.0) + min(dv, 0.0);
+                let high = at_corner + max(du, 0.0) + max(dv, 0.0);
+                let bounds = vec2<f32>(f32(first[w]) - 1.0, f32(last[w]) + 1.0);
+                w_first = max(w_first, i32(clamp(floor(low), bounds.x, bounds.y)) - 1);
+                w_last = min(w_last, i32(clamp(floor(high), bounds.x, bounds.y)) + 1);
+            }
+            for (var along = w_first; along <= w_last; along++) {
+                cell[w] = along;
+                let centre = dvct.origin.xyz + (vec3<f32>(cell) + 0.5) * s;
+                if overlaps(centre, 0.5 * s, a, b, c) {
+                    atomicOr(&occupancy[(cell.z * n + cell.y) * n + cell.x], bit);
+                }
             }
         }
     }
-}
 }

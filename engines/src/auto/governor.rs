@@ -571,51 +571,56 @@ impl Governor {
     fn estimated_cost(&self, candidate: usize, motion: Motion) -> Option<f64> {
         let known = self.scale(motion)?;
         let ms = self.cost(known, motion)?;
-        let ratio = self.candidates[candidate].model.relative_cost(motion)
-            / self.candidates[known].model.relative_cost(motion);
+        let ratio = self.ratio(candidate, known, motion);
         Some(ms * (1.0 + (ratio - 1.0) * self.ratio_fidelity(known, motion)))
     }
 
-    /// How much of the cost ratios' difference from `known` the other measured rasterisers
-    /// showed: 1 where they cost what the ratios say (lavapipe's, whence the ratios), less where
-    /// they cost more alike. On an H200 at 640 × 480 every rasteriser's frame is 3.5–5 ms, a
-    /// fixed part of upload and read-back ahead of its passes, where the ratios put `dir` at 12
-    /// times `differential`: estimated so, it was never probed at a 5 ms budget it fitted. The
-    /// largest showing of any measured pair (the ratios in full until a second is measured),
-    /// within 0..=1.
+    /// `candidate`'s cost over `known`'s by the cost ratios.
+    fn ratio(&self, candidate: usize, known: usize, motion: Motion) -> f64 {
+        self.candidates[candidate].model.relative_cost(motion)
+            / self.candidates[known].model.relative_cost(motion)
+    }
+
+    /// The measured rasterisers besides `known` that the ratios put apart from it (by more than
+    /// a quarter): what checks the ratios' spread.
+    fn ratio_checks(&self, known: usize, motion: Motion) -> impl Iterator<Item = usize> + '_ {
+        (0..self.candidates.len()).filter(move |&c| {
+            c != known
+                && !self.candidates[c].is_path_traced()
+                && self.measured(c, motion)
+                && (self.ratio(c, known, motion) - 1.0).abs() > 0.25
+        })
+    }
+
+    /// How much of the cost ratios' difference from `known` the measured rasterisers showed:
+    /// 1 where they cost what the ratios say (lavapipe's, whence the ratios), less where they
+    /// cost more alike. On an H200 at 640 × 480 every rasteriser's frame is 3.5–5 ms, a fixed
+    /// part of upload and read-back ahead of its passes, where the ratios put `dir` at 12 times
+    /// `differential`: estimated so, it was never probed at a 5 ms budget it fitted. The largest
+    /// showing of any check (the ratios in full until there is one), within 0..=1.
     fn ratio_fidelity(&self, known: usize, motion: Motion) -> f64 {
-        let (Some(base), ratio) = (self.cost(known, motion), |c: usize| {
-            self.candidates[c].model.relative_cost(motion)
-                / self.candidates[known].model.relative_cost(motion)
-        }) else {
+        let Some(base) = self.cost(known, motion) else {
             return 1.0;
         };
-        (0..self.candidates.len())
-            .filter(|&c| c != known && !self.candidates[c].is_path_traced())
-            .filter(|&c| self.measured(c, motion) && (ratio(c) - 1.0).abs() > 0.25)
-            .filter_map(|c| Some((self.cost(c, motion)? / base - 1.0) / (ratio(c) - 1.0)))
+        self.ratio_checks(known, motion)
+            .filter_map(|c| {
+                Some((self.cost(c, motion)? / base - 1.0) / (self.ratio(c, known, motion) - 1.0))
+            })
             .reduce(f64::max)
             .map_or(1.0, |shown| shown.clamp(0.0, 1.0))
     }
 
-    /// With one rasteriser measured (so the ratios' spread is unchecked,
-    /// [`Self::ratio_fidelity`]), the unmeasured rasteriser the ratios put dearest, of those
-    /// whose estimates are within reach of the budget and differ from the measured one's.
+    /// With nothing to check the ratios' spread by ([`Self::ratio_checks`]): of the unmeasured
+    /// rasterisers that would be a check, the one the ratios put dearest within reach of the
+    /// budget.
     fn calibration_probe(&self, motion: Motion) -> Option<usize> {
         let known = self.scale(motion)?;
-        let ratio = |c: usize| {
-            self.candidates[c].model.relative_cost(motion)
-                / self.candidates[known].model.relative_cost(motion)
-        };
-        let rasterisers =
-            (0..self.candidates.len()).filter(|&c| !self.candidates[c].is_path_traced());
-        let checked = rasterisers
-            .clone()
-            .any(|c| c != known && self.measured(c, motion) && (ratio(c) - 1.0).abs() > 0.25);
-        if checked {
+        if self.ratio_checks(known, motion).next().is_some() {
             return None;
         }
-        rasterisers
+        let ratio = |c: usize| self.ratio(c, known, motion);
+        (0..self.candidates.len())
+            .filter(|&c| !self.candidates[c].is_path_traced())
             .filter(|&c| c != self.current && !self.unavailable[c] && !self.measured(c, motion))
             .filter(|&c| (ratio(c) - 1.0).abs() > 0.25)
             .filter(|&c| {
