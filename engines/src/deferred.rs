@@ -3,7 +3,7 @@
 //! shadow maps; and, after the engine's own passes have written its indirect term, shade and
 //! composite (`shaders/shade.wgsl`) and read Δ and the composite back into the [`RelitFrame`].
 
-use std::hash::{DefaultHasher, Hash, Hasher};
+use std::hash::{BuildHasher, DefaultHasher, Hash, Hasher};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -38,9 +38,11 @@ struct ShadeParams {
 pub struct KeptInputs(Option<u64>);
 
 impl KeptInputs {
-    /// The inputs as one hash: `parts` in order.
+    /// The inputs as one hash: `parts` in order. foldhash with a fixed seed, not SipHash: a
+    /// live depth mesh's vertex buffer (3.6 MB at 320 × 240) is hashed every frame, 1.1 ms
+    /// with SipHash against 0.25 ms on the 2-core machine; nothing here is adversarial.
     pub fn hash_of(parts: &[&[u8]]) -> u64 {
-        let mut hasher = DefaultHasher::new();
+        let mut hasher = foldhash::fast::FixedState::with_seed(0).build_hasher();
         for part in parts {
             part.hash(&mut hasher);
         }
