@@ -229,7 +229,12 @@ impl SurfaceAlbedo {
             }),
             Estimation::Thread(thread) => {
                 let finished = thread.take_result();
-                if due && let Some(color) = color {
+                // The inputs are copied (the mesh, its grid, the colour image) only when the
+                // thread will take them.
+                if due
+                    && thread.idle()
+                    && let Some(color) = color
+                {
                     thread.offer(Job {
                         mesh: mesh.clone(),
                         grid: grid.clone(),
@@ -449,9 +454,15 @@ impl EstimatorThread {
         }
     }
 
-    /// Hand `job` to the thread when it is idle; a frame that finds it busy estimates nothing.
+    /// Whether the thread would take a job: it is running and has none.
+    fn idle(&self) -> bool {
+        !self.busy && self.jobs.is_some()
+    }
+
+    /// Hand `job` to the thread (when [`Self::idle`]; a frame that finds it busy estimates
+    /// nothing).
     fn offer(&mut self, job: Job) {
-        if !self.busy
+        if self.idle()
             && self
                 .jobs
                 .as_ref()
