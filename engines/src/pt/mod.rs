@@ -131,8 +131,8 @@ struct FrameBuffers {
     background: wgpu::Buffer,
     delta: wgpu::Buffer,
     composite: wgpu::Buffer,
-    delta_staging: wgpu::Buffer,
-    composite_staging: wgpu::Buffer,
+    /// The composite, then Δ: both read back in one copy.
+    staging: wgpu::Buffer,
 }
 
 /// What the running means were traced from.
@@ -341,12 +341,7 @@ impl FrameBuffers {
             background: buffer("pt background", pixels * 4, U::STORAGE | U::COPY_DST),
             delta: buffer("pt delta", pixels * 16, U::STORAGE | U::COPY_SRC),
             composite: buffer("pt composite", pixels * 4, U::STORAGE | U::COPY_SRC),
-            delta_staging: buffer("pt delta staging", pixels * 16, U::MAP_READ | U::COPY_DST),
-            composite_staging: buffer(
-                "pt composite staging",
-                pixels * 4,
-                U::MAP_READ | U::COPY_DST,
-            ),
+            staging: buffer("pt frame staging", pixels * 20, U::MAP_READ | U::COPY_DST),
         }
     }
 }
@@ -584,35 +579,29 @@ impl Engine for Pt {
         let pixels = u64::from(width) * u64::from(height);
         // The composite's alpha holds the object's coverage: pixels under half covered are
         // the real ones Δ's error is estimated over.
-        let real = ctx.read_back(
-            &frame_res.composite,
-            &frame_res.composite_staging,
-            pixels * 4,
+        let composite_bytes = pixels * 4;
+        let (variance, square) = ctx.read_back_all(
+            &[
+                (&frame_res.composite, composite_bytes),
+                (&frame_res.delta, pixels * 16),
+            ],
+            &frame_res.staging,
             |bytes| {
-                crate::deferred::write_composite(bytes, &mut out.composite);
-                bytes
-                    .chunks_exact(4)
-                    .map(|px| px[3] < 128)
-                    .collect::<Vec<bool>>()
-            },
-        )?;
-        let (variance, square) = ctx.read_back(
-            &frame_res.delta,
-            &frame_res.delta_staging,
-            pixels * 16,
-            |bytes| {
-                out.non_finite = crate::deferred::write_delta(bytes, &mut out.delta);
-                let values: &[[f32; 4]] = bytemuck::cast_slice(bytes);
-                values.iter().zip(&real).filter(|(_, real)| **real).fold(
-                    (0.0, 0.0),
-                    |(variance, square), (v, _)| {
+                let (composite, delta) = bytes.split_at(composite_bytes as usize);
+                crate::deferred::write_composite(composite, &mut out.composite);
+                out.non_finite = crate::deferred::write_delta(delta, &mut out.delta);
+                let values: &[[f32; 4]] = bytemuck::cast_slice(delta);
+                values
+                    .iter()
+                    .zip(composite.chunks_exact(4))
+                    .filter(|(_, px)| px[3] < 128)
+                    .fold((0.0, 0.0), |(variance, square), (v, _)| {
                         let delta = glam::Vec3::new(v[0], v[1], v[2]);
                         (
                             variance + f64::from(v[3].max(0.0)),
                             square + f64::from(delta.length_squared()),
                         )
-                    },
-                )
+                    })
             },
         )?;
         let phases = f64::from(TILE_PHASES);
