@@ -25,8 +25,8 @@
 //! rasteriser's, so with none measured the cheapest is measured first, and with the ratios'
 //! spread only as far as the measured rasterisers bear it out (`ratio_fidelity`; where only the
 //! unchecked ratios keep a winner out, one more rasteriser is measured to check them,
-//! `calibration_probe`); `pt` measures its own
-//! and is probed as soon as it would win (its prior needs a cost scale, though). `pt` fills whatever budget it is given (it traces a share of a
+//! `calibration_probe`). `pt` measures its own and is probed as soon as it would win (its prior
+//! needs a cost scale, though). `pt` fills whatever budget it is given (it traces a share of a
 //! sample per pixel where a whole one does not fit), so it costs its budget wherever its least
 //! step fits.
 //!
@@ -63,6 +63,9 @@ pub const MIN_DWELL: u32 = 10;
 pub const OVER_BUDGET_FRAMES: u32 = 3;
 /// A candidate estimated at more than this many budgets is not probed.
 const PROBE_LIMIT: f64 = 1.5;
+/// A rasteriser the cost ratios put more than this far (relative) from the scale's checks how
+/// far the ratios hold ([`Governor::ratio_checks`]); one nearer says too little.
+const RATIO_CHECK: f64 = 0.25;
 /// The warm-up after a switch, whose frames are not the candidate's cost: the first frame
 /// (it allocates and uploads), then frames until [`WARM_UP_MS`] of rendering or
 /// [`WARM_UP_FRAMES`] frames, whichever comes first. On lavapipe the first frames still run
@@ -581,15 +584,18 @@ impl Governor {
             / self.candidates[known].model.relative_cost(motion)
     }
 
-    /// The measured rasterisers besides `known` that the ratios put apart from it (by more than
-    /// a quarter): what checks the ratios' spread.
+    /// Whether `candidate`, measured, would check the cost ratios' spread against `known`: a
+    /// rasteriser they put more than [`RATIO_CHECK`] from it.
+    fn would_check(&self, candidate: usize, known: usize, motion: Motion) -> bool {
+        candidate != known
+            && !self.candidates[candidate].is_path_traced()
+            && (self.ratio(candidate, known, motion) - 1.0).abs() > RATIO_CHECK
+    }
+
+    /// The measured rasterisers that check the ratios' spread against `known`.
     fn ratio_checks(&self, known: usize, motion: Motion) -> impl Iterator<Item = usize> + '_ {
-        (0..self.candidates.len()).filter(move |&c| {
-            c != known
-                && !self.candidates[c].is_path_traced()
-                && self.measured(c, motion)
-                && (self.ratio(c, known, motion) - 1.0).abs() > 0.25
-        })
+        (0..self.candidates.len())
+            .filter(move |&c| self.measured(c, motion) && self.would_check(c, known, motion))
     }
 
     /// How much of the cost ratios' difference from `known` the measured rasterisers showed:
@@ -620,9 +626,8 @@ impl Governor {
         }
         let ratio = |c: usize| self.ratio(c, known, motion);
         (0..self.candidates.len())
-            .filter(|&c| !self.candidates[c].is_path_traced())
             .filter(|&c| c != self.current && !self.unavailable[c] && !self.measured(c, motion))
-            .filter(|&c| (ratio(c) - 1.0).abs() > 0.25)
+            .filter(|&c| self.would_check(c, known, motion))
             .filter(|&c| {
                 self.estimated_cost(c, motion)
                     .is_some_and(|ms| ms <= PROBE_LIMIT * self.settings.budget_ms)
@@ -919,9 +924,9 @@ mod tests {
         }
     }
 
-    /// A governor on `features` at `budget_ms` whose candidates' costs are all measured (still,
-    /// ms): lavapipe's at 160 × 120, `pt` 40 ms per sample per pixel with noise 2.5.
-    fn measured(features: SceneFeatures, budget_ms: f64) -> Governor {
+    /// A governor on `features` at `budget_ms` (2 s horizon, no `max_error`), running
+    /// `differential`, nothing measured.
+    fn fresh(features: SceneFeatures, budget_ms: f64) -> Governor {
         let mut governor = Governor::new(
             candidates(),
             DIFFERENTIAL,
@@ -932,10 +937,22 @@ mod tests {
             },
         );
         governor.set_features(features);
+        governor
+    }
+
+    /// `candidate` measured at `ms` a frame over a probe's steady frames, still.
+    fn measure(governor: &mut Governor, candidate: usize, ms: f64) {
+        for _ in 0..PROBE_FRAMES {
+            governor.observe(candidate, Motion::Still, ms, true, None);
+        }
+    }
+
+    /// A governor on `features` at `budget_ms` whose candidates' costs are all measured (still,
+    /// ms): lavapipe's at 160 × 120, `pt` 40 ms per sample per pixel with noise 2.5.
+    fn measured(features: SceneFeatures, budget_ms: f64) -> Governor {
+        let mut governor = fresh(features, budget_ms);
         for (candidate, ms) in [5.0, 6.0, 6.0, 200.0, 20.0, 50.0].into_iter().enumerate() {
-            for _ in 0..PROBE_FRAMES {
-                governor.observe(candidate, Motion::Still, ms, true, None);
-            }
+            measure(&mut governor, candidate, ms);
         }
         governor.observe(
             PT,
@@ -985,6 +1002,18 @@ mod tests {
                 return (action, frames);
             }
             assert!(frames < 10, "{}", governor.reason());
+        }
+    }
+
+    /// [`probe`] `candidate` at `ms`; where the choice made afresh switches, the decision on
+    /// the candidate switched to.
+    fn next_after_probe(governor: &mut Governor, candidate: usize, ms: f64) -> Action {
+        match probe(governor, candidate, ms).0 {
+            Action::Switch(c) => {
+                governor.switched(c);
+                governor.decide(Motion::Still, false)
+            }
+            action => action,
         }
     }
 
@@ -1049,16 +1078,7 @@ mod tests {
 
     #[test]
     fn unmeasured_candidates_that_would_win_are_probed_then_chosen_afresh() {
-        let mut governor = Governor::new(
-            candidates(),
-            DIFFERENTIAL,
-            Settings {
-                budget_ms: 50.0,
-                max_error: None,
-                horizon_ms: 2000.0,
-            },
-        );
-        governor.set_features(features(2.0, 6.0, 0.0));
+        let mut governor = fresh(features(2.0, 6.0, 0.0), 50.0);
         // Nothing measured: pt, the most promising, measures its own cost, so it is probed
         // at once.
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(PT));
@@ -1098,20 +1118,9 @@ mod tests {
     /// ratios, is estimated at the measured frames' cost and probed at a budget it fits.
     #[test]
     fn rasterisers_measured_alike_bring_the_others_estimates_down_to_them() {
-        let mut governor = Governor::new(
-            candidates(),
-            DIFFERENTIAL,
-            Settings {
-                budget_ms: 5.0,
-                max_error: None,
-                horizon_ms: 2000.0,
-            },
-        );
-        governor.set_features(features(2.0, 6.0, 0.0));
+        let mut governor = fresh(features(2.0, 6.0, 0.0), 5.0);
         governor.mark_unavailable(PT);
-        for _ in 0..PROBE_FRAMES {
-            governor.observe(DIFFERENTIAL, Motion::Still, 4.9, true, None);
-        }
+        measure(&mut governor, DIFFERENTIAL, 4.9);
         // One rasteriser measured: the ratios in full, dir far over the budget.
         let estimate = |g: &Governor| g.estimated_cost(DIR, Motion::Still).unwrap();
         assert!(
@@ -1122,12 +1131,8 @@ mod tests {
         // dlpv, several times differential by the ratios, is probed and measured cheaper.
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DLPV));
         governor.switched(DLPV);
-        let (mut action, _) = probe(&mut governor, DLPV, 4.0);
+        let action = next_after_probe(&mut governor, DLPV, 4.0);
         assert_eq!(estimate(&governor), 4.9);
-        if let Action::Switch(c) = action {
-            governor.switched(c);
-            action = governor.decide(Motion::Still, false);
-        }
         assert_eq!(action, Action::Probe(DIR), "{}", governor.reason());
         // Measured as the ratios have it (lavapipe), the ratios stand.
         let mut governor = measured(features(2.0, 6.0, 0.0), 33.0);
@@ -1144,52 +1149,26 @@ mod tests {
     /// than `differential`), and measured alike, `dir` is then within reach and probed.
     #[test]
     fn unchecked_ratios_are_checked_before_they_keep_a_winner_out() {
-        let mut governor = Governor::new(
-            candidates(),
-            DIFFERENTIAL,
-            Settings {
-                budget_ms: 5.0,
-                max_error: None,
-                horizon_ms: 2000.0,
-            },
-        );
-        governor.set_features(features(2.0, 6.0, 0.0));
+        let mut governor = fresh(features(2.0, 6.0, 0.0), 5.0);
         for c in [DLPV, PT] {
             governor.mark_unavailable(c);
         }
-        for _ in 0..PROBE_FRAMES {
-            governor.observe(DIFFERENTIAL, Motion::Still, 4.6, true, None);
-        }
+        measure(&mut governor, DIFFERENTIAL, 4.6);
         let action = governor.decide(Motion::Still, false);
         assert_eq!(action, Action::Probe(IBL), "{}", governor.reason());
         governor.switched(IBL);
-        let (mut action, _) = probe(&mut governor, IBL, 4.6);
-        if let Action::Switch(c) = action {
-            governor.switched(c);
-            action = governor.decide(Motion::Still, false);
-        }
+        let action = next_after_probe(&mut governor, IBL, 4.6);
         assert_eq!(action, Action::Probe(DIR), "{}", governor.reason());
     }
 
     /// A governor at 33 ms on a bleeding scene with only `differential` and `kept` available:
     /// `differential` measured at 5 ms, and `kept` (which would win) being probed.
     fn probing_beside_differential(kept: usize) -> Governor {
-        let mut governor = Governor::new(
-            candidates(),
-            DIFFERENTIAL,
-            Settings {
-                budget_ms: 33.0,
-                max_error: None,
-                horizon_ms: 2000.0,
-            },
-        );
-        governor.set_features(features(2.0, 6.0, 0.0));
+        let mut governor = fresh(features(2.0, 6.0, 0.0), 33.0);
         for candidate in (0..candidates().len()).filter(|&c| c != DIFFERENTIAL && c != kept) {
             governor.mark_unavailable(candidate);
         }
-        for _ in 0..PROBE_FRAMES {
-            governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
-        }
+        measure(&mut governor, DIFFERENTIAL, 5.0);
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(kept));
         governor.switched(kept);
         governor
