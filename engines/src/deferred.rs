@@ -877,7 +877,6 @@ impl LightResources {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use wgpu::util::DeviceExt;
 
     #[test]
     fn non_finite_and_out_of_range_delta_is_counted_and_never_written() {
@@ -926,37 +925,21 @@ mod tests {
         let bytes: Vec<u8> = bytemuck::cast_slice(&values).to_vec();
         let mut expected = Image::new(values.len() as u32, 1, PixelFormat::Rgba16F);
         let expected_non_finite = write_delta(&bytes, &mut expected);
-        let input = ctx
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("values"),
-                contents: &bytes,
-                usage: wgpu::BufferUsages::STORAGE,
-            });
         use wgpu::BufferUsages as U;
+        let input = ctx.buffer_with("values", &bytes, U::STORAGE);
         let size = 8 * values.len() as u64;
         let output = ctx.buffer("packed", size, U::STORAGE | U::COPY_SRC);
-        let staging = ctx.buffer("staging", size, U::MAP_READ | U::COPY_DST);
         let pipeline = shaders::compute_pipeline(&ctx.device, "pack_delta", kernel);
-        let group = shaders::pipeline_bind_group(
-            &ctx.device,
-            &pipeline,
-            "pack_delta",
-            &[input.as_entire_binding(), output.as_entire_binding()],
-        );
-        let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&pipeline);
-            pass.set_bind_group(0, &group, &[]);
-            pass.dispatch_workgroups(values.len() as u32, 1, 1);
-        }
-        ctx.queue.submit([encoder.finish()]);
         let mut delta = Image::new(values.len() as u32, 1, PixelFormat::Rgba16F);
         let non_finite = ctx
-            .read_back(&output, &staging, size, |bytes| {
-                unpack_delta(bytes, &mut delta)
-            })
+            .run_once(
+                &pipeline,
+                &[input.as_entire_binding(), output.as_entire_binding()],
+                values.len() as u32,
+                &output,
+                size,
+                |bytes| unpack_delta(bytes, &mut delta),
+            )
             .unwrap();
         assert_eq!((non_finite, expected_non_finite), (5, 5));
         let (got, want) = (delta.as_u16().unwrap(), expected.as_u16().unwrap());

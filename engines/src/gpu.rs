@@ -433,6 +433,52 @@ impl SharedGpu {
     }
 }
 
+/// For tests of one pass in isolation.
+#[cfg(test)]
+impl GpuContext {
+    /// A buffer holding `contents`.
+    pub(crate) fn buffer_with(
+        &self,
+        label: &str,
+        contents: &[u8],
+        usage: wgpu::BufferUsages,
+    ) -> wgpu::Buffer {
+        wgpu::util::DeviceExt::create_buffer_init(
+            &self.device,
+            &wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage,
+            },
+        )
+    }
+
+    /// Run `pipeline` once over `workgroups` workgroups (along x) with `resources` at bindings
+    /// 0, 1, …, then hand the first `size` bytes of `output` (COPY_SRC) to `read`.
+    pub(crate) fn run_once<T>(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        resources: &[wgpu::BindingResource],
+        workgroups: u32,
+        output: &wgpu::Buffer,
+        size: u64,
+        read: impl FnOnce(&[u8]) -> T,
+    ) -> Result<T, GpuError> {
+        let group = crate::shaders::pipeline_bind_group(&self.device, pipeline, "test", resources);
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &group, &[]);
+            pass.dispatch_workgroups(workgroups, 1, 1);
+        }
+        self.queue.submit([encoder.finish()]);
+        use wgpu::BufferUsages as U;
+        let staging = self.buffer("staging", size, U::MAP_READ | U::COPY_DST);
+        self.read_back(output, &staging, size, read)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

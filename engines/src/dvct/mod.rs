@@ -705,19 +705,10 @@ mod tests {
                 words.extend([0, 0, 0, 0, flags]);
             }
         }
-        use wgpu::util::DeviceExt;
-        let vertices = ctx
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("vertices"),
-                contents: bytemuck::cast_slice(&words),
-                usage: wgpu::BufferUsages::STORAGE,
-            });
+        use wgpu::BufferUsages as U;
+        let vertices = ctx.buffer_with("vertices", bytemuck::cast_slice(&words), U::STORAGE);
         let pipeline = shaders::compute_pipeline(&ctx.device, "voxelize", shaders::DVCT_VOXELIZE);
         let size = 4 * (n * n * n) as u64;
-        use wgpu::BufferUsages as U;
-        let occupancy = ctx.buffer("occupancy", size, U::STORAGE | U::COPY_SRC | U::COPY_DST);
-        let staging = ctx.buffer("staging", size, U::MAP_READ | U::COPY_DST);
         for lanes in [1, 32] {
             let uniform = DvctUniform {
                 origin: origin.extend(s).to_array(),
@@ -725,36 +716,22 @@ mod tests {
                 voxelized: [0, triangles.len() as u32, lanes, 0],
                 ..DvctUniform::zeroed()
             };
-            let uniform = ctx
-                .device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("dvct"),
-                    contents: bytemuck::bytes_of(&uniform),
-                    usage: wgpu::BufferUsages::UNIFORM,
-                });
-            let group = shaders::pipeline_bind_group(
-                &ctx.device,
-                &pipeline,
-                "voxelize",
-                &[
-                    uniform.as_entire_binding(),
-                    vertices.as_entire_binding(),
-                    occupancy.as_entire_binding(),
-                ],
-            );
-            let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            encoder.clear_buffer(&occupancy, 0, None);
-            {
-                let mut pass = encoder.begin_compute_pass(&Default::default());
-                pass.set_pipeline(&pipeline);
-                pass.set_bind_group(0, &group, &[]);
-                pass.dispatch_workgroups((triangles.len() as u32 * lanes).div_ceil(64), 1, 1);
-            }
-            ctx.queue.submit([encoder.finish()]);
+            let uniform = ctx.buffer_with("dvct", bytemuck::bytes_of(&uniform), U::UNIFORM);
+            // A new buffer starts zeroed: nothing marked.
+            let occupancy = ctx.buffer("occupancy", size, U::STORAGE | U::COPY_SRC);
             let got: Vec<u32> = ctx
-                .read_back(&occupancy, &staging, size, |b| {
-                    bytemuck::cast_slice(b).to_vec()
-                })
+                .run_once(
+                    &pipeline,
+                    &[
+                        uniform.as_entire_binding(),
+                        vertices.as_entire_binding(),
+                        occupancy.as_entire_binding(),
+                    ],
+                    (triangles.len() as u32 * lanes).div_ceil(64),
+                    &occupancy,
+                    size,
+                    |b| bytemuck::cast_slice(b).to_vec(),
+                )
                 .unwrap();
             let differing: Vec<usize> =
                 (0..got.len()).filter(|i| got[*i] != expected[*i]).collect();
