@@ -307,20 +307,9 @@ struct Dvct {
     // x: 1 = shadow cones (antiradiance), 0 = shadow maps; y: shadow bias in texels;
     // z: tan of the glossy cone's smallest half angle; w: fixed-point counts per unit.
     options: vec4<f32>,
-    // Cell offset of each level in the chain (level L at [L / 4][L % 4]); the entry after the
-    // last level holds the total.
-    offsets: array<vec4<u32>, 3>,
     // x: first vertex of the triangles voxelised, y: how many triangles (the light-space
     // geometry: the virtual object and the real scene's shadow proxy, or every mesh).
     voxelized: vec4<u32>,
-}
-
-fn dvct_offset(d: Dvct, level: u32) -> u32 {
-    return d.offsets[level / 4u][level % 4u];
-}
-
-fn dvct_level_size(d: Dvct, level: u32) -> u32 {
-    return max(d.dims.x >> level, 1u);
 }
 
 // Differential Instant Radiosity (engines/src/dir): one VPL, `position.w` its group (0: on a

@@ -1,13 +1,18 @@
-// DVCT mip chain (Franke 2014, Sec. 3.1–3.2), one level per dispatch. Level 0 turns the
-// voxelisation's bits into occlusion (x: any geometry, y: the virtual object) and the injected
-// fixed-point VPL counts (V^Δ, V^ρ; the DLPV injection pass with direct injection off) into
-// float L1 SH intensity. Every coarser cell is the mean of its (up to) eight children, so a
-// level-L cell holds the mean occlusion and the mean intensity per level-0 cell of its block.
+// DVCT mip chain (Franke 2014, Sec. 3.1–3.2), one level of one radiance volume per dispatch,
+// into 3D textures the cone tracer samples with the sampler's quadrilinear filtering. Level 0
+// (`first`) turns the voxelisation's bits into occlusion (x: any geometry, y: the virtual
+// object) and the injected fixed-point VPL counts (V^Δ or V^ρ; the DLPV injection pass with
+// direct injection off) into float L1 SH intensity. Every coarser cell (`coarser`) is the mean
+// of its (up to) eight children, so a level-L cell holds the mean occlusion, and the mean
+// intensity per level-0 cell of its block times 2^L: seen from outside, a block's radiance is
+// its total intensity over its projected area, mean · 8^L / (2^L s)², and storing the 2^L here
+// lets the filtering blend two levels' radiance directly (the tracer divides by s² once).
 // Isotropic: one value per cell, not six directional ones (the SH radiance already carries
 // direction; see the engine's doc for why).
 
 struct Mip {
-    // x: level; y: cells per axis at this level; z: at the level below.
+    // x: level; y: cells per axis at this level; z: at the level below; w: which volume
+    // (0: V^Δ, whose dispatch also writes occlusion; 1: V^ρ).
     level: vec4<u32>,
 }
 
@@ -16,55 +21,67 @@ struct Mip {
 // The injection's fixed-point counts: [V^Δ, V^ρ] × n³ cells × 12 (4 SH × RGB).
 @group(0) @binding(2) var<storage, read> cells: array<i32>;
 @group(0) @binding(3) var<storage, read> occupancy: array<u32>;
-// [V^Δ, V^ρ] × every level's cells × 3 channels of L1 SH.
-@group(0) @binding(4) var<storage, read_write> radiance: array<vec4<f32>>;
-@group(0) @binding(5) var<storage, read_write> occlusion: array<vec2<f32>>;
+// The level below, of this volume's three channels and of occlusion.
+@group(0) @binding(4) var below_r: texture_3d<f32>;
+@group(0) @binding(5) var below_g: texture_3d<f32>;
+@group(0) @binding(6) var below_b: texture_3d<f32>;
+@group(0) @binding(7) var below_occlusion: texture_3d<f32>;
+@group(0) @binding(8) var out_r: texture_storage_3d<rgba32float, write>;
+@group(0) @binding(9) var out_g: texture_storage_3d<rgba32float, write>;
+@group(0) @binding(10) var out_b: texture_storage_3d<rgba32float, write>;
+@group(0) @binding(11) var out_occlusion: texture_storage_3d<rg32float, write>;
 
-fn radiance_index(which: u32, level: u32, cell: u32, ch: u32) -> u32 {
-    let total = dvct_offset(dvct, dvct.dims.y);
-    return (which * total + dvct_offset(dvct, level) + cell) * 3u + ch;
+fn store(c: vec3<u32>, sh: array<vec4<f32>, 3>, occ: vec2<f32>) {
+    textureStore(out_r, c, sh[0]);
+    textureStore(out_g, c, sh[1]);
+    textureStore(out_b, c, sh[2]);
+    if mip.level.w == 0u {
+        textureStore(out_occlusion, c, vec4<f32>(occ, 0.0, 0.0));
+    }
 }
 
 @compute @workgroup_size(4, 4, 4)
-fn main(@builtin(global_invocation_id) id: vec3<u32>) {
-    let level = mip.level.x;
+fn first(@builtin(global_invocation_id) id: vec3<u32>) {
     let m = mip.level.y;
     if any(id >= vec3<u32>(m)) {
         return;
     }
     let cell = (id.z * m + id.y) * m + id.x;
-    if level == 0u {
-        let bits = occupancy[cell];
-        occlusion[cell] = vec2<f32>(select(0.0, 1.0, bits != 0u), select(0.0, 1.0, (bits & 2u) != 0u));
-        let n3 = m * m * m;
-        for (var which = 0u; which < 2u; which++) {
-            for (var ch = 0u; ch < 3u; ch++) {
-                let b = ((which * n3 + cell) * 3u + ch) * 4u;
-                radiance[radiance_index(which, 0u, cell, ch)] =
-                    vec4<f32>(f32(cells[b]), f32(cells[b + 1u]), f32(cells[b + 2u]), f32(cells[b + 3u]))
-                    / dvct.options.w;
-            }
-        }
+    let bits = occupancy[cell];
+    let occ = vec2<f32>(select(0.0, 1.0, bits != 0u), select(0.0, 1.0, (bits & 2u) != 0u));
+    let n3 = m * m * m;
+    var sh: array<vec4<f32>, 3>;
+    for (var ch = 0u; ch < 3u; ch++) {
+        let b = ((mip.level.w * n3 + cell) * 3u + ch) * 4u;
+        sh[ch] = vec4<f32>(f32(cells[b]), f32(cells[b + 1u]), f32(cells[b + 2u]), f32(cells[b + 3u]))
+            / dvct.options.w;
+    }
+    store(id, sh, occ);
+}
+
+@compute @workgroup_size(4, 4, 4)
+fn coarser(@builtin(global_invocation_id) id: vec3<u32>) {
+    let m = mip.level.y;
+    if any(id >= vec3<u32>(m)) {
         return;
     }
     let below = mip.level.z;
     var occ = vec2<f32>(0.0);
-    var sh: array<vec4<f32>, 6>;
+    var sh: array<vec4<f32>, 3>;
     var count = 0.0;
     for (var k = 0u; k < 8u; k++) {
         let c = 2u * id + vec3<u32>(k & 1u, (k >> 1u) & 1u, (k >> 2u) & 1u);
         if any(c >= vec3<u32>(below)) {
             continue;
         }
-        let child = (c.z * below + c.y) * below + c.x;
-        occ += occlusion[dvct_offset(dvct, level - 1u) + child];
-        for (var j = 0u; j < 6u; j++) {
-            sh[j] += radiance[radiance_index(j / 3u, level - 1u, child, j % 3u)];
-        }
+        occ += textureLoad(below_occlusion, c, 0).xy;
+        sh[0] += textureLoad(below_r, c, 0);
+        sh[1] += textureLoad(below_g, c, 0);
+        sh[2] += textureLoad(below_b, c, 0);
         count += 1.0;
     }
-    occlusion[dvct_offset(dvct, level) + cell] = occ / count;
-    for (var j = 0u; j < 6u; j++) {
-        radiance[radiance_index(j / 3u, level, cell, j % 3u)] = sh[j] / count;
+    for (var ch = 0u; ch < 3u; ch++) {
+        sh[ch] *= 2.0 / count;
     }
+    store(id, sh, occ / count);
 }

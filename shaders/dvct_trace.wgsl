@@ -18,9 +18,17 @@
 @group(0) @binding(6) var gb_normal: texture_2d<f32>;
 @group(0) @binding(7) var gb_albedo: texture_2d<f32>;
 @group(0) @binding(8) var rsm_mu: texture_2d_array<f32>;
-@group(0) @binding(9) var<storage, read> radiance: array<vec4<f32>>;
-@group(0) @binding(10) var<storage, read> occlusion: array<vec2<f32>>;
-@group(0) @binding(11) var<storage, read_write> indirect: array<vec4<f32>>;
+// The mip chains (`dvct_mip.wgsl`): L1 SH per colour channel of V^Δ and V^ρ, and occlusion;
+// the sampler is quadrilinear with a zero border, so a cone reads nothing outside the volume.
+@group(0) @binding(9) var delta_r: texture_3d<f32>;
+@group(0) @binding(10) var delta_g: texture_3d<f32>;
+@group(0) @binding(11) var delta_b: texture_3d<f32>;
+@group(0) @binding(12) var rho_r: texture_3d<f32>;
+@group(0) @binding(13) var rho_g: texture_3d<f32>;
+@group(0) @binding(14) var rho_b: texture_3d<f32>;
+@group(0) @binding(15) var occlusion: texture_3d<f32>;
+@group(0) @binding(16) var volume_sampler: sampler;
+@group(0) @binding(17) var<storage, read_write> indirect: array<vec4<f32>>;
 
 // The hemisphere split into a central cone (half angle acos(8/9)) and eight around it, each
 // holding an equal solid angle; weights are ∫ cos θ dω over each part (they sum to π), ring
@@ -37,59 +45,30 @@ struct Sample {
     occ: vec2<f32>,
 }
 
-fn fetch(which: u32, level: u32, c: vec3<i32>, basis: vec4<f32>) -> Sample {
+// Quadrilinear at mip level `level` (clamped to the chain): occlusion, and when `gather` the
+// radiance of volume `which` (0 V^Δ, 1 V^ρ) along the SH `basis`. A level-L cell's radiance
+// is stored times 2^L (see `dvct_mip.wgsl`), so one division by the level-0 cell's area is
+// left.
+fn sample(which: u32, level: f32, p: vec3<f32>, basis: vec4<f32>, gather: bool) -> Sample {
+    let uvw = (p - dvct.origin.xyz) / (dvct.origin.w * f32(dvct.dims.x));
+    let l = clamp(level, 0.0, f32(dvct.dims.y - 1u));
     var s: Sample;
-    let m = i32(dvct_level_size(dvct, level));
-    if any(c < vec3<i32>(0)) || any(c >= vec3<i32>(m)) {
-        return s;
-    }
-    let cell = dvct_offset(dvct, level) + u32((c.z * m + c.y) * m + c.x);
-    let r = (which * dvct_offset(dvct, dvct.dims.y) + cell) * 3u;
-    s.light = vec3<f32>(dot(radiance[r], basis), dot(radiance[r + 1u], basis),
-                        dot(radiance[r + 2u], basis));
-    s.occ = occlusion[cell];
-    return s;
-}
-
-// Trilinear at one level. A level-L cell holds the mean intensity per level-0 cell of its
-// block of 8^L; the block's radiance seen from outside is its total intensity over its
-// projected area, mean · 8^L / (2^L s)².
-fn sample_level(which: u32, level: u32, p: vec3<f32>, basis: vec4<f32>) -> Sample {
-    let scale = f32(1u << level);
-    let size = dvct.origin.w * scale;
-    let g = (p - dvct.origin.xyz) / size - vec3<f32>(0.5);
-    let c0 = vec3<i32>(floor(g));
-    let f = g - floor(g);
-    var out: Sample;
-    for (var k = 0u; k < 8u; k++) {
-        let o = vec3<i32>(i32(k & 1u), i32((k >> 1u) & 1u), i32((k >> 2u) & 1u));
-        let w = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1)
-            * select(1.0 - f.z, f.z, o.z == 1);
-        if w <= 0.0 {
-            continue;
+    s.occ = textureSampleLevel(occlusion, volume_sampler, uvw, l).xy;
+    if gather {
+        var sh: array<vec4<f32>, 3>;
+        if which == 0u {
+            sh = array(textureSampleLevel(delta_r, volume_sampler, uvw, l),
+                       textureSampleLevel(delta_g, volume_sampler, uvw, l),
+                       textureSampleLevel(delta_b, volume_sampler, uvw, l));
+        } else {
+            sh = array(textureSampleLevel(rho_r, volume_sampler, uvw, l),
+                       textureSampleLevel(rho_g, volume_sampler, uvw, l),
+                       textureSampleLevel(rho_b, volume_sampler, uvw, l));
         }
-        let s = fetch(which, level, c0 + o, basis);
-        out.light += w * s.light;
-        out.occ += w * s.occ;
+        s.light = vec3<f32>(dot(sh[0], basis), dot(sh[1], basis), dot(sh[2], basis))
+            / (dvct.origin.w * dvct.origin.w);
     }
-    out.light *= scale / (dvct.origin.w * dvct.origin.w);
-    return out;
-}
-
-fn sample(which: u32, level: f32, p: vec3<f32>, basis: vec4<f32>) -> Sample {
-    let top = f32(dvct.dims.y - 1u);
-    let l = clamp(level, 0.0, top);
-    let l0 = floor(l);
-    let a = sample_level(which, u32(l0), p, basis);
-    let f = l - l0;
-    if f <= 0.0 {
-        return a;
-    }
-    let b = sample_level(which, u32(l0) + 1u, p, basis);
-    var out: Sample;
-    out.light = mix(a.light, b.light, f);
-    out.occ = mix(a.occ, b.occ, f);
-    return out;
+    return s;
 }
 
 struct Cone {
@@ -114,7 +93,7 @@ fn trace(which: u32, apex: vec3<f32>, dir: vec3<f32>, tan_half: f32, max_t: f32,
         if any(p < lo) || any(p > hi) {
             break;
         }
-        let s = sample(which, log2(d / s0), p, basis);
+        let s = sample(which, log2(d / s0), p, basis, gather);
         let dt = max(d * dvct.cone.y, 0.25 * s0);
         let occ = clamp(select(s.occ.x, s.occ.y, channel == 1u), 0.0, 1.0);
         if gather {

@@ -32,6 +32,12 @@ pub enum GpuError {
         allowed: u64,
         setting: String,
     },
+    #[error("adapter `{adapter}` lacks {feature}, which {needed_by} needs")]
+    Feature {
+        adapter: String,
+        feature: String,
+        needed_by: String,
+    },
     #[error("requesting a device from `{adapter}`: {reason}")]
     Device { adapter: String, reason: String },
     #[error("GPU device lost ({reason}); rebuild the engine to recover")]
@@ -73,6 +79,13 @@ pub struct GpuContext {
     lost: Arc<Mutex<Option<String>>>,
     errored: Arc<Mutex<Option<String>>>,
 }
+
+/// Features a device is given when its adapter has them: timestamps for the pass timer; f32
+/// filtering and zero borders for `dvct`'s filtered voxel mips ([`GpuContext::require_features`]).
+/// Vulkan drivers, lavapipe included, have all three.
+const OPTIONAL_FEATURES: wgpu::Features = wgpu::Features::TIMESTAMP_QUERY
+    .union(wgpu::Features::FLOAT32_FILTERABLE)
+    .union(wgpu::Features::ADDRESS_MODE_CLAMP_TO_BORDER);
 
 /// Vulkan adapters, or OpenGL ones when there is no Vulkan driver (probing GL needs a display
 /// or EGL device and complains loudly on headless machines, so it is only tried as a fallback).
@@ -210,11 +223,7 @@ impl GpuContext {
         let info = adapter.get_info();
         let limits = adapter.limits();
         let timestamps = adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY);
-        let required_features = if timestamps {
-            wgpu::Features::TIMESTAMP_QUERY
-        } else {
-            wgpu::Features::empty()
-        };
+        let required_features = adapter.features() & OPTIONAL_FEATURES;
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("relight"),
             required_features,
@@ -281,6 +290,24 @@ impl GpuContext {
         })
     }
 
+    /// An error naming what `needed_by` needs unless the device has every one of `features`.
+    pub fn require_features(
+        &self,
+        features: wgpu::Features,
+        needed_by: &str,
+    ) -> Result<(), GpuError> {
+        let missing = features - self.device.features();
+        if missing.is_empty() {
+            Ok(())
+        } else {
+            Err(GpuError::Feature {
+                adapter: self.info.name.clone(),
+                feature: format!("{missing:?}"),
+                needed_by: needed_by.to_owned(),
+            })
+        }
+    }
+
     /// Check that `needed` fits the adapter's `limit` (one of the names below); the error
     /// names `setting` as the thing to lower.
     pub fn require(&self, limit: &'static str, needed: u64, setting: &str) -> Result<(), GpuError> {
@@ -345,6 +372,23 @@ impl GpuContext {
             usage,
             mapped_at_creation: false,
         })
+    }
+
+    /// A buffer holding `contents`.
+    pub fn buffer_with(
+        &self,
+        label: &str,
+        contents: &[u8],
+        usage: wgpu::BufferUsages,
+    ) -> wgpu::Buffer {
+        wgpu::util::DeviceExt::create_buffer_init(
+            &self.device,
+            &wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage,
+            },
+        )
     }
 
     /// Copy `size` bytes of `source` into `staging` (MAP_READ | COPY_DST, at least `size`),
@@ -436,23 +480,6 @@ impl SharedGpu {
 /// For tests of one pass in isolation.
 #[cfg(test)]
 impl GpuContext {
-    /// A buffer holding `contents`.
-    pub(crate) fn buffer_with(
-        &self,
-        label: &str,
-        contents: &[u8],
-        usage: wgpu::BufferUsages,
-    ) -> wgpu::Buffer {
-        wgpu::util::DeviceExt::create_buffer_init(
-            &self.device,
-            &wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents,
-                usage,
-            },
-        )
-    }
-
     /// Run `pipeline` once over `workgroups` workgroups (along x) with `resources` at bindings
     /// 0, 1, …, then hand the first `size` bytes of `output` (COPY_SRC) to `read`.
     pub(crate) fn run_once<T>(
@@ -510,5 +537,28 @@ mod tests {
                 .is_ok()
         );
         assert!(ctx.check().is_ok());
+    }
+
+    #[test]
+    fn missing_features_name_what_needs_them() {
+        let ctx = GpuContext::new().expect("a GPU adapter (lavapipe: mesa-vulkan-drivers)");
+        let granted = ctx.device.features();
+        // lavapipe (CI's adapter) has every optional feature, and is given them.
+        if ctx.info.device_type == wgpu::DeviceType::Cpu {
+            assert!(granted.contains(OPTIONAL_FEATURES), "{granted:?}");
+        }
+        assert!(ctx.require_features(granted, "anything").is_ok());
+        let absent = wgpu::Features::all() - granted;
+        let Some(feature) = absent.iter().next() else {
+            return; // an adapter with every feature
+        };
+        let err = ctx
+            .require_features(feature | granted, "the test pass")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains(&format!("{feature:?}")) && err.contains("the test pass"),
+            "{err}"
+        );
     }
 }

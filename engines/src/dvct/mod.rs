@@ -7,7 +7,11 @@
 //!    SH intensity (the DLPV injection pass with its direct injection off, so the same fixed-point
 //!    atomics make VPLs seen in both maps cancel exactly);
 //! 3. **mip chain** (`dvct_mip.wgsl`): level 0 resolves occlusion (any surface, virtual object)
-//!    and radiance; each coarser level averages its children;
+//!    and radiance; each coarser level averages its children. The chains are mipmapped 3D
+//!    textures (f32, filterable), as in the paper, so that a cone's quadrilinear sample is one
+//!    filtered fetch per texture: with storage buffers and the eight-corner sum written out, the
+//!    fetches held 90 % of a still frame on lavapipe (a buffer load is a scalar gather per lane
+//!    there) and the tracer's ALU on a GPU;
 //! 4. **cone tracing** (`dvct_trace.wgsl`) per pixel: 9 diffuse cones and 1 glossy cone whose
 //!    aperture follows the Phong exponent, through V^Δ on real pixels and V^ρ on virtual ones;
 //!    on real pixels, shadow cones towards each light take the virtual object's occlusion times
@@ -46,7 +50,6 @@ struct DvctUniform {
     dims: [u32; 4],
     cone: [f32; 4],
     options: [f32; 4],
-    offsets: [u32; 12],
     voxelized: [u32; 4],
 }
 
@@ -88,25 +91,30 @@ impl Default for DvctSettings {
     }
 }
 
-/// Mip levels of an `n`³ chain down to one cell, and each level's first cell (plus the total).
-fn mip_offsets(n: u32) -> (u32, Vec<u32>) {
+/// Mip levels of an `n`³ chain down to one cell, and the cells of all of them.
+fn mip_chain(n: u32) -> (u32, u64) {
     let levels = n.ilog2() + 1;
-    let mut offsets = vec![0u32];
-    for level in 0..levels {
-        let m = (n >> level).max(1);
-        offsets.push(offsets[level as usize] + m * m * m);
-    }
-    (levels, offsets)
+    let cells = (0..levels).map(|l| u64::from((n >> l).max(1)).pow(3)).sum();
+    (levels, cells)
 }
+
+/// The mip chains' textures: V^Δ's three channels of L1 SH, V^ρ's, then occlusion.
+const CHAINS: usize = 7;
+
+/// The chains' filtering (`dvct_trace.wgsl`): f32 texels and the zero border need these.
+const CHAIN_FEATURES: wgpu::Features =
+    wgpu::Features::FLOAT32_FILTERABLE.union(wgpu::Features::ADDRESS_MODE_CLAMP_TO_BORDER);
 
 #[derive(Debug)]
 struct VolumeBuffers {
     n: u32,
     cells: wgpu::Buffer,
     occupancy: wgpu::Buffer,
-    radiance: wgpu::Buffer,
-    occlusion: wgpu::Buffer,
-    mips: Vec<wgpu::Buffer>,
+    /// Every chain's whole mip chain, as the tracer samples it.
+    chains: Vec<wgpu::TextureView>,
+    /// Each level's dispatches, first V^Δ's (which writes occlusion too), then V^ρ's, with
+    /// their cells per axis; built once with the textures.
+    mip_groups: Vec<(bool, u32, wgpu::BindGroup)>,
 }
 
 #[derive(Debug)]
@@ -115,8 +123,10 @@ pub struct Dvct {
     settings: DvctSettings,
     voxelize: wgpu::ComputePipeline,
     inject: InjectPass,
-    mip: wgpu::ComputePipeline,
+    /// Level 0 of the mip chains, from the injected cells, and the coarser levels.
+    mip: [wgpu::ComputePipeline; 2],
     trace: wgpu::ComputePipeline,
+    sampler: wgpu::Sampler,
     inject_uniform: wgpu::Buffer,
     dvct_uniform: wgpu::Buffer,
     volume: Option<VolumeBuffers>,
@@ -211,8 +221,21 @@ impl Dvct {
         Ok(Self {
             voxelize: pipeline("dvct voxelize", shaders::DVCT_VOXELIZE),
             inject: InjectPass::new(&ctx.device, "dvct inject"),
-            mip: pipeline("dvct mip", shaders::DVCT_MIP),
+            mip: ["first", "coarser"].map(|entry| {
+                shaders::compute_pipeline_at(&ctx.device, "dvct mip", shaders::DVCT_MIP, entry)
+            }),
             trace: pipeline("dvct trace", shaders::DVCT_TRACE),
+            sampler: ctx.device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("dvct volume"),
+                address_mode_u: wgpu::AddressMode::ClampToBorder,
+                address_mode_v: wgpu::AddressMode::ClampToBorder,
+                address_mode_w: wgpu::AddressMode::ClampToBorder,
+                border_color: Some(wgpu::SamplerBorderColor::TransparentBlack),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
+                mipmap_filter: wgpu::MipmapFilterMode::Linear,
+                ..Default::default()
+            }),
             inject_uniform: uniform_buffer(&ctx.device, "dvct inject", size_of::<VolumeUniform>()),
             dvct_uniform: uniform_buffer(&ctx.device, "dvct", size_of::<DvctUniform>()),
             deferred: Deferred::new(ctx),
@@ -225,61 +248,117 @@ impl Dvct {
     fn volume_buffers(&mut self) -> Result<&VolumeBuffers, EngineError> {
         let n = self.settings.volume_size;
         let ctx = self.deferred.ctx().clone();
-        let (levels, offsets) = mip_offsets(n);
-        let total = u64::from(offsets[levels as usize]);
+        let (levels, _) = mip_chain(n);
         let cells = 2 * u64::from(n).pow(3) * 48;
-        let radiance = 2 * total * 48;
+        ctx.require_features(CHAIN_FEATURES, "dvct's filtered voxel mips")?;
         ctx.require("max_storage_buffer_binding_size", cells, "volume_size")?;
-        ctx.require("max_storage_buffer_binding_size", radiance, "volume_size")?;
+        ctx.require("max_texture_dimension_3d", u64::from(n), "volume_size")?;
         ctx.require(
             "max_compute_workgroups_per_dimension",
             u64::from(n).div_ceil(4),
             "volume_size",
         )?;
         if self.volume.as_ref().is_none_or(|v| v.n != n) {
-            let buffer = |label, size, usage| {
+            use wgpu::BufferUsages as U;
+            let buffer = |label, size| {
                 ctx.device.create_buffer(&wgpu::BufferDescriptor {
                     label: Some(label),
                     size,
-                    usage,
+                    usage: U::STORAGE | U::COPY_DST,
                     mapped_at_creation: false,
                 })
             };
-            use wgpu::BufferUsages as U;
-            let mips = (0..levels)
-                .map(|level| {
-                    let mip = buffer(
-                        "dvct mip",
-                        size_of::<MipUniform>() as u64,
-                        U::UNIFORM | U::COPY_DST,
-                    );
-                    let below = if level == 0 {
-                        n
-                    } else {
-                        (n >> (level - 1)).max(1)
-                    };
-                    ctx.queue.write_buffer(
-                        &mip,
-                        0,
-                        bytemuck::bytes_of(&MipUniform {
-                            level: [level, (n >> level).max(1), below, 0],
-                        }),
-                    );
-                    mip
+            let cells = buffer("dvct cells", cells);
+            let occupancy = buffer("dvct occupancy", u64::from(n).pow(3) * 4);
+            let textures: Vec<wgpu::Texture> = (0..CHAINS)
+                .map(|chain| {
+                    ctx.device.create_texture(&wgpu::TextureDescriptor {
+                        label: Some("dvct chain"),
+                        size: wgpu::Extent3d {
+                            width: n,
+                            height: n,
+                            depth_or_array_layers: n,
+                        },
+                        mip_level_count: levels,
+                        sample_count: 1,
+                        dimension: wgpu::TextureDimension::D3,
+                        format: if chain + 1 == CHAINS {
+                            wgpu::TextureFormat::Rg32Float
+                        } else {
+                            wgpu::TextureFormat::Rgba32Float
+                        },
+                        usage: wgpu::TextureUsages::TEXTURE_BINDING
+                            | wgpu::TextureUsages::STORAGE_BINDING,
+                        view_formats: &[],
+                    })
                 })
                 .collect();
+            let level_view = |chain: usize, level: u32| {
+                textures[chain].create_view(&wgpu::TextureViewDescriptor {
+                    base_mip_level: level,
+                    mip_level_count: Some(1),
+                    ..Default::default()
+                })
+            };
+            let mut mip_groups = Vec::new();
+            for level in 0..levels {
+                let m = (n >> level).max(1);
+                let below = (n >> level.saturating_sub(1)).max(1);
+                for which in 0..2 {
+                    let uniform = ctx.buffer_with(
+                        "dvct mip",
+                        bytemuck::bytes_of(&MipUniform {
+                            level: [level, m, below, which],
+                        }),
+                        U::UNIFORM,
+                    );
+                    // This volume's three channels, then occlusion.
+                    let chains: Vec<usize> = (0..3)
+                        .map(|ch| 3 * which as usize + ch)
+                        .chain([CHAINS - 1])
+                        .collect();
+                    let outputs: Vec<_> = chains.iter().map(|&c| level_view(c, level)).collect();
+                    let inputs: Vec<_> = chains
+                        .iter()
+                        .map(|&c| level_view(c, level.saturating_sub(1)))
+                        .collect();
+                    let mut entries = vec![(1, uniform.as_entire_binding())];
+                    if level == 0 {
+                        entries.extend([
+                            (0, self.dvct_uniform.as_entire_binding()),
+                            (2, cells.as_entire_binding()),
+                            (3, occupancy.as_entire_binding()),
+                        ]);
+                    } else {
+                        entries.extend(
+                            (4..).zip(inputs.iter().map(wgpu::BindingResource::TextureView)),
+                        );
+                    }
+                    entries
+                        .extend((8..).zip(outputs.iter().map(wgpu::BindingResource::TextureView)));
+                    let pipeline = &self.mip[usize::from(level > 0)];
+                    let entries: Vec<wgpu::BindGroupEntry> = entries
+                        .into_iter()
+                        .map(|(binding, resource)| wgpu::BindGroupEntry { binding, resource })
+                        .collect();
+                    let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some("dvct mip"),
+                        layout: &pipeline.get_bind_group_layout(0),
+                        entries: &entries,
+                    });
+                    mip_groups.push((level > 0, m, group));
+                }
+            }
             self.voxelized.forget();
             self.volume = Some(VolumeBuffers {
                 n,
-                cells: buffer("dvct cells", cells, U::STORAGE | U::COPY_DST),
-                occupancy: buffer(
-                    "dvct occupancy",
-                    u64::from(n).pow(3) * 4,
-                    U::STORAGE | U::COPY_DST,
-                ),
-                radiance: buffer("dvct radiance", radiance, U::STORAGE),
-                occlusion: buffer("dvct occlusion", total * 8, U::STORAGE),
-                mips,
+                cells,
+                occupancy,
+                chains: textures
+                    .iter()
+                    .map(|t| t.create_view(&Default::default()))
+                    .collect(),
+                mip_groups,
             });
         }
         self.volume.as_ref().ok_or(EngineError::NotPrepared)
@@ -346,9 +425,7 @@ impl Engine for Dvct {
             let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
             let scale =
                 fixed_point_scale(self.deferred.lights(), (bounds.1 - bounds.0).length() / 2.0);
-            let (levels, offsets) = mip_offsets(n);
-            let mut offsets12 = [0u32; 12];
-            offsets12[..offsets.len()].copy_from_slice(&offsets);
+            let (levels, mip_cells) = mip_chain(n);
             let tan = |deg: f32| deg.to_radians().tan();
             let inject_volume = VolumeUniform {
                 origin: origin.extend(cell).to_array(),
@@ -385,7 +462,6 @@ impl Engine for Dvct {
                         tan(settings.glossy_min_aperture_deg),
                         scale,
                     ],
-                    offsets: offsets12,
                     voxelized: [voxelized.start, triangles, voxelize_lanes(&ctx, n), 0],
                 }),
             );
@@ -432,24 +508,6 @@ impl Engine for Dvct {
                 (lights, faces_buf, rsm_rho, rsm_mu),
                 &v.cells,
             );
-            let mip_groups: Vec<wgpu::BindGroup> = v
-                .mips
-                .iter()
-                .map(|mip| {
-                    group(
-                        &self.mip,
-                        "dvct mip",
-                        &[
-                            self.dvct_uniform.as_entire_binding(),
-                            mip.as_entire_binding(),
-                            v.cells.as_entire_binding(),
-                            v.occupancy.as_entire_binding(),
-                            v.radiance.as_entire_binding(),
-                            v.occlusion.as_entire_binding(),
-                        ],
-                    )
-                })
-                .collect();
             let gb_views = [
                 Targets::view(&gb_rho.position),
                 Targets::view(&gb_rho.normal),
@@ -464,8 +522,11 @@ impl Engine for Dvct {
                 scene.materials.as_entire_binding(),
             ];
             trace_resources.extend(gb_views.iter().map(wgpu::BindingResource::TextureView));
-            trace_resources
-                .extend([&v.radiance, &v.occlusion, indirect].map(|b| b.as_entire_binding()));
+            trace_resources.extend(v.chains.iter().map(wgpu::BindingResource::TextureView));
+            trace_resources.extend([
+                wgpu::BindingResource::Sampler(&self.sampler),
+                indirect.as_entire_binding(),
+            ]);
             let trace_group = group(&self.trace, "dvct trace", &trace_resources);
 
             let mut encoder = ctx
@@ -475,7 +536,7 @@ impl Engine for Dvct {
                 });
             if revoxelize {
                 let cells = 2.0 * f64::from(n).powi(3);
-                let mip_cells = f64::from(offsets[levels as usize]);
+                let mip_cells = mip_cells as f64;
                 out.work.extend([
                     PassWork {
                         pass: "voxelize",
@@ -512,9 +573,9 @@ impl Engine for Dvct {
                         .dispatch(&mut pass, &inject_group, settings.rsm_size, faces);
                 }
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.mip");
-                pass.set_pipeline(&self.mip);
-                for (level, mip_group) in mip_groups.iter().enumerate() {
-                    let m = (n >> level).max(1).div_ceil(4);
+                for (coarser, m, mip_group) in &v.mip_groups {
+                    let m = m.div_ceil(4);
+                    pass.set_pipeline(&self.mip[usize::from(*coarser)]);
                     pass.set_bind_group(0, mip_group, &[]);
                     pass.dispatch_workgroups(m, m, m);
                 }
@@ -526,7 +587,7 @@ impl Engine for Dvct {
                     n,
                     width * height,
                     self.deferred.lights().len() as u32,
-                    f64::from(offsets[levels as usize]),
+                    mip_cells as f64,
                 ),
             });
             {
