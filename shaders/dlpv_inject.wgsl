@@ -87,30 +87,23 @@ struct Texel {
     albedo: vec4<f32>,
 }
 
-// A texel's VPL: its reflected flux in `cell` as a cosine lobe around its normal, and (for
-// direct injection) the light's incident flux along its direction of travel in `direct_cell`.
-struct TexelVpl {
-    cell: i32,
-    lobe: vec4<f32>,
-    flux: vec3<f32>,
-    direct_cell: i32,
-    direct_lobe: vec4<f32>,
-    direct_flux: vec3<f32>,
+// A texel's VPL: its reflected flux as a cosine lobe around its normal, moved half a cell
+// along the normal.
+fn inject_reflected(which: u32, p: ptr<function, Pending>, t: Texel, face: Face, l: Light,
+                    sign: f32) {
+    let n = normalize(t.normal.xyz);
+    let cell = cell_of(t.position.xyz + n * (0.5 * volume.origin.w));
+    let flux = vpl_flux(l, face, t.position.xyz, t.albedo.rgb, volume.dims.y);
+    inject(which, p, cell, cosine_lobe(n), sign * flux);
 }
 
-fn vpl_of(t: Texel, face: Face, l: Light, size: u32) -> TexelVpl {
-    let p = t.position.xyz;
-    let n = normalize(t.normal.xyz);
-    let half_cell = 0.5 * volume.origin.w;
-    let travel = -incident(l, p).to_light;
-    return TexelVpl(
-        cell_of(p + n * half_cell),
-        cosine_lobe(n),
-        vpl_flux(l, face, p, t.albedo.rgb, size),
-        cell_of(p - travel * half_cell),
-        cosine_lobe(travel),
-        vpl_flux(l, face, p, vec3<f32>(1.0), size),
-    );
+// Direct injection: the light's incident flux at the texel along its direction of travel,
+// moved half a cell back towards the light.
+fn inject_direct(p: ptr<function, Pending>, t: Texel, face: Face, l: Light, sign: f32) {
+    let travel = -incident(l, t.position.xyz).to_light;
+    let cell = cell_of(t.position.xyz - travel * (0.5 * volume.origin.w));
+    let flux = vpl_flux(l, face, t.position.xyz, vec3<f32>(1.0), volume.dims.y);
+    inject(0u, p, cell, cosine_lobe(travel), sign * flux);
 }
 
 // Texels per thread along each axis of its tile.
@@ -120,7 +113,8 @@ const TILE: u32 = 4u;
 // so that consecutive texels are neighbours. Where R^ρ and R^μ hold the same surface
 // (everywhere but the object and what it hides), their V^Δ contributions are equal
 // fixed-point counts of opposite sign and cancel exactly, so neither is added: only R^ρ's VPL
-// goes into V^ρ. The volumes hold the same counts as if every texel were injected alone.
+// goes into V^ρ, and R^μ is not read. The volumes hold the same counts as if every texel were
+// injected alone.
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let size = volume.dims.y;
@@ -147,28 +141,27 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
                 textureLoad(rsm_rho_normal, texel, i32(layer), 0),
                 textureLoad(rsm_rho_albedo, texel, i32(layer), 0),
             );
+            // R^ρ is R^μ copied with the object drawn over it (`RsmPass::render`): a texel
+            // the object did not win is a bit copy of R^μ's, so R^μ is read only where it did.
+            if rho.albedo.w >= 0.5 {
+                inject_reflected(1u, &rho_only, rho, face, l, 1.0);
+            }
+            if rho.normal.w < 0.5 {
+                continue;
+            }
+            inject_reflected(0u, &delta, rho, face, l, 1.0);
+            if direct_on {
+                inject_direct(&direct, rho, face, l, 1.0);
+            }
             let mu = Texel(
                 textureLoad(rsm_mu_position, texel, i32(layer), 0),
                 textureLoad(rsm_mu_normal, texel, i32(layer), 0),
                 textureLoad(rsm_mu_albedo, texel, i32(layer), 0),
             );
-            let same = all(rho.position == mu.position) && all(rho.normal == mu.normal)
-                && all(rho.albedo == mu.albedo);
-            if rho.albedo.w >= 0.5 {
-                let v = vpl_of(rho, face, l, size);
-                inject(1u, &rho_only, v.cell, v.lobe, v.flux);
-                if !same {
-                    inject(0u, &delta, v.cell, v.lobe, v.flux);
-                    if direct_on {
-                        inject(0u, &direct, v.direct_cell, v.direct_lobe, v.direct_flux);
-                    }
-                }
-            }
-            if mu.albedo.w >= 0.5 && !same {
-                let v = vpl_of(mu, face, l, size);
-                inject(0u, &delta, v.cell, v.lobe, -v.flux);
+            if mu.albedo.w >= 0.5 {
+                inject_reflected(0u, &delta, mu, face, l, -1.0);
                 if direct_on {
-                    inject(0u, &direct, v.direct_cell, v.direct_lobe, -v.direct_flux);
+                    inject_direct(&direct, mu, face, l, -1.0);
                 }
             }
         }

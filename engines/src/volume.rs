@@ -111,12 +111,13 @@ impl InjectPass {
     }
 
     /// What injecting `layers` faces of `rsm_size`² into `cells` cells must do: every texel of
-    /// both maps read once (32 bytes each), at least R^ρ's VPL turned into 12 fixed-point SH
-    /// values (about 36 operations, 60 more for the texel's VPL itself; the V^Δ pairs that
-    /// cancel need none), and the cells written once (48 bytes).
+    /// R^ρ read once (32 bytes; R^μ only where the object covers it, a share this neglects), at
+    /// least R^ρ's VPL turned into 12 fixed-point SH values (about 36 operations, 60 more for
+    /// the texel's VPL itself; the V^Δ pairs that cancel need none), and the cells written once
+    /// (48 bytes).
     pub fn work(rsm_size: u32, layers: u32, cells: f64) -> Work {
         let pairs = f64::from(layers) * f64::from(rsm_size).powi(2);
-        Work::new(64.0, 156.0).times(pairs) + Work::new(48.0, 0.0).times(cells)
+        Work::new(32.0, 156.0).times(pairs) + Work::new(48.0, 0.0).times(cells)
     }
 
     /// Inject every texel of `layers` shadow-map layers of `rsm_size`², both maps.
