@@ -62,6 +62,7 @@ pub struct DlpvSettings {
     pub rsm_size: u32,
     pub volume_size: u32,
     pub steps: u32,
+    pub rho_steps: u32,
     pub dampening: f32,
     pub antiradiance: bool,
     pub volume_scale: f32,
@@ -75,6 +76,7 @@ impl Default for DlpvSettings {
             rsm_size: 512,
             volume_size: 32,
             steps: 32,
+            rho_steps: 8,
             dampening: 0.5,
             antiradiance: false,
             volume_scale: 2.0,
@@ -124,6 +126,13 @@ impl Dlpv {
             ),
             int("volume_size", "cells per axis of V^Δ and V^ρ", 4, 128, 32),
             int("steps", "propagation steps", 0, 256, 32),
+            int(
+                "rho_steps",
+                "propagation steps of V^ρ, the light on the object (at most `steps`): nothing in the volume occludes, so more steps carry light around and through the object onto it",
+                0,
+                256,
+                8,
+            ),
             float(
                 "dampening",
                 "fraction of negative light (antiradiance, and L1 ringing) removed per propagation step",
@@ -215,12 +224,14 @@ impl Dlpv {
 /// start and the accumulation) and propagation must do for `n`³ cells of two volumes. Every
 /// propagation step reads each cell's SH and writes it, and adds it into the accumulation
 /// (48 bytes each way), with about 660 operations per cell (`dlpv_propagate.wgsl`: six
-/// neighbours, five faces, three channels).
-fn propagation_work(n: u32, rsm_size: u32, faces: u32, steps: u32) -> [PassWork; 2] {
-    let cells = 2.0 * f64::from(n).powi(3);
-    let inject =
-        InjectPass::work(rsm_size, faces, cells) + Work::new(48.0 + 2.0 * 48.0, 12.0).times(cells);
-    let step = Work::new(48.0 + 48.0 + 2.0 * 48.0, 660.0).times(cells);
+/// neighbours, five faces, three channels); V^Δ takes `steps` of them, V^ρ `rho_steps`.
+fn propagation_work(n: u32, faces: u32, settings: DlpvSettings) -> [PassWork; 2] {
+    let volume = f64::from(n).powi(3);
+    let cells = 2.0 * volume;
+    let inject = InjectPass::work(settings.rsm_size, faces, cells)
+        + Work::new(48.0 + 2.0 * 48.0, 12.0).times(cells);
+    let step = Work::new(48.0 + 48.0 + 2.0 * 48.0, 660.0).times(volume);
+    let volume_steps = settings.steps + settings.rho_steps.min(settings.steps);
     [
         PassWork {
             pass: "inject",
@@ -228,7 +239,7 @@ fn propagation_work(n: u32, rsm_size: u32, faces: u32, steps: u32) -> [PassWork;
         },
         PassWork {
             pass: "propagate",
-            work: step.times(f64::from(steps)),
+            work: step.times(f64::from(volume_steps)),
         },
     ]
 }
@@ -283,6 +294,7 @@ impl Engine for Dlpv {
             let inputs = KeptInputs::hash_of(&[
                 bytemuck::bytes_of(&volume),
                 &settings.steps.to_le_bytes(),
+                &settings.rho_steps.to_le_bytes(),
                 &self.deferred.light_inputs().to_le_bytes(),
             ]);
             let repropagate = !self.propagated.holds(inputs);
@@ -330,12 +342,7 @@ impl Engine for Dlpv {
                     label: Some("dlpv"),
                 });
             if repropagate {
-                out.work.extend(propagation_work(
-                    n,
-                    settings.rsm_size,
-                    faces,
-                    settings.steps,
-                ));
+                out.work.extend(propagation_work(n, faces, settings));
                 encoder.clear_buffer(&v.cells, 0, None);
                 {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
@@ -357,6 +364,7 @@ impl Engine for Dlpv {
                     },
                     n,
                     settings.steps,
+                    settings.rho_steps,
                 );
             }
             {
@@ -400,6 +408,7 @@ impl Engine for Dlpv {
             rsm_size: int("rsm_size"),
             volume_size: int("volume_size"),
             steps: int("steps"),
+            rho_steps: int("rho_steps"),
             dampening: float("dampening"),
             antiradiance: schema.choice(params, "shadows") == "antiradiance",
             volume_scale: float("volume_scale"),
