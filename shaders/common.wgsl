@@ -295,7 +295,8 @@ fn cosine_lobe(d: vec3<f32>) -> vec4<f32> {
     return vec4<f32>(0.886226925, 1.023326708 * d.y, 1.023326708 * d.z, 1.023326708 * d.x);
 }
 
-// The DVCT volumes (engines/src/dvct): occlusion and L1 SH radiance mip chains over n³ cells.
+// The DVCT volumes (engines/src/dvct): occlusion (x: any surface, y: the virtual object, z: the
+// real scene) and L1 SH radiance mip chains over n³ cells.
 struct Dvct {
     // xyz: minimum corner; w: level-0 cell edge (m).
     origin: vec4<f32>,
@@ -310,6 +311,8 @@ struct Dvct {
     // x: first vertex of the triangles voxelised, y: how many triangles (the light-space
     // geometry: the virtual object and the real scene's shadow proxy, or every mesh).
     voxelized: vec4<u32>,
+    // x: 1 = directional occlusion on real pixels (`CONE_OCCLUDED` in dvct_trace.wgsl).
+    modes: vec4<u32>,
 }
 
 // Differential Instant Radiosity (engines/src/dir): one VPL, `position.w` its group (0: on a

@@ -1,7 +1,7 @@
 // DVCT mip chain (Franke 2014, Sec. 3.1–3.2), one level of one radiance volume per dispatch,
 // into 3D textures the cone tracer samples with the sampler's quadrilinear filtering. Level 0
 // (`first`) turns the voxelisation's bits into occlusion (x: any geometry, y: the virtual
-// object) and the injected fixed-point VPL counts (V^Δ or V^ρ; the DLPV injection pass with
+// object, z: the real scene) and the injected fixed-point VPL counts (V^Δ or V^ρ; the DLPV injection pass with
 // direct injection off) into float L1 SH intensity. Every coarser cell (`coarser`) is the mean
 // of its (up to) eight children, so a level-L cell holds the mean occlusion, and the mean
 // intensity per level-0 cell of its block times 2^L: seen from outside, a block's radiance is
@@ -29,14 +29,14 @@ struct Mip {
 @group(0) @binding(8) var out_r: texture_storage_3d<rgba32float, write>;
 @group(0) @binding(9) var out_g: texture_storage_3d<rgba32float, write>;
 @group(0) @binding(10) var out_b: texture_storage_3d<rgba32float, write>;
-@group(0) @binding(11) var out_occlusion: texture_storage_3d<rg32float, write>;
+@group(0) @binding(11) var out_occlusion: texture_storage_3d<rgba32float, write>;
 
-fn store(c: vec3<u32>, sh: array<vec4<f32>, 3>, occ: vec2<f32>) {
+fn store(c: vec3<u32>, sh: array<vec4<f32>, 3>, occ: vec4<f32>) {
     textureStore(out_r, c, sh[0]);
     textureStore(out_g, c, sh[1]);
     textureStore(out_b, c, sh[2]);
     if mip.level.w == 0u {
-        textureStore(out_occlusion, c, vec4<f32>(occ, 0.0, 0.0));
+        textureStore(out_occlusion, c, occ);
     }
 }
 
@@ -48,7 +48,8 @@ fn first(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let cell = (id.z * m + id.y) * m + id.x;
     let bits = occupancy[cell];
-    let occ = vec2<f32>(select(0.0, 1.0, bits != 0u), select(0.0, 1.0, (bits & 2u) != 0u));
+    let occ = vec4<f32>(select(0.0, 1.0, bits != 0u), select(0.0, 1.0, (bits & 2u) != 0u),
+                        select(0.0, 1.0, (bits & 1u) != 0u), 0.0);
     let n3 = m * m * m;
     var sh: array<vec4<f32>, 3>;
     for (var ch = 0u; ch < 3u; ch++) {
@@ -66,7 +67,7 @@ fn coarser(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let below = mip.level.z;
-    var occ = vec2<f32>(0.0);
+    var occ = vec4<f32>(0.0);
     var sh: array<vec4<f32>, 3>;
     var count = 0.0;
     for (var k = 0u; k < 8u; k++) {
@@ -74,7 +75,7 @@ fn coarser(@builtin(global_invocation_id) id: vec3<u32>) {
         if any(c >= vec3<u32>(below)) {
             continue;
         }
-        occ += textureLoad(below_occlusion, c, 0).xy;
+        occ += textureLoad(below_occlusion, c, 0);
         sh[0] += textureLoad(below_r, c, 0);
         sh[1] += textureLoad(below_g, c, 0);
         sh[2] += textureLoad(below_b, c, 0);

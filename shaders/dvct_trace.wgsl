@@ -4,6 +4,9 @@
 //   real pixels:    albedo/π · Σ 9 diffuse cones through V^Δ + k_s · 1 glossy cone through V^Δ
 //                   − Σ_lights (occlusion of the virtual object along a shadow cone towards the
 //                   light) · (the light's shadow-mapped direct radiance without the object);
+//                   with directional occlusion, each cone through V^ρ (every surface occluding)
+//                   minus through V^μ = V^ρ − V^Δ (the real surfaces occluding), so that the
+//                   real light the object blocks is taken away too;
 //   virtual pixels: the same diffuse and glossy cones through V^ρ.
 // Cones march front to back through the mip chain at the level whose cells match the cone's
 // diameter (quadrilinear), accumulating premultiplied radiance and opacity
@@ -38,37 +41,38 @@ const RING_WEIGHT: f32 = 0.310282; // π · 8/81
 const RING_SIN: f32 = 0.777778;
 const RING_COS: f32 = 0.628539;
 
-struct Sample {
-    // Radiance (W/sr/m²) towards the cone's apex.
-    light: vec3<f32>,
-    // Mean occlusion: x every surface, y the virtual object.
-    occ: vec2<f32>,
+// What a cone gathers (`trace`).
+// V^Δ through every surface: the paper's real pixels.
+const CONE_DELTA: u32 = 0u;
+// V^ρ through every surface: virtual pixels.
+const CONE_RHO: u32 = 1u;
+// V^ρ through every surface minus V^μ = V^ρ − V^Δ through the real ones alone: real pixels
+// with directional occlusion, the real indirect light the object blocks as well as its own.
+const CONE_OCCLUDED: u32 = 2u;
+// Nothing but the virtual object's opacity: shadow cones.
+const CONE_SHADOW: u32 = 3u;
+
+// Radiance (W/sr/m²) towards the cone's apex of V^Δ (`delta`) or V^ρ, quadrilinear at `uvw`
+// and mip level `l` along the SH `basis`. A level-L cell's radiance is stored times 2^L (see
+// `dvct_mip.wgsl`), so one division by the level-0 cell's area is left.
+fn radiance(delta: bool, uvw: vec3<f32>, l: f32, basis: vec4<f32>) -> vec3<f32> {
+    var sh: array<vec4<f32>, 3>;
+    if delta {
+        sh = array(textureSampleLevel(delta_r, volume_sampler, uvw, l),
+                   textureSampleLevel(delta_g, volume_sampler, uvw, l),
+                   textureSampleLevel(delta_b, volume_sampler, uvw, l));
+    } else {
+        sh = array(textureSampleLevel(rho_r, volume_sampler, uvw, l),
+                   textureSampleLevel(rho_g, volume_sampler, uvw, l),
+                   textureSampleLevel(rho_b, volume_sampler, uvw, l));
+    }
+    return vec3<f32>(dot(sh[0], basis), dot(sh[1], basis), dot(sh[2], basis))
+        / (dvct.origin.w * dvct.origin.w);
 }
 
-// Quadrilinear at mip level `level` (clamped to the chain): occlusion, and when `gather` the
-// radiance of volume `which` (0 V^Δ, 1 V^ρ) along the SH `basis`. A level-L cell's radiance
-// is stored times 2^L (see `dvct_mip.wgsl`), so one division by the level-0 cell's area is
-// left.
-fn sample(which: u32, level: f32, p: vec3<f32>, basis: vec4<f32>, gather: bool) -> Sample {
-    let uvw = (p - dvct.origin.xyz) / (dvct.origin.w * f32(dvct.dims.x));
-    let l = clamp(level, 0.0, f32(dvct.dims.y - 1u));
-    var s: Sample;
-    s.occ = textureSampleLevel(occlusion, volume_sampler, uvw, l).xy;
-    if gather {
-        var sh: array<vec4<f32>, 3>;
-        if which == 0u {
-            sh = array(textureSampleLevel(delta_r, volume_sampler, uvw, l),
-                       textureSampleLevel(delta_g, volume_sampler, uvw, l),
-                       textureSampleLevel(delta_b, volume_sampler, uvw, l));
-        } else {
-            sh = array(textureSampleLevel(rho_r, volume_sampler, uvw, l),
-                       textureSampleLevel(rho_g, volume_sampler, uvw, l),
-                       textureSampleLevel(rho_b, volume_sampler, uvw, l));
-        }
-        s.light = vec3<f32>(dot(sh[0], basis), dot(sh[1], basis), dot(sh[2], basis))
-            / (dvct.origin.w * dvct.origin.w);
-    }
-    return s;
+// The opacity a step of `steps` level-0 cells through mean occlusion `occ` adds.
+fn absorbed(occ: f32, steps: f32) -> f32 {
+    return 1.0 - pow(max(1.0 - clamp(occ, 0.0, 1.0), 1e-6), steps);
 }
 
 struct Cone {
@@ -76,46 +80,59 @@ struct Cone {
     alpha: f32,
 }
 
-// March a cone from `apex` along unit `dir` (half angle with tangent `tan_half`) up to `max_t`
-// or out of the volume: radiance from volume `which` (0 V^Δ, 1 V^ρ) when `gather`, opacity of
-// occlusion channel `channel` (0 every surface, 1 the virtual object).
-fn trace(which: u32, apex: vec3<f32>, dir: vec3<f32>, tan_half: f32, max_t: f32, channel: u32,
-         gather: bool) -> Cone {
+// March a cone of `kind` from `apex` along unit `dir` (half angle with tangent `tan_half`) up
+// to `max_t` or out of the volume, sampling the mip level whose cells match its diameter.
+fn trace(kind: u32, apex: vec3<f32>, dir: vec3<f32>, tan_half: f32, max_t: f32) -> Cone {
     let s0 = dvct.origin.w;
     let lo = dvct.origin.xyz - vec3<f32>(s0);
     let hi = dvct.origin.xyz + vec3<f32>(s0 * f32(dvct.dims.x + 1u));
+    let top = f32(dvct.dims.y - 1u);
     let basis = sh_basis(-dir);
     var out: Cone;
+    // V^μ's light and its opacity through the real surfaces (CONE_OCCLUDED).
+    var mu = Cone(vec3<f32>(0.0), 0.0);
     var t = s0;
-    for (var i = 0u; i < 2048u && t < max_t && out.alpha < 0.99; i++) {
+    for (var i = 0u; i < 2048u && t < max_t && min(out.alpha, mu.alpha) < 0.99; i++) {
         let d = max(2.0 * t * tan_half, s0);
         let p = apex + dir * t;
         if any(p < lo) || any(p > hi) {
             break;
         }
-        let s = sample(which, log2(d / s0), p, basis, gather);
+        let uvw = (p - dvct.origin.xyz) / (s0 * f32(dvct.dims.x));
+        let l = clamp(log2(d / s0), 0.0, top);
+        let occ = textureSampleLevel(occlusion, volume_sampler, uvw, l);
         let dt = max(d * dvct.cone.y, 0.25 * s0);
-        let occ = clamp(select(s.occ.x, s.occ.y, channel == 1u), 0.0, 1.0);
-        if gather {
-            out.light += (1.0 - out.alpha) * s.light * (dt / d);
+        if kind != CONE_SHADOW {
+            let light = radiance(kind == CONE_DELTA, uvw, l, basis);
+            out.light += (1.0 - out.alpha) * light * (dt / d);
+            if kind == CONE_OCCLUDED {
+                let mu_light = light - radiance(true, uvw, l, basis);
+                mu.light += (1.0 - mu.alpha) * mu_light * (dt / d);
+                mu.alpha += (1.0 - mu.alpha) * absorbed(occ.z, dt / s0);
+            } else {
+                mu.alpha = 1.0;
+            }
+        } else {
+            mu.alpha = 1.0;
         }
-        out.alpha += (1.0 - out.alpha) * (1.0 - pow(max(1.0 - occ, 1e-6), dt / s0));
+        out.alpha += (1.0 - out.alpha) * absorbed(select(occ.x, occ.y, kind == CONE_SHADOW), dt / s0);
         t += dt;
     }
+    out.light -= mu.light;
     return out;
 }
 
 // Irradiance from the nine diffuse cones around `n`.
-fn diffuse(which: u32, apex: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+fn diffuse(kind: u32, apex: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     let up = select(vec3<f32>(0.0, 0.0, 1.0), vec3<f32>(1.0, 0.0, 0.0), abs(n.z) > 0.9);
     let t1 = normalize(cross(up, n));
     let t2 = cross(n, t1);
     let tan_half = dvct.cone.x;
-    var e = CENTRAL_WEIGHT * trace(which, apex, n, tan_half, 1e30, 0u, true).light;
+    var e = CENTRAL_WEIGHT * trace(kind, apex, n, tan_half, 1e30).light;
     for (var k = 0u; k < 8u; k++) {
         let phi = f32(k) * PI / 4.0;
         let dir = n * RING_COS + (t1 * cos(phi) + t2 * sin(phi)) * RING_SIN;
-        e += RING_WEIGHT * trace(which, apex, dir, tan_half, 1e30, 0u, true).light;
+        e += RING_WEIGHT * trace(kind, apex, dir, tan_half, 1e30).light;
     }
     return e;
 }
@@ -136,12 +153,15 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let normal = textureLoad(gb_normal, xy, 0);
     let n = normalize(normal.xyz);
     let is_virtual = normal.w > 0.5;
-    let which = select(0u, 1u, is_virtual);
+    var kind = select(CONE_DELTA, CONE_OCCLUDED, dvct.modes.x == 1u);
+    if is_virtual {
+        kind = CONE_RHO;
+    }
     let albedo = textureLoad(gb_albedo, xy, 0).rgb;
     let m = materials[u32(p.w) - 1u];
     let wo = normalize(camera.position.xyz - p.xyz);
     let apex = p.xyz + n * dvct.cone.w * dvct.origin.w;
-    var out = albedo / PI * diffuse(which, apex, n);
+    var out = albedo / PI * diffuse(kind, apex, n);
     let shininess = m.albedo.w;
     if shininess > 0.0 && any(m.specular.rgb > vec3<f32>(0.0)) {
         // A normalised Phong lobe holds its energy within 2π/(n + 1) sr: a cone of
@@ -149,7 +169,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         let c = shininess / (shininess + 1.0);
         let tan_half = max(sqrt(1.0 - c * c) / c, dvct.options.z);
         let r = reflect(-wo, n);
-        let cone = trace(which, apex, r, tan_half, 1e30, 0u, true);
+        let cone = trace(kind, apex, r, tan_half, 1e30);
         out += m.specular.rgb * cone.light * max(dot(n, r), 0.0);
     }
     if !is_virtual && dvct.options.x > 0.5 {
@@ -171,7 +191,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
             if u32(l.position.w) != KIND_DIRECTIONAL {
                 max_t = distance(l.position.xyz, p.xyz);
             }
-            let shadow = trace(0u, apex, inc.to_light, dvct.cone.z, max_t, 1u, false);
+            let shadow = trace(CONE_SHADOW, apex, inc.to_light, dvct.cone.z, max_t);
             out -= shadow.alpha * direct;
         }
     }

@@ -134,3 +134,31 @@ fn diffuse_bleeding_no_worse_than_dlpv() {
     );
     assert!(dvct <= dlpv && dvct < base);
 }
+
+/// Directional occlusion: real pixels' cones through V^ρ (every surface occluding) minus
+/// through V^μ = V^ρ − V^Δ (the real ones) take away the real indirect light the object blocks
+/// as well as adding its own. Measured at 160 × 120 against the bench's references, Δ relative
+/// L2 with / without: desk_box 0.210 / 0.222, spot_bleed 0.181 / 0.185 (glossy_floor and
+/// touching_wall a little better too, window_env 0.197 / 0.195).
+#[test]
+fn directional_occlusion_brings_delta_closer_to_the_reference() {
+    for name in ["desk_box", "spot_bleed"] {
+        let scene = Arc::new(load_scene(name));
+        let (w, h) = (80, 60);
+        let reference = reference_full(&scene, w, h, 64);
+        let error = |occlusion: &str| {
+            let params = serde_json::json!({ "occlusion": occlusion, "volume_size": 32 });
+            let (delta, _) = delta_of(
+                &mut engine_with("dvct", params),
+                &frame(scene.clone(), w, h),
+            );
+            relative_l2(&delta, &reference.delta, &reference.virtual_mask).0
+        };
+        let (directional, none) = (error("directional"), error("none"));
+        eprintln!("{name}: directional {directional:.4}, none {none:.4}");
+        assert!(
+            directional < none,
+            "{name}: directional {directional}, none {none}"
+        );
+    }
+}

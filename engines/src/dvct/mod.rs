@@ -6,14 +6,17 @@
 //! 2. **split injection**: R^ρ's VPLs into V^Δ and V^ρ, R^μ's VPLs negatively into V^Δ, as L1
 //!    SH intensity (the DLPV injection pass with its direct injection off, so the same fixed-point
 //!    atomics make VPLs seen in both maps cancel exactly);
-//! 3. **mip chain** (`dvct_mip.wgsl`): level 0 resolves occlusion (any surface, virtual object)
-//!    and radiance; each coarser level averages its children. The chains are mipmapped 3D
+//! 3. **mip chain** (`dvct_mip.wgsl`): level 0 resolves occlusion (any surface, virtual object,
+//!    real scene) and radiance; each coarser level averages its children. The chains are mipmapped 3D
 //!    textures (f32, filterable), as in the paper, so that a cone's quadrilinear sample is one
 //!    filtered fetch per texture: with storage buffers and the eight-corner sum written out, the
 //!    fetches held 90 % of a still frame on lavapipe (a buffer load is a scalar gather per lane
 //!    there) and the tracer's ALU on a GPU;
 //! 4. **cone tracing** (`dvct_trace.wgsl`) per pixel: 9 diffuse cones and 1 glossy cone whose
 //!    aperture follows the Phong exponent, through V^Δ on real pixels and V^ρ on virtual ones;
+//!    with directional occlusion (the default, by measurement), a real pixel's cones go
+//!    through V^ρ with every surface occluding minus through V^μ = V^ρ − V^Δ with the real
+//!    surfaces alone, so the real indirect light the object blocks is taken away as well;
 //!    on real pixels, shadow cones towards each light take the virtual object's occlusion times
 //!    the direct light as antiradiance;
 //! 5. the shared shading pass composites.
@@ -51,6 +54,7 @@ struct DvctUniform {
     cone: [f32; 4],
     options: [f32; 4],
     voxelized: [u32; 4],
+    modes: [u32; 4],
 }
 
 #[repr(C)]
@@ -72,6 +76,10 @@ pub struct DvctSettings {
     pub cone_offset: f32,
     pub shadow_cones: bool,
     pub shadow_bias: f32,
+    /// Real pixels' cones take the real indirect light the object blocks as well as its own:
+    /// through V^ρ with every surface occluding, minus through V^μ = V^ρ − V^Δ with the real
+    /// ones (directional occlusion); else through V^Δ alone (the paper).
+    pub directional_occlusion: bool,
 }
 
 impl Default for DvctSettings {
@@ -87,6 +95,7 @@ impl Default for DvctSettings {
             cone_offset: 1.0,
             shadow_cones: false,
             shadow_bias: 1.5,
+            directional_occlusion: true,
         }
     }
 }
@@ -212,6 +221,11 @@ impl Dvct {
                 8.0,
                 d.shadow_bias,
             ),
+            ParamSpec::choice(
+                "occlusion",
+                "`directional`: real pixels' cones also take away the real indirect light the object blocks (through V^ρ minus V^μ, each with its occluders); `none`: the paper's cones through V^Δ",
+                vec!["directional", "none"],
+            ),
             crate::deferred::accumulate_param(),
         ])
     }
@@ -271,7 +285,7 @@ impl Dvct {
             let cells = buffer("dvct cells", cells);
             let occupancy = buffer("dvct occupancy", u64::from(n).pow(3) * 4);
             let textures: Vec<wgpu::Texture> = (0..CHAINS)
-                .map(|chain| {
+                .map(|_| {
                     ctx.device.create_texture(&wgpu::TextureDescriptor {
                         label: Some("dvct chain"),
                         size: wgpu::Extent3d {
@@ -282,11 +296,7 @@ impl Dvct {
                         mip_level_count: levels,
                         sample_count: 1,
                         dimension: wgpu::TextureDimension::D3,
-                        format: if chain + 1 == CHAINS {
-                            wgpu::TextureFormat::Rg32Float
-                        } else {
-                            wgpu::TextureFormat::Rgba32Float
-                        },
+                        format: wgpu::TextureFormat::Rgba32Float,
                         usage: wgpu::TextureUsages::TEXTURE_BINDING
                             | wgpu::TextureUsages::STORAGE_BINDING,
                         view_formats: &[],
@@ -369,20 +379,26 @@ impl Dvct {
 /// pixel, the mip chains (`mip_cells`) read once; per cone, the samples a cone of its aperture
 /// takes across the volume (its diameter grows by `2 tan(aperture/2) · step` a sample, from one
 /// cell to the volume's diagonal), each a quadrilinear lookup of two levels (16 cells of 14
-/// values). Nine diffuse cones, one glossy, and with shadow cones one per light.
+/// values: one volume's SH and two occlusions; 26 with directional occlusion, both volumes).
+/// Nine diffuse cones, one glossy, and with shadow cones one per light.
 fn trace_work(settings: &DvctSettings, n: u32, pixels: u32, lights: u32, mip_cells: f64) -> Work {
     let samples = |aperture_deg: f32| {
         let growth = 1.0 + 2.0 * f64::from(aperture_deg.to_radians().tan() * settings.step);
         ((1.7 * f64::from(n)).ln() / growth.ln()).max(1.0)
     };
-    let cones = 10.0 * samples(settings.cone_aperture_deg)
+    let values = if settings.directional_occlusion {
+        26.0
+    } else {
+        14.0
+    };
+    let cones = 10.0 * samples(settings.cone_aperture_deg) * values
         + if settings.shadow_cones {
-            f64::from(lights) * samples(settings.shadow_aperture_deg)
+            f64::from(lights) * samples(settings.shadow_aperture_deg) * 2.0
         } else {
             0.0
         };
-    Work::new(32.0 + 16.0, cones * 16.0 * 14.0 * 2.0).times(f64::from(pixels))
-        + Work::new(96.0 + 8.0, 0.0).times(mip_cells)
+    Work::new(32.0 + 16.0, cones * 16.0 * 2.0).times(f64::from(pixels))
+        + Work::new(96.0 + 16.0, 0.0).times(mip_cells)
 }
 
 /// Threads that share one triangle's cells in the voxelisation (`dvct_voxelize.wgsl`) of an
@@ -463,6 +479,7 @@ impl Engine for Dvct {
                         scale,
                     ],
                     voxelized: [voxelized.start, triangles, voxelize_lanes(&ctx, n), 0],
+                    modes: [u32::from(settings.directional_occlusion), 0, 0, 0],
                 }),
             );
             self.volume_buffers()?;
@@ -552,8 +569,8 @@ impl Engine for Dvct {
                     PassWork {
                         pass: "mip",
                         // Every level's cells read as eight children and written once: two
-                        // radiance volumes (96 bytes) and two occlusion channels (8).
-                        work: Work::new(2.0 * (96.0 + 8.0), 8.0 * 26.0).times(mip_cells),
+                        // radiance volumes (96 bytes) and the occlusion texel (16).
+                        work: Work::new(2.0 * (96.0 + 16.0), 8.0 * 27.0).times(mip_cells),
                     },
                 ]);
                 encoder.clear_buffer(&v.cells, 0, None);
@@ -631,6 +648,7 @@ impl Engine for Dvct {
             cone_offset: float("cone_offset"),
             shadow_cones: schema.choice(params, "shadows") == "cones",
             shadow_bias: float("shadow_bias"),
+            directional_occlusion: schema.choice(params, "occlusion") == "directional",
         };
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
