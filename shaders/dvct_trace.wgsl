@@ -89,8 +89,9 @@ fn trace(kind: u32, apex: vec3<f32>, dir: vec3<f32>, tan_half: f32, max_t: f32) 
     let top = f32(dvct.dims.y - 1u);
     let basis = sh_basis(-dir);
     var out: Cone;
-    // V^μ's light and its opacity through the real surfaces (CONE_OCCLUDED).
-    var mu = Cone(vec3<f32>(0.0), 0.0);
+    // V^μ's light and its opacity through the real surfaces (CONE_OCCLUDED; opaque, so that
+    // only `out` decides where the march ends, for the other kinds).
+    var mu = Cone(vec3<f32>(0.0), select(1.0, 0.0, kind == CONE_OCCLUDED));
     var t = s0;
     for (var i = 0u; i < 2048u && t < max_t && min(out.alpha, mu.alpha) < 0.99; i++) {
         let d = max(2.0 * t * tan_half, s0);
@@ -109,11 +110,7 @@ fn trace(kind: u32, apex: vec3<f32>, dir: vec3<f32>, tan_half: f32, max_t: f32) 
                 let mu_light = light - radiance(true, uvw, l, basis);
                 mu.light += (1.0 - mu.alpha) * mu_light * (dt / d);
                 mu.alpha += (1.0 - mu.alpha) * absorbed(occ.z, dt / s0);
-            } else {
-                mu.alpha = 1.0;
             }
-        } else {
-            mu.alpha = 1.0;
         }
         out.alpha += (1.0 - out.alpha) * absorbed(select(occ.x, occ.y, kind == CONE_SHADOW), dt / s0);
         t += dt;
