@@ -20,8 +20,10 @@
 @group(0) @binding(6) var rsm_mu_position: texture_2d_array<f32>;
 @group(0) @binding(7) var rsm_mu_normal: texture_2d_array<f32>;
 @group(0) @binding(8) var rsm_mu_albedo: texture_2d_array<f32>;
-// Two volumes of n³ cells × 12 values (4 SH coefficients × RGB): V^Δ, then V^ρ.
-@group(0) @binding(9) var<storage, read_write> cells: array<atomic<i32>>;
+// Two volumes of n³ cells × 12 values (4 SH coefficients × RGB), V^Δ and V^ρ (two bindings,
+// so that each stays within the adapter's largest storage binding).
+@group(0) @binding(9) var<storage, read_write> cells_delta: array<atomic<i32>>;
+@group(0) @binding(10) var<storage, read_write> cells_rho: array<atomic<i32>>;
 
 fn cell_of(p: vec3<f32>) -> i32 {
     let n = i32(volume.dims.x);
@@ -46,10 +48,14 @@ fn pending() -> Pending {
     return Pending(-1, vec4<i32>(0), vec4<i32>(0), vec4<i32>(0));
 }
 
-fn add_counts(base: u32, v: vec4<i32>) {
+fn add_counts(which: u32, base: u32, v: vec4<i32>) {
     for (var k = 0u; k < 4u; k++) {
         if v[k] != 0 {
-            atomicAdd(&cells[base + k], v[k]);
+            if which == 0u {
+                atomicAdd(&cells_delta[base + k], v[k]);
+            } else {
+                atomicAdd(&cells_rho[base + k], v[k]);
+            }
         }
     }
 }
@@ -58,11 +64,10 @@ fn flush(which: u32, p: ptr<function, Pending>) {
     if (*p).cell < 0 {
         return;
     }
-    let n3 = volume.dims.x * volume.dims.x * volume.dims.x;
-    let base = (which * n3 + u32((*p).cell)) * 12u;
-    add_counts(base, (*p).r);
-    add_counts(base + 4u, (*p).g);
-    add_counts(base + 8u, (*p).b);
+    let base = u32((*p).cell) * 12u;
+    add_counts(which, base, (*p).r);
+    add_counts(which, base + 4u, (*p).g);
+    add_counts(which, base + 8u, (*p).b);
     *p = pending();
 }
 

@@ -1,9 +1,11 @@
 // Fixed-point injection counts → float SH (the start of propagation and of the accumulation).
 
 @group(0) @binding(0) var<uniform> volume: Volume;
-@group(0) @binding(1) var<storage, read> cells: array<i32>;
-@group(0) @binding(2) var<storage, read_write> injected: array<vec4<f32>>;
-@group(0) @binding(3) var<storage, read_write> accumulated: array<vec4<f32>>;
+// The injection's counts of V^Δ and of V^ρ (`dlpv_inject.wgsl`).
+@group(0) @binding(1) var<storage, read> cells_delta: array<i32>;
+@group(0) @binding(2) var<storage, read> cells_rho: array<i32>;
+@group(0) @binding(3) var<storage, read_write> injected: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read_write> accumulated: array<vec4<f32>>;
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
@@ -12,9 +14,15 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     if id.x >= count {
         return;
     }
-    let b = id.x * 4u;
-    let v = vec4<f32>(f32(cells[b]), f32(cells[b + 1u]), f32(cells[b + 2u]), f32(cells[b + 3u]))
-        / volume.scale.x;
+    let per_volume = n * n * n * 3u;
+    let b = (id.x % per_volume) * 4u;
+    var c: vec4<i32>;
+    if id.x < per_volume {
+        c = vec4<i32>(cells_delta[b], cells_delta[b + 1u], cells_delta[b + 2u], cells_delta[b + 3u]);
+    } else {
+        c = vec4<i32>(cells_rho[b], cells_rho[b + 1u], cells_rho[b + 2u], cells_rho[b + 3u]);
+    }
+    let v = vec4<f32>(c) / volume.scale.x;
     injected[id.x] = v;
     accumulated[id.x] = v;
 }

@@ -18,7 +18,7 @@ struct Mip {
 
 @group(0) @binding(0) var<uniform> dvct: Dvct;
 @group(0) @binding(1) var<uniform> mip: Mip;
-// The injection's fixed-point counts: [V^Δ, V^ρ] × n³ cells × 12 (4 SH × RGB).
+// The injection's fixed-point counts of this volume: n³ cells × 12 (4 SH × RGB).
 @group(0) @binding(2) var<storage, read> cells: array<i32>;
 @group(0) @binding(3) var<storage, read> occupancy: array<u32>;
 // The level below, of this volume's three channels and of occlusion.
@@ -50,10 +50,9 @@ fn first(@builtin(global_invocation_id) id: vec3<u32>) {
     let bits = occupancy[cell];
     let occ = vec4<f32>(select(0.0, 1.0, bits != 0u), select(0.0, 1.0, (bits & 2u) != 0u),
                         select(0.0, 1.0, (bits & 1u) != 0u), 0.0);
-    let n3 = m * m * m;
     var sh: array<vec4<f32>, 3>;
     for (var ch = 0u; ch < 3u; ch++) {
-        let b = ((mip.level.w * n3 + cell) * 3u + ch) * 4u;
+        let b = (cell * 3u + ch) * 4u;
         sh[ch] = vec4<f32>(f32(cells[b]), f32(cells[b + 1u]), f32(cells[b + 2u]), f32(cells[b + 3u]))
             / dvct.options.w;
     }

@@ -6,6 +6,7 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
 use crate::gbuffer::Targets;
+use crate::gpu::{GpuContext, GpuError};
 use crate::gpu_scene::GpuLight;
 use crate::roofline::Work;
 use crate::shaders;
@@ -76,6 +77,43 @@ pub(crate) fn uniform_buffer(device: &wgpu::Device, label: &str, size: usize) ->
     })
 }
 
+/// The injection's fixed-point counts, n³ cells × 12 (4 SH × RGB) i32 each of V^Δ and V^ρ, in
+/// one buffer whose halves are bound apart: each half need only fit the adapter's largest
+/// storage binding (lavapipe's 128 MiB held both only up to 110³).
+#[derive(Debug)]
+pub(crate) struct CellCounts {
+    pub buffer: wgpu::Buffer,
+    /// Bytes from V^Δ's start to V^ρ's: one volume's, rounded up to the binding alignment.
+    half: u64,
+}
+
+impl CellCounts {
+    pub fn new(ctx: &GpuContext, label: &str, n: u32, setting: &str) -> Result<Self, GpuError> {
+        let bytes = u64::from(n).pow(3) * 48;
+        let half =
+            bytes.next_multiple_of(u64::from(ctx.limits.min_storage_buffer_offset_alignment));
+        ctx.require("max_storage_buffer_binding_size", bytes, setting)?;
+        ctx.require("max_buffer_size", 2 * half, setting)?;
+        Ok(Self {
+            buffer: ctx.buffer(
+                label,
+                2 * half,
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            ),
+            half,
+        })
+    }
+
+    /// V^Δ's counts (`which` 0) or V^ρ's (1).
+    pub fn binding(&self, which: u64) -> wgpu::BindingResource<'_> {
+        wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: &self.buffer,
+            offset: which * self.half,
+            size: wgpu::BufferSize::new(self.half),
+        })
+    }
+}
+
 /// The VPL injection pass (`dlpv_inject.wgsl`) both volume engines run: every R^ρ and R^μ
 /// texel into fixed-point L1 SH cells (DLPV with direct injection on, DVCT's split injection
 /// with it off).
@@ -97,7 +135,7 @@ impl InjectPass {
         device: &wgpu::Device,
         uniform: &wgpu::Buffer,
         (lights, faces, rsm_rho, rsm_mu): (&wgpu::Buffer, &wgpu::Buffer, &Targets, &Targets),
-        cells: &wgpu::Buffer,
+        cells: &CellCounts,
     ) -> wgpu::BindGroup {
         let rsm_views = Targets::rsm_views(rsm_rho, rsm_mu);
         let mut resources = vec![
@@ -106,7 +144,7 @@ impl InjectPass {
             faces.as_entire_binding(),
         ];
         resources.extend(rsm_views.iter().map(wgpu::BindingResource::TextureView));
-        resources.push(cells.as_entire_binding());
+        resources.extend([cells.binding(0), cells.binding(1)]);
         shaders::pipeline_bind_group(device, &self.pipeline, "inject", &resources)
     }
 

@@ -47,7 +47,7 @@ use crate::shaders;
 use propagate::{Propagation, PropagationBuffers};
 
 use crate::volume::{
-    InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer,
+    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer,
 };
 
 #[repr(C)]
@@ -89,7 +89,7 @@ impl Default for DlpvSettings {
 #[derive(Debug)]
 struct VolumeBuffers {
     n: u32,
-    cells: wgpu::Buffer,
+    cells: CellCounts,
     injected: wgpu::Buffer,
     ping: wgpu::Buffer,
     accumulated: wgpu::Buffer,
@@ -210,7 +210,7 @@ impl Dlpv {
             self.propagated.forget();
             self.volume = Some(VolumeBuffers {
                 n,
-                cells: buffer("dlpv cells", U::STORAGE | U::COPY_DST),
+                cells: CellCounts::new(&ctx, "dlpv cells", n, "volume_size")?,
                 injected: buffer("dlpv injected", U::STORAGE),
                 ping: buffer("dlpv ping", U::STORAGE),
                 accumulated: buffer("dlpv accumulated", U::STORAGE | U::COPY_SRC),
@@ -317,7 +317,8 @@ impl Engine for Dlpv {
                 "dlpv resolve",
                 &[
                     self.volume_uniform.as_entire_binding(),
-                    v.cells.as_entire_binding(),
+                    v.cells.binding(0),
+                    v.cells.binding(1),
                     v.injected.as_entire_binding(),
                     v.accumulated.as_entire_binding(),
                 ],
@@ -343,7 +344,7 @@ impl Engine for Dlpv {
                 });
             if repropagate {
                 out.work.extend(propagation_work(n, faces, settings));
-                encoder.clear_buffer(&v.cells, 0, None);
+                encoder.clear_buffer(&v.cells.buffer, 0, None);
                 {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
                     self.inject

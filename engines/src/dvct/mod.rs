@@ -42,7 +42,7 @@ use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::volume::{
-    InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer,
+    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer,
 };
 
 /// `Dvct` in `shaders/common.wgsl`.
@@ -117,7 +117,7 @@ const CHAIN_FEATURES: wgpu::Features =
 #[derive(Debug)]
 struct VolumeBuffers {
     n: u32,
-    cells: wgpu::Buffer,
+    cells: CellCounts,
     occupancy: wgpu::Buffer,
     /// Every chain's whole mip chain, as the tracer samples it.
     chains: Vec<wgpu::TextureView>,
@@ -263,9 +263,7 @@ impl Dvct {
         let n = self.settings.volume_size;
         let ctx = self.deferred.ctx().clone();
         let (levels, _) = mip_chain(n);
-        let cells = 2 * u64::from(n).pow(3) * 48;
         ctx.require_features(CHAIN_FEATURES, "dvct's filtered voxel mips")?;
-        ctx.require("max_storage_buffer_binding_size", cells, "volume_size")?;
         ctx.require("max_texture_dimension_3d", u64::from(n), "volume_size")?;
         ctx.require(
             "max_compute_workgroups_per_dimension",
@@ -274,16 +272,12 @@ impl Dvct {
         )?;
         if self.volume.as_ref().is_none_or(|v| v.n != n) {
             use wgpu::BufferUsages as U;
-            let buffer = |label, size| {
-                ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some(label),
-                    size,
-                    usage: U::STORAGE | U::COPY_DST,
-                    mapped_at_creation: false,
-                })
-            };
-            let cells = buffer("dvct cells", cells);
-            let occupancy = buffer("dvct occupancy", u64::from(n).pow(3) * 4);
+            let cells = CellCounts::new(&ctx, "dvct cells", n, "volume_size")?;
+            let occupancy = ctx.buffer(
+                "dvct occupancy",
+                u64::from(n).pow(3) * 4,
+                U::STORAGE | U::COPY_DST,
+            );
             let textures: Vec<wgpu::Texture> = (0..CHAINS)
                 .map(|_| {
                     ctx.device.create_texture(&wgpu::TextureDescriptor {
@@ -336,7 +330,7 @@ impl Dvct {
                     if level == 0 {
                         entries.extend([
                             (0, self.dvct_uniform.as_entire_binding()),
-                            (2, cells.as_entire_binding()),
+                            (2, cells.binding(u64::from(which))),
                             (3, occupancy.as_entire_binding()),
                         ]);
                     } else {
@@ -573,7 +567,7 @@ impl Engine for Dvct {
                         work: Work::new(2.0 * (96.0 + 16.0), 8.0 * 27.0).times(mip_cells),
                     },
                 ]);
-                encoder.clear_buffer(&v.cells, 0, None);
+                encoder.clear_buffer(&v.cells.buffer, 0, None);
                 encoder.clear_buffer(&v.occupancy, 0, None);
                 {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.voxelize");
