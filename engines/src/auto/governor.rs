@@ -242,12 +242,12 @@ pub fn candidates() -> Vec<Candidate> {
         Candidate::new(
             "dlpv",
             serde_json::json!({}),
-            raster(0.08, 0.22, 0.75, 1.15, 1.0, [15.0, 1.3]),
+            raster(0.08, 0.19, 0.7, 0.9, 1.0, [15.0, 1.3]),
         ),
         Candidate::new(
             "dvct",
             serde_json::json!({}),
-            raster(0.08, 0.18, 0.8, 0.8, 0.7, [17.0, 21.0]),
+            raster(0.08, 0.17, 0.75, 0.75, 0.7, [17.0, 21.0]),
         ),
         Candidate::new(
             "dir",
@@ -789,9 +789,21 @@ impl Governor {
         let (choice, why) = self.choose(motion);
         let current_error = self.predicted_error(self.current, motion);
         let over = self.over_budget >= OVER_BUDGET_FRAMES;
-        // A candidate not measured yet that would win were it to fit (not merely tie), and
-        // that the cost ratios do not put far over the budget.
+        // A candidate not measured yet that would win were it to fit, and that the cost ratios
+        // do not put far over the budget: clearly more accurate, or a rasteriser as accurate
+        // (within a tie) and estimated clearly cheaper, as a switch would need. Without the
+        // second, `dlpv`'s 7 ms still frame on desk_box, tying `dir`'s 64 VPLs at 19 ms on
+        // error, was never measured at a 33 ms budget and `dir`'s 0.29 stood against its 0.22.
         let target = self.predicted_error(choice, motion);
+        let choice_cost = self.cost(choice, motion);
+        let ties_cheaper = |c: usize| {
+            !self.candidates[c].is_path_traced()
+                && self.predicted_error(c, motion) <= target * (1.0 + TIE) + SLACK
+                && matches!(
+                    (self.estimated_cost(c, motion), choice_cost),
+                    (Some(then), Some(now)) if then < now * (1.0 - COST_MARGIN)
+                )
+        };
         let within_reach = |c: usize| {
             self.cost(c, motion)
                 .or_else(|| self.estimated_least_cost(c, motion))
@@ -803,7 +815,9 @@ impl Governor {
                     && !self.unavailable[c]
                     && (!self.measured(c, motion) || self.stale(c, motion))
             })
-            .filter(|&c| self.predicted_error(c, motion) * (1.0 + TIE) + SLACK < target)
+            .filter(|&c| {
+                self.predicted_error(c, motion) * (1.0 + TIE) + SLACK < target || ties_cheaper(c)
+            })
             .collect();
         let probe = winners
             .iter()
@@ -1110,8 +1124,44 @@ mod tests {
         }
         governor.observe(DIFFERENTIAL, Motion::Still, 5.0, true, None);
         // Then the most promising within reach: dir (12× differential's 5 ms: 60 ms, within
-        // 1.5 budgets; dvct's 40× is not).
+        // 1.5 budgets; dvct's 21× is not).
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DIR));
+    }
+
+    /// A rasteriser that ties the running choice on error and that the ratios put clearly
+    /// cheaper would win the tie on cost, so it is measured, and then chosen: desk_box's
+    /// features, `dlpv` (1.3× `differential` while still) against `dir` at 64 VPLs (19 ms).
+    #[test]
+    fn an_unmeasured_rasteriser_that_would_win_a_tie_on_cost_is_probed() {
+        const DVCT: usize = 3;
+        let desk_box = features(3.79, 0.75, 0.86);
+        let mut governor = fresh(desk_box, 33.0);
+        for c in [DVCT, DIR, PT] {
+            governor.mark_unavailable(c);
+        }
+        measure(&mut governor, DIFFERENTIAL, 5.0);
+        measure(&mut governor, DIR64, 19.0);
+        governor.switched(DIR64);
+        let (dlpv, dir64) = (
+            governor.predicted_error(DLPV, Motion::Still),
+            governor.predicted_error(DIR64, Motion::Still),
+        );
+        assert!(
+            dlpv < dir64 && dlpv * (1.0 + TIE) > dir64,
+            "{dlpv} against {dir64}"
+        );
+        assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DLPV));
+        governor.switched(DLPV);
+        for frame in 1..=WARM_UP_FRAMES + PROBE_FRAMES {
+            governor.observe(DLPV, Motion::Still, 6.5, frame > WARM_UP_FRAMES, None);
+            assert_eq!(governor.decide(Motion::Still, false), Action::Stay);
+        }
+        assert_eq!(governor.current(), DLPV);
+        assert!(
+            governor.reason().contains("cheapest of 2"),
+            "{}",
+            governor.reason()
+        );
     }
 
     /// Where the measured rasterisers cost alike (a GPU, whose frames are mostly their fixed
