@@ -6,12 +6,11 @@
 //! 2. **split injection**: R^ρ's VPLs into V^Δ and V^ρ, R^μ's VPLs negatively into V^Δ, as L1
 //!    SH intensity (the DLPV injection pass with its direct injection off, so the same fixed-point
 //!    atomics make VPLs seen in both maps cancel exactly);
-//! 3. **mip chain** (`dvct_mip.wgsl`): level 0 resolves occlusion (any surface, virtual object,
-//!    real scene) and radiance; each coarser level averages its children. The chains are mipmapped 3D
-//!    textures (f32, filterable), as in the paper, so that a cone's quadrilinear sample is one
-//!    filtered fetch per texture: with storage buffers and the eight-corner sum written out, the
-//!    fetches held 90 % of a still frame on lavapipe (a buffer load is a scalar gather per lane
-//!    there) and the tracer's ALU on a GPU;
+//! 3. **mip chain** (`dvct_mip.wgsl`): level 0 resolves occlusion (any surface, virtual
+//!    object, real scene) and radiance; each coarser level averages its children. The chains
+//!    are mipmapped 3D textures (f32, filterable), as in the paper, so that a cone's
+//!    quadrilinear sample is one filtered fetch per texture: with storage buffers and the
+//!    eight-corner sum written out, the fetches held 90 % of a still frame on lavapipe;
 //! 4. **cone tracing** (`dvct_trace.wgsl`) per pixel: 9 diffuse cones and 1 glossy cone whose
 //!    aperture follows the Phong exponent, through V^Δ on real pixels and V^ρ on virtual ones;
 //!    with directional occlusion (the default, by measurement), a real pixel's cones go
