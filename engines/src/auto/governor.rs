@@ -148,14 +148,23 @@ pub enum ErrorModel {
         glossy: f64,
         /// Frame cost relative to `differential` (moving, still), on lavapipe at 160 × 120.
         relative_cost: [f64; 2],
+        /// The cost is an environment map's: without one the engine renders as
+        /// `differential` does, at its cost (`ibl`).
+        environment_cost: bool,
     },
     /// `pt`: unbiased, noise only. Cost relative to `differential` of one sample per pixel.
     PathTraced { relative_cost: [f64; 2] },
 }
 
 impl ErrorModel {
-    fn relative_cost(&self, motion: Motion) -> f64 {
+    /// The cost relative to `differential` in `motion`, on a scene with or without an
+    /// `environment` map.
+    fn relative_cost(&self, motion: Motion, environment: bool) -> f64 {
         match self {
+            ErrorModel::Raster {
+                environment_cost: true,
+                ..
+            } if !environment => 1.0,
             ErrorModel::Raster { relative_cost, .. } | ErrorModel::PathTraced { relative_cost } => {
                 relative_cost[motion.index()]
             }
@@ -226,6 +235,7 @@ pub fn candidates() -> Vec<Candidate> {
             occlusion,
             glossy,
             relative_cost,
+            environment_cost: false,
         }
     };
     vec![
@@ -237,7 +247,18 @@ pub fn candidates() -> Vec<Candidate> {
         Candidate::new(
             "ibl",
             serde_json::json!({}),
-            raster(0.08, 0.10, 1.0, 1.0, 1.0, [1.3, 1.5]),
+            // Measured without a map, `ibl` costs what `differential` does, and read as a
+            // check of the ratios it disbelieved them all: `dir` (65 ms a frame) was then
+            // probed at 10 ms on spot_bleed.
+            ErrorModel::Raster {
+                shadow: 0.08,
+                shadow_environment: 0.10,
+                bleeding: 1.0,
+                occlusion: 1.0,
+                glossy: 1.0,
+                relative_cost: [1.3, 1.5],
+                environment_cost: true,
+            },
         ),
         Candidate::new(
             "dlpv",
@@ -581,8 +602,13 @@ impl Governor {
 
     /// `candidate`'s cost over `known`'s by the cost ratios.
     fn ratio(&self, candidate: usize, known: usize, motion: Motion) -> f64 {
-        self.candidates[candidate].model.relative_cost(motion)
-            / self.candidates[known].model.relative_cost(motion)
+        let environment = self.features.environment;
+        self.candidates[candidate]
+            .model
+            .relative_cost(motion, environment)
+            / self.candidates[known]
+                .model
+                .relative_cost(motion, environment)
     }
 
     /// Whether `candidate`, measured, would check the cost ratios' spread against `known`: a
@@ -648,7 +674,11 @@ impl Governor {
         (0..self.candidates.len())
             .filter(|&c| !self.unavailable[c] && !self.candidates[c].is_path_traced())
             .min_by(|&a, &b| {
-                let ratio = |c: usize| self.candidates[c].model.relative_cost(motion);
+                let ratio = |c: usize| {
+                    self.candidates[c]
+                        .model
+                        .relative_cost(motion, self.features.environment)
+                };
                 ratio(a).total_cmp(&ratio(b))
             })
     }
@@ -1200,7 +1230,12 @@ mod tests {
     /// than `differential`), and measured alike, `dir` is then within reach and probed.
     #[test]
     fn unchecked_ratios_are_checked_before_they_keep_a_winner_out() {
-        let mut governor = fresh(features(2.0, 6.0, 0.0), 5.0);
+        // Under an environment map, where `ibl`'s ratio is its own.
+        let environment = SceneFeatures {
+            environment: true,
+            ..features(2.0, 6.0, 0.0)
+        };
+        let mut governor = fresh(environment, 5.0);
         for c in [DLPV, PT] {
             governor.mark_unavailable(c);
         }
@@ -1210,6 +1245,20 @@ mod tests {
         governor.switched(IBL);
         let action = next_after_probe(&mut governor, IBL, 4.6);
         assert_eq!(action, Action::Probe(DIR), "{}", governor.reason());
+    }
+
+    /// Without an environment map `ibl` renders as `differential`: it costs the same, so it
+    /// checks no ratio and is not measured as a check.
+    #[test]
+    fn ibl_without_an_environment_map_costs_what_differential_does() {
+        let mut governor = fresh(features(2.0, 6.0, 0.0), 5.0);
+        for c in [DLPV, PT] {
+            governor.mark_unavailable(c);
+        }
+        measure(&mut governor, DIFFERENTIAL, 4.6);
+        assert_eq!(governor.estimated_cost(IBL, Motion::Still), Some(4.6));
+        let action = governor.decide(Motion::Still, false);
+        assert_ne!(action, Action::Probe(IBL), "{}", governor.reason());
     }
 
     /// A governor at 33 ms on a bleeding scene with only `differential` and `kept` available:
