@@ -222,8 +222,8 @@ impl GpuContext {
         let adapter = &adapters[chosen];
         let info = adapter.get_info();
         let limits = adapter.limits();
-        let timestamps = adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY);
         let required_features = adapter.features() & OPTIONAL_FEATURES;
+        let timestamps = required_features.contains(wgpu::Features::TIMESTAMP_QUERY);
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("relight"),
             required_features,

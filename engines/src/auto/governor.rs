@@ -602,13 +602,14 @@ impl Governor {
 
     /// `candidate`'s cost over `known`'s by the cost ratios.
     fn ratio(&self, candidate: usize, known: usize, motion: Motion) -> f64 {
-        let environment = self.features.environment;
+        self.relative_cost(candidate, motion) / self.relative_cost(known, motion)
+    }
+
+    /// `candidate`'s cost relative to `differential` by the ratios, on this scene.
+    fn relative_cost(&self, candidate: usize, motion: Motion) -> f64 {
         self.candidates[candidate]
             .model
-            .relative_cost(motion, environment)
-            / self.candidates[known]
-                .model
-                .relative_cost(motion, environment)
+            .relative_cost(motion, self.features.environment)
     }
 
     /// Whether `candidate`, measured, would check the cost ratios' spread against `known`: a
@@ -674,12 +675,8 @@ impl Governor {
         (0..self.candidates.len())
             .filter(|&c| !self.unavailable[c] && !self.candidates[c].is_path_traced())
             .min_by(|&a, &b| {
-                let ratio = |c: usize| {
-                    self.candidates[c]
-                        .model
-                        .relative_cost(motion, self.features.environment)
-                };
-                ratio(a).total_cmp(&ratio(b))
+                self.relative_cost(a, motion)
+                    .total_cmp(&self.relative_cost(b, motion))
             })
     }
 

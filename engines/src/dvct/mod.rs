@@ -321,10 +321,11 @@ impl Dvct {
                         .chain([CHAINS - 1])
                         .collect();
                     let outputs: Vec<_> = chains.iter().map(|&c| level_view(c, level)).collect();
-                    let inputs: Vec<_> = chains
-                        .iter()
-                        .map(|&c| level_view(c, level.saturating_sub(1)))
-                        .collect();
+                    // Level 0 reads the injected cells, a coarser level the level below.
+                    let inputs: Vec<_> = match level {
+                        0 => Vec::new(),
+                        _ => chains.iter().map(|&c| level_view(c, level - 1)).collect(),
+                    };
                     let mut entries = vec![(1, uniform.as_entire_binding())];
                     if level == 0 {
                         entries.extend([
@@ -332,11 +333,9 @@ impl Dvct {
                             (2, cells.binding(u64::from(which))),
                             (3, occupancy.as_entire_binding()),
                         ]);
-                    } else {
-                        entries.extend(
-                            (4..).zip(inputs.iter().map(wgpu::BindingResource::TextureView)),
-                        );
                     }
+                    entries
+                        .extend((4..).zip(inputs.iter().map(wgpu::BindingResource::TextureView)));
                     entries
                         .extend((8..).zip(outputs.iter().map(wgpu::BindingResource::TextureView)));
                     let pipeline = &self.mip[usize::from(level > 0)];
