@@ -365,7 +365,16 @@ impl Engine for Auto {
         self.governor.observe(current, self.motion, ms, steady, pt);
         match self.governor.decide(self.motion, self.wanted.is_some()) {
             Action::Stay => {}
-            Action::Switch(candidate) | Action::Probe(candidate) => self.want(candidate),
+            Action::Switch(candidate) | Action::Probe(candidate) => {
+                tracing::info!(
+                    to = %self.governor.candidates()[candidate].label,
+                    motion = ?self.motion,
+                    budget_ms = self.governor.settings().budget_ms,
+                    reason = %self.governor.reason(),
+                    "auto: switching"
+                );
+                self.want(candidate);
+            }
         }
         self.refresh_status(out.estimated_relative_error);
         Ok(())
