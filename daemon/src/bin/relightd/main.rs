@@ -77,7 +77,8 @@ enum Command {
     /// tracer; prints a table, writes bench.csv, bench.json and bench.svg (speed vs error).
     Bench(bench::Args),
     /// Render an offline scene (scene.toml + glTF): writes L^ρ, L^μ, Δ and Δ's standard error as
-    /// EXR, the composite as PNG, and a summary.json with the render time.
+    /// EXR, the composite and the object's pixels (the reference's) as PNG, and a summary.json
+    /// with the render time.
     Render(render::Args),
 }
 

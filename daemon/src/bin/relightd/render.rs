@@ -6,6 +6,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
+use relight_core::frame::{Image, PixelFormat};
 use relight_core::scene::Scene;
 use relight_daemon::sinks::exr_out::write_exr;
 use relight_daemon::sinks::png_out::{tonemap_reinhard, write_png};
@@ -88,6 +89,14 @@ fn render_with_reference(scene_dir: &Path, settings: ReferenceSettings, out: &Pa
         &out.join("composite.png"),
         &tonemap_reinhard(w, h, &images.l_rho),
     )?;
+    // Which pixels are the object's: to score an image region by region against these.
+    let mut mask = Image::new(w, h, PixelFormat::Mono8);
+    if let Some(pixels) = mask.as_u8_mut() {
+        for (pixel, object) in pixels.iter_mut().zip(&images.virtual_mask) {
+            *pixel = if *object { 255 } else { 0 };
+        }
+    }
+    write_png(&out.join("virtual_mask.png"), &mask)?;
     let real = images.virtual_mask.iter().filter(|v| !**v).count().max(1);
     let mean_std_error = images
         .delta_std_error
