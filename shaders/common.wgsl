@@ -320,17 +320,20 @@ struct Dvct {
 // surface the virtual object hides from the light, L_r only).
 struct Vpl {
     position: vec4<f32>,
+    // w: the distance (m) within which its 1/d² is clamped, where wider than the engine's
+    // (a second-bounce VPL's footprint); 0 for the first bounce's.
     normal: vec4<f32>,
     // rgb: flux Φ (W) with the importance-sampling compensation applied.
     flux: vec4<f32>,
 }
 
 struct Dir {
-    // x: VPL count; y: shadow-map size; z: light faces; w: ISM edge in texels.
+    // x: first-bounce VPL count; y: shadow-map size; z: light faces; w: ISM edge in texels.
     dims: vec4<u32>,
-    // x: width; y: height; z: ISM points; w: unused.
+    // x: width; y: height; z: ISM points; w: VPLs of both bounces (the ISMs and the gather).
     size: vec4<u32>,
-    // x: distance clamp (m); y: ISM depth bias in texel footprints.
+    // x: distance clamp (m); y: ISM depth bias in texel footprints; z: second-bounce rays as a
+    // share of dims.x (the CPU's; here only so a change relights).
     params: vec4<f32>,
 }
 

@@ -47,7 +47,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let clamp2 = dir.params.x * dir.params.x;
     var l_rv = vec3<f32>(0.0);
     var l_r = vec3<f32>(0.0);
-    for (var k = 0u; k < dir.dims.x; k++) {
+    for (var k = 0u; k < dir.size.w; k++) {
         let vpl = vpls[k];
         let group = u32(vpl.position.w);
         if all(vpl.flux.rgb <= vec3<f32>(0.0)) || (is_virtual && group == 2u) {
@@ -65,8 +65,9 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         if cos_vpl <= 0.0 || cos_p <= 0.0 {
             continue;
         }
+        // A second-bounce VPL clamps within its footprint (normal.w, m), wider than the first's.
         let l_o = brdf(m, albedo, n, -w, wo) * vpl.flux.rgb / PI * cos_vpl * cos_p
-            / max(dist2, clamp2);
+            / max(dist2, max(clamp2, vpl.normal.w * vpl.normal.w));
         let t = vec2<u32>(paraboloid_texel(vpl.normal.xyz, w, s));
         // The depth a texel holds can differ from the receiver's by the texel's footprint.
         let bias = dir.params.y * dist * 4.0 / s;

@@ -15,7 +15,7 @@
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let k = id.y;
-    if id.x >= dir.size.z || k >= dir.dims.x {
+    if id.x >= dir.size.z || k >= dir.size.w {
         return;
     }
     let vpl = vpls[k];

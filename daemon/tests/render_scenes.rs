@@ -72,10 +72,16 @@ fn render_writes_every_output_for_every_shipped_scene() {
         let mut reader = decoder.read_info().unwrap();
         let mut mask = vec![0; reader.output_buffer_size().unwrap()];
         let info = reader.next_frame(&mut mask).unwrap();
-        assert_eq!((info.width, info.height, info.color_type), (40, 30, png::ColorType::Grayscale));
+        assert_eq!(
+            (info.width, info.height, info.color_type),
+            (40, 30, png::ColorType::Grayscale)
+        );
         let object = mask.iter().filter(|&&m| m == 255).count();
         assert!(mask.iter().all(|&m| m == 0 || m == 255), "{name}");
-        assert!(object > 0 && object < 40 * 30, "{name}: {object} object pixels");
+        assert!(
+            object > 0 && object < 40 * 30,
+            "{name}: {object} object pixels"
+        );
         let summary: serde_json::Value =
             serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
         assert_eq!(summary["spp"], 4);

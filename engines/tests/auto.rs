@@ -44,7 +44,9 @@ fn auto_moves_to_what_the_scene_needs_and_back_to_what_fits() {
     assert!(report["reason"].as_str().is_some_and(|r| !r.is_empty()));
     assert!(report["switches"].as_u64().unwrap() >= 1);
 
-    // A budget nothing meets: within a few frames over it, the cheapest measured candidate.
+    // The least budget (1 ms): within a few frames over it, the cheapest measured candidate.
+    // Whether `differential` fits 1 ms at 40 × 30 is the machine's (0.7 ms in a release build
+    // here, more in a debug one): where it does it is chosen as the one that fits.
     let mut params = relight_engines::auto::Auto::schema().defaults();
     params.insert("budget_ms".into(), 1.0.into());
     auto.set_params(&params);
@@ -56,11 +58,10 @@ fn auto_moves_to_what_the_scene_needs_and_back_to_what_fits() {
         ["differential", "ibl"].contains(&report["chosen"].as_str().unwrap()),
         "{report}"
     );
+    let reason = report["reason"].as_str().unwrap();
+    let fits = report["predicted_ms"].as_f64().is_some_and(|ms| ms <= 1.0);
     assert!(
-        report["reason"]
-            .as_str()
-            .unwrap()
-            .contains("nothing measured fits"),
+        reason.contains("nothing measured fits") || (fits && reason.contains("within 1 ms")),
         "{report}"
     );
 }

@@ -22,12 +22,16 @@
 //!   lights importance-sampled from the scene's environment map, shadowed and bounced like the
 //!   others.
 //!
-//! One bounce of indirect light (the VPLs are lit directly); the paper's multiple bounces are
-//! not built (see the closing notes).
+//! - **Second bounce** ([`bounce`]): the first bounce's VPLs are read back and continued on
+//!   the CPU, one ray each (`second_bounce` = 1), to VPLs where their light lands, classed by
+//!   the path flag (where the ray lands with the object and without it); they join the first
+//!   bounce's in the ISM and gather passes.
 
+mod bounce;
 mod environment;
 mod points;
 
+pub use bounce::{BounceGeometry, GpuVpl, second_bounce};
 pub use environment::{EnvironmentLights, environment_lights};
 pub use points::surface_points;
 
@@ -68,6 +72,20 @@ pub struct DirSettings {
     pub clamp_distance: f32,
     pub shadow_bias: f32,
     pub env_lights: u32,
+    /// Second-bounce rays as a share of `vpl_count` ([`bounce`]); 0: one bounce.
+    pub second_bounce: f32,
+}
+
+impl DirSettings {
+    /// Second-bounce rays a frame.
+    fn bounce_rays(&self) -> u32 {
+        (self.second_bounce * self.vpl_count as f32).round() as u32
+    }
+
+    /// Room for every VPL: the first bounce's, and up to two per second-bounce ray.
+    fn vpl_capacity(&self) -> u32 {
+        self.vpl_count + 2 * self.bounce_rays()
+    }
 }
 
 impl Default for DirSettings {
@@ -81,6 +99,7 @@ impl Default for DirSettings {
             clamp_distance: 0.05,
             shadow_bias: 1.5,
             env_lights: 16,
+            second_bounce: 1.0,
         }
     }
 }
@@ -88,10 +107,13 @@ impl Default for DirSettings {
 /// Buffers sized by the settings and the light count.
 #[derive(Debug)]
 struct VplBuffers {
-    key: (u32, u32, u32, u32),
+    key: (u32, u32, u32, u32, u32),
     rows: wgpu::Buffer,
     summary: wgpu::Buffer,
+    /// The first bounce's VPLs, then the second's.
     vpls: wgpu::Buffer,
+    /// The first bounce's VPLs read back for the second.
+    staging: wgpu::Buffer,
     ism: wgpu::Buffer,
 }
 
@@ -112,6 +134,10 @@ pub struct Dir {
     /// The scene and light count the environment lights were sampled for.
     environment: EnvironmentLights,
     buffers: Option<VplBuffers>,
+    /// The light-space geometry the second bounce is traced through, and its fingerprint.
+    bounce: Option<(u64, BounceGeometry)>,
+    /// VPLs of both bounces in `buffers`, as the gather reads them.
+    vpls_made: u32,
     /// What the VPLs and their imperfect shadow maps in `buffers` were made from: kept while
     /// the shadow maps, the geometry and the settings hold (the gather alone runs).
     lit: KeptInputs,
@@ -183,6 +209,13 @@ impl Dir {
                 48,
                 d.env_lights,
             ),
+            float(
+                "second_bounce",
+                "second-bounce rays as a share of vpl_count, each making a VPL where the first bounce's light lands (0: one bounce, as the paper's single-bounce setting)",
+                0.0,
+                2.0,
+                d.second_bounce,
+            ),
             crate::deferred::accumulate_param(),
         ])
     }
@@ -201,6 +234,8 @@ impl Dir {
             points: None,
             environment: EnvironmentLights::default(),
             buffers: None,
+            bounce: None,
+            vpls_made: 0,
             lit: KeptInputs::default(),
         })
     }
@@ -243,18 +278,19 @@ impl Dir {
 
     fn buffers(&mut self, layers: u32) -> Result<&VplBuffers, EngineError> {
         let s = self.settings;
-        let key = (s.rsm_size, s.vpl_count, s.ism_size, layers);
+        let capacity = s.vpl_capacity();
+        let key = (s.rsm_size, s.vpl_count, s.ism_size, layers, capacity);
         let ctx = self.deferred.ctx().clone();
-        let ism = u64::from(s.vpl_count) * 2 * u64::from(s.ism_size).pow(2) * 4;
+        let ism = u64::from(capacity) * 2 * u64::from(s.ism_size).pow(2) * 4;
         ctx.require(
             "max_storage_buffer_binding_size",
             ism,
-            "vpl_count or ism_size",
+            "vpl_count, second_bounce or ism_size",
         )?;
         ctx.require(
             "max_compute_workgroups_per_dimension",
-            u64::from(s.vpl_count),
-            "vpl_count",
+            u64::from(capacity),
+            "vpl_count or second_bounce",
         )?;
         if self.buffers.as_ref().is_none_or(|b| b.key != key) {
             let buffer = |label, size: u64, usage| {
@@ -275,7 +311,16 @@ impl Dir {
                     U::STORAGE,
                 ),
                 summary: buffer("dir summary", 32 + u64::from(layers) * 16, U::STORAGE),
-                vpls: buffer("dir vpls", u64::from(s.vpl_count) * 48, U::STORAGE),
+                vpls: buffer(
+                    "dir vpls",
+                    u64::from(capacity) * VPL_BYTES,
+                    U::STORAGE | U::COPY_SRC | U::COPY_DST,
+                ),
+                staging: buffer(
+                    "dir vpls read back",
+                    u64::from(s.vpl_count) * VPL_BYTES,
+                    U::MAP_READ | U::COPY_DST,
+                ),
                 ism: buffer("dir ism", ism, U::STORAGE | U::COPY_DST),
             });
         }
@@ -283,9 +328,12 @@ impl Dir {
     }
 }
 
-/// Bytes of every VPL's imperfect shadow map (one f32 depth a texel).
-fn ism_size_bytes(s: &DirSettings) -> f64 {
-    f64::from(s.vpl_count) * f64::from(s.ism_size).powi(2) * 4.0
+/// Bytes of one VPL (`Vpl` in `shaders/common.wgsl`).
+const VPL_BYTES: u64 = size_of::<GpuVpl>() as u64;
+
+/// Bytes of `vpls` VPLs' imperfect shadow maps (one f32 depth a texel).
+fn ism_size_bytes(s: &DirSettings, vpls: u32) -> f64 {
+    f64::from(vpls) * f64::from(s.ism_size).powi(2) * 4.0
 }
 
 impl Engine for Dir {
@@ -314,12 +362,18 @@ impl Engine for Dir {
             .ok_or(EngineError::NotPrepared)?
             .light_space_fingerprint();
         let point_count = self.points(&scene, geometry);
+        let mut bounce_ms = 0.0;
+        if s.bounce_rays() > 0 && self.bounce.as_ref().is_none_or(|(g, _)| *g != geometry) {
+            let built = Instant::now();
+            self.bounce = Some((geometry, BounceGeometry::new(&scene)));
+            bounce_ms += built.elapsed().as_secs_f64() * 1e3;
+        }
         if layers > 0 {
             self.buffers(layers)?;
-            let uniform = DirUniform {
+            let mut uniform = DirUniform {
                 dims: [s.vpl_count, s.rsm_size, layers, s.ism_size],
-                size: [width, height, point_count, 0],
-                params: [s.clamp_distance, s.ism_bias, 0.0, 0.0],
+                size: [width, height, point_count, self.vpls_made],
+                params: [s.clamp_distance, s.ism_bias, s.second_bounce, 0.0],
             };
             ctx.queue
                 .write_buffer(&self.uniform, 0, bytemuck::bytes_of(&uniform));
@@ -401,25 +455,14 @@ impl Engine for Dir {
                 .device
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("dir") });
             if relight {
-                out.work.extend([
-                    PassWork {
-                        pass: "vpls",
-                        // Both maps' texels read for the importance rows (32 bytes, about 30
-                        // operations each); each VPL written (64 bytes).
-                        work: Work::new(2.0 * 32.0, 60.0)
-                            .times(f64::from(layers) * f64::from(s.rsm_size).powi(2))
-                            + Work::new(64.0, 100.0).times(f64::from(s.vpl_count)),
-                    },
-                    PassWork {
-                        pass: "ism",
-                        // Every surface point into every VPL's paraboloid (about 40
-                        // operations); the points read once, the maps written once.
-                        work: Work::new(0.0, 40.0)
-                            .times(f64::from(point_count) * f64::from(s.vpl_count))
-                            + Work::new(16.0, 0.0).times(f64::from(point_count))
-                            + Work::new(ism_size_bytes(&s), 0.0),
-                    },
-                ]);
+                out.work.push(PassWork {
+                    pass: "vpls",
+                    // Both maps' texels read for the importance rows (32 bytes, about 30
+                    // operations each); each VPL written (64 bytes).
+                    work: Work::new(2.0 * 32.0, 60.0)
+                        .times(f64::from(layers) * f64::from(s.rsm_size).powi(2))
+                        + Work::new(64.0, 100.0).times(f64::from(s.vpl_count)),
+                });
                 encoder.clear_buffer(&b.ism, 0, None);
                 {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.vpls");
@@ -433,11 +476,50 @@ impl Engine for Dir {
                     pass.set_bind_group(0, &vpl_group, &[]);
                     pass.dispatch_workgroups(s.vpl_count.div_ceil(64), 1, 1);
                 }
+                self.vpls_made = s.vpl_count;
+                if let Some((_, bounce_geometry)) = &self.bounce
+                    && s.bounce_rays() > 0
+                {
+                    // The first bounce's VPLs are read back and continued on the CPU.
+                    ctx.queue.submit([encoder.finish()]);
+                    encoder = ctx
+                        .device
+                        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                            label: Some("dir"),
+                        });
+                    let first: Vec<GpuVpl> = ctx.read_back(
+                        &b.vpls,
+                        &b.staging,
+                        u64::from(s.vpl_count) * VPL_BYTES,
+                        bytemuck::pod_collect_to_vec,
+                    )?;
+                    let traced = Instant::now();
+                    let second = second_bounce(bounce_geometry, &first, s.bounce_rays() as usize);
+                    ctx.queue.write_buffer(
+                        &b.vpls,
+                        u64::from(s.vpl_count) * VPL_BYTES,
+                        bytemuck::cast_slice(&second),
+                    );
+                    self.vpls_made = s.vpl_count + second.len() as u32;
+                    bounce_ms += traced.elapsed().as_secs_f64() * 1e3;
+                }
+                uniform.size[3] = self.vpls_made;
+                ctx.queue
+                    .write_buffer(&self.uniform, 0, bytemuck::bytes_of(&uniform));
+                out.work.push(PassWork {
+                    pass: "ism",
+                    // Every surface point into every VPL's paraboloid (about 40
+                    // operations); the points read once, the maps written once.
+                    work: Work::new(0.0, 40.0)
+                        .times(f64::from(point_count) * f64::from(self.vpls_made))
+                        + Work::new(16.0, 0.0).times(f64::from(point_count))
+                        + Work::new(ism_size_bytes(&s, self.vpls_made), 0.0),
+                });
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.ism");
-                if point_count > 0 {
+                if point_count > 0 && self.vpls_made > 0 {
                     pass.set_pipeline(&self.ism);
                     pass.set_bind_group(0, &ism_group, &[]);
-                    pass.dispatch_workgroups(point_count.div_ceil(64), s.vpl_count, 1);
+                    pass.dispatch_workgroups(point_count.div_ceil(64), self.vpls_made, 1);
                 }
             }
             out.work.push(PassWork {
@@ -447,8 +529,11 @@ impl Engine for Dir {
                 // maps read once.
                 work: Work::new(32.0 + 16.0, 0.0).times(f64::from(width) * f64::from(height))
                     + Work::new(0.0, 80.0)
-                        .times(f64::from(width) * f64::from(height) * f64::from(s.vpl_count))
-                    + Work::new(64.0 * f64::from(s.vpl_count) + ism_size_bytes(&s), 0.0),
+                        .times(f64::from(width) * f64::from(height) * f64::from(self.vpls_made))
+                    + Work::new(
+                        64.0 * f64::from(self.vpls_made) + ism_size_bytes(&s, self.vpls_made),
+                        0.0,
+                    ),
             });
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.gather");
@@ -465,6 +550,13 @@ impl Engine for Dir {
             pass: "vpls",
             ms: started.elapsed().as_secs_f64() * 1e3,
         });
+        if bounce_ms > 0.0 {
+            // The CPU's part of the second bounce: the geometry (when it changed) and the rays.
+            out.timings.push(PassTiming {
+                pass: "bounce",
+                ms: bounce_ms,
+            });
+        }
         self.deferred.finish(
             ShadeOptions {
                 shadow_bias_texels: s.shadow_bias,
@@ -489,6 +581,7 @@ impl Engine for Dir {
             clamp_distance: float("clamp_distance"),
             shadow_bias: float("shadow_bias"),
             env_lights: int("env_lights"),
+            second_bounce: float("second_bounce"),
         };
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);

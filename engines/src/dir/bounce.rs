@@ -1,0 +1,325 @@
+//! The second bounce (Knecht et al. 2012, Sec. 4.3: "multiple bounces forward the path flag
+//! x̄ = r(x̄_prev) r(p_VPL)"): VPLs where the first-bounce VPLs' light lands.
+//!
+//! Each second-bounce VPL continues a first-bounce VPL along a cosine-distributed direction (a
+//! Lambertian emitter of flux Φ sends Φ/m along each of m such rays) to the surface it meets,
+//! which reflects Φ/m · ρ(hit). The ray is traced twice, through the light-space geometry with
+//! the object (the scene the VPL lights in L_rv) and without it (L_r), as the reference traces
+//! ρ and μ along one path, so the path flag follows from where the two land:
+//! - the same real surface in both: class 0, lighting both solutions (so Δ stays exactly 0
+//!   wherever the object plays no part);
+//! - elsewhere (the object is met, or it blocks the way): the landing with the object is a
+//!   class-1 VPL (L_rv only), the landing without it a class-2 VPL (L_r only: the real
+//!   second-bounce light the object now takes away);
+//! - a first-bounce VPL of class 1 (on the object) continues in the scene with it only, one
+//!   of class 2 in the real scene only.
+//!
+//! Why on the CPU: a few hundred rays a frame, against the reference's BVH
+//! ([`relight_reference::accel`]), which the rasterising passes have no counterpart of (no ray
+//! queries in the engines' WGSL); the first-bounce VPLs are read back for it (12 kB). Why it
+//! matters, measured: the reference truncated at one bounce stays 0.22 and 0.28 (relative L2 of
+//! Δ) from the full one on desk_box and touching_wall, at two within 0.10 and 0.13
+//! (docs/ALGORITHMS.md, "What one bounce can reach").
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+use relight_core::scene::{Mesh, Scene};
+use relight_reference::accel::Geometry;
+
+/// `Vpl` in `shaders/common.wgsl`: position (w: class 0, 1 or 2), normal, flux Φ (W).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Pod, Zeroable)]
+pub struct GpuVpl {
+    pub position: [f32; 4],
+    pub normal: [f32; 4],
+    pub flux: [f32; 4],
+}
+
+impl GpuVpl {
+    fn new(position: Vec3, normal: Vec3, flux: Vec3, class: u32, clamp_m: f32) -> Self {
+        Self {
+            position: position.extend(class as f32).to_array(),
+            normal: normal.extend(clamp_m).to_array(),
+            flux: flux.extend(0.0).to_array(),
+        }
+    }
+
+    fn class(&self) -> u32 {
+        self.position[3] as u32
+    }
+
+    fn flux(&self) -> Vec3 {
+        Vec3::from_slice(&self.flux[..3])
+    }
+}
+
+/// The light-space geometry (what the shadow maps draw: the real scene's proxy where it has
+/// one, and the object), the real part and the object in a BVH each (the scene with the object
+/// is both: one real BVH to build, not two), and the materials' albedo.
+#[derive(Debug)]
+pub struct BounceGeometry {
+    real: Geometry,
+    object: Geometry,
+    albedo: Vec<Vec3>,
+}
+
+impl BounceGeometry {
+    pub fn new(scene: &Scene) -> Self {
+        let meshes: Vec<_> = match &scene.shadow_proxy {
+            Some(proxy) => std::iter::once(proxy.as_ref().clone())
+                .chain(scene.meshes.iter().filter(|m| m.is_virtual).cloned())
+                .collect(),
+            None => scene.meshes.clone(),
+        };
+        Self::of_meshes(&meshes, scene.materials.iter().map(|m| m.albedo).collect())
+    }
+
+    /// Of `meshes`, with each material's albedo.
+    fn of_meshes(meshes: &[Mesh], albedo: Vec<Vec3>) -> Self {
+        let object: Vec<Mesh> = meshes.iter().filter(|m| m.is_virtual).cloned().collect();
+        Self {
+            real: Geometry::of_meshes(meshes, false),
+            object: Geometry::of_meshes(&object, true),
+            albedo,
+        }
+    }
+
+    /// Where a ray from `origin` along `dir` lands, with the object or without it, carrying
+    /// `flux` before the landing surface reflects it.
+    fn land(&self, with_object: bool, origin: Vec3, dir: Vec3, flux: Vec3) -> Option<Landing> {
+        let on = |geometry: &Geometry| {
+            let hit = geometry.intersect(origin, dir, 0.0, f32::INFINITY)?;
+            let tri = geometry.triangles().get(hit.triangle)?;
+            let albedo = tri.albedo.map_or_else(
+                || self.albedo.get(tri.material).copied().unwrap_or(Vec3::ZERO),
+                |[a, b, c]| a * (1.0 - hit.u - hit.v) + b * hit.u + c * hit.v,
+            );
+            // The side the light arrives on.
+            let normal = if tri.geometric_normal.dot(dir) > 0.0 {
+                -tri.geometric_normal
+            } else {
+                tri.geometric_normal
+            };
+            Some(Landing {
+                t: hit.t,
+                on_object: tri.is_virtual,
+                position: origin + dir * hit.t,
+                normal,
+                flux: flux * albedo,
+            })
+        };
+        let real = on(&self.real);
+        let object = with_object.then(|| on(&self.object)).flatten();
+        match (real, object) {
+            (Some(r), Some(o)) => Some(if o.t < r.t { o } else { r }),
+            (r, o) => r.or(o),
+        }
+    }
+}
+
+/// A second-bounce ray's landing: how far, on what, and the flux reflected there.
+#[derive(Debug, Clone, Copy)]
+struct Landing {
+    t: f32,
+    on_object: bool,
+    position: Vec3,
+    normal: Vec3,
+    flux: Vec3,
+}
+
+impl Landing {
+    /// The VPL, its 1/d² clamped within `footprint` × the distance it came.
+    fn vpl(self, class: u32, footprint: f32) -> GpuVpl {
+        GpuVpl::new(
+            self.position,
+            self.normal,
+            self.flux,
+            class,
+            footprint * self.t,
+        )
+    }
+}
+
+/// The second-bounce VPLs of `count` rays continuing `first` (the first-bounce VPLs; those
+/// without flux are skipped). Ray j continues first-bounce VPL ⌊(j + ½) n / count⌋ of the n
+/// with flux, each ray standing for n / count of them, along a fixed low-discrepancy
+/// direction: the same first bounce gives the same second, so a static scene does not
+/// flicker. A ray makes no VPL where it leaves the scene, and two where a class-0 ray lands
+/// apart in the two scenes: at most 2 · `count`.
+pub fn second_bounce(geometry: &BounceGeometry, first: &[GpuVpl], count: usize) -> Vec<GpuVpl> {
+    let lit: Vec<&GpuVpl> = first
+        .iter()
+        .filter(|v| v.flux().max_element() > 0.0 && v.flux().is_finite())
+        .collect();
+    let mut out = Vec::with_capacity(2 * count);
+    if lit.is_empty() {
+        return out;
+    }
+    let share = lit.len() as f32 / count as f32;
+    // A VPL stands for the patch its ray's share of the hemisphere (π/m of projected solid
+    // angle, m = 1/share rays a first-bounce VPL) covers at the distance t it went: radius
+    // t·√(share). Nearer than a part of that its 1/d² is a point's, not the patch's, and
+    // spikes (on desk_box one such VPL put 0.82 into a pixel whose Δ is 0.07).
+    let footprint = FOOTPRINT * share.sqrt();
+    for j in 0..count {
+        let source = lit[((j as f32 + 0.5) * share) as usize % lit.len()];
+        let p = Vec3::from_slice(&source.position[..3]);
+        let n = Vec3::from_slice(&source.normal[..3]).normalize_or_zero();
+        if n == Vec3::ZERO || !p.is_finite() {
+            continue;
+        }
+        let dir = cosine_direction(n, r2(j as u32));
+        let origin = p + n * (1e-4 * (1.0 + p.abs().max_element()));
+        let flux = source.flux() * share;
+        let rho = || geometry.land(true, origin, dir, flux);
+        let mu = || geometry.land(false, origin, dir, flux);
+        let vpl = |landed: Option<Landing>, class| landed.map(|l| l.vpl(class, footprint));
+        match source.class() {
+            1 => out.extend(vpl(rho(), 1)),
+            2 => out.extend(vpl(mu(), 2)),
+            _ => match (rho(), mu()) {
+                // The same real surface: the object plays no part in this path.
+                (Some(a), Some(b)) if !a.on_object && (a.t - b.t).abs() <= 1e-5 * b.t => {
+                    out.push(b.vpl(0, footprint));
+                }
+                (a, b) => out.extend(vpl(a, 1).into_iter().chain(vpl(b, 2))),
+            },
+        }
+    }
+    out
+}
+
+/// The share of a VPL's footprint radius within which its 1/d² is clamped.
+const FOOTPRINT: f32 = 1.0;
+
+/// The j-th point of the R2 sequence (Roberts 2018) in [0, 1)².
+fn r2(j: u32) -> [f32; 2] {
+    const G: f64 = 1.324_717_957_244_746;
+    let j = f64::from(j) + 1.0;
+    [
+        (0.5 + j / G).fract() as f32,
+        (0.5 + j / (G * G)).fract() as f32,
+    ]
+}
+
+/// A direction about `n` with density cos θ / π, from `u` in [0, 1)².
+fn cosine_direction(n: Vec3, [u, v]: [f32; 2]) -> Vec3 {
+    let (t, b) = n.any_orthonormal_pair();
+    let r = u.sqrt();
+    let phi = std::f32::consts::TAU * v;
+    (t * (r * phi.cos()) + b * (r * phi.sin()) + n * (1.0 - u).max(0.0).sqrt()).normalize()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A square of side 2 m at height `z`, facing `up` or down, of material `material`.
+    fn square(z: f32, up: bool, material: usize, is_virtual: bool) -> Mesh {
+        let p =
+            [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].map(|(x, y)| Vec3::new(x, y, z));
+        let n = if up { Vec3::Z } else { Vec3::NEG_Z };
+        let triangles = if up {
+            vec![[0, 1, 2], [0, 2, 3]]
+        } else {
+            vec![[0, 2, 1], [0, 3, 2]]
+        };
+        Mesh {
+            name: format!("square at {z}"),
+            positions_in_world: p.to_vec(),
+            normals_in_world: vec![n; 4],
+            triangles,
+            material,
+            is_virtual,
+            vertex_albedo: Vec::new(),
+        }
+    }
+
+    /// A floor (albedo 0.5) under a ceiling (albedo 0.8) 1 m up, and optionally a virtual
+    /// plate (albedo 0.2) between them at 0.5 m.
+    fn room(plate: bool) -> BounceGeometry {
+        let mut meshes = vec![square(0.0, true, 0, false), square(1.0, false, 1, false)];
+        if plate {
+            meshes.push(square(0.5, false, 2, true));
+        }
+        BounceGeometry::of_meshes(&meshes, [0.5, 0.8, 0.2].map(Vec3::splat).to_vec())
+    }
+
+    fn floor_vpl(class: u32) -> GpuVpl {
+        GpuVpl::new(
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::Z,
+            Vec3::splat(2.0),
+            class,
+            0.0,
+        )
+    }
+
+    #[test]
+    fn without_the_object_every_second_bounce_lights_both_solutions() {
+        let geometry = room(false);
+        let landed = second_bounce(&geometry, &[floor_vpl(0)], 64);
+        // Half the cosine-distributed rays (sin² θ < 1/2) meet the 2 m ceiling 1 m up.
+        assert!(
+            (24..=40).contains(&landed.len()),
+            "{} of 64 landed",
+            landed.len()
+        );
+        for v in &landed {
+            assert_eq!(v.class(), 0);
+            // On the ceiling, facing down, with Φ/m · 0.8 (m = 64 rays from the one VPL).
+            assert!((v.position[2] - 1.0).abs() < 1e-4, "{v:?}");
+            assert_eq!(v.normal[2], -1.0);
+            assert!((v.flux[0] - 2.0 / 64.0 * 0.8).abs() < 1e-6, "{v:?}");
+        }
+    }
+
+    #[test]
+    fn the_object_takes_the_real_second_bounce_and_gives_its_own() {
+        let geometry = room(true);
+        let vpls = second_bounce(&geometry, &[floor_vpl(0)], 64);
+        let of = |class| vpls.iter().filter(move |v| v.class() == class);
+        // The plate, half-way up, stops every ray the ceiling would (and more): each lands on
+        // the plate (class 1, albedo 0.2) in the scene with it, and on the ceiling (class 2,
+        // albedo 0.8) without it where it reaches the ceiling.
+        assert_eq!(of(0).count(), 0, "{vpls:?}");
+        assert!(
+            of(1).count() > of(2).count() && of(2).count() > 20,
+            "{vpls:?}"
+        );
+        for v in of(1) {
+            assert!((v.position[2] - 0.5).abs() < 1e-4);
+            assert!((v.flux[0] - 2.0 / 64.0 * 0.2).abs() < 1e-6);
+        }
+        for v in of(2) {
+            assert!((v.position[2] - 1.0).abs() < 1e-4);
+            assert!((v.flux[0] - 2.0 / 64.0 * 0.8).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn the_object_s_own_vpls_bounce_in_its_scene_and_blocked_ones_in_the_real_one() {
+        let geometry = room(true);
+        let on_object = GpuVpl::new(Vec3::new(0.0, 0.0, 0.5), Vec3::NEG_Z, Vec3::ONE, 1, 0.0);
+        let vpls = second_bounce(&geometry, &[on_object], 16);
+        assert!(!vpls.is_empty() && vpls.iter().all(|v| v.class() == 1));
+        let landed = second_bounce(&geometry, &[floor_vpl(2)], 16);
+        assert!(!landed.is_empty());
+        assert!(
+            landed
+                .iter()
+                .all(|v| v.class() == 2 && (v.position[2] - 1.0).abs() < 1e-4)
+        );
+    }
+
+    #[test]
+    fn the_same_first_bounce_gives_the_same_second() {
+        let geometry = room(true);
+        let first = [floor_vpl(0), floor_vpl(1), floor_vpl(2)];
+        assert_eq!(
+            second_bounce(&geometry, &first, 32),
+            second_bounce(&geometry, &first, 32)
+        );
+        assert!(second_bounce(&geometry, &[], 8).is_empty());
+    }
+}
