@@ -25,10 +25,13 @@
 //! rasteriser's, so with none measured the cheapest is measured first, and with the ratios'
 //! spread only as far as the measured rasterisers bear it out (`ratio_fidelity`; where only the
 //! unchecked ratios keep a winner out, one more rasteriser is measured to check them,
-//! `calibration_probe`). `pt` measures its own and is probed as soon as it would win (its prior
-//! needs a cost scale, though). `pt` fills whatever budget it is given (it traces a share of a
-//! sample per pixel where a whole one does not fit), so it costs its budget wherever its least
-//! step fits.
+//! `calibration_probe`). `pt` measures its own and is probed as soon as it would win; with it
+//! alone measured, the rasterisers are estimated from its cost per sample. `pt` fills whatever
+//! budget it is given (it traces a share of a sample per pixel where a whole one does not fit),
+//! so it costs its budget wherever its least step fits. Of the candidates clearly more accurate
+//! the most accurate is probed first; of those that tie on error and are estimated cheaper,
+//! the cheapest; no rasteriser where the cheapest was measured over the budget
+//! (`priced_out_by_the_cheapest`); a probe due when another ends starts at once.
 //!
 //! **Choice.** Among the candidates that fit the budget, the lowest predicted error, where
 //! errors within [`TIE`] count as equal and the cheaper wins (so a shadow-only scene gets the

@@ -31,7 +31,7 @@ mod bounce;
 mod environment;
 mod points;
 
-pub use bounce::{BounceGeometry, GpuVpl, second_bounce};
+use bounce::{BounceGeometry, GpuVpl, second_bounce};
 pub use environment::{EnvironmentLights, environment_lights};
 pub use points::surface_points;
 
