@@ -65,20 +65,27 @@ pub struct BounceGeometry {
 
 impl BounceGeometry {
     pub fn new(scene: &Scene) -> Self {
-        let meshes: Vec<_> = match &scene.shadow_proxy {
-            Some(proxy) => std::iter::once(proxy.as_ref().clone())
-                .chain(scene.meshes.iter().filter(|m| m.is_virtual).cloned())
-                .collect(),
-            None => scene.meshes.clone(),
+        let real = match &scene.shadow_proxy {
+            Some(proxy) => std::slice::from_ref(proxy.as_ref()),
+            None => &scene.meshes,
         };
-        Self::of_meshes(&meshes, scene.materials.iter().map(|m| m.albedo).collect())
+        Self::of_meshes(
+            real,
+            &scene.meshes,
+            scene.materials.iter().map(|m| m.albedo).collect(),
+        )
     }
 
-    /// Of `meshes`, with each material's albedo.
-    fn of_meshes(meshes: &[Mesh], albedo: Vec<Vec3>) -> Self {
-        let object: Vec<Mesh> = meshes.iter().filter(|m| m.is_virtual).cloned().collect();
+    /// The real surface of `real`, the object of `with_object`'s virtual meshes, and each
+    /// material's albedo.
+    fn of_meshes(real: &[Mesh], with_object: &[Mesh], albedo: Vec<Vec3>) -> Self {
+        let object: Vec<Mesh> = with_object
+            .iter()
+            .filter(|m| m.is_virtual)
+            .cloned()
+            .collect();
         Self {
-            real: Geometry::of_meshes(meshes, false),
+            real: Geometry::of_meshes(real, false),
             object: Geometry::of_meshes(&object, true),
             albedo,
         }
@@ -242,7 +249,7 @@ mod tests {
         if plate {
             meshes.push(square(0.5, false, 2, true));
         }
-        BounceGeometry::of_meshes(&meshes, [0.5, 0.8, 0.2].map(Vec3::splat).to_vec())
+        BounceGeometry::of_meshes(&meshes, &meshes, [0.5, 0.8, 0.2].map(Vec3::splat).to_vec())
     }
 
     fn floor_vpl(class: u32) -> GpuVpl {
