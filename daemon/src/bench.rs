@@ -45,6 +45,32 @@ impl BenchCase {
         }
     }
 
+    /// A setting as [`BenchCase::label`] writes it (bench.csv's `setting` column): the engine,
+    /// then `name=value` pairs (values as JSON where they parse), checked against the engine's
+    /// parameters, so a row of one run can be measured again on its own.
+    pub fn parse(setting: &str, registry: &EngineRegistry) -> Result<Self> {
+        let mut words = setting.split_whitespace();
+        let engine = words
+            .next()
+            .context("an empty setting: expected an engine, then name=value pairs")?;
+        let spec = registry.spec(engine)?;
+        let mut params = Map::new();
+        for pair in words {
+            let (name, value) = pair
+                .split_once('=')
+                .with_context(|| format!("`{pair}` in `{setting}`: expected name=value"))?;
+            let value = serde_json::from_str(value).unwrap_or_else(|_| Value::from(value));
+            params.insert(name.to_owned(), value);
+        }
+        spec.schema
+            .validate(&spec.schema.defaults(), &params)
+            .with_context(|| format!("`{setting}`"))?;
+        Ok(Self {
+            engine: engine.to_owned(),
+            params,
+        })
+    }
+
     pub fn label(&self) -> String {
         let params: Vec<String> = self
             .params
@@ -949,5 +975,38 @@ fn sky(width: u32, height: u32) -> relight_core::scene::EnvironmentMap {
         width,
         height,
         radiance,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_setting_reads_back_as_its_label_writes_it() {
+        let registry = EngineRegistry::new();
+        for case in default_cases(true) {
+            let parsed = BenchCase::parse(&case.label(), &registry).unwrap();
+            assert_eq!((parsed.engine, parsed.params), (case.engine, case.params));
+        }
+        let case = BenchCase::parse("dir  second_bounce=0 vpl_count=64", &registry).unwrap();
+        assert_eq!(case.label(), "dir second_bounce=0 vpl_count=64");
+    }
+
+    #[test]
+    fn a_bad_setting_says_what_is_wrong() {
+        let registry = EngineRegistry::new();
+        let error = |setting| format!("{:#}", BenchCase::parse(setting, &registry).unwrap_err());
+        assert!(error("").contains("empty setting"));
+        assert!(error("dri").contains("unknown engine `dri`"));
+        assert!(
+            error("dir vpl_count").contains("`vpl_count` in `dir vpl_count`: expected name=value")
+        );
+        let out_of_range = error("dir vpl_count=0");
+        assert!(
+            out_of_range.contains("`dir vpl_count=0`") && out_of_range.contains("vpl_count"),
+            "{out_of_range}"
+        );
+        assert!(error("dir no_such=1").contains("no_such"));
     }
 }

@@ -44,6 +44,10 @@ pub struct Args {
     /// Only these engines (repeatable).
     #[arg(long = "engine", value_parser = crate::engine_name())]
     engines: Vec<String>,
+    /// Exactly these settings instead (repeatable), as bench.csv's `setting` column writes
+    /// them: the engine, then `name=value` pairs, e.g. `--case "dir second_bounce=0"`.
+    #[arg(long = "case", conflicts_with_all = ["engines", "sweep"])]
+    cases: Vec<String>,
     /// Instead of the engine table: time the `ibl` map convolution (diffuse + 8 specular
     /// maps in one pass) at these output sizes, e.g. `--ibl-maps 128,256,512`.
     #[arg(long, value_delimiter = ',')]
@@ -126,16 +130,34 @@ pub fn run(mut args: Args) -> Result<()> {
     let all_cases = bench::default_cases(args.sweep);
     let mut benched: Vec<&str> = all_cases.iter().map(|c| c.engine.as_str()).collect();
     benched.dedup();
-    if let Some(unknown) = args.engines.iter().find(|e| !benched.contains(&e.as_str())) {
+    let registry = relight_engines::EngineRegistry::new();
+    let chosen = args
+        .cases
+        .iter()
+        .map(|setting| {
+            bench::BenchCase::parse(setting, &registry)
+                .with_context(|| format!("--case {setting:?}"))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    if let Some(unknown) = args
+        .engines
+        .iter()
+        .chain(chosen.iter().map(|c| &c.engine))
+        .find(|e| !benched.contains(&e.as_str()))
+    {
         bail!(
-            "--engine {unknown}: not an engine the bench runs; it runs {}",
+            "{unknown}: not an engine the bench runs; it runs {}",
             benched.join(", ")
         );
     }
-    let cases = all_cases
-        .into_iter()
-        .filter(|c| args.engines.is_empty() || args.engines.contains(&c.engine))
-        .collect();
+    let cases = if chosen.is_empty() {
+        all_cases
+            .into_iter()
+            .filter(|c| args.engines.is_empty() || args.engines.contains(&c.engine))
+            .collect()
+    } else {
+        chosen
+    };
     let settings = bench_settings(&args, scenes, cases);
     let context = relight_engines::gpu::GpuContext::new();
     let adapter = context
