@@ -158,6 +158,33 @@ fn an_unknown_engine_is_an_error_that_lists_the_benched_ones() {
     );
 }
 
+/// A `--case` the engine cannot take is refused before anything renders, naming the parameter.
+#[test]
+fn a_bad_case_is_refused_with_its_reason() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_relightd"))
+        .args([
+            "bench",
+            "--case",
+            "dir vpl_count=0",
+            "--scene",
+            "tests/scenes/spot_bleed",
+        ])
+        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("dir vpl_count=0") && stderr.contains("outside [1, 1024]"),
+        "{stderr}"
+    );
+    assert!(
+        out.stdout.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+}
+
 /// A reference rendered once is read from the cache on the next run, and scores the same.
 #[test]
 fn a_cached_reference_is_read_back_on_the_next_run() {
