@@ -272,6 +272,21 @@ fn vpl_flux(l: Light, face: Face, p: vec3<f32>, albedo: vec3<f32>, size: u32) ->
     return albedo * intensity * a * a * c * c * c;
 }
 
+// The surface area (m²) the shadow-map texel at `p` (normal `n`) of `face` covers: its solid
+// angle (perspective) or cross-section (orthographic), over the cosine it meets the surface at
+// (at least 0.1, so a grazing texel does not stand for the whole floor).
+fn texel_area(l: Light, face: Face, p: vec3<f32>, n: vec3<f32>, size: u32) -> f32 {
+    if face.light.y == 1u {
+        return face.axis.w / max(abs(dot(n, l.direction.xyz)), 0.1);
+    }
+    let d = p - l.position.xyz;
+    let dist2 = max(dot(d, d), 1e-12);
+    let dir = d * inverseSqrt(dist2);
+    let c = max(dot(dir, face.axis.xyz), 0.0);
+    let a = 2.0 * face.axis.w / f32(size);
+    return a * a * c * c * c * dist2 / max(abs(dot(n, dir)), 0.1);
+}
+
 // The DLPV volume: n³ cells of L1 SH per colour channel, twice (V^Δ, then V^ρ).
 struct Volume {
     // xyz: minimum corner; w: cell edge (m).
@@ -320,8 +335,8 @@ struct Dvct {
 // surface the virtual object hides from the light, L_r only).
 struct Vpl {
     position: vec4<f32>,
-    // w: the distance (m) within which its 1/d² is clamped, where wider than the engine's
-    // (a second-bounce VPL's footprint); 0 for the first bounce's.
+    // w: the distance (m) within which its 1/d² is clamped, where wider than the engine's: the
+    // radius of the disc of surface it stands for (its footprint).
     normal: vec4<f32>,
     // rgb: flux Φ (W) with the importance-sampling compensation applied.
     flux: vec4<f32>,
@@ -333,7 +348,8 @@ struct Dir {
     // x: width; y: height; z: ISM points; w: VPLs of both bounces (the ISMs and the gather).
     size: vec4<u32>,
     // x: distance clamp (m); y: ISM depth bias in texel footprints; z: second-bounce rays as a
-    // share of dims.x (the CPU's; here only so a change relights).
+    // share of dims.x (the CPU's; here only so a change relights); w: a first-bounce VPL's clamp
+    // as a share of its footprint's radius (0: `x` alone).
     params: vec4<f32>,
 }
 

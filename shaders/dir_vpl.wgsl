@@ -106,8 +106,13 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         vpls[k] = vpl;
         return;
     }
+    // The VPL stands for the texels that carry its share of the flux, (total / n_c) / w of
+    // this one's area: a disc of radius √(A/π), within which a point's 1/d² overstates the
+    // disc's light (at d² = A/π both give Φ/A).
+    let normal = normalize(chosen.normal);
+    let area = texel_area(l, face, chosen.position, normal, size) * (total / f32(n_c)) / w;
     vpl.position = vec4<f32>(chosen.position, f32(group));
-    vpl.normal = vec4<f32>(normalize(chosen.normal), 0.0);
+    vpl.normal = vec4<f32>(normal, dir.params.w * sqrt(area / PI));
     vpl.flux = vec4<f32>(chosen_flux * (total / f32(n_c)) / w, 0.0);
     vpls[k] = vpl;
 }

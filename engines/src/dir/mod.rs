@@ -74,6 +74,9 @@ pub struct DirSettings {
     pub env_lights: u32,
     /// Second-bounce rays as a share of `vpl_count` ([`bounce`]); 0: one bounce.
     pub second_bounce: f32,
+    /// A first-bounce VPL's 1/d² clamp as a share of the radius of the surface it stands for;
+    /// 0: `clamp_distance` alone.
+    pub footprint_clamp: f32,
 }
 
 impl DirSettings {
@@ -100,6 +103,7 @@ impl Default for DirSettings {
             shadow_bias: 1.5,
             env_lights: 16,
             second_bounce: 1.0,
+            footprint_clamp: 1.0,
         }
     }
 }
@@ -215,6 +219,13 @@ impl Dir {
                 0.0,
                 2.0,
                 d.second_bounce,
+            ),
+            float(
+                "footprint_clamp",
+                "a first-bounce VPL's 1/d² clamp as a share of the radius of the surface it stands for (0: clamp_distance alone)",
+                0.0,
+                4.0,
+                d.footprint_clamp,
             ),
             crate::deferred::accumulate_param(),
         ])
@@ -373,7 +384,12 @@ impl Engine for Dir {
             let mut uniform = DirUniform {
                 dims: [s.vpl_count, s.rsm_size, layers, s.ism_size],
                 size: [width, height, point_count, self.vpls_made],
-                params: [s.clamp_distance, s.ism_bias, s.second_bounce, 0.0],
+                params: [
+                    s.clamp_distance,
+                    s.ism_bias,
+                    s.second_bounce,
+                    s.footprint_clamp,
+                ],
             };
             ctx.queue
                 .write_buffer(&self.uniform, 0, bytemuck::bytes_of(&uniform));
@@ -582,6 +598,7 @@ impl Engine for Dir {
             shadow_bias: float("shadow_bias"),
             env_lights: int("env_lights"),
             second_bounce: float("second_bounce"),
+            footprint_clamp: float("footprint_clamp"),
         };
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
