@@ -263,13 +263,18 @@ fn vpl_flux(l: Light, face: Face, p: vec3<f32>, albedo: vec3<f32>, size: u32) ->
     }
     let d = p - l.position.xyz;
     let dir = d * inverseSqrt(max(dot(d, d), 1e-12));
-    let c = max(dot(dir, face.axis.xyz), 0.0);
-    let a = 2.0 * face.axis.w / f32(size);
     var intensity = l.intensity.rgb;
     if u32(l.position.w) == KIND_SPOT {
         intensity *= spot_falloff(dot(l.direction.xyz, dir), l.intensity.w, l.direction.w);
     }
-    return albedo * intensity * a * a * c * c * c;
+    return albedo * intensity * texel_solid_angle(face, dir, size);
+}
+
+// The solid angle of the perspective face's texel that unit `dir` passes through.
+fn texel_solid_angle(face: Face, dir: vec3<f32>, size: u32) -> f32 {
+    let c = max(dot(dir, face.axis.xyz), 0.0);
+    let a = 2.0 * face.axis.w / f32(size);
+    return a * a * c * c * c;
 }
 
 // The surface area (m²) the shadow-map texel at `p` (normal `n`) of `face` covers: its solid
@@ -282,9 +287,7 @@ fn texel_area(l: Light, face: Face, p: vec3<f32>, n: vec3<f32>, size: u32) -> f3
     let d = p - l.position.xyz;
     let dist2 = max(dot(d, d), 1e-12);
     let dir = d * inverseSqrt(dist2);
-    let c = max(dot(dir, face.axis.xyz), 0.0);
-    let a = 2.0 * face.axis.w / f32(size);
-    return a * a * c * c * c * dist2 / max(abs(dot(n, dir)), 0.1);
+    return texel_solid_angle(face, dir, size) * dist2 / max(abs(dot(n, dir)), 0.1);
 }
 
 // The DLPV volume: n³ cells of L1 SH per colour channel, twice (V^Δ, then V^ρ).

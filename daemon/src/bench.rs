@@ -56,10 +56,8 @@ impl BenchCase {
         let spec = registry.spec(engine)?;
         let mut params = Map::new();
         for pair in words {
-            let (name, value) = pair
-                .split_once('=')
+            let (name, value) = relight_engines::params::parse_assignment(pair)
                 .with_context(|| format!("`{pair}` in `{setting}`: expected name=value"))?;
-            let value = serde_json::from_str(value).unwrap_or_else(|_| Value::from(value));
             params.insert(name.to_owned(), value);
         }
         spec.schema

@@ -131,20 +131,21 @@ fn bench_measures_every_case_and_writes_its_outputs() {
     }
 }
 
+/// `relightd bench` with `args` on spot_bleed, from the repository root.
+fn bench_on_spot_bleed(args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_relightd"))
+        .arg("bench")
+        .args(args)
+        .args(["--scene", "tests/scenes/spot_bleed"])
+        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
+        .output()
+        .unwrap()
+}
+
 /// `bench --engine nosuch` used to print an empty table and exit 0.
 #[test]
 fn an_unknown_engine_is_an_error_that_lists_the_benched_ones() {
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_relightd"))
-        .args([
-            "bench",
-            "--engine",
-            "nosuch",
-            "--scene",
-            "tests/scenes/spot_bleed",
-        ])
-        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
-        .output()
-        .unwrap();
+    let out = bench_on_spot_bleed(&["--engine", "nosuch"]);
     assert_eq!(out.status.code(), Some(2), "a usage error");
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(
@@ -161,17 +162,7 @@ fn an_unknown_engine_is_an_error_that_lists_the_benched_ones() {
 /// A `--case` the engine cannot take is refused before anything renders, naming the parameter.
 #[test]
 fn a_bad_case_is_refused_with_its_reason() {
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_relightd"))
-        .args([
-            "bench",
-            "--case",
-            "dir vpl_count=0",
-            "--scene",
-            "tests/scenes/spot_bleed",
-        ])
-        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
-        .output()
-        .unwrap();
+    let out = bench_on_spot_bleed(&["--case", "dir vpl_count=0"]);
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(

@@ -71,6 +71,15 @@ impl ParamError {
     }
 }
 
+/// `name=value` as the command lines write a parameter (`relightd --param`, `relightctl`, a
+/// bench setting): the value as JSON where it parses (a number, a bool, a quoted string), else
+/// as the plain string. `None` without an `=`.
+pub fn parse_assignment(text: &str) -> Option<(&str, Value)> {
+    let (name, value) = text.split_once('=')?;
+    let value = serde_json::from_str(value).unwrap_or_else(|_| Value::from(value));
+    Some((name, value))
+}
+
 /// The parameters one engine accepts.
 #[derive(Debug, Clone, PartialEq, Default, Serialize)]
 pub struct ParamsSchema {
@@ -266,6 +275,18 @@ impl ParamSpec {
 mod tests {
     use super::*;
     use serde_json::json;
+
+    #[test]
+    fn an_assignment_takes_json_where_it_parses_and_the_text_else() {
+        assert_eq!(parse_assignment("steps=16"), Some(("steps", json!(16))));
+        assert_eq!(parse_assignment("step=0.5"), Some(("step", json!(0.5))));
+        assert_eq!(
+            parse_assignment("shadows=cones"),
+            Some(("shadows", json!("cones")))
+        );
+        assert_eq!(parse_assignment("a=b=c"), Some(("a", json!("b=c"))));
+        assert_eq!(parse_assignment("steps"), None);
+    }
 
     fn schema() -> ParamsSchema {
         ParamsSchema::new(vec![

@@ -83,6 +83,8 @@ pub(crate) fn uniform_buffer(device: &wgpu::Device, label: &str, size: usize) ->
 #[derive(Debug)]
 pub(crate) struct CellCounts {
     pub buffer: wgpu::Buffer,
+    /// One volume's bytes, what each binding holds (and what was checked against the limit).
+    bytes: u64,
     /// Bytes from V^Δ's start to V^ρ's: one volume's, rounded up to the binding alignment.
     half: u64,
 }
@@ -100,6 +102,7 @@ impl CellCounts {
                 2 * half,
                 wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             ),
+            bytes,
             half,
         })
     }
@@ -109,7 +112,7 @@ impl CellCounts {
         wgpu::BindingResource::Buffer(wgpu::BufferBinding {
             buffer: &self.buffer,
             offset: which * self.half,
-            size: wgpu::BufferSize::new(self.half),
+            size: wgpu::BufferSize::new(self.bytes),
         })
     }
 }

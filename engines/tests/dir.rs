@@ -7,6 +7,8 @@ use std::sync::Arc;
 
 use glam::Vec3;
 use relight_core::scene::{Mesh, Scene};
+use relight_engines::SceneFrame;
+use relight_engines::reference::ReferenceImages;
 use support::{
     delta_of, engine, engine_with, frame, load_scene, max_abs, reference_direct, reference_full,
     relative_l2, virtual_moved_far_away,
@@ -205,6 +207,38 @@ fn environment_light_reaches_delta() {
     assert!(with_env < 0.3, "{with_env}");
 }
 
+/// `name` at 80 × 60 as the bench sees it: its full reference at `spp` samples, whose L^μ is
+/// also the camera image.
+fn against_reference(name: &str, spp: u32) -> (ReferenceImages, SceneFrame) {
+    let scene = load_scene(name);
+    let reference = reference_full(&scene, 80, 60, spp);
+    let frame = relight_engines::offline::scene_frame(
+        Arc::new(scene),
+        relight_engines::offline::background(&reference),
+    );
+    (reference, frame)
+}
+
+/// `dir` with `params` on `frame`: the relative L2 of Δ over real pixels against `reference`,
+/// and of the composite over the object's pixels against its L^ρ.
+fn dir_errors(
+    frame: &SceneFrame,
+    reference: &ReferenceImages,
+    params: serde_json::Value,
+) -> (f32, f64) {
+    let (delta, out) = delta_of(&mut engine_with("dir", params), frame);
+    let object = relight_engines::offline::object_error(
+        &out.composite,
+        &reference.l_rho,
+        &reference.virtual_mask,
+    )
+    .unwrap();
+    (
+        relative_l2(&delta, &reference.delta, &reference.virtual_mask).0,
+        object,
+    )
+}
+
 /// The ISM depth bias's default (4 texel footprints) was chosen by the bench on the five scenes:
 /// it lowered Δ's error on every one against the earlier 1.5 (desk_box 0.308 → 0.272,
 /// spot_bleed 0.153 → 0.140, touching_wall 0.417 → 0.384), the smallest worst case of the
@@ -214,16 +248,8 @@ fn environment_light_reaches_delta() {
 #[test]
 fn the_default_ism_bias_beats_the_old_one() {
     for name in ["desk_box", "spot_bleed"] {
-        let scene = load_scene(name);
-        let reference = reference_full(&scene, 80, 60, 64);
-        let frame = relight_engines::offline::scene_frame(
-            Arc::new(scene),
-            relight_engines::offline::background(&reference),
-        );
-        let error = |params| {
-            let (delta, _) = delta_of(&mut engine_with("dir", params), &frame);
-            relative_l2(&delta, &reference.delta, &reference.virtual_mask).0
-        };
+        let (reference, frame) = against_reference(name, 64);
+        let error = |params| dir_errors(&frame, &reference, params).0;
         let (default, old) = (
             error(serde_json::json!({})),
             error(serde_json::json!({ "ism_bias": 1.5 })),
@@ -233,22 +259,14 @@ fn the_default_ism_bias_beats_the_old_one() {
 }
 
 /// The second bounce (`second_bounce` = 1: as many rays as first-bounce VPLs) was made the
-/// default by the bench on the five scenes: converged Δ on spot_bleed 0.107 → 0.080 and
-/// touching_wall 0.362 → 0.332, where the reference truncated at one bounce is 0.07 and 0.28
+/// default by the bench on the five scenes: converged Δ on spot_bleed 0.107 → 0.078 and
+/// touching_wall 0.362 → 0.326, where the reference truncated at one bounce is 0.07 and 0.28
 /// from the full one. Scored against one reference, so its noise adds to both alike.
 #[test]
 fn the_second_bounce_brings_delta_closer_to_the_reference() {
     for name in ["spot_bleed", "touching_wall"] {
-        let scene = load_scene(name);
-        let reference = reference_full(&scene, 80, 60, 128);
-        let frame = relight_engines::offline::scene_frame(
-            Arc::new(scene),
-            relight_engines::offline::background(&reference),
-        );
-        let error = |params| {
-            let (delta, _) = delta_of(&mut engine_with("dir", params), &frame);
-            relative_l2(&delta, &reference.delta, &reference.virtual_mask).0
-        };
+        let (reference, frame) = against_reference(name, 128);
+        let error = |params| dir_errors(&frame, &reference, params).0;
         let (two, one) = (
             error(serde_json::json!({})),
             error(serde_json::json!({ "second_bounce": 0.0 })),
@@ -263,21 +281,8 @@ fn the_second_bounce_brings_delta_closer_to_the_reference() {
 /// the bench), where a spot's concentrated VPLs keep the 5 cm clamp (spot_bleed unchanged).
 #[test]
 fn the_footprint_clamp_brings_the_object_closer_to_the_reference() {
-    let scene = load_scene("desk_box");
-    let reference = reference_full(&scene, 80, 60, 64);
-    let frame = relight_engines::offline::scene_frame(
-        Arc::new(scene),
-        relight_engines::offline::background(&reference),
-    );
-    let error = |params| {
-        let (_, out) = delta_of(&mut engine_with("dir", params), &frame);
-        relight_engines::offline::object_error(
-            &out.composite,
-            &reference.l_rho,
-            &reference.virtual_mask,
-        )
-        .unwrap()
-    };
+    let (reference, frame) = against_reference("desk_box", 64);
+    let error = |params| dir_errors(&frame, &reference, params).1;
     let (footprint, global) = (
         error(serde_json::json!({})),
         error(serde_json::json!({ "footprint_clamp": 0.0 })),

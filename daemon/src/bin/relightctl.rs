@@ -155,13 +155,11 @@ fn parse_json_params(text: &str) -> Result<Value, String> {
 }
 
 fn parse_assignment(text: &str) -> Result<(String, Value), String> {
-    let (key, value) = text
-        .split_once('=')
+    let (key, value) = relight_engines::params::parse_assignment(text)
         .ok_or_else(|| format!("expected KEY=VALUE, got {text:?}"))?;
     if key.is_empty() {
         return Err(format!("empty key in {text:?}"));
     }
-    let value = serde_json::from_str(value).unwrap_or_else(|_| Value::from(value));
     Ok((key.to_owned(), value))
 }
 

@@ -35,6 +35,24 @@ pub struct Triangle {
     node_index: usize,
 }
 
+impl Triangle {
+    /// The geometric normal on the side a ray travelling along `dir` meets it (triangles are
+    /// two-sided).
+    pub fn normal_against(&self, dir: Vec3) -> Vec3 {
+        if self.geometric_normal.dot(dir) > 0.0 {
+            -self.geometric_normal
+        } else {
+            self.geometric_normal
+        }
+    }
+
+    /// The measured albedo at barycentrics (`u`, `v`), where the corners have one.
+    pub fn measured_albedo_at(&self, u: f32, v: f32) -> Option<Vec3> {
+        self.albedo
+            .map(|[a, b, c]| a * (1.0 - u - v) + b * u + c * v)
+    }
+}
+
 impl Bounded<f32, 3> for Triangle {
     fn aabb(&self) -> Aabb<f32, 3> {
         let corners = [self.v0, self.v0 + self.e1, self.v0 + self.e2];

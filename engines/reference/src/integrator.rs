@@ -112,12 +112,8 @@ pub fn radiance(
         let material = scene.materials.get(tri.material).unwrap_or(&BLACK);
         let p = origin + dir * hit.t;
         let wo = -dir;
-        // Both normals face the side the ray came from (triangles are two-sided).
-        let ng = if tri.geometric_normal.dot(wo) < 0.0 {
-            -tri.geometric_normal
-        } else {
-            tri.geometric_normal
-        };
+        // Both normals face the side the ray came from.
+        let ng = tri.normal_against(dir);
         let w = 1.0 - hit.u - hit.v;
         let interpolated = (tri.normals[0] * w + tri.normals[1] * hit.u + tri.normals[2] * hit.v)
             .normalize_or_zero();
@@ -131,8 +127,8 @@ pub fn radiance(
         }
         radiance += throughput * material.emission;
         let albedo = tri
-            .albedo
-            .map_or(material.albedo, |[a, b, c]| a * w + b * hit.u + c * hit.v);
+            .measured_albedo_at(hit.u, hit.v)
+            .unwrap_or(material.albedo);
         let bsdf = Bsdf::new(material, albedo, ns, wo);
         if bsdf.is_black() {
             break;

@@ -354,15 +354,9 @@ fn reflected(
         return Vec3::ZERO;
     };
     let at = origin + dir * hit.t;
-    let n = if tri.geometric_normal.dot(dir) > 0.0 {
-        -tri.geometric_normal
-    } else {
-        tri.geometric_normal
-    };
-    let w = 1.0 - hit.u - hit.v;
+    let n = tri.normal_against(dir);
     let albedo = tri
-        .albedo
-        .map(|[a, b, c]| a * w + b * hit.u + c * hit.v)
+        .measured_albedo_at(hit.u, hit.v)
         .or_else(|| scene.materials.get(tri.material).map(|m| m.albedo))
         .unwrap_or(Vec3::splat(0.5));
     let e: Vec3 = lights

@@ -97,21 +97,16 @@ impl BounceGeometry {
         let on = |geometry: &Geometry| {
             let hit = geometry.intersect(origin, dir, 0.0, f32::INFINITY)?;
             let tri = geometry.triangles().get(hit.triangle)?;
-            let albedo = tri.albedo.map_or_else(
-                || self.albedo.get(tri.material).copied().unwrap_or(Vec3::ZERO),
-                |[a, b, c]| a * (1.0 - hit.u - hit.v) + b * hit.u + c * hit.v,
-            );
-            // The side the light arrives on.
-            let normal = if tri.geometric_normal.dot(dir) > 0.0 {
-                -tri.geometric_normal
-            } else {
-                tri.geometric_normal
-            };
+            let albedo = tri
+                .measured_albedo_at(hit.u, hit.v)
+                .or_else(|| self.albedo.get(tri.material).copied())
+                .unwrap_or(Vec3::ZERO);
             Some(Landing {
                 t: hit.t,
                 on_object: tri.is_virtual,
                 position: origin + dir * hit.t,
-                normal,
+                // The side the light arrives on.
+                normal: tri.normal_against(dir),
                 flux: flux * albedo,
             })
         };

@@ -7,10 +7,8 @@ use serde_json::{Map, Value};
 pub fn parse_params(params: &[String]) -> Result<Map<String, Value>> {
     let mut map = Map::new();
     for param in params {
-        let (key, value) = param
-            .split_once('=')
+        let (key, value) = relight_engines::params::parse_assignment(param)
             .with_context(|| format!("--param `{param}`: expected name=value"))?;
-        let value = serde_json::from_str(value).unwrap_or_else(|_| Value::from(value));
         map.insert(key.to_owned(), value);
     }
     Ok(map)
