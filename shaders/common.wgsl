@@ -236,22 +236,31 @@ fn brdf(m: Material, albedo: vec3<f32>, n: vec3<f32>, wi: vec3<f32>, wo: vec3<f3
     return f;
 }
 
-// 1 where `p` (normal `n`) is lit by light `l` according to the shadow map `map` (layer `layer`,
-// texels holding their `light_distance` in w), 0 where something nearer the light covers it.
-// The bias grows with the texel's footprint and the slope of the surface towards the light.
+// 1 where `p` (normal `n`) is lit by light `l` according to the shadow map `map` (layer `layer`:
+// the depth of the surface nearest the light, as the face's projection gives it), 0 where
+// something nearer the light covers it. The bias grows with the texel's footprint and the slope
+// of the surface towards the light. Depth grows with the distance along every ray from a point
+// light and along a directional light's direction, so moving `p` towards the light by the bias
+// and comparing depths tests its distance less the bias against the stored surface's along the
+// same ray.
 fn lit(l: Light, face: Face, layer: u32, p: vec3<f32>, n: vec3<f32>, to_light: vec3<f32>,
-       map: texture_2d_array<f32>, size: u32, bias_texels: f32) -> f32 {
+       map: texture_depth_2d_array, size: u32, bias_texels: f32) -> f32 {
     let s = f32(size);
     let t = face_texel(face, p, s);
     if any(t < vec2<f32>(0.0)) || any(t >= vec2<f32>(s)) {
         return 1.0;
     }
-    let stored = textureLoad(map, vec2<i32>(floor(t)), i32(layer), 0).w;
-    let dist = light_distance(l, p);
+    let stored = textureLoad(map, vec2<i32>(floor(t)), i32(layer), 0);
     let cos_theta = clamp(dot(n, to_light), 0.05, 1.0);
     let tan_theta = sqrt(1.0 - cos_theta * cos_theta) / cos_theta;
-    let bias = texel_footprint(face, dist, s) * bias_texels * (1.0 + min(tan_theta, 10.0));
-    return select(0.0, 1.0, dist <= stored + bias);
+    let bias = texel_footprint(face, light_distance(l, p), s) * bias_texels
+        * (1.0 + min(tan_theta, 10.0));
+    let clip = face.view_proj * vec4<f32>(p + to_light * bias, 1.0);
+    // Behind a point light: p is within the bias of it.
+    if clip.w <= 0.0 {
+        return 1.0;
+    }
+    return select(0.0, 1.0, clip.z / clip.w <= stored);
 }
 
 // Flux Φ_p (W) a shadow-map texel reflects as a VPL: its albedo times the light's flux through

@@ -20,7 +20,7 @@
 @group(0) @binding(5) var gb_position: texture_2d<f32>;
 @group(0) @binding(6) var gb_normal: texture_2d<f32>;
 @group(0) @binding(7) var gb_albedo: texture_2d<f32>;
-@group(0) @binding(8) var rsm_mu: texture_2d_array<f32>;
+@group(0) @binding(8) var rsm_mu: texture_depth_2d_array;
 // The mip chains (`dvct_mip.wgsl`): L1 SH per colour channel of V^Δ and V^ρ, and occlusion;
 // the sampler is quadrilinear with a zero border, so a cone reads nothing outside the volume.
 @group(0) @binding(9) var delta_r: texture_3d<f32>;

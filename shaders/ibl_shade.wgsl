@@ -15,7 +15,7 @@
 @group(0) @binding(5) var gb_position: texture_2d<f32>;
 @group(0) @binding(6) var gb_normal: texture_2d<f32>;
 @group(0) @binding(7) var gb_albedo: texture_2d<f32>;
-@group(0) @binding(8) var rsm_rho: texture_2d_array<f32>;
+@group(0) @binding(8) var rsm_rho: texture_depth_2d_array;
 @group(0) @binding(9) var<storage, read> maps: array<vec4<f32>>;
 @group(0) @binding(10) var<storage, read_write> indirect: array<vec4<f32>>;
 

@@ -7,18 +7,8 @@
 @group(0) @binding(1) var<storage, read> kernel: array<f32>;
 @group(0) @binding(2) var<storage, read> sums: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read> depth: array<f32>;
-@group(0) @binding(4) var<storage, read> guide: array<u32>;
+@group(0) @binding(4) var<storage, read> guided: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read_write> filtered: array<f32>;
-
-fn colour_at(i: u32) -> vec3<f32> {
-    let channels = recon.dims.w;
-    var c: vec3<f32>;
-    for (var k = 0u; k < 3u; k++) {
-        let byte = i * channels + min(k, channels - 1u);
-        c[k] = guide_value(guide[byte >> 2u], byte);
-    }
-    return c;
-}
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
@@ -55,7 +45,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         filtered[i] = 0.0;
         return;
     }
-    let c = colour_at(i);
+    let c = guided[i].xyz;
     var colour_term = sum_colour.x * c.x;
     colour_term += sum_colour.y * c.y;
     colour_term += sum_colour.z * c.z;

@@ -1,7 +1,8 @@
 // Guided filter, step 1 of 4: the horizontal half of every window moment (depth.rs
 // `guided_filter` → `box_sum_weighted`, first pass). Per pixel, over the row's offsets
 // d = −r ..= r in ascending order, clipped at the border: Σ w(d) · v(x + d) of the masked
-// values v (zero where the depth is invalid, so invalid neighbours add nothing) with the x
+// values v (zero where the depth is invalid, so invalid neighbours add nothing; `guided` from
+// step 0 holds the colour and disparity) with the x
 // weight w ∈ {1, d/r, (d/r)²} of each moment. Moments whose x weight and value agree share a
 // row sum (m_1, m_y and m_yy all start from Σ 1 · mask), so 20 row sums serve the 27 moments.
 //
@@ -13,19 +14,8 @@
 //   4: (Σ RB, Σ GG, Σ GB, Σ BB)
 
 @group(0) @binding(1) var<storage, read> kernel: array<f32>;
-@group(0) @binding(2) var<storage, read> depth: array<f32>;
-@group(0) @binding(3) var<storage, read> guide: array<u32>;
-@group(0) @binding(4) var<storage, read_write> rows: array<vec4<f32>>;
-
-fn colour_at(i: u32) -> vec3<f32> {
-    let channels = recon.dims.w;
-    var c: vec3<f32>;
-    for (var k = 0u; k < 3u; k++) {
-        let byte = i * channels + min(k, channels - 1u);
-        c[k] = guide_value(guide[byte >> 2u], byte);
-    }
-    return c;
-}
+@group(0) @binding(2) var<storage, read> guided: array<vec4<f32>>;
+@group(0) @binding(3) var<storage, read_write> rows: array<vec4<f32>>;
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
@@ -46,15 +36,14 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         if x < 0 || x >= i32(w) {
             continue;
         }
-        let i = id.y * w + u32(x);
-        let z = depth[i];
-        if !is_valid_depth(z) {
+        let v = guided[id.y * w + u32(x)];
+        let p = v.w;
+        if p < 0.0 {
             continue;
         }
         let kd = kernel[u32(d + r)];
         let kd2 = kernel[taps + u32(d + r)];
-        let p = 1.0 / z;
-        let c = colour_at(i);
+        let c = v.xyz;
         let cp = c * p;
         s0 += vec4<f32>(1.0, kd, kd2, p);
         s1 += vec4<f32>(kd * p, c);

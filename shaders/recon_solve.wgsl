@@ -12,60 +12,64 @@
 @group(0) @binding(2) var<storage, read> rows: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read_write> coefficients: array<vec4<f32>>;
 
-const GUIDE: u32 = 5u;
+// The guide's five components: the colour (R, G, B) and the offset (x, y).
+struct Guide5 {
+    c: vec3<f32>,
+    o: vec2<f32>,
+}
 
+// depth.rs `solve_spd` for the 5 × 5 symmetric system whose lower triangle is `s` (row-major:
+// s00; s10 s11; s20 s21 s22; s30 …; s40 … s44): m = L Lᵀ, then L y = rhs, Lᵀ x = y. Written out
+// term by term, every dot product adding its terms in ascending index order as the CPU's
+// iterator sums do: llvmpipe keeps a looped version's arrays in memory and ran it at half the
+// speed. `ok` is false where a pivot is not positive or the solution is not finite.
 struct Solution {
-    x: array<f32, 5>,
+    x: Guide5,
     ok: bool,
 }
 
-// depth.rs `solve_spd`: m = L Lᵀ with L in the lower triangle, then L y = rhs, Lᵀ x = y. Every
-// dot product adds its terms in ascending index order, as the CPU's iterator sums do.
-fn solve_spd(system: array<array<f32, 5>, 5>, rhs: array<f32, 5>) -> Solution {
-    var m = system;
+fn pivot_ok(p: f32) -> bool {
+    return is_finite(p) && p > 0.0;
+}
+
+fn solve_spd(s: array<f32, 15>, rhs: Guide5) -> Solution {
+    let p0 = s[0];
+    let l00 = sqrt(p0);
+    let l10 = s[1] / l00;
+    let l20 = s[3] / l00;
+    let l30 = s[6] / l00;
+    let l40 = s[10] / l00;
+    let p1 = s[2] - l10 * l10;
+    let l11 = sqrt(p1);
+    let l21 = (s[4] - l20 * l10) / l11;
+    let l31 = (s[7] - l30 * l10) / l11;
+    let l41 = (s[11] - l40 * l10) / l11;
+    let p2 = s[5] - (l20 * l20 + l21 * l21);
+    let l22 = sqrt(p2);
+    let l32 = (s[8] - (l30 * l20 + l31 * l21)) / l22;
+    let l42 = (s[12] - (l40 * l20 + l41 * l21)) / l22;
+    let p3 = s[9] - ((l30 * l30 + l31 * l31) + l32 * l32);
+    let l33 = sqrt(p3);
+    let l43 = (s[13] - ((l40 * l30 + l41 * l31) + l42 * l32)) / l33;
+    let p4 = s[14] - (((l40 * l40 + l41 * l41) + l42 * l42) + l43 * l43);
+    let l44 = sqrt(p4);
+
+    let y0 = rhs.c.x / l00;
+    let y1 = (rhs.c.y - l10 * y0) / l11;
+    let y2 = (rhs.c.z - (l20 * y0 + l21 * y1)) / l22;
+    let y3 = (rhs.o.x - ((l30 * y0 + l31 * y1) + l32 * y2)) / l33;
+    let y4 = (rhs.o.y - (((l40 * y0 + l41 * y1) + l42 * y2) + l43 * y3)) / l44;
+
+    let x4 = y4 / l44;
+    let x3 = (y3 - l43 * x4) / l33;
+    let x2 = (y2 - (l32 * x3 + l42 * x4)) / l22;
+    let x1 = (y1 - ((l21 * x2 + l31 * x3) + l41 * x4)) / l11;
+    let x0 = (y0 - (((l10 * x1 + l20 * x2) + l30 * x3) + l40 * x4)) / l00;
+
     var out: Solution;
-    out.ok = false;
-    for (var j = 0u; j < GUIDE; j++) {
-        var dot_jj = 0.0;
-        for (var t = 0u; t < j; t++) {
-            dot_jj += m[j][t] * m[j][t];
-        }
-        let pivot_sq = m[j][j] - dot_jj;
-        if !(is_finite(pivot_sq) && pivot_sq > 0.0) {
-            return out;
-        }
-        let pivot = sqrt(pivot_sq);
-        m[j][j] = pivot;
-        for (var i = j + 1u; i < GUIDE; i++) {
-            var dot_ij = 0.0;
-            for (var t = 0u; t < j; t++) {
-                dot_ij += m[i][t] * m[j][t];
-            }
-            m[i][j] = (m[i][j] - dot_ij) / pivot;
-        }
-    }
-    var y: array<f32, 5>;
-    for (var i = 0u; i < GUIDE; i++) {
-        var lower = 0.0;
-        for (var t = 0u; t < i; t++) {
-            lower += m[i][t] * y[t];
-        }
-        y[i] = (rhs[i] - lower) / m[i][i];
-    }
-    for (var step = 0u; step < GUIDE; step++) {
-        let i = GUIDE - 1u - step;
-        var upper = 0.0;
-        for (var k = i + 1u; k < GUIDE; k++) {
-            upper += m[k][i] * out.x[k];
-        }
-        out.x[i] = (y[i] - upper) / m[i][i];
-    }
-    for (var i = 0u; i < GUIDE; i++) {
-        if !is_finite(out.x[i]) {
-            return out;
-        }
-    }
-    out.ok = true;
+    out.x = Guide5(vec3<f32>(x0, x1, x2), vec2<f32>(x3, x4));
+    out.ok = pivot_ok(p0) && pivot_ok(p1) && pivot_ok(p2) && pivot_ok(p3) && pivot_ok(p4)
+        && is_finite(x0) && is_finite(x1) && is_finite(x2) && is_finite(x3) && is_finite(x4);
     return out;
 }
 
@@ -131,57 +135,41 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         coefficients[n + i] = vec4<f32>(0.0);
         return;
     }
-    let mu = array<f32, 5>(c_1.x / n_k, c_1.y / n_k, c_1.z / n_k, m_x / n_k, m_y / n_k);
+    let mu = Guide5(c_1 / n_k, vec2<f32>(m_x, m_y) / n_k);
     let p_mean = p_1 / n_k;
-    let mean_gp = array<f32, 5>(c_p.x / n_k, c_p.y / n_k, c_p.z / n_k, p_x / n_k, p_y / n_k);
-    // Pairs (0,0) (0,1) (0,2) (1,1) (1,2) (2,2) of the colour products.
-    let cc = array<f32, 6>(c_c0.x, c_c0.y, c_c1.x, c_c1.y, c_c1.z, c_c1.w);
-    var mean_gg: array<array<f32, 5>, 5>;
-    mean_gg[0][0] = cc[0] / n_k;
-    mean_gg[0][1] = cc[1] / n_k;
-    mean_gg[1][0] = mean_gg[0][1];
-    mean_gg[0][2] = cc[2] / n_k;
-    mean_gg[2][0] = mean_gg[0][2];
-    mean_gg[1][1] = cc[3] / n_k;
-    mean_gg[1][2] = cc[4] / n_k;
-    mean_gg[2][1] = mean_gg[1][2];
-    mean_gg[2][2] = cc[5] / n_k;
-    for (var c = 0u; c < 3u; c++) {
-        mean_gg[c][3] = c_x[c] / n_k;
-        mean_gg[3][c] = mean_gg[c][3];
-        mean_gg[c][4] = c_y[c] / n_k;
-        mean_gg[4][c] = mean_gg[c][4];
-    }
-    mean_gg[3][3] = m_xx / n_k;
-    mean_gg[4][4] = m_yy / n_k;
-    mean_gg[3][4] = m_xy / n_k;
-    mean_gg[4][3] = mean_gg[3][4];
-    let regularisation = array<f32, 5>(
-        recon.settings.x,
-        recon.settings.x,
-        recon.settings.x,
-        recon.settings.y,
-        recon.settings.y,
+    let mean_gp = Guide5(c_p / n_k, vec2<f32>(p_x, p_y) / n_k);
+    // mean g gᵀ − μ μᵀ + E, lower triangle: the colour pairs (0,0) (1,0) (1,1) (2,0) (2,1)
+    // (2,2) are c_c0.xy, c_c1.xyzw in the order (0,0) (0,1) (0,2) (1,1) (1,2) (2,2).
+    let eps = recon.settings.x;
+    let eps_position = recon.settings.y;
+    let cx = c_x / n_k;
+    let cy = c_y / n_k;
+    let system = array<f32, 15>(
+        (c_c0.x / n_k - mu.c.x * mu.c.x) + eps,
+        c_c0.y / n_k - mu.c.y * mu.c.x,
+        (c_c1.y / n_k - mu.c.y * mu.c.y) + eps,
+        c_c1.x / n_k - mu.c.z * mu.c.x,
+        c_c1.z / n_k - mu.c.z * mu.c.y,
+        (c_c1.w / n_k - mu.c.z * mu.c.z) + eps,
+        cx.x - mu.o.x * mu.c.x,
+        cx.y - mu.o.x * mu.c.y,
+        cx.z - mu.o.x * mu.c.z,
+        (m_xx / n_k - mu.o.x * mu.o.x) + eps_position,
+        cy.x - mu.o.y * mu.c.x,
+        cy.y - mu.o.y * mu.c.y,
+        cy.z - mu.o.y * mu.c.z,
+        m_xy / n_k - mu.o.y * mu.o.x,
+        (m_yy / n_k - mu.o.y * mu.o.y) + eps_position,
     );
-    var system: array<array<f32, 5>, 5>;
-    var rhs: array<f32, 5>;
-    for (var a = 0u; a < GUIDE; a++) {
-        for (var b = 0u; b < GUIDE; b++) {
-            system[a][b] = mean_gg[a][b] - mu[a] * mu[b];
-        }
-        system[a][a] += regularisation[a];
-        rhs[a] = mean_gp[a] - mu[a] * p_mean;
-    }
+    let rhs = Guide5(mean_gp.c - mu.c * p_mean, mean_gp.o - mu.o * p_mean);
     let solution = solve_spd(system, rhs);
-    var a_k: array<f32, 5>;
+    var a_k = Guide5(vec3<f32>(0.0), vec2<f32>(0.0));
     if solution.ok {
         a_k = solution.x;
     }
-    var a_mu = 0.0;
-    for (var j = 0u; j < GUIDE; j++) {
-        a_mu += a_k[j] * mu[j];
-    }
+    let a_mu = (((a_k.c.x * mu.c.x + a_k.c.y * mu.c.y) + a_k.c.z * mu.c.z) + a_k.o.x * mu.o.x)
+        + a_k.o.y * mu.o.y;
     let b_k = p_mean - a_mu;
-    coefficients[i] = vec4<f32>(n_k, n_k * a_k[0], n_k * a_k[1], n_k * a_k[2]);
-    coefficients[n + i] = vec4<f32>(n_k * a_k[3], n_k * a_k[4], n_k * b_k, 0.0);
+    coefficients[i] = vec4<f32>(n_k, n_k * a_k.c);
+    coefficients[n + i] = vec4<f32>(n_k * a_k.o, n_k * b_k, 0.0);
 }

@@ -33,8 +33,8 @@ struct ShadeParams {
 @group(0) @binding(8) var gb_mu_position: texture_2d<f32>;
 @group(0) @binding(9) var gb_mu_normal: texture_2d<f32>;
 @group(0) @binding(10) var gb_mu_albedo: texture_2d<f32>;
-@group(0) @binding(11) var rsm_rho: texture_2d_array<f32>;
-@group(0) @binding(12) var rsm_mu: texture_2d_array<f32>;
+@group(0) @binding(11) var rsm_rho: texture_depth_2d_array;
+@group(0) @binding(12) var rsm_mu: texture_depth_2d_array;
 @group(0) @binding(13) var background: texture_2d<f32>;
 @group(0) @binding(14) var<storage, read> indirect: array<vec4<f32>>;
 @group(0) @binding(15) var<storage, read_write> delta: array<vec2<u32>>;

@@ -317,12 +317,12 @@ impl Deferred {
         }
     }
 
-    /// Shadow maps that hold the position alone, for engines that use them for visibility
-    /// only (`differential`, `ibl`): a third of the RSM's writes, and no normal or albedo for
-    /// VPLs ([`Targets::rsm_views`] must not be used on them).
+    /// Shadow maps that hold the depth alone, for engines that use them for visibility only
+    /// (`differential`, `ibl`): a ninth of the full RSM's bytes, and no position, normal or
+    /// albedo for VPLs ([`Targets::rsm_views`] must not be used on them).
     pub fn for_visibility_only(self) -> Self {
         Self {
-            rsm: RsmPass::position_only(&self.ctx),
+            rsm: RsmPass::depth_only(&self.ctx),
             light: None,
             rsm_drawn: None,
             ..self
@@ -449,7 +449,7 @@ impl Deferred {
                 &ctx,
                 rsm_size,
                 layers,
-                self.rsm.is_position_only(),
+                self.rsm.is_depth_only(),
             ));
             self.rsm_drawn = None;
         }
@@ -647,7 +647,6 @@ impl Deferred {
         ctx.queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
         let view = Targets::view;
-        let array = Targets::array_view;
         let views = [
             view(&frame_res.gb_rho.position),
             view(&frame_res.gb_rho.normal),
@@ -655,8 +654,8 @@ impl Deferred {
             view(&frame_res.gb_mu.position),
             view(&frame_res.gb_mu.normal),
             view(&frame_res.gb_mu.albedo),
-            array(&light_res.rsm_rho.position),
-            array(&light_res.rsm_mu.position),
+            light_res.rsm_rho.depth_array_view(),
+            light_res.rsm_mu.depth_array_view(),
             view(&frame_res.background),
         ];
         let mut resources = vec![
@@ -843,9 +842,9 @@ impl FrameResources {
 }
 
 impl LightResources {
-    fn new(ctx: &GpuContext, rsm_size: u32, layers: u32, position_only: bool) -> Self {
-        let targets = if position_only {
-            Targets::position_only
+    fn new(ctx: &GpuContext, rsm_size: u32, layers: u32, depth_only: bool) -> Self {
+        let targets = if depth_only {
+            Targets::depth_only
         } else {
             Targets::new
         };

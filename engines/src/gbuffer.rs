@@ -20,11 +20,12 @@ pub struct Targets {
     pub height: u32,
     pub layers: u32,
     pub position: wgpu::Texture,
-    /// 1 × 1 and never drawn in position-only targets ([`Targets::position_only`]).
+    /// The colour targets are 1 × 1 and never drawn in depth-only targets
+    /// ([`Targets::depth_only`]).
     pub normal: wgpu::Texture,
     pub albedo: wgpu::Texture,
     depth: wgpu::Texture,
-    position_only: bool,
+    depth_only: bool,
 }
 
 impl Targets {
@@ -32,14 +33,8 @@ impl Targets {
         Self::with_attachments(ctx, label, width, height, layers, false)
     }
 
-    /// Targets of which only the position is drawn (shadow maps used for visibility alone).
-    pub fn position_only(
-        ctx: &GpuContext,
-        label: &str,
-        width: u32,
-        height: u32,
-        layers: u32,
-    ) -> Self {
+    /// Targets of which only the depth is drawn (shadow maps used for visibility alone).
+    pub fn depth_only(ctx: &GpuContext, label: &str, width: u32, height: u32, layers: u32) -> Self {
         Self::with_attachments(ctx, label, width, height, layers, true)
     }
 
@@ -49,11 +44,10 @@ impl Targets {
         width: u32,
         height: u32,
         layers: u32,
-        position_only: bool,
+        depth_only: bool,
     ) -> Self {
         let texture = |format, suffix: &str, layers: u32| {
-            let (width, height, layers) = if position_only && matches!(suffix, "normal" | "albedo")
-            {
+            let (width, height, layers) = if depth_only && suffix != "depth" {
                 (1, 1, 1)
             } else {
                 (width, height, layers)
@@ -85,7 +79,7 @@ impl Targets {
             albedo: texture(ALBEDO, "albedo", layers),
             // One depth layer per target layer, so that a layer's depth can be kept and copied.
             depth: texture(DEPTH, "depth", layers),
-            position_only,
+            depth_only,
         }
     }
 
@@ -107,15 +101,20 @@ impl Targets {
             .unwrap_or_else(|_| unreachable!("two maps of three views"))
     }
 
+    /// Array view of the depth: what a shadow-map test reads (`lit` in `common.wgsl`).
+    pub fn depth_array_view(&self) -> wgpu::TextureView {
+        Self::array_view(&self.depth)
+    }
+
     /// Bytes of one texel over every drawn target and the depth.
     pub fn texel_bytes(&self) -> u64 {
-        let colour = POSITION.block_copy_size(None).unwrap_or(16)
-            + if self.position_only {
-                0
-            } else {
-                NORMAL.block_copy_size(None).unwrap_or(8)
-                    + ALBEDO.block_copy_size(None).unwrap_or(8)
-            };
+        let colour = if self.depth_only {
+            0
+        } else {
+            POSITION.block_copy_size(None).unwrap_or(16)
+                + NORMAL.block_copy_size(None).unwrap_or(8)
+                + ALBEDO.block_copy_size(None).unwrap_or(8)
+        };
         u64::from(colour) + 4
     }
 
@@ -217,10 +216,9 @@ impl Targets {
         }
     }
 
-    /// The colour targets a pass draws, in attachment order: the position alone in
-    /// position-only targets.
+    /// The colour targets a pass draws, in attachment order: none in depth-only targets.
     fn drawn_colour(&self) -> impl Iterator<Item = &wgpu::Texture> {
-        let drawn = if self.position_only { 1 } else { 3 };
+        let drawn = if self.depth_only { 0 } else { 3 };
         [&self.position, &self.normal, &self.albedo]
             .into_iter()
             .take(drawn)
@@ -257,12 +255,13 @@ enum LayerStart {
     Over,
 }
 
-/// A raster pipeline whose fragment entry `fragment` writes `targets` (in attachment order).
+/// A raster pipeline whose vertex entry is `vertex` and whose fragment entry `fragment` writes
+/// `targets` (in attachment order); without a fragment entry it writes depth alone.
 fn raster_pipeline(
     ctx: &GpuContext,
     label: &str,
     source: &str,
-    fragment: &str,
+    (vertex, fragment): (&str, Option<&str>),
     targets: &[wgpu::TextureFormat],
 ) -> wgpu::RenderPipeline {
     let module = shaders::module(&ctx.device, label, source);
@@ -282,7 +281,7 @@ fn raster_pipeline(
             layout: None,
             vertex: wgpu::VertexState {
                 module: &module,
-                entry_point: Some("vs_main"),
+                entry_point: Some(vertex),
                 compilation_options: Default::default(),
                 buffers: &[Some(GpuVertex::LAYOUT)],
             },
@@ -299,9 +298,9 @@ fn raster_pipeline(
                 bias: Default::default(),
             }),
             multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
+            fragment: fragment.map(|entry| wgpu::FragmentState {
                 module: &module,
-                entry_point: Some(fragment),
+                entry_point: Some(entry),
                 compilation_options: Default::default(),
                 targets: &targets,
             }),
@@ -319,7 +318,13 @@ pub struct GBufferPass {
 impl GBufferPass {
     pub fn new(ctx: &GpuContext) -> Self {
         Self {
-            pipeline: raster_pipeline(ctx, "gbuffer", shaders::GBUFFER, "fs_main", &ALL_TARGETS),
+            pipeline: raster_pipeline(
+                ctx,
+                "gbuffer",
+                shaders::GBUFFER,
+                ("vs_main", Some("fs_main")),
+                &ALL_TARGETS,
+            ),
         }
     }
 
@@ -384,7 +389,7 @@ impl GBufferPass {
 #[derive(Debug)]
 pub struct RsmPass {
     pipeline: wgpu::RenderPipeline,
-    position_only: bool,
+    depth_only: bool,
 }
 
 /// The formats of a full G-buffer or RSM, in attachment order.
@@ -396,28 +401,29 @@ const RSM_EMPTY_DISTANCE: f64 = 3.0e38;
 impl RsmPass {
     pub fn new(ctx: &GpuContext) -> Self {
         Self {
-            pipeline: raster_pipeline(ctx, "rsm", shaders::RSM, "fs_main", &ALL_TARGETS),
-            position_only: false,
-        }
-    }
-
-    /// Shadow maps for visibility alone: the position only, into [`Targets::position_only`].
-    pub fn position_only(ctx: &GpuContext) -> Self {
-        Self {
             pipeline: raster_pipeline(
                 ctx,
-                "rsm position",
+                "rsm",
                 shaders::RSM,
-                "fs_position",
-                &[POSITION],
+                ("vs_main", Some("fs_main")),
+                &ALL_TARGETS,
             ),
-            position_only: true,
+            depth_only: false,
         }
     }
 
-    /// Whether this pass draws the position alone.
-    pub fn is_position_only(&self) -> bool {
-        self.position_only
+    /// Shadow maps for visibility alone: the depth only (no fragment stage), into
+    /// [`Targets::depth_only`].
+    pub fn depth_only(ctx: &GpuContext) -> Self {
+        Self {
+            pipeline: raster_pipeline(ctx, "rsm depth", shaders::RSM, ("vs_depth", None), &[]),
+            depth_only: true,
+        }
+    }
+
+    /// Whether this pass draws the depth alone.
+    pub fn is_depth_only(&self) -> bool {
+        self.depth_only
     }
 
     pub fn bind_group(
@@ -427,18 +433,28 @@ impl RsmPass {
         faces: &wgpu::Buffer,
         scene: &GpuScene,
     ) -> wgpu::BindGroup {
-        let all = [
-            lights.as_entire_binding(),
-            faces.as_entire_binding(),
-            scene.materials.as_entire_binding(),
-        ];
-        // The position alone reads no material, so its layout has no binding for them.
-        let used = if self.position_only { 2 } else { all.len() };
+        let layout = self.pipeline.get_bind_group_layout(0);
+        if self.depth_only {
+            // The depth alone reads the faces (binding 1) and nothing else, so its layout has
+            // that binding alone.
+            return ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("rsm depth"),
+                layout: &layout,
+                entries: &[wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: faces.as_entire_binding(),
+                }],
+            });
+        }
         shaders::bind_group(
             &ctx.device,
             "rsm",
-            &self.pipeline.get_bind_group_layout(0),
-            &all[..used],
+            &layout,
+            &[
+                lights.as_entire_binding(),
+                faces.as_entire_binding(),
+                scene.materials.as_entire_binding(),
+            ],
         )
     }
 

@@ -9,10 +9,11 @@
 //!
 //! | pass | shader | reads | writes |
 //! |---|---|---|---|
-//! | filter 1/4 | `recon_moments.wgsl` | depth, guide | 20 row sums of the window moments |
+//! | filter 0/4 | `recon_guide.wgsl` | depth, guide | colour and disparity per pixel |
+//! | filter 1/4 | `recon_moments.wgsl` | colour and disparity | 20 row sums of the window moments |
 //! | filter 2/4 | `recon_solve.wgsl` | row sums | n_k, n_k a_k, n_k b_k per window |
 //! | filter 3/4 | `recon_spread.wgsl` | window coefficients | their row sums |
-//! | filter 4/4 | `recon_apply.wgsl` | row sums, depth, guide | filtered depth |
+//! | filter 4/4 | `recon_apply.wgsl` | row sums, depth, colour | filtered depth |
 //! | merge | `recon_merge.wgsl` | filtered, rays, history | merged depth and weight, counts |
 //! | agreement | `recon_select.wgsl` | counts, filtered | restart where too few agree |
 //! | normals | `recon_normals.wgsl` | rays, final depth | (normal, depth) per pixel |
@@ -146,6 +147,7 @@ const COUNTERS: usize = 8;
 /// The compute pipelines, built once.
 #[derive(Debug)]
 struct Pipelines {
+    guide: wgpu::ComputePipeline,
     moments: wgpu::ComputePipeline,
     solve: wgpu::ComputePipeline,
     spread: wgpu::ComputePipeline,
@@ -159,6 +161,7 @@ struct Pipelines {
 /// the normals per depth source (filtered, slot 0, slot 1).
 #[derive(Debug)]
 struct Groups {
+    guide: wgpu::BindGroup,
     moments: wgpu::BindGroup,
     solve: wgpu::BindGroup,
     spread: wgpu::BindGroup,
@@ -213,6 +216,7 @@ impl DepthPass {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
         let device = &ctx.device;
         let pipelines = Pipelines {
+            guide: shaders::compute_pipeline(device, "recon guide", shaders::RECON_GUIDE),
             moments: shaders::compute_pipeline(device, "recon moments", shaders::RECON_MOMENTS),
             solve: shaders::compute_pipeline(device, "recon solve", shaders::RECON_SOLVE),
             spread: shaders::compute_pipeline(device, "recon spread", shaders::RECON_SPREAD),
@@ -356,6 +360,7 @@ impl DepthPass {
         {
             let mut pass = timed_pass(&mut encoder, &mut self.timer, "gpu.recon_filter");
             for (pipeline, group) in [
+                (&p.guide, &g.guide),
                 (&p.moments, &g.moments),
                 (&p.solve, &g.solve),
                 (&p.spread, &g.spread),
@@ -484,6 +489,7 @@ impl DepthPass {
         // Three bytes per pixel at most, in whole words.
         let guide = storage(ctx, "recon guide", (pixels * 3).div_ceil(4) * 4, none);
         let rays = storage(ctx, "recon rays", pixels * 16, none);
+        let guided = storage(ctx, "recon colour and disparity", pixels * 16, none);
         let rows = storage(ctx, "recon moment rows", pixels * 5 * 16, none);
         let coefficients = storage(ctx, "recon coefficients", pixels * 2 * 16, none);
         let coefficient_rows = storage(ctx, "recon coefficient rows", pixels * 2 * 16, none);
@@ -517,7 +523,8 @@ impl DepthPass {
         };
         let k = &self.kernel;
         let groups = Groups {
-            moments: group(&p.moments, "recon moments", &[k, &depth, &guide, &rows]),
+            guide: group(&p.guide, "recon guide", &[&depth, &guide, &guided]),
+            moments: group(&p.moments, "recon moments", &[k, &guided, &rows]),
             solve: group(&p.solve, "recon solve", &[k, &rows, &coefficients]),
             spread: group(
                 &p.spread,
@@ -527,7 +534,7 @@ impl DepthPass {
             apply: group(
                 &p.apply,
                 "recon apply",
-                &[k, &coefficient_rows, &depth, &guide, &filtered],
+                &[k, &coefficient_rows, &depth, &guided, &filtered],
             ),
             merge: [0, 1].map(|slot| {
                 let previous = 1 - slot;

@@ -44,6 +44,7 @@ macro_rules! recon_pass {
         )
     };
 }
+pub const RECON_GUIDE: &str = recon_pass!("recon_guide.wgsl");
 pub const RECON_MOMENTS: &str = recon_pass!("recon_moments.wgsl");
 pub const RECON_SOLVE: &str = recon_pass!("recon_solve.wgsl");
 pub const RECON_SPREAD: &str = recon_pass!("recon_spread.wgsl");
@@ -75,6 +76,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("pt_trace.wgsl", PT_TRACE),
     ("pt_resolve.wgsl", PT_RESOLVE),
     ("recon_common.wgsl", pass!("recon_common.wgsl")),
+    ("recon_guide.wgsl", RECON_GUIDE),
     ("recon_moments.wgsl", RECON_MOMENTS),
     ("recon_solve.wgsl", RECON_SOLVE),
     ("recon_spread.wgsl", RECON_SPREAD),

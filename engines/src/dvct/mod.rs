@@ -510,7 +510,6 @@ impl Engine for Dvct {
                     v.occupancy.as_entire_binding(),
                 ],
             );
-            let array = Targets::array_view;
             let inject_group = self.inject.bind_group(
                 &ctx.device,
                 &self.inject_uniform,
@@ -521,7 +520,7 @@ impl Engine for Dvct {
                 Targets::view(&gb_rho.position),
                 Targets::view(&gb_rho.normal),
                 Targets::view(&gb_rho.albedo),
-                array(&rsm_mu.position),
+                rsm_mu.depth_array_view(),
             ];
             let mut trace_resources = vec![
                 self.dvct_uniform.as_entire_binding(),

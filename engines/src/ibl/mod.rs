@@ -349,7 +349,7 @@ impl Engine for Ibl {
                 Targets::view(&gb_rho.position),
                 Targets::view(&gb_rho.normal),
                 Targets::view(&gb_rho.albedo),
-                Targets::array_view(&rsm_rho.position),
+                rsm_rho.depth_array_view(),
             ];
             let mut resources = vec![
                 self.uniform.as_entire_binding(),
