@@ -40,7 +40,7 @@ struct Light {
 struct Face {
     view_proj: mat4x4<f32>,
     // xyz: the face's forward axis; w: tan of the half field of view (perspective) or the
-    // texel's area in m² (orthographic).
+    // cross-section's area in m² (orthographic), at every map size.
     axis: vec4<f32>,
     // x: light index; y: 1 when orthographic.
     light: vec4<u32>,
@@ -154,7 +154,7 @@ fn face_texel(face: Face, p: vec3<f32>, size: f32) -> vec2<f32> {
 // World-space width of one shadow-map texel of `face` at distance `dist` from its light.
 fn texel_footprint(face: Face, dist: f32, size: f32) -> f32 {
     if face.light.y == 1u {
-        return sqrt(face.axis.w);
+        return sqrt(face.axis.w) / size;
     }
     return 2.0 * face.axis.w * dist / size;
 }
@@ -268,7 +268,7 @@ fn lit(l: Light, face: Face, layer: u32, p: vec3<f32>, n: vec3<f32>, to_light: v
 // off the face axis), E · A_texel for directional ones.
 fn vpl_flux(l: Light, face: Face, p: vec3<f32>, albedo: vec3<f32>, size: u32) -> vec3<f32> {
     if face.light.y == 1u {
-        return albedo * l.intensity.rgb * face.axis.w;
+        return albedo * l.intensity.rgb * orthographic_texel_area(face, size);
     }
     let d = p - l.position.xyz;
     let dir = d * inverseSqrt(max(dot(d, d), 1e-12));
@@ -277,6 +277,12 @@ fn vpl_flux(l: Light, face: Face, p: vec3<f32>, albedo: vec3<f32>, size: u32) ->
         intensity *= spot_falloff(dot(l.direction.xyz, dir), l.intensity.w, l.direction.w);
     }
     return albedo * intensity * texel_solid_angle(face, dir, size);
+}
+
+// The cross-section (m²) of one texel of an orthographic face `size` texels square.
+fn orthographic_texel_area(face: Face, size: u32) -> f32 {
+    let s = f32(size);
+    return face.axis.w / (s * s);
 }
 
 // The solid angle of the perspective face's texel that unit `dir` passes through.
@@ -291,7 +297,7 @@ fn texel_solid_angle(face: Face, dir: vec3<f32>, size: u32) -> f32 {
 // (at least 0.1, so a grazing texel does not stand for the whole floor).
 fn texel_area(l: Light, face: Face, p: vec3<f32>, n: vec3<f32>, size: u32) -> f32 {
     if face.light.y == 1u {
-        return face.axis.w / max(abs(dot(n, l.direction.xyz)), 0.1);
+        return orthographic_texel_area(face, size) / max(abs(dot(n, l.direction.xyz)), 0.1);
     }
     let d = p - l.position.xyz;
     let dist2 = max(dot(d, d), 1e-12);

@@ -112,7 +112,7 @@ pub fn default_cases(sweep: bool) -> Vec<BenchCase> {
                 ));
             }
         }
-        for rsm in [256, 1024] {
+        for rsm in [128, 512] {
             cases.push(BenchCase::new("dlpv", json!({ "rsm_size": rsm })));
         }
         for vpls in [64, 128, 512, 1024] {

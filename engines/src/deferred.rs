@@ -65,6 +65,21 @@ impl KeptInputs {
     }
 }
 
+/// The shadow maps' edge by default ([`shadow_size_param`]).
+pub const SHADOW_SIZE_DEFAULT: u32 = 512;
+
+/// The `shadow_size` parameter of the VPL engines, whose reflective shadow maps (`rsm_size`)
+/// are drawn apart from the shadow maps: VPLs need far fewer texels than a shadow's edge does.
+pub fn shadow_size_param() -> ParamSpec {
+    ParamSpec::int(
+        "shadow_size",
+        "shadow-map edge in texels, per light face (depth alone: the direct light's shadows)",
+        64,
+        4096,
+        i64::from(SHADOW_SIZE_DEFAULT),
+    )
+}
+
 /// Frames averaged over sub-pixel offsets by default ([`accumulate_param`]).
 const ACCUMULATE_DEFAULT: i64 = 32;
 
@@ -214,15 +229,50 @@ struct FrameResources {
     history: wgpu::Buffer,
 }
 
-/// Per-light-set resources: the shadow maps and the light/face buffers.
+/// The maps a frame's lights draw, edge in texels per light face.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct MapSizes {
+    /// The shadow maps, depth alone: every engine's direct light is shadowed with them.
+    pub shadow: u32,
+    /// The reflective shadow maps a VPL engine samples its VPLs from (position, normal,
+    /// albedo); `None` for an engine that uses the maps for visibility alone.
+    pub rsm: Option<u32>,
+}
+
+impl MapSizes {
+    /// Shadow maps alone (`differential`, `ibl`).
+    pub fn shadows(size: u32) -> Self {
+        Self {
+            shadow: size,
+            rsm: None,
+        }
+    }
+}
+
+/// Per-light-set resources: the shadow maps, the RSMs of a VPL engine, and the light/face
+/// buffers (one face list serves both map sizes: `light_faces`).
 #[derive(Debug)]
 struct LightResources {
-    rsm_size: u32,
+    sizes: MapSizes,
     layers: u32,
-    rsm_rho: Targets,
-    rsm_mu: Targets,
+    shadow_rho: Targets,
+    shadow_mu: Targets,
+    /// R^ρ and R^μ, with [`MapSizes::rsm`].
+    rsm: Option<(Targets, Targets)>,
     lights: wgpu::Buffer,
     faces: wgpu::Buffer,
+}
+
+/// The shadow maps of the frame's lights (after [`Deferred::prepare`]): what a pass that
+/// shadows direct light binds (`lit` in `common.wgsl`).
+#[derive(Debug, Clone, Copy)]
+pub struct ShadowMaps<'a> {
+    pub lights: &'a wgpu::Buffer,
+    pub faces: &'a wgpu::Buffer,
+    pub rho: &'a Targets,
+    pub mu: &'a Targets,
+    /// Edge in texels per light face.
+    pub size: u32,
 }
 
 /// The shared passes and their resources; engines own one.
@@ -230,6 +280,7 @@ struct LightResources {
 pub struct Deferred {
     ctx: Arc<GpuContext>,
     gbuffer: GBufferPass,
+    shadow: RsmPass,
     rsm: RsmPass,
     shade: wgpu::ComputePipeline,
     camera: wgpu::Buffer,
@@ -284,6 +335,7 @@ impl Deferred {
         };
         Self {
             gbuffer: GBufferPass::new(&ctx),
+            shadow: RsmPass::depth_only(&ctx),
             rsm: RsmPass::new(&ctx),
             shade,
             camera: uniform("camera", size_of::<GpuCamera>() as u64),
@@ -317,18 +369,6 @@ impl Deferred {
         }
     }
 
-    /// Shadow maps that hold the depth alone, for engines that use them for visibility only
-    /// (`differential`, `ibl`): a ninth of the full RSM's bytes, and no position, normal or
-    /// albedo for VPLs ([`Targets::rsm_views`] must not be used on them).
-    pub fn for_visibility_only(self) -> Self {
-        Self {
-            rsm: RsmPass::depth_only(&self.ctx),
-            light: None,
-            rsm_drawn: None,
-            ..self
-        }
-    }
-
     /// Average `frames` frames over sub-pixel offsets while the picture holds still
     /// ([`accumulate_param`]; 1: off). Starts the mean afresh, as any change of the engine's
     /// parameters must.
@@ -347,7 +387,7 @@ impl Deferred {
         engine: &'static str,
         frame: &SceneFrame,
         out: &mut RelitFrame,
-        rsm_size: u32,
+        sizes: MapSizes,
     ) -> Result<(u32, u32), EngineError> {
         let color = out.begin(engine, frame)?;
         let scene = frame.scene.as_ref().ok_or(EngineError::MissingInput {
@@ -361,7 +401,14 @@ impl Deferred {
             u64::from(width.max(height)),
             "the camera resolution",
         )?;
-        ctx.require("max_texture_dimension_2d", u64::from(rsm_size), "rsm_size")?;
+        ctx.require(
+            "max_texture_dimension_2d",
+            u64::from(sizes.shadow),
+            "the shadow-map size",
+        )?;
+        if let Some(rsm_size) = sizes.rsm {
+            ctx.require("max_texture_dimension_2d", u64::from(rsm_size), "rsm_size")?;
+        }
 
         let started = Instant::now();
         if !self
@@ -408,7 +455,7 @@ impl Deferred {
         };
         (self.lights_cpu, self.faces_cpu) =
             if self.extra_lights.is_empty() && environment_lights.is_empty() {
-                light_faces(&scene.lights, light_bounds, rsm_size)
+                light_faces(&scene.lights, light_bounds)
             } else {
                 let all: Vec<Light> = scene
                     .lights
@@ -417,7 +464,7 @@ impl Deferred {
                     .chain(&self.extra_lights)
                     .copied()
                     .collect();
-                let (mut lights, faces) = light_faces(&all, light_bounds, rsm_size);
+                let (mut lights, faces) = light_faces(&all, light_bounds);
                 if self.extra_role == ExtraLights::ShadowOnly {
                     let extras = self.extra_lights.iter().filter(|l| is_shadowed(l)).count();
                     let first = lights.len().saturating_sub(extras);
@@ -443,14 +490,9 @@ impl Deferred {
         if !self
             .light
             .as_ref()
-            .is_some_and(|l| l.rsm_size == rsm_size && l.layers == layers)
+            .is_some_and(|l| l.sizes == sizes && l.layers == layers)
         {
-            self.light = Some(LightResources::new(
-                &ctx,
-                rsm_size,
-                layers,
-                self.rsm.is_depth_only(),
-            ));
+            self.light = Some(LightResources::new(&ctx, sizes, layers));
             self.rsm_drawn = None;
         }
         self.light_count = self.lights_cpu.len() as u32;
@@ -469,7 +511,8 @@ impl Deferred {
             bytemuck::bytes_of(&camera),
             bytemuck::cast_slice(&self.lights_cpu),
             bytemuck::cast_slice(&self.faces_cpu),
-            &rsm_size.to_le_bytes(),
+            &sizes.shadow.to_le_bytes(),
+            &sizes.rsm.unwrap_or(0).to_le_bytes(),
         ]));
         let camera = camera.jittered(self.sample.offset_px);
         ctx.queue
@@ -511,7 +554,7 @@ impl Deferred {
             pass: "gbuffer",
             work: gbuffer_work,
         });
-        let drawn = self.rsm_keys(gpu_scene, rsm_size, layers);
+        let drawn = self.rsm_keys(gpu_scene, sizes, layers);
         let redraw = match self.rsm_drawn {
             _ if self.faces_cpu.is_empty() => None,
             Some(before) if before == drawn => None,
@@ -519,18 +562,29 @@ impl Deferred {
             _ => Some(RsmRedraw::Both),
         };
         if let Some(redraw) = redraw {
-            let rsm_group =
-                self.rsm
-                    .bind_group(&ctx, &light_res.lights, &light_res.faces, gpu_scene);
-            let work = self.rsm.render(
-                &mut encoder,
-                &rsm_group,
-                gpu_scene,
-                (&light_res.rsm_rho, &light_res.rsm_mu),
-                redraw,
-                self.timer.as_mut(),
-            );
-            out.work.push(PassWork { pass: "rsm", work });
+            let maps = [
+                (
+                    &self.shadow,
+                    Some((&light_res.shadow_rho, &light_res.shadow_mu)),
+                ),
+                (&self.rsm, light_res.rsm.as_ref().map(|(rho, mu)| (rho, mu))),
+            ];
+            for (pass, targets) in maps {
+                let Some(targets) = targets else { continue };
+                let group = pass.bind_group(&ctx, &light_res.lights, &light_res.faces, gpu_scene);
+                let work = pass.render(
+                    &mut encoder,
+                    &group,
+                    gpu_scene,
+                    targets,
+                    redraw,
+                    self.timer.as_mut(),
+                );
+                out.work.push(PassWork {
+                    pass: pass.name(),
+                    work,
+                });
+            }
             self.rsm_drawn = Some(drawn);
         }
         encoder.clear_buffer(&frame_res.indirect, 0, None);
@@ -543,15 +597,16 @@ impl Deferred {
         Ok((width, height))
     }
 
-    /// What the R^μ and R^ρ maps would hold for this frame, as hashes of everything they are
-    /// drawn from: the light-space geometry ([`GpuScene::light_fingerprint`]), the lights,
-    /// their faces and the maps' size. Equal to the last drawn: the maps need no redraw.
-    fn rsm_keys(&self, scene: &GpuScene, rsm_size: u32, layers: u32) -> [u64; 2] {
+    /// What the μ and ρ maps (shadow maps and RSMs) would hold for this frame, as hashes of
+    /// everything they are drawn from: the light-space geometry
+    /// ([`GpuScene::light_fingerprint`]), the lights, their faces and the maps' sizes. Equal to
+    /// the last drawn: the maps need no redraw.
+    fn rsm_keys(&self, scene: &GpuScene, sizes: MapSizes, layers: u32) -> [u64; 2] {
         let mut mu = DefaultHasher::new();
         scene.light_fingerprint[0].hash(&mut mu);
         bytemuck::cast_slice::<_, u8>(&self.lights_cpu).hash(&mut mu);
         bytemuck::cast_slice::<_, u8>(&self.faces_cpu).hash(&mut mu);
-        (rsm_size, layers).hash(&mut mu);
+        (sizes, layers).hash(&mut mu);
         let mu = mu.finish();
         let mut rho = DefaultHasher::new();
         (mu, scene.light_fingerprint[1]).hash(&mut rho);
@@ -595,11 +650,23 @@ impl Deferred {
         &self.faces_cpu
     }
 
-    /// The light and face buffers and the R^ρ / R^μ targets (after `prepare`).
+    /// The light and face buffers and the R^ρ / R^μ targets (after `prepare` with an RSM
+    /// size).
     pub fn light_buffers(&self) -> Option<(&wgpu::Buffer, &wgpu::Buffer, &Targets, &Targets)> {
-        self.light
-            .as_ref()
-            .map(|l| (&l.lights, &l.faces, &l.rsm_rho, &l.rsm_mu))
+        let l = self.light.as_ref()?;
+        let (rho, mu) = l.rsm.as_ref()?;
+        Some((&l.lights, &l.faces, rho, mu))
+    }
+
+    /// The shadow maps (after `prepare`).
+    pub fn shadow_maps(&self) -> Option<ShadowMaps<'_>> {
+        self.light.as_ref().map(|l| ShadowMaps {
+            lights: &l.lights,
+            faces: &l.faces,
+            rho: &l.shadow_rho,
+            mu: &l.shadow_mu,
+            size: l.sizes.shadow,
+        })
     }
 
     /// The ρ and μ G-buffers and the per-pixel indirect buffer engines write (after `prepare`).
@@ -636,7 +703,7 @@ impl Deferred {
         };
         let (width, height) = (frame_res.width, frame_res.height);
         let params = ShadeParams {
-            size: [width, height, self.light_count, light_res.rsm_size],
+            size: [width, height, self.light_count, light_res.sizes.shadow],
             options: [
                 options.shadow_bias_texels,
                 if options.direct_delta { 1.0 } else { 0.0 },
@@ -654,8 +721,8 @@ impl Deferred {
             view(&frame_res.gb_mu.position),
             view(&frame_res.gb_mu.normal),
             view(&frame_res.gb_mu.albedo),
-            light_res.rsm_rho.depth_array_view(),
-            light_res.rsm_mu.depth_array_view(),
+            light_res.shadow_rho.depth_array_view(),
+            light_res.shadow_mu.depth_array_view(),
             view(&frame_res.background),
         ];
         let mut resources = vec![
@@ -842,12 +909,8 @@ impl FrameResources {
 }
 
 impl LightResources {
-    fn new(ctx: &GpuContext, rsm_size: u32, layers: u32, depth_only: bool) -> Self {
-        let targets = if depth_only {
-            Targets::depth_only
-        } else {
-            Targets::new
-        };
+    fn new(ctx: &GpuContext, sizes: MapSizes, layers: u32) -> Self {
+        let shadow = |label| Targets::depth_only(ctx, label, sizes.shadow, sizes.shadow, layers);
         let storage = |label, contents: &[u8]| {
             ctx.device
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -857,10 +920,16 @@ impl LightResources {
                 })
         };
         Self {
-            rsm_size,
+            sizes,
             layers,
-            rsm_rho: targets(ctx, "R^ρ", rsm_size, rsm_size, layers),
-            rsm_mu: targets(ctx, "R^μ", rsm_size, rsm_size, layers),
+            shadow_rho: shadow("shadow ρ"),
+            shadow_mu: shadow("shadow μ"),
+            rsm: sizes.rsm.map(|size| {
+                (
+                    Targets::new(ctx, "R^ρ", size, size, layers),
+                    Targets::new(ctx, "R^μ", size, size, layers),
+                )
+            }),
             lights: storage(
                 "lights",
                 bytemuck::cast_slice(&vec![GpuLight::zeroed(); layers as usize]),

@@ -421,9 +421,10 @@ impl RsmPass {
         }
     }
 
-    /// Whether this pass draws the depth alone.
-    pub fn is_depth_only(&self) -> bool {
-        self.depth_only
+    /// The pass's name in the frame's work and timings: `shadow` for depth alone, `rsm` for
+    /// the full maps.
+    pub fn name(&self) -> &'static str {
+        if self.depth_only { "shadow" } else { "rsm" }
     }
 
     pub fn bind_group(
@@ -476,6 +477,11 @@ impl RsmPass {
         redraw: RsmRedraw,
         mut timer: Option<&mut GpuTimer>,
     ) -> Work {
+        let timing = if self.depth_only {
+            "gpu.shadow"
+        } else {
+            "gpu.rsm"
+        };
         let (texels, texel_bytes) = (mu.layer_texels(), mu.texel_bytes());
         let layers = f64::from(mu.layers);
         let mut work = roofline::copy(texels * texel_bytes).times(layers);
@@ -493,7 +499,7 @@ impl RsmPass {
                     LayerStart::Clear {
                         empty_w: RSM_EMPTY_DISTANCE,
                     },
-                    timer.as_deref_mut().and_then(|t| t.render("gpu.rsm")),
+                    timer.as_deref_mut().and_then(|t| t.render(timing)),
                 );
             }
         }
@@ -509,7 +515,7 @@ impl RsmPass {
                     virtual_vertices.clone(),
                     face,
                     LayerStart::Over,
-                    timer.as_deref_mut().and_then(|t| t.render("gpu.rsm")),
+                    timer.as_deref_mut().and_then(|t| t.render(timing)),
                 );
             }
         }

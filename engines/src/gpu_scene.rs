@@ -326,13 +326,11 @@ pub fn is_shadowed(light: &Light) -> bool {
     light.validate().is_ok() && !matches!(light, Light::Environment { .. })
 }
 
-/// Lights the passes can shadow ([`is_shadowed`]) and their shadow-map faces, `rsm_size`
-/// texels square.
-pub fn light_faces(
-    lights: &[Light],
-    bounds: (Vec3, Vec3),
-    rsm_size: u32,
-) -> (Vec<GpuLight>, Vec<GpuFace>) {
+/// Lights the passes can shadow ([`is_shadowed`]) and their shadow-map faces. A face is the
+/// same at every map size (the shadow maps and a VPL engine's RSM may differ): its `axis.w` is
+/// tan(fov/2) for a perspective face and the cross-section's area (m²) for an orthographic one,
+/// which the shaders divide into texels.
+pub fn light_faces(lights: &[Light], bounds: (Vec3, Vec3)) -> (Vec<GpuLight>, Vec<GpuFace>) {
     let mut gpu_lights = Vec::new();
     let mut faces = Vec::new();
     let reach = |from: Vec3| {
@@ -418,10 +416,10 @@ pub fn light_faces(
                 let view = Mat4::look_at_rh(eye, center, dir.any_orthonormal_vector());
                 let proj =
                     Mat4::orthographic_rh(-radius, radius, -radius, radius, 0.0, radius * 4.0);
-                let texel = 2.0 * radius / rsm_size.max(1) as f32;
+                let edge = 2.0 * radius;
                 faces.push(GpuFace {
                     view_proj: (proj * view).to_cols_array_2d(),
-                    axis: dir.extend(texel * texel).to_array(),
+                    axis: dir.extend(edge * edge).to_array(),
                     light: [index, 1, 0, 0],
                 });
                 GpuLight {

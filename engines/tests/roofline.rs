@@ -68,7 +68,7 @@ fn every_engine_states_the_work_of_the_passes_it_ran() {
     assert_eq!(
         stated("differential", none.clone(), "desk_box"),
         [
-            set(&["gbuffer", "rsm", "shade"]),
+            set(&["gbuffer", "shadow", "shade"]),
             set(&["gbuffer", "shade"])
         ]
     );
@@ -79,7 +79,15 @@ fn every_engine_states_the_work_of_the_passes_it_ran() {
             "desk_box"
         ),
         [
-            set(&["gbuffer", "rsm", "inject", "propagate", "lookup", "shade"]),
+            set(&[
+                "gbuffer",
+                "shadow",
+                "rsm",
+                "inject",
+                "propagate",
+                "lookup",
+                "shade"
+            ]),
             set(&["gbuffer", "lookup", "shade"])
         ]
     );
@@ -87,7 +95,7 @@ fn every_engine_states_the_work_of_the_passes_it_ran() {
         stated("dvct", serde_json::json!({ "volume_size": 16 }), "desk_box"),
         [
             set(&[
-                "gbuffer", "rsm", "voxelize", "inject", "mip", "trace", "shade"
+                "gbuffer", "shadow", "rsm", "voxelize", "inject", "mip", "trace", "shade"
             ]),
             set(&["gbuffer", "trace", "shade"])
         ]
@@ -95,13 +103,19 @@ fn every_engine_states_the_work_of_the_passes_it_ran() {
     assert_eq!(
         stated("dir", serde_json::json!({ "vpl_count": 16 }), "desk_box"),
         [
-            set(&["gbuffer", "rsm", "vpls", "ism", "gather", "shade"]),
+            set(&["gbuffer", "shadow", "rsm", "vpls", "ism", "gather", "shade"]),
             set(&["gbuffer", "gather", "shade"])
         ]
     );
     let [first, again] = stated("ibl", none, "window_env");
     assert!(
-        first.is_superset(&set(&["gbuffer", "rsm", "convolve", "ibl_shade", "shade"])),
+        first.is_superset(&set(&[
+            "gbuffer",
+            "shadow",
+            "convolve",
+            "ibl_shade",
+            "shade"
+        ])),
         "{first:?}"
     );
     assert!(!again.contains("convolve"), "{again:?}");

@@ -102,8 +102,13 @@ fn kept_shadow_maps_and_volumes_equal_freshly_drawn_ones() {
                 out.composite == fresh.composite,
                 "{name}: frame {i}'s composite"
             );
-            if ran(&fresh, "gpu.rsm") {
-                assert_eq!(ran(&out, "gpu.rsm"), recomputed[i], "{name}: frame {i}");
+            if ran(&fresh, "gpu.shadow") {
+                assert_eq!(ran(&out, "gpu.shadow"), recomputed[i], "{name}: frame {i}");
+                assert_eq!(
+                    ran(&out, "gpu.rsm"),
+                    recomputed[i] && name != "differential",
+                    "{name}: frame {i}'s RSM"
+                );
                 if let Some(pass) = volume_pass {
                     assert_eq!(ran(&out, pass), recomputed[i], "{name}: frame {i}'s {pass}");
                 }
@@ -245,5 +250,50 @@ fn the_shadow_maps_draw_the_proxy_not_the_real_meshes() {
         "under the roof: {} against {}",
         norm(&roofed),
         norm(&full)
+    );
+}
+
+/// The direct light is shadowed by the shadow maps alone: a VPL engine's reflective shadow maps
+/// (here 16² a face, far too coarse to shadow with) are drawn beside them and change nothing in
+/// the direct Δ, and each set has its own size.
+#[test]
+fn the_reflective_shadow_maps_do_not_shadow_the_direct_light() {
+    use relight_engines::deferred::{Deferred, MapSizes, ShadeOptions};
+    use relight_engines::gpu::GpuContext;
+
+    let ctx = Arc::new(GpuContext::new().expect("a GPU adapter (lavapipe in CI)"));
+    let scene = Arc::new(load_scene("desk_box"));
+    let options = ShadeOptions {
+        shadow_bias_texels: 1.5,
+        direct_delta: true,
+    };
+    let direct = |sizes: MapSizes| {
+        let mut deferred = Deferred::new(ctx.clone());
+        deferred.set_accumulate(1);
+        let mut out = RelitFrame::default();
+        deferred
+            .prepare("test", &frame(scene.clone(), 80, 60), &mut out, sizes)
+            .unwrap();
+        let shadows = deferred.shadow_maps().map(|s| (s.size, s.mu.width));
+        let rsm = deferred.light_buffers().map(|(_, _, _, mu)| mu.width);
+        deferred.finish(options, &mut out).unwrap();
+        (out.delta, shadows, rsm)
+    };
+    let (alone, shadows, rsm) = direct(MapSizes::shadows(512));
+    assert_eq!((shadows, rsm), (Some((512, 512)), None));
+    let (beside, shadows, rsm) = direct(MapSizes {
+        shadow: 512,
+        rsm: Some(16),
+    });
+    assert_eq!((shadows, rsm), (Some((512, 512)), Some(16)));
+    assert!(
+        relight_engines::offline::delta_pixels(&alone)
+            .iter()
+            .any(|d| d.length() > 0.0),
+        "the object casts a shadow"
+    );
+    assert!(
+        alone == beside,
+        "the direct Δ changed with the RSM beside it"
     );
 }

@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, ShadeOptions};
+use crate::deferred::{Deferred, MapSizes, ShadeOptions};
 use crate::engine::{Engine, EngineError, RelitFrame, SceneFrame};
 use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
@@ -44,7 +44,7 @@ impl Differential {
 
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
         Ok(Self {
-            deferred: Deferred::new(ctx).for_visibility_only(),
+            deferred: Deferred::new(ctx),
             rsm_size: 512,
             shadow_bias_texels: 1.5,
         })
@@ -58,7 +58,7 @@ impl Engine for Differential {
 
     fn render(&mut self, scene: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
         self.deferred
-            .prepare(Self::NAME, scene, out, self.rsm_size)?;
+            .prepare(Self::NAME, scene, out, MapSizes::shadows(self.rsm_size))?;
         self.deferred.finish(
             ShadeOptions {
                 shadow_bias_texels: self.shadow_bias_texels,

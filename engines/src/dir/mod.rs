@@ -43,7 +43,7 @@ use relight_core::scene::Scene;
 use serde_json::{Map, Value};
 use wgpu::util::DeviceExt;
 
-use crate::deferred::{Deferred, ExtraLights, KeptInputs, ShadeOptions};
+use crate::deferred::{Deferred, ExtraLights, KeptInputs, MapSizes, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -65,6 +65,7 @@ struct DirUniform {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DirSettings {
     pub rsm_size: u32,
+    pub shadow_size: u32,
     pub vpl_count: u32,
     pub ism_size: u32,
     pub ism_points: u32,
@@ -95,6 +96,7 @@ impl Default for DirSettings {
     fn default() -> Self {
         Self {
             rsm_size: 512,
+            shadow_size: crate::deferred::SHADOW_SIZE_DEFAULT,
             vpl_count: 256,
             ism_size: 64,
             ism_points: 16384,
@@ -159,11 +161,13 @@ impl Dir {
         ParamsSchema::new(vec![
             int(
                 "rsm_size",
-                "reflective-shadow-map edge per light face (VPLs are sampled from it)",
+                "reflective-shadow-map edge per light face (VPLs are sampled from it; the shadows \
+                 have their own map, `shadow_size`)",
                 32,
                 2048,
                 d.rsm_size,
             ),
+            crate::deferred::shadow_size_param(),
             int(
                 "vpl_count",
                 "VPLs per frame (the paper: 256)",
@@ -362,7 +366,11 @@ impl Engine for Dir {
             self.deferred
                 .set_extra_lights(self.environment.lights().to_vec(), ExtraLights::Full);
         }
-        let (width, height) = self.deferred.prepare(Self::NAME, frame, out, s.rsm_size)?;
+        let sizes = MapSizes {
+            shadow: s.shadow_size,
+            rsm: Some(s.rsm_size),
+        };
+        let (width, height) = self.deferred.prepare(Self::NAME, frame, out, sizes)?;
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();
         let layers = self.deferred.faces().len() as u32;
@@ -590,6 +598,7 @@ impl Engine for Dir {
         );
         self.settings = DirSettings {
             rsm_size: int("rsm_size"),
+            shadow_size: int("shadow_size"),
             vpl_count: int("vpl_count"),
             ism_size: int("ism_size"),
             ism_points: int("ism_points"),

@@ -40,7 +40,7 @@ use std::time::Instant;
 use bytemuck::{Pod, Zeroable};
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, KeptInputs, ShadeOptions};
+use crate::deferred::{Deferred, KeptInputs, MapSizes, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -63,6 +63,7 @@ struct LookupUniform {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DlpvSettings {
     pub rsm_size: u32,
+    pub shadow_size: u32,
     pub volume_size: u32,
     pub steps: u32,
     pub rho_steps: u32,
@@ -76,7 +77,8 @@ pub struct DlpvSettings {
 impl Default for DlpvSettings {
     fn default() -> Self {
         Self {
-            rsm_size: 512,
+            rsm_size: 256,
+            shadow_size: crate::deferred::SHADOW_SIZE_DEFAULT,
             volume_size: 32,
             steps: 32,
             rho_steps: 8,
@@ -122,11 +124,13 @@ impl Dlpv {
         ParamsSchema::new(vec![
             int(
                 "rsm_size",
-                "reflective-shadow-map edge per light face; every texel is a VPL",
+                "reflective-shadow-map edge per light face; every texel is a VPL (the shadows \
+                 have their own map, `shadow_size`)",
                 32,
                 2048,
-                512,
+                256,
             ),
+            crate::deferred::shadow_size_param(),
             int("volume_size", "cells per axis of V^Δ and V^ρ", 4, 128, 32),
             int("steps", "propagation steps", 0, 256, 32),
             int(
@@ -254,9 +258,15 @@ impl Engine for Dlpv {
 
     fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
         let settings = self.settings;
-        let (width, height) = self
-            .deferred
-            .prepare(Self::NAME, frame, out, settings.rsm_size)?;
+        let (width, height) = self.deferred.prepare(
+            Self::NAME,
+            frame,
+            out,
+            MapSizes {
+                shadow: settings.shadow_size,
+                rsm: Some(settings.rsm_size),
+            },
+        )?;
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();
         let (bounds, virtual_bounds) = match self.deferred.scene() {
@@ -410,6 +420,7 @@ impl Engine for Dlpv {
         );
         self.settings = DlpvSettings {
             rsm_size: int("rsm_size"),
+            shadow_size: int("shadow_size"),
             volume_size: int("volume_size"),
             steps: int("steps"),
             rho_steps: int("rho_steps"),

@@ -33,7 +33,7 @@ use std::time::Instant;
 use bytemuck::{Pod, Zeroable};
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, KeptInputs, ShadeOptions};
+use crate::deferred::{Deferred, KeptInputs, MapSizes, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -66,6 +66,7 @@ struct MipUniform {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DvctSettings {
     pub rsm_size: u32,
+    pub shadow_size: u32,
     pub volume_size: u32,
     pub volume_scale: f32,
     pub step: f32,
@@ -84,7 +85,8 @@ pub struct DvctSettings {
 impl Default for DvctSettings {
     fn default() -> Self {
         Self {
-            rsm_size: 512,
+            rsm_size: 256,
+            shadow_size: crate::deferred::SHADOW_SIZE_DEFAULT,
             volume_size: 64,
             volume_scale: 3.0,
             step: 0.5,
@@ -154,11 +156,13 @@ impl Dvct {
         ParamsSchema::new(vec![
             int(
                 "rsm_size",
-                "reflective-shadow-map edge per light face; every texel is a VPL",
+                "reflective-shadow-map edge per light face; every texel is a VPL (the shadows \
+                 have their own map, `shadow_size`)",
                 32,
                 2048,
                 d.rsm_size,
             ),
+            crate::deferred::shadow_size_param(),
             int(
                 "volume_size",
                 "cells per axis of the voxel volume (the paper: 256); memory grows as its cube",
@@ -412,9 +416,15 @@ impl Engine for Dvct {
 
     fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
         let settings = self.settings;
-        let (width, height) = self
-            .deferred
-            .prepare(Self::NAME, frame, out, settings.rsm_size)?;
+        let (width, height) = self.deferred.prepare(
+            Self::NAME,
+            frame,
+            out,
+            MapSizes {
+                shadow: settings.shadow_size,
+                rsm: Some(settings.rsm_size),
+            },
+        )?;
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();
         let Some(scene) = self.deferred.scene() else {
@@ -456,7 +466,7 @@ impl Engine for Dvct {
                         n,
                         levels,
                         self.deferred.lights().len() as u32,
-                        settings.rsm_size,
+                        settings.shadow_size,
                     ],
                     cone: [
                         tan(settings.cone_aperture_deg),
@@ -487,11 +497,13 @@ impl Engine for Dvct {
             let (
                 Some(v),
                 Some((lights, faces_buf, rsm_rho, rsm_mu)),
+                Some(shadows),
                 Some((gb_rho, _, indirect)),
                 Some(scene),
             ) = (
                 self.volume.as_ref(),
                 self.deferred.light_buffers(),
+                self.deferred.shadow_maps(),
                 self.deferred.frame_buffers(),
                 self.deferred.scene(),
             )
@@ -520,7 +532,7 @@ impl Engine for Dvct {
                 Targets::view(&gb_rho.position),
                 Targets::view(&gb_rho.normal),
                 Targets::view(&gb_rho.albedo),
-                rsm_mu.depth_array_view(),
+                shadows.mu.depth_array_view(),
             ];
             let mut trace_resources = vec![
                 self.dvct_uniform.as_entire_binding(),
@@ -630,6 +642,7 @@ impl Engine for Dvct {
         );
         self.settings = DvctSettings {
             rsm_size: int("rsm_size"),
+            shadow_size: int("shadow_size"),
             volume_size: int("volume_size"),
             volume_scale: float("volume_scale"),
             step: float("step"),

@@ -26,7 +26,7 @@ use relight_core::light::Light;
 use relight_core::scene::{EnvironmentMap, Scene};
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, ExtraLights, ShadeOptions};
+use crate::deferred::{Deferred, ExtraLights, MapSizes, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -150,7 +150,7 @@ impl Ibl {
             shade: shaders::compute_pipeline(&ctx.device, "ibl shade", shaders::IBL_SHADE),
             uniform: uniform_buffer(&ctx.device, "ibl shade", size_of::<IblUniform>()),
             maps: ReflectionMaps::new(&ctx),
-            deferred: Deferred::sampling_the_environment(ctx).for_visibility_only(),
+            deferred: Deferred::sampling_the_environment(ctx),
             settings: IblSettings::default(),
             environment: None,
             convolutions: 0,
@@ -305,7 +305,9 @@ impl Engine for Ibl {
             None => None,
         };
         let s = self.settings;
-        let (width, height) = self.deferred.prepare(Self::NAME, frame, out, s.rsm_size)?;
+        let (width, height) =
+            self.deferred
+                .prepare(Self::NAME, frame, out, MapSizes::shadows(s.rsm_size))?;
         // After `prepare`, which starts the frame's timings (the convolution's GPU timestamp
         // is lost with the timer's reset; `bench --ibl-maps` times the convolution alone).
         if let Some((timing, work)) = convolved {
@@ -331,31 +333,25 @@ impl Engine for Ibl {
             ctx.queue
                 .write_buffer(&self.uniform, 0, bytemuck::bytes_of(&uniform));
             let mut timer = self.deferred.lend_timer();
-            let (
-                Some((lights, faces, rsm_rho, _)),
-                Some((gb_rho, _, indirect)),
-                Some(gpu_scene),
-                Some(maps),
-            ) = (
-                self.deferred.light_buffers(),
+            let (Some(shadows), Some((gb_rho, _, indirect)), Some(gpu_scene), Some(maps)) = (
+                self.deferred.shadow_maps(),
                 self.deferred.frame_buffers(),
                 self.deferred.scene(),
                 self.maps.buffer(),
-            )
-            else {
+            ) else {
                 return Err(EngineError::NotPrepared);
             };
             let views = [
                 Targets::view(&gb_rho.position),
                 Targets::view(&gb_rho.normal),
                 Targets::view(&gb_rho.albedo),
-                rsm_rho.depth_array_view(),
+                shadows.rho.depth_array_view(),
             ];
             let mut resources = vec![
                 self.uniform.as_entire_binding(),
                 self.deferred.camera_buffer().as_entire_binding(),
-                lights.as_entire_binding(),
-                faces.as_entire_binding(),
+                shadows.lights.as_entire_binding(),
+                shadows.faces.as_entire_binding(),
                 gpu_scene.materials.as_entire_binding(),
             ];
             resources.extend(views.iter().map(wgpu::BindingResource::TextureView));

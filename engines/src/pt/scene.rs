@@ -135,7 +135,7 @@ impl PtScene {
             .chain(scene.virtual_bounds())
             .reduce(|(lo, hi), (l, h)| (lo.min(l), hi.max(h)))
             .unwrap_or((Vec3::ZERO, Vec3::ZERO));
-        let (lights, _) = light_faces(&scene.lights, bounds, 1);
+        let (lights, _) = light_faces(&scene.lights, bounds);
         let sampler = scene.environment.as_ref().and_then(EnvSampler::new);
         let (env_size, env_radiance, env_tables) = match (&scene.environment, &sampler) {
             (Some(env), Some(sampler)) => (
