@@ -240,6 +240,14 @@ pub struct MapSizes {
 }
 
 impl MapSizes {
+    /// Shadow maps and a VPL engine's reflective shadow maps.
+    pub fn with_rsm(shadow: u32, rsm: u32) -> Self {
+        Self {
+            shadow,
+            rsm: Some(rsm),
+        }
+    }
+
     /// Shadow maps alone (`differential`, `ibl`).
     pub fn shadows(size: u32) -> Self {
         Self {

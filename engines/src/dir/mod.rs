@@ -366,10 +366,7 @@ impl Engine for Dir {
             self.deferred
                 .set_extra_lights(self.environment.lights().to_vec(), ExtraLights::Full);
         }
-        let sizes = MapSizes {
-            shadow: s.shadow_size,
-            rsm: Some(s.rsm_size),
-        };
+        let sizes = MapSizes::with_rsm(s.shadow_size, s.rsm_size);
         let (width, height) = self.deferred.prepare(Self::NAME, frame, out, sizes)?;
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();

@@ -262,10 +262,7 @@ impl Engine for Dlpv {
             Self::NAME,
             frame,
             out,
-            MapSizes {
-                shadow: settings.shadow_size,
-                rsm: Some(settings.rsm_size),
-            },
+            MapSizes::with_rsm(settings.shadow_size, settings.rsm_size),
         )?;
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();
