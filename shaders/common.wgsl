@@ -380,32 +380,52 @@ struct VplTexel {
     albedo: vec3<f32>,
 }
 
-// Texel `t` of shadow-map layer `layer` as a VPL of `group`: R^ρ's texels on real surfaces
-// (group 0) and on the virtual object (group 1), and R^μ's texels where R^ρ sees the virtual
-// object in front (group 2).
-fn vpl_texel(group: u32, layer: u32, t: vec2<i32>,
-             rho_position: texture_2d_array<f32>, rho_normal: texture_2d_array<f32>,
-             rho_albedo: texture_2d_array<f32>, mu_position: texture_2d_array<f32>,
-             mu_normal: texture_2d_array<f32>, mu_albedo: texture_2d_array<f32>) -> VplTexel {
-    var out: VplTexel;
+// Texel `t` of shadow-map layer `layer` as VPLs: R^ρ's texel (`rho`: group 0 on a real
+// surface, group 1 on the virtual object, `on_virtual`), and R^μ's texel where R^ρ sees the
+// virtual object in front (`vpl3`: group 2). Read once for all three groups.
+struct VplTexels {
+    rho: VplTexel,
+    on_virtual: bool,
+    vpl3: VplTexel,
+}
+
+fn vpl_texels(layer: u32, t: vec2<i32>,
+              rho_position: texture_2d_array<f32>, rho_normal: texture_2d_array<f32>,
+              rho_albedo: texture_2d_array<f32>, mu_position: texture_2d_array<f32>,
+              mu_normal: texture_2d_array<f32>, mu_albedo: texture_2d_array<f32>) -> VplTexels {
+    var out: VplTexels;
     let albedo = textureLoad(rho_albedo, t, i32(layer), 0);
     if albedo.w < 0.5 {
         return out;
     }
     let normal = textureLoad(rho_normal, t, i32(layer), 0);
-    let on_virtual = normal.w > 0.5;
-    if group == 2u {
+    out.on_virtual = normal.w > 0.5;
+    out.rho.valid = true;
+    out.rho.position = textureLoad(rho_position, t, i32(layer), 0).xyz;
+    out.rho.normal = normal.xyz;
+    out.rho.albedo = albedo.rgb;
+    if out.on_virtual {
         let mu = textureLoad(mu_albedo, t, i32(layer), 0);
-        out.valid = on_virtual && mu.w > 0.5;
-        out.position = textureLoad(mu_position, t, i32(layer), 0).xyz;
-        out.normal = textureLoad(mu_normal, t, i32(layer), 0).xyz;
-        out.albedo = mu.rgb;
-        return out;
+        out.vpl3.valid = mu.w > 0.5;
+        out.vpl3.position = textureLoad(mu_position, t, i32(layer), 0).xyz;
+        out.vpl3.normal = textureLoad(mu_normal, t, i32(layer), 0).xyz;
+        out.vpl3.albedo = mu.rgb;
     }
-    out.valid = on_virtual == (group == 1u);
-    out.position = textureLoad(rho_position, t, i32(layer), 0).xyz;
-    out.normal = normal.xyz;
-    out.albedo = albedo.rgb;
+    return out;
+}
+
+// Texel `t` of shadow-map layer `layer` as a VPL of `group` ([`vpl_texels`]).
+fn vpl_texel(group: u32, layer: u32, t: vec2<i32>,
+             rho_position: texture_2d_array<f32>, rho_normal: texture_2d_array<f32>,
+             rho_albedo: texture_2d_array<f32>, mu_position: texture_2d_array<f32>,
+             mu_normal: texture_2d_array<f32>, mu_albedo: texture_2d_array<f32>) -> VplTexel {
+    let texels = vpl_texels(layer, t, rho_position, rho_normal, rho_albedo, mu_position,
+                            mu_normal, mu_albedo);
+    if group == 2u {
+        return texels.vpl3;
+    }
+    var out = texels.rho;
+    out.valid = out.valid && texels.on_virtual == (group == 1u);
     return out;
 }
 

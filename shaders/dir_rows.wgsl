@@ -1,5 +1,5 @@
-// DIR VPL sampling, step 1 of 3: per shadow-map layer, VPL group and row, the summed luminance
-// of the texels' VPL flux (the density VPLs are importance-sampled from).
+// DIR VPL sampling, step 1 of 3: per shadow-map layer and row, the summed luminance of the
+// texels' VPL flux in each VPL group (the density VPLs are importance-sampled from).
 
 @group(0) @binding(0) var<uniform> dir: Dir;
 @group(0) @binding(1) var<storage, read> lights: array<Light>;
@@ -17,20 +17,29 @@
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let size = dir.dims.y;
     let layer = id.y;
-    let group = id.z;
     if id.x >= size || layer >= dir.dims.z {
         return;
     }
     let face = faces[layer];
     let l = lights[face.light.x];
-    var sum = 0.0;
+    // Groups 0, 1, 2: each texel is read once for all three.
+    var sums = vec3<f32>(0.0);
     for (var x = 0u; x < size; x++) {
-        let v = vpl_texel(group, layer, vec2<i32>(i32(x), i32(id.x)), rsm_rho_position,
-                          rsm_rho_normal, rsm_rho_albedo, rsm_mu_position, rsm_mu_normal,
-                          rsm_mu_albedo);
-        if v.valid {
-            sum += dot(vpl_flux(l, face, v.position, v.albedo, size), LUMINANCE);
+        let v = vpl_texels(layer, vec2<i32>(i32(x), i32(id.x)), rsm_rho_position, rsm_rho_normal,
+                           rsm_rho_albedo, rsm_mu_position, rsm_mu_normal, rsm_mu_albedo);
+        if v.rho.valid {
+            let flux = dot(vpl_flux(l, face, v.rho.position, v.rho.albedo, size), LUMINANCE);
+            if v.on_virtual {
+                sums.y += flux;
+            } else {
+                sums.x += flux;
+            }
+        }
+        if v.vpl3.valid {
+            sums.z += dot(vpl_flux(l, face, v.vpl3.position, v.vpl3.albedo, size), LUMINANCE);
         }
     }
-    rows[(layer * 3u + group) * size + id.x] = sum;
+    for (var group = 0u; group < 3u; group++) {
+        rows[(layer * 3u + group) * size + id.x] = sums[group];
+    }
 }

@@ -489,7 +489,7 @@ impl Engine for Dir {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.vpls");
                     pass.set_pipeline(&self.rows);
                     pass.set_bind_group(0, &rows_group, &[]);
-                    pass.dispatch_workgroups(s.rsm_size.div_ceil(64), layers, 3);
+                    pass.dispatch_workgroups(s.rsm_size.div_ceil(64), layers, 1);
                     pass.set_pipeline(&self.alloc);
                     pass.set_bind_group(0, &alloc_group, &[]);
                     pass.dispatch_workgroups(1, 1, 1);
