@@ -369,6 +369,8 @@ struct Dir {
     // share of dims.x (the CPU's; here only so a change relights); w: a first-bounce VPL's clamp
     // as a share of its footprint's radius (0: `x` alone).
     params: vec4<f32>,
+    // x: where in its stratum of the flux each VPL sits, in (0, 1) (`dir::vpl_stratum`).
+    sampling: vec4<f32>,
 }
 
 const LUMINANCE: vec3<f32> = vec3<f32>(0.2126, 0.7152, 0.0722);

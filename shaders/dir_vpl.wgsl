@@ -1,7 +1,9 @@
 // DIR VPL sampling, step 3 of 3, one thread per VPL: the j-th of group c's n_c VPLs sits where
-// the group's flux CDF (over layers, then rows, then texels of the row) reaches (j + ½)/n_c of
+// the group's flux CDF (over layers, then rows, then texels of the row) reaches (j + u)/n_c of
 // its total. The positions are a fixed stratification of the flux, not random: the same scene
-// gives the same VPLs every frame (no flicker), and a small change moves them a little.
+// gives the same VPLs every frame (no flicker), and a small change moves them a little. u is ½
+// but on the still frames the picture's mean is averaged over (`dir::vpl_stratum`), where each
+// frame draws its VPLs at another point of every stratum.
 // Flux is compensated so each VPL carries total/n_c of luminance: Φ = Φ_texel · (W_c / n_c) /
 // lum(Φ_texel).
 
@@ -48,7 +50,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         vpls[k] = vpl;
         return;
     }
-    var target_flux = (f32(j) + 0.5) / f32(n_c) * total;
+    var target_flux = (f32(j) + dir.sampling.x) / f32(n_c) * total;
     // The layer.
     var layer = 0u;
     for (; layer + 1u < dir.dims.z; layer++) {

@@ -122,6 +122,8 @@ struct Sample {
     weight: f32,
     /// Whether the mean is written (off without accumulation and once it is complete).
     write: bool,
+    /// The frame's place in the mean while it is written (0: the first, or shown alone).
+    index: u32,
 }
 
 impl Sample {
@@ -130,6 +132,7 @@ impl Sample {
         offset_px: Vec2::ZERO,
         weight: 1.0,
         write: false,
+        index: 0,
     };
 }
 
@@ -161,11 +164,13 @@ impl Accumulation {
                 offset_px: Vec2::ZERO,
                 weight: 0.0,
                 write: false,
+                index: 0,
             },
             still => Sample {
                 offset_px: halton_offset(still),
                 weight: 1.0 / (still + 1) as f32,
                 write: true,
+                index: still,
             },
         }
     }
@@ -174,19 +179,22 @@ impl Accumulation {
 /// Point `index` of the Halton (2, 3) sequence as an offset from the pixel's centre; point 0
 /// is the centre itself.
 fn halton_offset(index: u32) -> Vec2 {
-    let radical_inverse = |base: u32| {
-        let (mut i, mut f, mut r) = (index, 1.0f32, 0.0f32);
-        while i > 0 {
-            f /= base as f32;
-            r += f * (i % base) as f32;
-            i /= base;
-        }
-        r
-    };
     if index == 0 {
         return Vec2::ZERO;
     }
-    Vec2::new(radical_inverse(2), radical_inverse(3)) - 0.5
+    Vec2::new(radical_inverse(index, 2), radical_inverse(index, 3)) - 0.5
+}
+
+/// `index`'s digits in `base` mirrored about the point: the van der Corput sequence, whose
+/// first n points spread evenly over [0, 1).
+pub(crate) fn radical_inverse(index: u32, base: u32) -> f32 {
+    let (mut i, mut f, mut r) = (index, 1.0f32, 0.0f32);
+    while i > 0 {
+        f /= base as f32;
+        r += f * (i % base) as f32;
+        i /= base;
+    }
+    r
 }
 
 /// How the final pass treats the direct light on real pixels.
@@ -386,6 +394,14 @@ impl Deferred {
 
     pub fn ctx(&self) -> &Arc<GpuContext> {
         &self.ctx
+    }
+
+    /// This frame's place in the running mean of still frames (after
+    /// [`prepare`](Self::prepare)): 0 for the first frame after a change, for a frame shown
+    /// alone and once the mean is complete; k for the k-th frame added to it. An engine may
+    /// draw its own samples anew from it (`dir`'s VPLs), so that the mean averages them too.
+    pub fn accumulation_index(&self) -> u32 {
+        self.sample.index
     }
 
     /// Upload what changed for this frame and rasterise the G-buffers and shadow maps.

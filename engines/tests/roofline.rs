@@ -101,7 +101,11 @@ fn every_engine_states_the_work_of_the_passes_it_ran() {
         ]
     );
     assert_eq!(
-        stated("dir", serde_json::json!({ "vpl_count": 16 }), "desk_box"),
+        stated(
+            "dir",
+            serde_json::json!({ "vpl_count": 16, "accumulate": 1 }),
+            "desk_box"
+        ),
         [
             set(&["gbuffer", "shadow", "rsm", "vpls", "ism", "gather", "shade"]),
             set(&["gbuffer", "gather", "shade"])

@@ -59,6 +59,16 @@ struct DirUniform {
     dims: [u32; 4],
     size: [u32; 4],
     params: [f32; 4],
+    sampling: [f32; 4],
+}
+
+/// Where in its stratum of the flux each VPL sits (`dir_vpl.wgsl`) on the frame at `index` in
+/// the running mean of still frames ([`Deferred::accumulation_index`]): ½ on a frame shown
+/// alone, as always; then ½ plus the base-5 van der Corput sequence (bases 2 and 3 jitter the
+/// camera), so that the mean of k frames averages k sets of VPLs, each stratified, and the VPL
+/// placement's own error falls with the picture's edges.
+fn vpl_stratum(index: u32) -> f32 {
+    (0.5 + crate::deferred::radical_inverse(index, 5)).fract()
 }
 
 /// The engine's settings (see [`Dir::schema`]).
@@ -78,6 +88,9 @@ pub struct DirSettings {
     /// A first-bounce VPL's 1/d² clamp as a share of the radius of the surface it stands for;
     /// 0: `clamp_distance` alone.
     pub footprint_clamp: f32,
+    /// Each still frame averaged into the picture draws its VPLs anew ([`vpl_stratum`]); off,
+    /// every frame has the same ones.
+    pub vpls_per_frame: bool,
 }
 
 impl DirSettings {
@@ -106,6 +119,7 @@ impl Default for DirSettings {
             env_lights: 16,
             second_bounce: 1.0,
             footprint_clamp: 1.0,
+            vpls_per_frame: true,
         }
     }
 }
@@ -230,6 +244,11 @@ impl Dir {
                 0.0,
                 4.0,
                 d.footprint_clamp,
+            ),
+            ParamSpec::choice(
+                "vpl_placement",
+                "`per_frame` (default, the lower converged error measured): each still frame averaged into the picture (`accumulate`) places its VPLs at another point of their strata of the flux, so the picture averages as many VPL sets; `fixed`: the same VPLs every frame",
+                vec!["per_frame", "fixed"],
             ),
             crate::deferred::accumulate_param(),
         ])
@@ -395,12 +414,23 @@ impl Engine for Dir {
                     s.second_bounce,
                     s.footprint_clamp,
                 ],
+                sampling: [
+                    vpl_stratum(if s.vpls_per_frame {
+                        self.deferred.accumulation_index()
+                    } else {
+                        0
+                    }),
+                    0.0,
+                    0.0,
+                    0.0,
+                ],
             };
             ctx.queue
                 .write_buffer(&self.uniform, 0, bytemuck::bytes_of(&uniform));
             let inputs = KeptInputs::hash_of(&[
                 bytemuck::bytes_of(&uniform.dims),
                 bytemuck::bytes_of(&uniform.params),
+                bytemuck::bytes_of(&uniform.sampling),
                 &point_count.to_le_bytes(),
                 &geometry.to_le_bytes(),
                 &self.deferred.light_inputs().to_le_bytes(),
@@ -605,6 +635,7 @@ impl Engine for Dir {
             env_lights: int("env_lights"),
             second_bounce: float("second_bounce"),
             footprint_clamp: float("footprint_clamp"),
+            vpls_per_frame: schema.choice(params, "vpl_placement") == "per_frame",
         };
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
