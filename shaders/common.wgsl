@@ -8,8 +8,6 @@ const KIND_DIRECTIONAL: u32 = 2u;
 const FLAG_VIRTUAL: u32 = 1u;
 // The vertex carries a measured albedo (engines/src/gpu_scene.rs `pack_measured_albedo`).
 const FLAG_MEASURED_ALBEDO: u32 = 2u;
-// Distance written where a shadow map saw nothing.
-const FAR: f32 = 3.0e38;
 
 struct Camera {
     view_proj: mat4x4<f32>,

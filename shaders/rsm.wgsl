@@ -1,5 +1,5 @@
 // Reflective shadow maps: one layer per light face (six for a point light's cube). Each texel is
-// a VPL: world position (w: distance as `light_distance` measures it), normal facing the light
+// a VPL: world position, normal facing the light
 // (w: 1 on the virtual object), diffuse albedo (w: 1 where something was drawn). Its flux is
 // computed where it is used (`vpl_flux`), so the maps stay within 32 bytes per texel. R^μ is
 // drawn from the real meshes; R^ρ is R^μ copied (depth included) with the virtual object drawn
@@ -50,7 +50,7 @@ fn fs_main(in: VertexOut) -> RsmOut {
         n = -n;
     }
     var out: RsmOut;
-    out.position = vec4<f32>(in.world, light_distance(l, in.world));
+    out.position = vec4<f32>(in.world, 1.0);
     out.normal = vec4<f32>(n, f32(in.flags & FLAG_VIRTUAL));
     out.albedo = vec4<f32>(surface_albedo(in.measured, materials[in.material].albedo.rgb), 1.0);
     return out;

@@ -137,8 +137,8 @@ impl Targets {
     }
 
     /// Draw `vertices` of `scene` into layer `layer`, with the layer as the draw's instance
-    /// index: cleared first (position w to `empty_w`) unless `start` says to draw over what the
-    /// layer holds, depth test included.
+    /// index: cleared first (to zero, depth to the far plane) unless `start` says to draw over
+    /// what the layer holds, depth test included.
     #[allow(clippy::too_many_arguments)]
     fn draw(
         &self,
@@ -155,34 +155,19 @@ impl Targets {
             .drawn_colour()
             .map(|t| Self::layer_view(t, layer))
             .collect();
-        let empty_w = match start {
-            LayerStart::Clear { empty_w, .. } => empty_w,
-            LayerStart::Over => 0.0,
-        };
-        let clears = [
-            wgpu::Color {
-                r: 0.0,
-                g: 0.0,
-                b: 0.0,
-                a: empty_w,
-            },
-            wgpu::Color::TRANSPARENT,
-            wgpu::Color::TRANSPARENT,
-        ];
-        let load = |clear| match start {
-            LayerStart::Clear { .. } => wgpu::LoadOp::Clear(clear),
+        let load = match start {
+            LayerStart::Clear => wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
             LayerStart::Over => wgpu::LoadOp::Load,
         };
         let attachments: Vec<Option<wgpu::RenderPassColorAttachment>> = views
             .iter()
-            .zip(clears)
-            .map(|(view, clear)| {
+            .map(|view| {
                 Some(wgpu::RenderPassColorAttachment {
                     view,
                     depth_slice: None,
                     resolve_target: None,
                     ops: wgpu::Operations {
-                        load: load(clear),
+                        load,
                         store: wgpu::StoreOp::Store,
                     },
                 })
@@ -196,7 +181,7 @@ impl Targets {
                 view: &depth_view,
                 depth_ops: Some(wgpu::Operations {
                     load: match start {
-                        LayerStart::Clear { .. } => wgpu::LoadOp::Clear(1.0),
+                        LayerStart::Clear => wgpu::LoadOp::Clear(1.0),
                         LayerStart::Over => wgpu::LoadOp::Load,
                     },
                     // Kept: a layer's depth is copied (`copy_from`) and drawn over.
@@ -249,8 +234,9 @@ pub enum RsmRedraw {
 /// How [`Targets::draw`] begins a layer.
 #[derive(Debug, Clone, Copy)]
 enum LayerStart {
-    /// Cleared, position w set to `empty_w`.
-    Clear { empty_w: f64 },
+    /// Cleared: colour to zero (a G-buffer's position w, its material index + 1, to nothing; an
+    /// RSM's albedo w to "nothing drawn"), depth to the far plane.
+    Clear,
     /// Drawn over, colour and depth as the layer holds them.
     Over,
 }
@@ -364,7 +350,7 @@ impl GBufferPass {
             scene,
             0..scene.real_vertices,
             0,
-            LayerStart::Clear { empty_w: 0.0 },
+            LayerStart::Clear,
             timer.as_deref_mut().and_then(|t| t.render("gpu.gbuffer")),
         );
         rho.copy_from(encoder, mu);
@@ -394,9 +380,6 @@ pub struct RsmPass {
 
 /// The formats of a full G-buffer or RSM, in attachment order.
 const ALL_TARGETS: [wgpu::TextureFormat; 3] = [POSITION, NORMAL, ALBEDO];
-
-/// Position w of a shadow-map texel that saw nothing (`FAR` in the shaders).
-const RSM_EMPTY_DISTANCE: f64 = 3.0e38;
 
 impl RsmPass {
     pub fn new(ctx: &GpuContext) -> Self {
@@ -496,9 +479,7 @@ impl RsmPass {
                     scene,
                     scene.shadow_real.clone(),
                     face,
-                    LayerStart::Clear {
-                        empty_w: RSM_EMPTY_DISTANCE,
-                    },
+                    LayerStart::Clear,
                     timer.as_deref_mut().and_then(|t| t.render(timing)),
                 );
             }
