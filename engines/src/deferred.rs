@@ -122,7 +122,8 @@ struct Sample {
     weight: f32,
     /// Whether the mean is written (off without accumulation and once it is complete).
     write: bool,
-    /// The frame's place in the mean while it is written (0: the first, or shown alone).
+    /// The frame's place in the mean (0: the first, or shown alone; once the mean is complete,
+    /// the last frame's, so that what an engine drew for it is kept).
     index: u32,
 }
 
@@ -164,7 +165,7 @@ impl Accumulation {
                 offset_px: Vec2::ZERO,
                 weight: 0.0,
                 write: false,
-                index: 0,
+                index: self.frames - 1,
             },
             still => Sample {
                 offset_px: halton_offset(still),
@@ -397,9 +398,10 @@ impl Deferred {
     }
 
     /// This frame's place in the running mean of still frames (after
-    /// [`prepare`](Self::prepare)): 0 for the first frame after a change, for a frame shown
-    /// alone and once the mean is complete; k for the k-th frame added to it. An engine may
-    /// draw its own samples anew from it (`dir`'s VPLs), so that the mean averages them too.
+    /// [`prepare`](Self::prepare)): 0 for the first frame after a change and for a frame shown
+    /// alone; k for the k-th frame added to it; the last one's once the mean is complete (those
+    /// frames only keep the mean, so nothing drawn for them need change). An engine may draw its
+    /// own samples anew from it (`dir`'s VPLs), so that the mean averages them too.
     pub fn accumulation_index(&self) -> u32 {
         self.sample.index
     }
