@@ -679,3 +679,30 @@ fn a_recording_takes_compressed_colour_and_what_was_rendered() {
     let json: Value = serde_json::from_str(&estimate.payload).unwrap();
     assert!(json["sh9_total"].is_array(), "{json}");
 }
+
+/// `relightd replay --tracking scene` registers the camera by the scene file's pose (a tripod)
+/// although the recording's calibration knows the marker board, which it would use otherwise.
+#[test]
+fn replay_takes_the_tracking_source_from_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let replay = |tracking: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_relightd"))
+            .args(["--config", "/dev/null", "replay"])
+            .arg(fixture())
+            .args(["--mode", "fast", "--engine", "passthrough", "--socket"])
+            .arg(dir.path().join("control.sock"))
+            .args(tracking)
+            .env("RUST_LOG", "info")
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(
+            out.status.success() && stdout.contains("rendered 60 of 60 frame sets"),
+            "{stdout}\n{stderr}"
+        );
+        stderr
+    };
+    assert!(replay(&[]).contains(r#"camera tracking source="markers""#));
+    assert!(replay(&["--tracking", "scene"]).contains(r#"camera tracking source="scene""#));
+}

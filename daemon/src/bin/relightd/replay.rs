@@ -8,6 +8,16 @@ use clap::ValueEnum;
 use relight_core::StreamKind;
 use relight_daemon::config::{self, Config, OutputConfig, ReplayConfig, SourceConfig};
 use relight_daemon::pipeline::PipelineOptions;
+use relight_daemon::pipeline::tracking::TrackingSource;
+
+/// `[tracking] source`: where the camera pose comes from.
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum Tracking {
+    /// The marker board the recording's calibration describes.
+    Markers,
+    /// The scene file's camera pose: a tripod registered once.
+    Scene,
+}
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
 pub enum Mode {
@@ -53,6 +63,10 @@ pub struct Args {
     /// Serve the read-only browser page on this address (`127.0.0.1:8766`).
     #[arg(long, value_name = "ADDR")]
     live_page: Option<SocketAddr>,
+    /// Where the camera pose comes from, as `[tracking] source` (default: the markers when the
+    /// recording's calibration knows a board, else the scene's camera).
+    #[arg(long, value_enum)]
+    tracking: Option<Tracking>,
     /// Read a stream from another topic, for a bag another tool recorded (repeatable):
     /// `--topic color=/camera/color/image_raw --topic depth=/camera/depth/image_rect_raw`.
     #[arg(long = "topic", value_name = "STREAM=TOPIC", value_parser = stream_topic)]
@@ -97,6 +111,10 @@ pub fn run(args: Args) -> Result<()> {
     };
     config.engine.name = args.engine;
     config.scene.dir = args.scene;
+    config.tracking.source = args.tracking.map(|t| match t {
+        Tracking::Markers => TrackingSource::Markers,
+        Tracking::Scene => TrackingSource::Scene,
+    });
     config.live_view.foxglove = args.live_view;
     config.live_view.page = args.live_page;
     if let Some(socket) = args.socket {
