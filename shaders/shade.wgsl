@@ -69,14 +69,14 @@ fn direct(p: vec4<f32>, n: vec3<f32>, albedo: vec3<f32>, rho: bool, on_virtual: 
     return sum;
 }
 
-@compute @workgroup_size(8, 8)
-fn main(@builtin(global_invocation_id) id: vec3<u32>) {
-    if id.x >= params.size.x || id.y >= params.size.y {
-        return;
-    }
-    let i = id.y * params.size.x + id.x;
-    let xy = vec2<i32>(id.xy);
-    let background_linear = srgb_to_linear(textureLoad(background, xy, 0).rgb);
+// This frame's picture at pixel `xy` (index `i`): the overlay (L^ρ with coverage 1 on the
+// object, Δ with 0 on real pixels) and Δ.
+struct Shaded {
+    overlay: vec4<f32>,
+    d: vec3<f32>,
+}
+
+fn shade_pixel(xy: vec2<i32>, i: u32) -> Shaded {
     let p_rho = textureLoad(gb_rho_position, xy, 0);
     let n_rho = textureLoad(gb_rho_normal, xy, 0);
     let p_mu = textureLoad(gb_mu_position, xy, 0);
@@ -102,7 +102,27 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         d += indirect[i].rgb;
         overlay = vec4<f32>(d, 0.0);
     }
+    return Shaded(overlay, d);
+}
+
+@compute @workgroup_size(8, 8)
+fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    if id.x >= params.size.x || id.y >= params.size.y {
+        return;
+    }
+    let i = id.y * params.size.x + id.x;
+    let xy = vec2<i32>(id.xy);
+    let background_linear = srgb_to_linear(textureLoad(background, xy, 0).rgb);
     let weight = params.options.z;
+    // A frame that holds the complete mean (weight 0, `Deferred::holds`) drew nothing: it keeps
+    // the mean.
+    var overlay = vec4<f32>(0.0);
+    var d = vec3<f32>(0.0);
+    if weight > 0.0 {
+        let frame = shade_pixel(xy, i);
+        overlay = frame.overlay;
+        d = frame.d;
+    }
     if weight < 1.0 {
         overlay = mix(history[2u * i], overlay, weight);
         d = mix(history[2u * i + 1u].rgb, d, weight);

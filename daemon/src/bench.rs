@@ -169,6 +169,10 @@ pub struct BenchRow {
     /// Median frame time when nothing changed since the previous frame: a still scene, where
     /// an engine keeps what it may (the shadow maps, `Deferred::prepare`).
     pub static_ms: f64,
+    /// Median frame time once the still frames' mean is complete (after `accumulate` of them)
+    /// and nothing changed: the frame shows the mean and draws nothing (`Deferred::holds`),
+    /// what a still camera costs after its edges converged. `None` without accumulation.
+    pub held_ms: Option<f64>,
     /// Median GPU time of the frame's passes by timestamp queries (`None` where the adapter
     /// has none).
     pub gpu_ms: Option<f64>,
@@ -559,13 +563,18 @@ fn measure(
         .map(|_| render(frame, &mut out))
         .collect::<Result<Vec<f64>>>()?;
     static_times.sort_by(f64::total_cmp);
-    let converged = if accumulated_frames > 1 {
+    let (converged, held_ms) = if accumulated_frames > 1 {
         for _ in frames + 1..accumulated_frames {
             render(frame, &mut out)?;
         }
-        Some(Picture::of(&out))
+        let converged = Picture::of(&out);
+        let mut held_times = (0..frames)
+            .map(|_| render(frame, &mut out))
+            .collect::<Result<Vec<f64>>>()?;
+        held_times.sort_by(f64::total_cmp);
+        (Some(converged), Some(held_times[held_times.len() / 2]))
     } else {
-        None
+        (None, None)
     };
     let rendered = Rendered { centre, converged };
     let mut row = BenchRow {
@@ -575,6 +584,7 @@ fn measure(
         median_ms: times[times.len() / 2],
         min_ms: times[0],
         static_ms: static_times[static_times.len() / 2],
+        held_ms,
         gpu_ms: gpu_times.get(gpu_times.len() / 2).copied(),
         gpu_passes,
         pass_work,
@@ -598,11 +608,12 @@ fn measure(
 
 pub fn table(rows: &[BenchRow]) -> String {
     let mut s = format!(
-        "{:<14} {:<48} {:>10} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>7} {:>9} {:>9} {:>9} {:>10}\n",
+        "{:<14} {:<48} {:>10} {:>10} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>7} {:>9} {:>9} {:>9} {:>10}\n",
         "scene",
         "engine / setting",
         "median ms",
         "static ms",
+        "held ms",
         "GPU ms",
         "rel L2",
         "shadow",
@@ -620,11 +631,12 @@ pub fn table(rows: &[BenchRow]) -> String {
     for r in rows {
         let gpu = r.gpu_ms.map_or("-".to_owned(), |ms| format!("{ms:.2}"));
         s.push_str(&format!(
-            "{:<14} {:<48} {:>10.2} {:>10.2} {:>10} {:>9.4} {:>9} {:>9} {:>9.4} {:>9} {:>9.4} {:>7} {:>9} {:>9} {:>9} {:>10}\n",
+            "{:<14} {:<48} {:>10.2} {:>10.2} {:>10} {:>10} {:>9.4} {:>9} {:>9} {:>9.4} {:>9} {:>9.4} {:>7} {:>9} {:>9} {:>9} {:>10}\n",
             r.scene,
             r.setting,
             r.median_ms,
             r.static_ms,
+            r.held_ms.map_or("-".to_owned(), |ms| format!("{ms:.2}")),
             gpu,
             r.relative_l2,
             or_dash(r.shadow_relative_l2),
@@ -771,18 +783,19 @@ pub fn write_roofline(
 pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut csv = String::from(
-        "scene,engine,setting,median_ms,min_ms,static_ms,gpu_ms,relative_l2,shadow_relative_l2,bleeding_relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp,accumulated_frames,area_relative_l2,converged_relative_l2,converged_object_relative_l2,area_reference_noise,area_reference_spp\n",
+        "scene,engine,setting,median_ms,min_ms,static_ms,held_ms,gpu_ms,relative_l2,shadow_relative_l2,bleeding_relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp,accumulated_frames,area_relative_l2,converged_relative_l2,converged_object_relative_l2,area_reference_noise,area_reference_spp\n",
     );
     let or_empty = |v: Option<f64>| v.map_or(String::new(), |e| e.to_string());
     for r in rows {
         csv.push_str(&format!(
-            "{},{},\"{}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},\"{}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
             r.scene,
             r.engine,
             r.setting,
             r.median_ms,
             r.min_ms,
             r.static_ms,
+            or_empty(r.held_ms),
             or_empty(r.gpu_ms),
             r.relative_l2,
             or_empty(r.shadow_relative_l2),

@@ -10,10 +10,11 @@ use std::time::Instant;
 use bytemuck::{Pod, Zeroable};
 use glam::Vec2;
 use relight_core::light::Light;
-use relight_core::scene::Scene;
+use relight_core::scene::{Scene, SceneCamera};
 use relight_core::{Image, PixelFormat};
 use wgpu::util::DeviceExt;
 
+use crate::change::{self, STILL_PX, focus_depth_m, image_shift_px};
 use crate::engine::{EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::{GBufferPass, RsmPass, RsmRedraw, Targets};
 use crate::gpu::GpuContext;
@@ -98,12 +99,16 @@ pub fn accumulate_param() -> ParamSpec {
 
 /// Edges converged over frames (issue 18's pixel-area truth): every engine samples a pixel at
 /// one point, where a camera integrates the pixel's area, and at a shadow or silhouette edge
-/// the two differ by up to the whole step. While the inputs of the picture hold (the scene's
-/// geometry, materials and environment, the camera, the lights; not the background, which the
-/// composite takes fresh every frame), frame k is drawn at the k-th point of the Halton (2, 3)
-/// sequence within the pixel and averaged into a running mean; the first frame after a change
-/// is drawn at the centre and shown alone, exactly as without accumulation, and after
-/// `frames` frames the mean is kept as it is.
+/// the two differ by up to the whole step. While the inputs of the picture hold, frame k is
+/// drawn at the k-th point of the Halton (2, 3) sequence within the pixel and averaged into a
+/// running mean; the first frame after a change is drawn at the centre and shown alone, exactly
+/// as without accumulation, and after `frames` frames the mean is kept as it is and nothing
+/// more is drawn ([`Deferred::holds`]). The inputs are what `pt` keeps its means by
+/// ([`change`]): the scene's geometry (a live depth surface by its revision, which the temporal
+/// merge advances only when it resets, so sensor noise on a held surface is averaged, not a
+/// change), materials, lights and environment; the camera within [`STILL_PX`] of image motion
+/// (the held pose is drawn, so a tracked camera's jitter is no change either); the image and
+/// map sizes. Not the background, which the composite takes fresh every frame.
 #[derive(Debug)]
 struct Accumulation {
     frames: u32,
@@ -128,6 +133,11 @@ struct Sample {
 }
 
 impl Sample {
+    /// The mean is complete and this frame keeps it: nothing need be drawn.
+    fn holds(&self) -> bool {
+        self.weight == 0.0
+    }
+
     /// A frame shown alone: at the centre, no mean read or written.
     const ALONE: Self = Self {
         offset_px: Vec2::ZERO,
@@ -303,9 +313,12 @@ pub struct Deferred {
     camera: wgpu::Buffer,
     params: wgpu::Buffer,
     scene: Option<(Arc<Scene>, GpuScene)>,
-    /// A hash of what the uploaded scene shows the camera: its geometry and materials
-    /// ([`GpuScene::view_fingerprint`]) and its environment map.
+    /// [`change::scene_key`] of the last frame's scene: its content besides the camera (a live
+    /// depth surface by its revision).
     scene_key: u64,
+    /// The camera drawn from while it holds still ([`Self::still_camera`]), with the scene key
+    /// it was held under.
+    held_camera: Option<(u64, SceneCamera)>,
     accumulation: Accumulation,
     sample: Sample,
     frame: Option<FrameResources>,
@@ -359,6 +372,7 @@ impl Deferred {
             params: uniform("shade params", size_of::<ShadeParams>() as u64),
             scene: None,
             scene_key: 0,
+            held_camera: None,
             accumulation: Accumulation::new(),
             sample: Sample::ALONE,
             frame: None,
@@ -406,7 +420,17 @@ impl Deferred {
         self.sample.index
     }
 
-    /// Upload what changed for this frame and rasterise the G-buffers and shadow maps.
+    /// Whether this frame (after [`prepare`](Self::prepare)) shows the complete running mean of
+    /// still frames, whose inputs have not changed since: `prepare` drew nothing, and an engine
+    /// draws nothing either and goes straight to [`finish`](Self::finish), which composites the
+    /// mean over the frame's own background. A still camera on a still scene costs that alone
+    /// once its edges have converged.
+    pub fn holds(&self) -> bool {
+        self.sample.holds()
+    }
+
+    /// Upload what changed for this frame and rasterise the G-buffers and shadow maps; on a
+    /// frame that [`holds`](Self::holds), only the background.
     /// Returns the colour image's size.
     pub fn prepare(
         &mut self,
@@ -437,22 +461,42 @@ impl Deferred {
         }
 
         let started = Instant::now();
-        if !self
+        if let Some(timer) = self.timer.as_mut() {
+            timer.reset();
+        }
+        let uploaded = self
             .scene
             .as_ref()
-            .is_some_and(|(s, _)| Arc::ptr_eq(s, scene))
+            .is_some_and(|(s, _)| Arc::ptr_eq(s, scene));
+        if !uploaded {
+            self.scene_key = change::scene_key(scene);
+        }
+        let camera = self.still_camera(scene, height);
+        let pose = camera.world_from_camera;
+        self.sample = self.accumulation.advance(KeptInputs::hash_of(&[
+            &self.scene_key.to_le_bytes(),
+            bytemuck::cast_slice(&[
+                pose.rotation.to_array(),
+                pose.translation.extend(camera.yfov_rad).to_array(),
+            ]),
+            bytemuck::cast_slice(&[width, height, sizes.shadow, sizes.rsm.unwrap_or(0)]),
+        ]));
+        if self.sample.holds()
+            && self.scene.is_some()
+            && self.frame.is_some()
+            && self.light.is_some()
         {
-            let gpu_scene = GpuScene::new(&ctx, scene);
-            let mut key = DefaultHasher::new();
-            gpu_scene.view_fingerprint.hash(&mut key);
-            if let Some(map) = &scene.environment {
-                (map.width, map.height).hash(&mut key);
-                for texel in &map.radiance {
-                    texel.to_array().map(f32::to_bits).hash(&mut key);
-                }
-            }
-            self.scene_key = key.finish();
-            self.scene = Some((scene.clone(), gpu_scene));
+            // The mean is complete and nothing it was drawn from changed: the frame shows it over
+            // its own background, and nothing else is drawn (`holds`).
+            self.upload_background(color);
+            out.timings.push(PassTiming {
+                pass: "geometry",
+                ms: started.elapsed().as_secs_f64() * 1e3,
+            });
+            return Ok((width, height));
+        }
+        if !uploaded {
+            self.scene = Some((scene.clone(), GpuScene::new(&ctx, scene)));
             let map = scene
                 .environment
                 .as_ref()
@@ -460,18 +504,18 @@ impl Deferred {
             self.derived_environment_lights
                 .update(map, DERIVED_ENVIRONMENT_LIGHTS);
         }
-        let Some((_, gpu_scene)) = &self.scene else {
-            unreachable!("uploaded above")
-        };
-        let (bounds, light_bounds) = (gpu_scene.bounds, gpu_scene.light_bounds);
         if !self
             .frame
             .as_ref()
             .is_some_and(|f| f.width == width && f.height == height)
         {
             self.frame = Some(FrameResources::new(&ctx, width, height));
-            self.accumulation.key = None;
         }
+        self.upload_background(color);
+        let Some((_, gpu_scene)) = &self.scene else {
+            unreachable!("uploaded above")
+        };
+        let (bounds, light_bounds) = (gpu_scene.bounds, gpu_scene.light_bounds);
         let environment_lights: &[Light] = if !self.environment_lights {
             &[]
         } else if scene.environment_lights.is_empty() {
@@ -531,38 +575,10 @@ impl Deferred {
             ctx.queue
                 .write_buffer(&light_res.faces, 0, bytemuck::cast_slice(&self.faces_cpu));
         }
-        let camera = camera_uniform(&scene.camera, width, height, bounds);
-        self.sample = self.accumulation.advance(KeptInputs::hash_of(&[
-            &self.scene_key.to_le_bytes(),
-            bytemuck::bytes_of(&camera),
-            bytemuck::cast_slice(&self.lights_cpu),
-            bytemuck::cast_slice(&self.faces_cpu),
-            &sizes.shadow.to_le_bytes(),
-            &sizes.rsm.unwrap_or(0).to_le_bytes(),
-        ]));
-        let camera = camera.jittered(self.sample.offset_px);
+        let camera = camera_uniform(&camera, width, height, bounds).jittered(self.sample.offset_px);
         ctx.queue
             .write_buffer(&self.camera, 0, bytemuck::bytes_of(&camera));
-        self.rgba.clear();
-        if let Some(rgb) = color.as_u8() {
-            for px in rgb.chunks_exact(3) {
-                self.rgba.extend_from_slice(&[px[0], px[1], px[2], 255]);
-            }
-        }
-        ctx.queue.write_texture(
-            frame_res.background.as_image_copy(),
-            &self.rgba,
-            wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(4 * width),
-                rows_per_image: Some(height),
-            },
-            frame_res.background.size(),
-        );
 
-        if let Some(timer) = self.timer.as_mut() {
-            timer.reset();
-        }
         let mut encoder = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -623,6 +639,48 @@ impl Deferred {
         Ok((width, height))
     }
 
+    /// The camera to draw `scene` from: the held one while the scene's content holds
+    /// ([`change::scene_key`], after `prepare` set it) and the real camera has moved less than
+    /// [`STILL_PX`] of image motion from it, else the real one, which is then held.
+    fn still_camera(&mut self, scene: &Scene, height: u32) -> SceneCamera {
+        let depth = focus_depth_m(
+            &scene.camera,
+            scene.virtual_bounds().or_else(|| scene.real_bounds()),
+        );
+        let camera = match self.held_camera {
+            Some((key, held))
+                if key == self.scene_key
+                    && image_shift_px(&held, &scene.camera, height, depth) <= STILL_PX =>
+            {
+                held
+            }
+            _ => scene.camera,
+        };
+        self.held_camera = Some((self.scene_key, camera));
+        camera
+    }
+
+    /// The frame's colour image as the composite's background (RGBA8).
+    fn upload_background(&mut self, color: &Image) {
+        let Some(frame_res) = &self.frame else { return };
+        self.rgba.clear();
+        if let Some(rgb) = color.as_u8() {
+            for px in rgb.chunks_exact(3) {
+                self.rgba.extend_from_slice(&[px[0], px[1], px[2], 255]);
+            }
+        }
+        self.ctx.queue.write_texture(
+            frame_res.background.as_image_copy(),
+            &self.rgba,
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(4 * frame_res.width),
+                rows_per_image: Some(frame_res.height),
+            },
+            frame_res.background.size(),
+        );
+    }
+
     /// What the μ and ρ maps (shadow maps and RSMs) would hold for this frame, as hashes of
     /// everything they are drawn from: the light-space geometry
     /// ([`GpuScene::light_fingerprint`]), the lights, their faces and the maps' sizes. Equal to
@@ -661,6 +719,7 @@ impl Deferred {
     pub fn set_extra_lights(&mut self, lights: Vec<Light>, role: ExtraLights) {
         self.extra_lights = lights;
         self.extra_role = role;
+        self.accumulation.key = None;
     }
 
     /// The camera uniform (`Camera` in `shaders/common.wgsl`).
@@ -829,8 +888,12 @@ impl Deferred {
 /// background and the indirect term read, Δ and the composite written; per light and G-buffer
 /// one shadow-map texel (16 bytes) and about 200 operations (the light's incidence, the BRDF,
 /// the depth test and its bias); the running mean's 32 bytes read and written as `sample`
-/// needs them.
+/// needs them. A frame that holds the mean reads it and the background, and nothing else.
 fn shade_work(pixels: u64, lights: u32, sample: Sample) -> Work {
+    if sample.holds() {
+        // The mean read, the background read, Δ and the composite written.
+        return Work::new(32.0 + 4.0 + 8.0 + 4.0, 20.0).times(pixels as f64);
+    }
     let per_light = Work::new(16.0, 200.0).times(2.0 * f64::from(lights));
     let read = if sample.weight < 1.0 { 32.0 } else { 0.0 };
     let written = if sample.write { 32.0 } else { 0.0 };

@@ -94,9 +94,6 @@ pub struct GpuScene {
     /// Hashes of what the light-space passes draw: the real part (with the materials) and the
     /// virtual part. Equal hashes, equal lights: equal shadow maps.
     pub light_fingerprint: [u64; 2],
-    /// A hash of what the camera sees: every mesh's vertices and the materials. Equal hashes:
-    /// equal G-buffers from one camera.
-    pub view_fingerprint: u64,
     /// Bounds of the virtual object(s), if any.
     pub virtual_bounds: Option<(Vec3, Vec3)>,
 }
@@ -213,10 +210,6 @@ impl GpuScene {
             ]),
             fingerprint(&[bytemuck::cast_slice(range(real_vertices..all_vertices))]),
         ];
-        let view_fingerprint = fingerprint(&[
-            bytemuck::cast_slice(range(0..all_vertices)),
-            materials_bytes,
-        ]);
         // wgpu refuses zero-sized vertex buffers; one degenerate vertex is never drawn.
         if vertices.is_empty() {
             vertices.push(GpuVertex::zeroed());
@@ -248,7 +241,6 @@ impl GpuScene {
             bounds,
             light_bounds,
             light_fingerprint,
-            view_fingerprint,
             virtual_bounds: scene.virtual_bounds(),
         }
     }

@@ -125,6 +125,20 @@ fn still_frames_converge_to_the_pixel_area() {
     assert!(kept.delta == last.delta && kept.composite == last.composite);
 }
 
+/// `frame` with a camera image of one grey `level` instead.
+fn with_background(frame: SceneFrame, level: u8) -> SceneFrame {
+    let (width, height) = frame
+        .color
+        .as_ref()
+        .map_or((0, 0), |c| (c.payload.width(), c.payload.height()));
+    let mut image = Image::new(width, height, PixelFormat::Rgb8);
+    image.as_u8_mut().unwrap().fill(level);
+    SceneFrame {
+        color: Some(Arc::new(Frame::new(1, frame.stamp, image))),
+        ..frame
+    }
+}
+
 /// The background is not averaged: a still scene whose camera image changes (the live video)
 /// shows the new image at once wherever the object changes nothing.
 #[test]
@@ -135,13 +149,7 @@ fn the_composite_takes_each_frames_background() {
     for _ in 0..4 {
         render(&mut engine, &grey);
     }
-    let mut bright = Image::new(64, 48, PixelFormat::Rgb8);
-    bright.as_u8_mut().unwrap().fill(200);
-    let bright = SceneFrame {
-        color: Some(Arc::new(Frame::new(1, grey.stamp, bright))),
-        ..grey
-    };
-    let out = render(&mut engine, &bright);
+    let out = render(&mut engine, &with_background(grey, 200));
     let delta = delta_pixels(&out.delta);
     let untouched: Vec<&[u8]> = out
         .composite
@@ -156,4 +164,125 @@ fn the_composite_takes_each_frames_background() {
     for c in untouched {
         assert!(c.iter().all(|&v| v.abs_diff(200) <= 1), "{c:?}");
     }
+}
+
+/// Whether `out`'s frame drew anything besides the shading pass (its work rows: one per pass
+/// run, `RelitFrame::work`).
+fn drew(out: &RelitFrame) -> bool {
+    out.work.iter().any(|w| w.pass != "shade")
+}
+
+/// Every engine: once the mean of `accumulate` still frames is complete, a frame whose inputs
+/// have not changed draws nothing (no G-buffer, no map, no pass of the engine's own; only the
+/// shading pass, which keeps the mean) and shows the mean bit for bit over its own background.
+#[test]
+fn a_complete_mean_is_held_without_drawing() {
+    let desk = Arc::new(load_scene("desk_box"));
+    let window = Arc::new(load_scene("window_env"));
+    let small = serde_json::json!({ "volume_size": 16, "steps": 8 });
+    for (name, params, scene) in [
+        ("differential", serde_json::json!({}), &desk),
+        ("dlpv", small, &desk),
+        ("dvct", serde_json::json!({ "volume_size": 16 }), &desk),
+        ("dir", serde_json::json!({ "vpl_count": 64 }), &desk),
+        ("ibl", serde_json::json!({ "map_size": 16 }), &window),
+    ] {
+        let mut engine = engine_with(name, with(&params, 4));
+        let grey = frame(scene.clone(), 64, 48);
+        let outs: Vec<RelitFrame> = (0..6).map(|_| render(&mut engine, &grey)).collect();
+        for (i, out) in outs.iter().enumerate() {
+            assert_eq!(drew(out), i < 4, "{name}: frame {i}: {:?}", out.work);
+        }
+        for held in &outs[4..] {
+            assert!(
+                held.delta == outs[3].delta && held.composite == outs[3].composite,
+                "{name}"
+            );
+        }
+        // The live video still shows through a held frame.
+        let out = render(&mut engine, &with_background(grey, 200));
+        assert!(!drew(&out) && out.delta == outs[3].delta, "{name}");
+        assert_ne!(out.composite, outs[3].composite, "{name}");
+    }
+}
+
+/// `scene` with its real meshes moved by `offset_m` along y, as sensor noise moves a live depth
+/// surface between frames, and the given [`Scene::surface_revision`].
+fn noisy_surface(scene: &Scene, offset_m: f32, revision: Option<u64>) -> Arc<Scene> {
+    let mut scene = scene.clone();
+    for mesh in scene.meshes.iter_mut().filter(|m| !m.is_virtual) {
+        for p in &mut mesh.positions_in_world {
+            p.y += offset_m;
+        }
+    }
+    scene.surface_revision = revision;
+    Arc::new(scene)
+}
+
+/// A live depth surface counts as unchanged while the depth merge keeps its revision, so its
+/// frame-to-frame noise is averaged into the mean, which then holds; a new revision (the merge
+/// reset) starts the mean afresh. A scene file's geometry, which has no revision, is compared
+/// by content: moved by as little, it starts the mean on every frame.
+#[test]
+fn a_live_surface_is_still_while_its_revision_holds() {
+    let desk = load_scene("desk_box");
+    let mut accumulating = engine_with("differential", serde_json::json!({ "accumulate": 4 }));
+    let mut single = engine_with("differential", serde_json::json!({ "accumulate": 1 }));
+    let alone = |a: &RelitFrame, b: &RelitFrame| a.delta == b.delta && a.composite == b.composite;
+    let offsets = [0.0, 1e-4, -1e-4, 2e-4, 0.0, 1e-4];
+    for (revision, first_alone) in [(Some(1), [true, false, false, false]), (None, [true; 4])] {
+        for (i, offset) in offsets.iter().enumerate() {
+            let f = frame(noisy_surface(&desk, *offset, revision), 64, 48);
+            let a = render(&mut accumulating, &f);
+            let b = render(&mut single, &f);
+            if i < 4 {
+                assert_eq!(alone(&a, &b), first_alone[i], "{revision:?}: frame {i}");
+            }
+            assert_eq!(
+                drew(&a),
+                revision.is_none() || i < 4,
+                "{revision:?}: frame {i}"
+            );
+        }
+    }
+    // The merge resets: revision 2 is a new surface, shown alone.
+    let f = frame(noisy_surface(&desk, 0.0, Some(2)), 64, 48);
+    let (a, b) = (render(&mut accumulating, &f), render(&mut single, &f));
+    assert!(alone(&a, &b) && drew(&a));
+}
+
+/// A tracked camera's jitter below a quarter pixel of image motion is no change: the mean goes
+/// on, drawn from the held pose. A turn of a pixel starts it afresh.
+#[test]
+fn camera_jitter_below_a_quarter_pixel_keeps_the_mean() {
+    let desk = load_scene("desk_box");
+    let height = 48u32;
+    let focal_px = height as f32 / (2.0 * (desk.camera.yfov_rad / 2.0).tan());
+    let turned = |px: f32| {
+        let mut scene = desk.clone();
+        let pose = &mut scene.camera.world_from_camera;
+        pose.rotation = Quat::from_rotation_y(px / focal_px) * pose.rotation;
+        Arc::new(scene)
+    };
+    let mut accumulating = engine_with("differential", serde_json::json!({ "accumulate": 8 }));
+    let mut single = engine_with("differential", serde_json::json!({ "accumulate": 1 }));
+    let base = frame(Arc::new(desk.clone()), 64, height);
+    render(&mut accumulating, &base);
+    let jittered = frame(turned(0.1), 64, height);
+    let a = render(&mut accumulating, &jittered);
+    // Drawn from the held pose at the second Halton offset: neither the jittered camera's
+    // centre picture nor the held one's.
+    for reference in [&jittered, &base] {
+        let b = render(&mut single, reference);
+        assert!(a.delta != b.delta, "accumulated, not shown alone");
+    }
+    let moved = frame(turned(1.0), 64, height);
+    let (a, b) = (
+        render(&mut accumulating, &moved),
+        render(&mut single, &moved),
+    );
+    assert!(
+        a.delta == b.delta && a.composite == b.composite,
+        "a pixel's turn is a change"
+    );
 }

@@ -27,11 +27,10 @@ use serde_json::{Map, Value, json};
 
 use self::features::scene_features;
 use self::governor::{Action, Governor, Motion, PtFrame, Settings};
-use crate::change::{focus_depth_m, image_shift_px, scene_key};
+use crate::change::{STILL_PX, focus_depth_m, image_shift_px, scene_key};
 use crate::engine::{Engine, EngineError, RelitFrame, SceneFrame};
 use crate::gpu::GpuError;
 use crate::params::{ParamSpec, ParamsSchema};
-use crate::pt::STILL_PX;
 use crate::registry::{EngineRegistry, RegistryError};
 
 /// The camera must move this far (pixels) before the features are estimated again.

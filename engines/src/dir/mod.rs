@@ -387,6 +387,13 @@ impl Engine for Dir {
         }
         let sizes = MapSizes::with_rsm(s.shadow_size, s.rsm_size);
         let (width, height) = self.deferred.prepare(Self::NAME, frame, out, sizes)?;
+        let options = ShadeOptions {
+            shadow_bias_texels: s.shadow_bias,
+            direct_delta: true,
+        };
+        if self.deferred.holds() {
+            return self.deferred.finish(options, out);
+        }
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();
         let layers = self.deferred.faces().len() as u32;
@@ -608,13 +615,7 @@ impl Engine for Dir {
                 ms: bounce_ms,
             });
         }
-        self.deferred.finish(
-            ShadeOptions {
-                shadow_bias_texels: s.shadow_bias,
-                direct_delta: true,
-            },
-            out,
-        )
+        self.deferred.finish(options, out)
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {

@@ -264,6 +264,13 @@ impl Engine for Dlpv {
             out,
             MapSizes::with_rsm(settings.shadow_size, settings.rsm_size),
         )?;
+        let options = ShadeOptions {
+            shadow_bias_texels: settings.shadow_bias,
+            direct_delta: !settings.antiradiance,
+        };
+        if self.deferred.holds() {
+            return self.deferred.finish(options, out);
+        }
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();
         let (bounds, virtual_bounds) = match self.deferred.scene() {
@@ -400,13 +407,7 @@ impl Engine for Dlpv {
             pass: "volume",
             ms: started.elapsed().as_secs_f64() * 1e3,
         });
-        self.deferred.finish(
-            ShadeOptions {
-                shadow_bias_texels: settings.shadow_bias,
-                direct_delta: !settings.antiradiance,
-            },
-            out,
-        )
+        self.deferred.finish(options, out)
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {

@@ -422,6 +422,13 @@ impl Engine for Dvct {
             out,
             MapSizes::with_rsm(settings.shadow_size, settings.rsm_size),
         )?;
+        let options = ShadeOptions {
+            shadow_bias_texels: settings.shadow_bias,
+            direct_delta: !settings.shadow_cones,
+        };
+        if self.deferred.holds() {
+            return self.deferred.finish(options, out);
+        }
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();
         let Some(scene) = self.deferred.scene() else {
@@ -622,13 +629,7 @@ impl Engine for Dvct {
             pass: "volume",
             ms: started.elapsed().as_secs_f64() * 1e3,
         });
-        self.deferred.finish(
-            ShadeOptions {
-                shadow_bias_texels: settings.shadow_bias,
-                direct_delta: !settings.shadow_cones,
-            },
-            out,
-        )
+        self.deferred.finish(options, out)
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {

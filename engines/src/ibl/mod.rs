@@ -314,8 +314,12 @@ impl Engine for Ibl {
             out.timings.push(timing);
             out.work.push(work);
         }
+        let options = ShadeOptions {
+            shadow_bias_texels: s.shadow_bias,
+            direct_delta: true,
+        };
         let has_maps = self.environment.as_ref().is_some_and(|e| e.input.is_some());
-        if has_maps {
+        if has_maps && !self.deferred.holds() {
             let started = Instant::now();
             let ctx = self.deferred.ctx().clone();
             let mut uniform = IblUniform {
@@ -384,13 +388,7 @@ impl Engine for Ibl {
                 ms: started.elapsed().as_secs_f64() * 1e3,
             });
         }
-        self.deferred.finish(
-            ShadeOptions {
-                shadow_bias_texels: s.shadow_bias,
-                direct_delta: true,
-            },
-            out,
-        )
+        self.deferred.finish(options, out)
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {

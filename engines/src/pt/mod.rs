@@ -41,7 +41,7 @@ use relight_core::scene::{Scene, SceneCamera};
 use serde_json::{Map, Value};
 
 use self::scene::PtScene;
-use crate::change::{focus_depth_m, image_shift_px, scene_key};
+use crate::change::{STILL_PX, focus_depth_m, image_shift_px, scene_key};
 use crate::deferred::KeptInputs;
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gpu::{GpuContext, GpuError};
@@ -49,9 +49,6 @@ use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::timer::GpuTimer;
-
-/// Image motion (pixels) under which the camera counts as still and the held pose is traced.
-pub const STILL_PX: f32 = 0.25;
 
 /// Samples per pixel in one dispatch at most (a frame may submit several).
 const DISPATCH_SPP: u32 = 64;
