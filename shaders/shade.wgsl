@@ -114,7 +114,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let xy = vec2<i32>(id.xy);
     let background_linear = srgb_to_linear(textureLoad(background, xy, 0).rgb);
     let weight = params.options.z;
-    // A frame that holds the complete mean (weight 0, `Deferred::holds`) drew nothing: it keeps
+    // A frame that holds the complete mean (weight 0, `Deferred::prepare`) drew nothing: it keeps
     // the mean.
     var overlay = vec4<f32>(0.0);
     var d = vec3<f32>(0.0);

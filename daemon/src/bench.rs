@@ -170,7 +170,7 @@ pub struct BenchRow {
     /// an engine keeps what it may (the shadow maps, `Deferred::prepare`).
     pub static_ms: f64,
     /// Median frame time once the still frames' mean is complete (after `accumulate` of them)
-    /// and nothing changed: the frame shows the mean and draws nothing (`Deferred::holds`),
+    /// and nothing changed: the frame shows the mean and draws nothing (`Deferred::prepare`),
     /// what a still camera costs after its edges converged. `None` without accumulation.
     pub held_ms: Option<f64>,
     /// Median GPU time of the frame's passes by timestamp queries (`None` where the adapter

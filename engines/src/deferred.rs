@@ -103,7 +103,7 @@ pub fn accumulate_param() -> ParamSpec {
 /// drawn at the k-th point of the Halton (2, 3) sequence within the pixel and averaged into a
 /// running mean; the first frame after a change is drawn at the centre and shown alone, exactly
 /// as without accumulation, and after `frames` frames the mean is kept as it is and nothing
-/// more is drawn ([`Deferred::holds`]). The inputs are what `pt` keeps its means by
+/// more is drawn ([`Deferred::prepare`] finishes such a frame itself). The inputs are what `pt` keeps its means by
 /// ([`change`]): the scene's geometry (a live depth surface by its revision, which the temporal
 /// merge advances only when it resets, so sensor noise on a held surface is averaged, not a
 /// change), materials, lights and environment; the camera within [`STILL_PX`] of image motion
@@ -420,25 +420,20 @@ impl Deferred {
         self.sample.index
     }
 
-    /// Whether this frame (after [`prepare`](Self::prepare)) shows the complete running mean of
-    /// still frames, whose inputs have not changed since: `prepare` drew nothing, and an engine
-    /// draws nothing either and goes straight to [`finish`](Self::finish), which composites the
-    /// mean over the frame's own background. A still camera on a still scene costs that alone
-    /// once its edges have converged.
-    pub fn holds(&self) -> bool {
-        self.sample.holds()
-    }
-
-    /// Upload what changed for this frame and rasterise the G-buffers and shadow maps; on a
-    /// frame that [`holds`](Self::holds), only the background.
-    /// Returns the colour image's size.
+    /// Upload what changed for this frame and rasterise the G-buffers and shadow maps. Returns
+    /// the colour image's size, for the engine's own passes and then [`finish`](Self::finish).
+    ///
+    /// `None` when the frame holds the complete running mean of still frames, whose inputs have
+    /// not changed since: nothing is drawn, the mean is composited over the frame's own
+    /// background and read back into `out` here, and the engine's frame is done. A still camera
+    /// on a still scene costs that alone once its edges have converged.
     pub fn prepare(
         &mut self,
         engine: &'static str,
         frame: &SceneFrame,
         out: &mut RelitFrame,
         sizes: MapSizes,
-    ) -> Result<(u32, u32), EngineError> {
+    ) -> Result<Option<(u32, u32)>, EngineError> {
         let color = out.begin(engine, frame)?;
         let scene = frame.scene.as_ref().ok_or(EngineError::MissingInput {
             engine,
@@ -487,13 +482,20 @@ impl Deferred {
             && self.light.is_some()
         {
             // The mean is complete and nothing it was drawn from changed: the frame shows it over
-            // its own background, and nothing else is drawn (`holds`).
+            // its own background, and nothing else is drawn. Its shading reads neither option.
             self.upload_background(color);
             out.timings.push(PassTiming {
                 pass: "geometry",
                 ms: started.elapsed().as_secs_f64() * 1e3,
             });
-            return Ok((width, height));
+            self.finish(
+                ShadeOptions {
+                    shadow_bias_texels: 0.0,
+                    direct_delta: false,
+                },
+                out,
+            )?;
+            return Ok(None);
         }
         if !uploaded {
             self.scene = Some((scene.clone(), GpuScene::new(&ctx, scene)));
@@ -636,7 +638,7 @@ impl Deferred {
             pass: "geometry",
             ms: started.elapsed().as_secs_f64() * 1e3,
         });
-        Ok((width, height))
+        Ok(Some((width, height)))
     }
 
     /// The camera to draw `scene` from: the held one while the scene's content holds

@@ -57,8 +57,12 @@ impl Engine for Differential {
     }
 
     fn render(&mut self, scene: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
-        self.deferred
-            .prepare(Self::NAME, scene, out, MapSizes::shadows(self.rsm_size))?;
+        let Some(_) =
+            self.deferred
+                .prepare(Self::NAME, scene, out, MapSizes::shadows(self.rsm_size))?
+        else {
+            return Ok(());
+        };
         self.deferred.finish(
             ShadeOptions {
                 shadow_bias_texels: self.shadow_bias_texels,

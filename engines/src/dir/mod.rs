@@ -386,14 +386,9 @@ impl Engine for Dir {
                 .set_extra_lights(self.environment.lights().to_vec(), ExtraLights::Full);
         }
         let sizes = MapSizes::with_rsm(s.shadow_size, s.rsm_size);
-        let (width, height) = self.deferred.prepare(Self::NAME, frame, out, sizes)?;
-        let options = ShadeOptions {
-            shadow_bias_texels: s.shadow_bias,
-            direct_delta: true,
+        let Some((width, height)) = self.deferred.prepare(Self::NAME, frame, out, sizes)? else {
+            return Ok(());
         };
-        if self.deferred.holds() {
-            return self.deferred.finish(options, out);
-        }
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();
         let layers = self.deferred.faces().len() as u32;
@@ -615,7 +610,13 @@ impl Engine for Dir {
                 ms: bounce_ms,
             });
         }
-        self.deferred.finish(options, out)
+        self.deferred.finish(
+            ShadeOptions {
+                shadow_bias_texels: s.shadow_bias,
+                direct_delta: true,
+            },
+            out,
+        )
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {

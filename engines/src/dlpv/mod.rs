@@ -258,19 +258,15 @@ impl Engine for Dlpv {
 
     fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
         let settings = self.settings;
-        let (width, height) = self.deferred.prepare(
+        let Some((width, height)) = self.deferred.prepare(
             Self::NAME,
             frame,
             out,
             MapSizes::with_rsm(settings.shadow_size, settings.rsm_size),
-        )?;
-        let options = ShadeOptions {
-            shadow_bias_texels: settings.shadow_bias,
-            direct_delta: !settings.antiradiance,
+        )?
+        else {
+            return Ok(());
         };
-        if self.deferred.holds() {
-            return self.deferred.finish(options, out);
-        }
         let started = Instant::now();
         let ctx = self.deferred.ctx().clone();
         let (bounds, virtual_bounds) = match self.deferred.scene() {
@@ -407,7 +403,13 @@ impl Engine for Dlpv {
             pass: "volume",
             ms: started.elapsed().as_secs_f64() * 1e3,
         });
-        self.deferred.finish(options, out)
+        self.deferred.finish(
+            ShadeOptions {
+                shadow_bias_texels: settings.shadow_bias,
+                direct_delta: !settings.antiradiance,
+            },
+            out,
+        )
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {

@@ -305,21 +305,20 @@ impl Engine for Ibl {
             None => None,
         };
         let s = self.settings;
-        let (width, height) =
+        let Some((width, height)) =
             self.deferred
-                .prepare(Self::NAME, frame, out, MapSizes::shadows(s.rsm_size))?;
+                .prepare(Self::NAME, frame, out, MapSizes::shadows(s.rsm_size))?
+        else {
+            return Ok(());
+        };
         // After `prepare`, which starts the frame's timings (the convolution's GPU timestamp
         // is lost with the timer's reset; `bench --ibl-maps` times the convolution alone).
         if let Some((timing, work)) = convolved {
             out.timings.push(timing);
             out.work.push(work);
         }
-        let options = ShadeOptions {
-            shadow_bias_texels: s.shadow_bias,
-            direct_delta: true,
-        };
         let has_maps = self.environment.as_ref().is_some_and(|e| e.input.is_some());
-        if has_maps && !self.deferred.holds() {
+        if has_maps {
             let started = Instant::now();
             let ctx = self.deferred.ctx().clone();
             let mut uniform = IblUniform {
@@ -388,7 +387,13 @@ impl Engine for Ibl {
                 ms: started.elapsed().as_secs_f64() * 1e3,
             });
         }
-        self.deferred.finish(options, out)
+        self.deferred.finish(
+            ShadeOptions {
+                shadow_bias_texels: s.shadow_bias,
+                direct_delta: true,
+            },
+            out,
+        )
     }
 
     fn set_params(&mut self, params: &Map<String, Value>) {
