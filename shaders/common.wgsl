@@ -303,6 +303,38 @@ fn texel_area(l: Light, face: Face, p: vec3<f32>, n: vec3<f32>, size: u32) -> f3
     return texel_solid_angle(face, dir, size) * dist2 / max(abs(dot(n, dir)), 0.1);
 }
 
+// DLPV's volumes store their SH as f16 (two u32 words per channel's four coefficients), in
+// units of 2^23 injection counts. The counts of one coefficient are bounded by 2^30
+// (`volume::fixed_point_scale`), so an injected value is at most 128 units; a propagation step
+// passes a uniform field's light on unchanged, so no step should exceed that, and the sum of
+// the injection and 256 steps (the most `steps` allows) stays under f16's largest value,
+// 65504; the clamp guards what that argument leaves open. The smallest normal f16 is then 512
+// counts, 2^-21 of the bound. Each step's f32 sums are rounded to f16 once: a relative 2^-11
+// of each value.
+const SH_UNITS_PER_COUNT: f32 = 1.0 / 8388608.0;
+const SH_F16_MAX: f32 = 65504.0;
+
+// pack2x16float and unpack2x16float would do, but need a capability (f16 in f32) that
+// llvmpipe grants only with native f16 and naga's default validation refuses: by hand, with
+// `f16_bits`, on every adapter.
+fn pack_sh(v: vec4<f32>) -> vec2<u32> {
+    let c = clamp(v, vec4<f32>(-SH_F16_MAX), vec4<f32>(SH_F16_MAX));
+    return vec2<u32>(f16_bits(c.x) | (f16_bits(c.y) << 16u), f16_bits(c.z) | (f16_bits(c.w) << 16u));
+}
+
+// The value of the f16 in the low 16 bits of `h`, finite (`pack_sh` stores no ∞ or NaN):
+// normal halves by moving exponent and mantissa into place, subnormal ones as m · 2^-24.
+fn f16_value(h: u32) -> f32 {
+    let e = (h >> 10u) & 0x1fu;
+    let m = h & 0x3ffu;
+    let magnitude = select(bitcast<f32>(((e + 112u) << 23u) | (m << 13u)), f32(m) * 5.9604645e-8, e == 0u);
+    return select(magnitude, -magnitude, (h & 0x8000u) != 0u);
+}
+
+fn unpack_sh(p: vec2<u32>) -> vec4<f32> {
+    return vec4<f32>(f16_value(p.x), f16_value(p.x >> 16u), f16_value(p.y), f16_value(p.y >> 16u));
+}
+
 // The DLPV volume: n³ cells of L1 SH per colour channel, twice (V^Δ, then V^ρ).
 struct Volume {
     // xyz: minimum corner; w: cell edge (m).

@@ -11,7 +11,7 @@ struct LookupParams {
 
 @group(0) @binding(0) var<uniform> volume: Volume;
 @group(0) @binding(1) var<uniform> lookup: LookupParams;
-@group(0) @binding(2) var<storage, read> accumulated: array<vec4<f32>>;
+@group(0) @binding(2) var<storage, read> accumulated: array<vec2<u32>>;
 @group(0) @binding(3) var gb_position: texture_2d<f32>;
 @group(0) @binding(4) var gb_normal: texture_2d<f32>;
 @group(0) @binding(5) var gb_albedo: texture_2d<f32>;
@@ -24,7 +24,7 @@ fn cell_sh(which: u32, c: vec3<i32>, ch: u32) -> vec4<f32> {
     }
     let n3 = u32(n * n * n);
     let index = which * n3 + u32((c.z * n + c.y) * n + c.x);
-    return accumulated[index * 3u + ch];
+    return unpack_sh(accumulated[index * 3u + ch]);
 }
 
 @compute @workgroup_size(8, 8)
@@ -61,5 +61,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         }
     }
     let albedo = textureLoad(gb_albedo, xy, 0).rgb;
-    indirect[i] = vec4<f32>(albedo / PI * e / (cell * cell), 0.0);
+    // The volume's units (`pack_sh`) back to intensity: counts, then the injection's scale.
+    let units = 1.0 / (SH_UNITS_PER_COUNT * volume.scale.x);
+    indirect[i] = vec4<f32>(albedo / PI * e * units / (cell * cell), 0.0);
 }

@@ -15,10 +15,10 @@
 // differs from the paper's derivative-based rule).
 
 @group(0) @binding(0) var<uniform> volume: Volume;
-// n³ cells × 3 channels of L1 SH (one vec4 per channel), for V^Δ then V^ρ.
-@group(0) @binding(1) var<storage, read> source: array<vec4<f32>>;
-@group(0) @binding(2) var<storage, read_write> next: array<vec4<f32>>;
-@group(0) @binding(3) var<storage, read_write> accumulated: array<vec4<f32>>;
+// n³ cells × 3 channels of L1 SH (four f16 per channel), for V^Δ then V^ρ.
+@group(0) @binding(1) var<storage, read> source: array<vec2<u32>>;
+@group(0) @binding(2) var<storage, read_write> next: array<vec2<u32>>;
+@group(0) @binding(3) var<storage, read_write> accumulated: array<vec2<u32>>;
 
 // Flux through the face opposite the neighbour and through a side face, per unit of
 // intensity: solid angle / π.
@@ -81,9 +81,9 @@ fn load(base: u32, c: vec3<i32>, d: vec3<i32>, w: ptr<function, f32>) -> Sh {
     *w = select(0.0, 1.0, all(s >= vec3<i32>(0)) && all(s < vec3<i32>(ni)));
     let sc = clamp(s, vec3<i32>(0), vec3<i32>(ni - 1));
     let src = (base + u32((sc.z * ni + sc.y) * ni + sc.x)) * 3u;
-    let r = source[src];
-    let g = source[src + 1u];
-    let b = source[src + 2u];
+    let r = unpack_sh(source[src]);
+    let g = unpack_sh(source[src + 1u]);
+    let b = unpack_sh(source[src + 2u]);
     // sh_basis order: (1, y, z, x).
     return Sh(vec3<f32>(r.x, g.x, b.x), vec3<f32>(r.w, g.w, b.w), vec3<f32>(r.y, g.y, b.y), vec3<f32>(r.z, g.z, b.z));
 }
@@ -121,7 +121,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         vec4<f32>(acc.c0.z, acc.cy.z, acc.cz.z, acc.cx.z),
     );
     for (var ch = 0u; ch < 3u; ch++) {
-        next[index * 3u + ch] = sum[ch];
-        accumulated[index * 3u + ch] += sum[ch];
+        next[index * 3u + ch] = pack_sh(sum[ch]);
+        accumulated[index * 3u + ch] = pack_sh(unpack_sh(accumulated[index * 3u + ch]) + sum[ch]);
     }
 }
