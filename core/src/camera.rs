@@ -287,6 +287,25 @@ impl Pinhole {
         }
     }
 
+    /// The camera that sees every `step`-th pixel of this one as its pixels
+    /// ([`Image::subsampled`](crate::Image::subsampled)): pixel x is this camera's x · step,
+    /// so the intrinsics divide by `step` exactly (not [`resized`](Self::resized)'s area
+    /// resampling, which moves the pixel centres); distortion acts on the normalised plane and
+    /// is kept.
+    pub fn subsampled(&self, step: u32) -> Self {
+        let step = step.max(1);
+        let s = f64::from(step);
+        Self {
+            width: self.width.div_ceil(step),
+            height: self.height.div_ceil(step),
+            fx: self.fx / s,
+            fy: self.fy / s,
+            cx: self.cx / s,
+            cy: self.cy / s,
+            ..*self
+        }
+    }
+
     /// Whether a pixel lies inside the image rectangle.
     pub fn contains_pixel(&self, pixel: DVec2) -> bool {
         contains_pixel(self.width, self.height, pixel)

@@ -301,6 +301,39 @@ impl Image {
         (depth_m.is_finite() && depth_m > 0.0).then_some(depth_m)
     }
 
+    /// Every `step`-th pixel along each axis from (0, 0): pixel (x, y) of the result is pixel
+    /// (x·step, y·step) of this one, ⌈width/step⌉ × ⌈height/step⌉ of them. Samples, not
+    /// averages: a depth value stays one measurement, never a blend across an edge.
+    pub fn subsampled(&self, step: u32) -> Image {
+        fn pick<T: Copy>(src: &[T], dst: &mut [T], width: usize, channels: usize, step: usize) {
+            let out_width = width.div_ceil(step);
+            for (row, out_row) in dst.chunks_exact_mut(out_width * channels).enumerate() {
+                let src_row = &src[row * step * width * channels..][..width * channels];
+                for (x, out) in out_row.chunks_exact_mut(channels).enumerate() {
+                    out.copy_from_slice(&src_row[x * step * channels..][..channels]);
+                }
+            }
+        }
+        let step = step.max(1);
+        let mut out = Image::new(
+            self.width.div_ceil(step),
+            self.height.div_ceil(step),
+            self.format,
+        );
+        if out.pixel_count() == 0 {
+            return out;
+        }
+        let (width, channels) = (self.width as usize, self.format.channels());
+        let step = step as usize;
+        match (&self.pixels, &mut out.pixels) {
+            (Pixels::U8(s), Pixels::U8(d)) => pick(s, d, width, channels, step),
+            (Pixels::U16(s), Pixels::U16(d)) => pick(s, d, width, channels, step),
+            (Pixels::F32(s), Pixels::F32(d)) => pick(s, d, width, channels, step),
+            _ => unreachable!("an image and its subsample share the format's storage"),
+        }
+        out
+    }
+
     /// Convert a `DepthU16Mm` image into `out` as `DepthF32M` (0 stays 0 = invalid).
     pub fn depth_mm_to_m(&self, out: &mut Image) -> Result<(), ImageError> {
         self.expect(PixelFormat::DepthU16Mm)?;
@@ -430,5 +463,41 @@ mod tests {
         let mut nan = Image::new(1, 1, PixelFormat::DepthF32M);
         nan.as_f32_mut().unwrap()[0] = f32::NAN;
         assert_eq!(nan.depth_m(0, 0), None);
+    }
+
+    #[test]
+    fn a_subsample_keeps_every_steps_pixel_whole() {
+        let mut colour = Image::new(5, 3, PixelFormat::Rgb8);
+        colour
+            .as_u8_mut()
+            .unwrap()
+            .iter_mut()
+            .enumerate()
+            .for_each(|(i, p)| *p = i as u8);
+        let half = colour.subsampled(2);
+        assert_eq!(
+            (half.width(), half.height(), half.format()),
+            (3, 2, PixelFormat::Rgb8)
+        );
+        // Pixels (0, 0), (2, 0), (4, 0), then (0, 2), (2, 2), (4, 2) of the 5-wide image.
+        let expected: Vec<u8> = [0, 2, 4, 10, 12, 14]
+            .iter()
+            .flat_map(|&p| (0..3).map(move |c| p * 3 + c))
+            .collect();
+        assert_eq!(half.as_u8().unwrap(), expected.as_slice());
+
+        let mut depth = Image::new(4, 4, PixelFormat::DepthF32M);
+        depth.as_f32_mut().unwrap()[2 * 4 + 2] = 1.5;
+        let third = depth.subsampled(3);
+        assert_eq!((third.width(), third.height()), (2, 2));
+        assert_eq!(third.depth_m(0, 0), None);
+        assert_eq!(depth.subsampled(2).depth_m(1, 1), Some(1.5));
+        assert_eq!(depth.subsampled(1), depth);
+        assert_eq!(
+            Image::new(0, 0, PixelFormat::Mono8)
+                .subsampled(2)
+                .pixel_count(),
+            0
+        );
     }
 }

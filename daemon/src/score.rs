@@ -580,15 +580,23 @@ pub fn reprojection_px(
     Some(sum / points_in_world.len() as f64)
 }
 
-/// RMS difference, metres, over pixels where both depth images have a surface.
+/// RMS difference, metres, over pixels where both depth images have a surface. `estimate` is
+/// the truth's size or every n-th of its pixels ([`Image::subsampled`]: the depth stage
+/// reconstructs only the `[scene] depth_stride` grid the mesh takes).
 pub fn depth_rmse_m(estimate: &Image, truth: &Image) -> Option<f64> {
-    if (estimate.width(), estimate.height()) != (truth.width(), truth.height()) {
+    if estimate.width() == 0 || truth.width() == 0 {
+        return None;
+    }
+    let step = truth.width().div_ceil(estimate.width());
+    if (truth.width().div_ceil(step), truth.height().div_ceil(step))
+        != (estimate.width(), estimate.height())
+    {
         return None;
     }
     let (mut sum, mut n) = (0.0f64, 0usize);
-    for y in 0..truth.height() {
-        for x in 0..truth.width() {
-            if let (Some(e), Some(t)) = (estimate.depth_m(x, y), truth.depth_m(x, y))
+    for y in 0..estimate.height() {
+        for x in 0..estimate.width() {
+            if let (Some(e), Some(t)) = (estimate.depth_m(x, y), truth.depth_m(x * step, y * step))
                 && e.is_finite()
                 && t.is_finite()
                 && e > 0.0

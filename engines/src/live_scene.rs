@@ -308,7 +308,10 @@ impl LiveScene {
 /// Triangulate a depth image (any depth format; invalid = 0, NaN or missing) seen by `camera`
 /// (OpenCV optical frame) at `world_from_camera` (glTF convention) into a real mesh: two
 /// triangles per 2 × 2 block of valid samples whose depths agree within 5 %, vertex normals from
-/// the neighbouring positions, facing the camera.
+/// the neighbouring positions, facing the camera. The mesh takes every `stride`-th pixel of
+/// `camera`'s; `depth` holds either all of `camera`'s pixels or only those
+/// ([`Image::subsampled`] by `stride`, as the depth stage reconstructs them), and gives the same
+/// mesh either way.
 pub fn depth_mesh(
     depth: &Image,
     camera: &Pinhole,
@@ -328,14 +331,14 @@ pub fn depth_surface(
     stride: u32,
 ) -> (Mesh, DepthGrid) {
     let stride = stride.max(1);
-    let (w, h) = (
-        depth.width().div_ceil(stride),
-        depth.height().div_ceil(stride),
-    );
+    let grid = camera.subsampled(stride);
+    let sampled = stride > 1 && (depth.width(), depth.height()) == (grid.width, grid.height);
+    let step = if sampled { 1 } else { stride };
+    let (w, h) = (depth.width().div_ceil(step), depth.height().div_ceil(step));
     let at = |x: u32, y: u32| -> Option<Vec3> {
         let (px, py) = (x * stride, y * stride);
         let z = depth
-            .depth_m(px, py)
+            .depth_m(x * step, y * step)
             .filter(|z| z.is_finite() && *z > 0.0)?;
         let optical = Vec3::new(
             ((f64::from(px) - camera.cx) / camera.fx) as f32 * z,
@@ -446,6 +449,28 @@ mod tests {
         for (p, n) in mesh.positions_in_world.iter().zip(&mesh.normals_in_world) {
             assert!((p.z + 2.0).abs() < 1e-6, "{p}");
             assert!((*n - Vec3::Z).length() < 1e-5, "{n}");
+        }
+    }
+
+    /// The depth stage hands over only the pixels the mesh takes; the mesh and its grid are
+    /// the same as from the whole image.
+    #[test]
+    fn a_subsampled_depth_gives_the_same_mesh_as_the_whole_image() {
+        let mut depth = Image::new(8, 6, PixelFormat::DepthF32M);
+        for (i, z) in depth.as_f32_mut().unwrap().iter_mut().enumerate() {
+            // A slope with a hole and a step, so joining and skipping both happen.
+            *z = match i {
+                10 => 0.0,
+                i if i % 8 >= 6 => 3.0,
+                i => 2.0 + 0.001 * i as f32,
+            };
+        }
+        let pose = Pose::from_translation(Vec3::new(0.1, 0.2, 0.3));
+        for stride in [2, 3] {
+            let whole = depth_surface(&depth, &camera(), &pose, 0, stride);
+            let part = depth_surface(&depth.subsampled(stride), &camera(), &pose, 0, stride);
+            assert_eq!(whole, part, "stride {stride}");
+            assert!(!whole.0.triangles.is_empty());
         }
     }
 

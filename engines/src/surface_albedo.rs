@@ -63,23 +63,19 @@ pub struct DepthGrid {
 }
 
 impl DepthGrid {
-    /// The pinhole that sees the grid's cells as its pixels: `camera` scaled by 1 / `stride`
-    /// (cell x is depth pixel `x · stride`: subsampling, not [`Pinhole::resized`]'s area
-    /// resampling), without distortion, as the mesh is triangulated.
+    /// The pinhole that sees the grid's cells as its pixels ([`Pinhole::subsampled`] by
+    /// `stride`: cell x is depth pixel `x · stride`), without distortion, as the mesh is
+    /// triangulated.
     pub fn camera(&self, camera: &Pinhole) -> Pinhole {
-        let s = f64::from(self.stride);
         Pinhole {
             width: self.width,
             height: self.height,
-            fx: camera.fx / s,
-            fy: camera.fy / s,
-            cx: camera.cx / s,
-            cy: camera.cy / s,
             k1: 0.0,
             k2: 0.0,
             p1: 0.0,
             p2: 0.0,
             k3: 0.0,
+            ..camera.subsampled(self.stride)
         }
     }
 }

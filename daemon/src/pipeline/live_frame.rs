@@ -147,7 +147,7 @@ impl LiveFrames {
                                 |error| tracing::info!(%error, "depth reconstruction on the CPU"),
                             )
                             .ok();
-                        DepthStage::new(camera, gpu)
+                        DepthStage::new(camera, gpu, config.scene.depth_stride)
                     });
                 let mut live = LiveScene::new(
                     scene,

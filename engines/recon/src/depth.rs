@@ -229,6 +229,51 @@ impl DepthMap {
         self.metres.iter().filter(|z| is_valid_depth(**z)).count()
     }
 
+    /// Every `step`-th sample per axis (sample (x, y) is this map's (x·step, y·step), as
+    /// `Image::subsampled`), each averaged with the opposite pairs of its 3 × 3 neighbours
+    /// that measure the same surface: both valid, and within `max_sigmas` of the sensor's
+    /// `noise` of it plus one quantisation step (a disparity staircase is one surface). The
+    /// mean is taken in disparity (1/z), which is linear in the pixel on a plane, and a pair
+    /// is centred on the sample, so a plane keeps its depth exactly at the image's border and
+    /// beside a depth edge too, and only the noise shrinks (by up to 3). A sample without
+    /// depth stays without; a neighbour across a depth edge is left out, with its partner,
+    /// rather than blended in. `step` 1 is the map itself.
+    pub fn grid_samples(&self, step: u32, noise: &DepthNoise, max_sigmas: f32) -> DepthMap {
+        let step = step.max(1);
+        if step == 1 {
+            return self.clone();
+        }
+        let (width, height) = (self.width.div_ceil(step), self.height.div_ceil(step));
+        let mut metres = Vec::with_capacity(width as usize * height as usize);
+        for y in 0..height {
+            for x in 0..width {
+                let (cx, cy) = (x * step, y * step);
+                let Some(z0) = self.get(cx, cy) else {
+                    metres.push(0.0);
+                    continue;
+                };
+                let tolerance = max_sigmas * noise.sigma_m(z0) + noise.quantum_m(z0);
+                let same_surface = |dx: i32, dy: i32| {
+                    let (nx, ny) = (cx.checked_add_signed(dx)?, cy.checked_add_signed(dy)?);
+                    self.get(nx, ny).filter(|z| (z - z0).abs() <= tolerance)
+                };
+                let (mut disparity, mut n) = (1.0 / z0, 1.0f32);
+                for (dx, dy) in [(1, 0), (0, 1), (1, 1), (1, -1)] {
+                    if let (Some(a), Some(b)) = (same_surface(dx, dy), same_surface(-dx, -dy)) {
+                        disparity += 1.0 / a + 1.0 / b;
+                        n += 2.0;
+                    }
+                }
+                metres.push(n / disparity);
+            }
+        }
+        DepthMap {
+            width,
+            height,
+            metres,
+        }
+    }
+
     /// Share of pixels holding geometry; 0 for an empty map.
     pub fn valid_fraction(&self) -> f32 {
         match self.pixel_count() {
@@ -788,6 +833,56 @@ impl ProxySwitch {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A plane's disparity is linear in the pixel, so the centred mean keeps a noise-free
+    /// plane's depth at every grid sample; a sample keeps its own surface across a depth edge;
+    /// a hole stays a hole; noise shrinks.
+    #[test]
+    fn grid_samples_average_one_surface_and_keep_planes_exact() {
+        let noise = DepthNoise::kinect_v1(285.0);
+        let (width, height) = (9u32, 7u32);
+        // A slanted wall, 1/z = 0.5 + 0.004 x + 0.006 y, and in its right three columns a
+        // box face nearer by 0.3 in disparity (about 0.6 m); one hole.
+        let disparity = |x: u32, y: u32| {
+            0.5 + 0.004 * x as f32 + 0.006 * y as f32 + if x >= 6 { 0.3 } else { 0.0 }
+        };
+        let mut map = DepthMap::invalid(width, height);
+        for y in 0..height {
+            for x in 0..width {
+                map.metres[(y * width + x) as usize] = 1.0 / disparity(x, y);
+            }
+        }
+        map.metres[(4 * width + 2) as usize] = 0.0;
+        let grid = map.grid_samples(2, &noise, 3.0);
+        assert_eq!((grid.width, grid.height), (5, 4));
+        for y in 0..grid.height {
+            for x in 0..grid.width {
+                let got = grid.metres[(y * grid.width + x) as usize];
+                let (px, py) = (2 * x, 2 * y);
+                let expected = map.get(px, py).unwrap_or(0.0);
+                // f32 rounding of a sum of up to nine terms.
+                assert!(
+                    (got - expected).abs() <= 1e-5 * expected.max(1.0),
+                    "sample ({x}, {y}): {got} against {expected}"
+                );
+            }
+        }
+        // Noise: a checkerboard of ± half a quantisation step averages to a ninth of it at a
+        // grid sample with all eight neighbours (the border's have fewer pairs).
+        let z = 2.0;
+        let step = noise.quantum_m(z) / 2.0;
+        let mut noisy = DepthMap::invalid(width, height);
+        for (i, m) in noisy.metres.iter_mut().enumerate() {
+            *m = if i % 2 == 0 { z + step } else { z - step };
+        }
+        let smooth = noisy.grid_samples(2, &noise, 3.0);
+        let worst = (1..smooth.height - 1)
+            .flat_map(|y| (1..smooth.width - 1).map(move |x| (x, y)))
+            .map(|(x, y)| (smooth.metres[(y * smooth.width + x) as usize] - z).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 0.4 * step, "{worst} of a {step} m step left");
+        assert_eq!(noisy.grid_samples(1, &noise, 3.0), noisy);
+    }
 
     #[test]
     fn box_sum_clips_windows_at_the_border() {
