@@ -235,8 +235,7 @@ mod tests {
                 let i = (y * width + x) as usize;
                 let in_box = x < width / 2;
                 depth.as_f32_mut().unwrap()[i] = if in_box { 1.5 } else { 2.0 };
-                colour.as_u8_mut().unwrap()[3 * i..3 * i + 3]
-                    .fill(if in_box { 60 } else { 180 });
+                colour.as_u8_mut().unwrap()[3 * i..3 * i + 3].fill(if in_box { 60 } else { 180 });
             }
         }
         let mut out = None;
@@ -268,11 +267,20 @@ mod tests {
                 let expected: f32 = if 2 * x < 20 { 1.5 } else { 2.0 };
                 let sigma = noise.sigma_m(expected);
                 let got = half.depth_m(x, y).expect("every sample has depth");
-                assert!((got - expected).abs() < sigma, "({x}, {y}): {got}, σ {sigma}");
+                assert!(
+                    (got - expected).abs() < sigma,
+                    "({x}, {y}): {got}, σ {sigma}"
+                );
                 let at_full = full.depth_m(2 * x, 2 * y).unwrap();
-                assert!((got - at_full).abs() < sigma, "({x}, {y}): {got} against {at_full}");
+                assert!(
+                    (got - at_full).abs() < sigma,
+                    "({x}, {y}): {got} against {at_full}"
+                );
             }
         }
-        assert!(grid.surface_held(), "the second still frame holds the surface");
+        assert!(
+            grid.surface_held(),
+            "the second still frame holds the surface"
+        );
     }
 }
