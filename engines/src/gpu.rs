@@ -290,6 +290,12 @@ impl GpuContext {
         })
     }
 
+    /// Whether the adapter is a software rasteriser (lavapipe, llvmpipe): its "GPU" passes run
+    /// on the CPU's own cores.
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
     /// An error naming what `needed_by` needs unless the device has every one of `features`.
     pub fn require_features(
         &self,

@@ -4,9 +4,10 @@
 //! for triangulation or — when too little of it is valid (too close, too bright, covered) —
 //! replaced by the scene file's proxy of the room (`relight_recon::depth::ProxySwitch`).
 //!
-//! The filter and merge run on the GPU (`relight_engines::recon_gpu`) when the pipeline has a
-//! GPU context, on the CPU (`relight-recon`, the GPU pass's test oracle) otherwise, or for a
-//! frame the GPU failed on.
+//! The filter and merge run on the GPU (`relight_engines::recon_gpu`) when the stage is given a
+//! GPU context (the live frames give it none on a software rasteriser, where the CPU path is
+//! faster), on the CPU (`relight-recon`, the GPU pass's test oracle) otherwise, or for a frame
+//! the GPU failed on.
 
 use std::borrow::Cow;
 use std::sync::Arc;
