@@ -559,20 +559,22 @@ fn measure(
     render(&nudged, &mut out)?;
     render(frame, &mut out)?;
     let centre = Picture::of(&out);
-    let mut static_times = (0..frames)
-        .map(|_| render(frame, &mut out))
-        .collect::<Result<Vec<f64>>>()?;
-    static_times.sort_by(f64::total_cmp);
+    let static_ms = median(
+        &mut (0..frames)
+            .map(|_| render(frame, &mut out))
+            .collect::<Result<Vec<f64>>>()?,
+    );
     let (converged, held_ms) = if accumulated_frames > 1 {
         for _ in frames + 1..accumulated_frames {
             render(frame, &mut out)?;
         }
         let converged = Picture::of(&out);
-        let mut held_times = (0..frames)
-            .map(|_| render(frame, &mut out))
-            .collect::<Result<Vec<f64>>>()?;
-        held_times.sort_by(f64::total_cmp);
-        (Some(converged), Some(held_times[held_times.len() / 2]))
+        let held_ms = median(
+            &mut (0..frames)
+                .map(|_| render(frame, &mut out))
+                .collect::<Result<Vec<f64>>>()?,
+        );
+        (Some(converged), Some(held_ms))
     } else {
         (None, None)
     };
@@ -583,7 +585,7 @@ fn measure(
         setting: case.label(),
         median_ms: times[times.len() / 2],
         min_ms: times[0],
-        static_ms: static_times[static_times.len() / 2],
+        static_ms,
         held_ms,
         gpu_ms: gpu_times.get(gpu_times.len() / 2).copied(),
         gpu_passes,
@@ -604,6 +606,12 @@ fn measure(
     };
     row.score(&rendered, reference);
     Ok((row, rendered))
+}
+
+/// Median of `times` (sorted in place); NaN when there are none.
+pub(crate) fn median(times: &mut [f64]) -> f64 {
+    times.sort_by(f64::total_cmp);
+    times.get(times.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
 pub fn table(rows: &[BenchRow]) -> String {

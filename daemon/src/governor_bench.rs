@@ -39,7 +39,7 @@ use relight_engines::{Engine, EngineRegistry, RelitFrame, SceneFrame};
 use serde::Serialize;
 use serde_json::{Map, Value, json};
 
-use crate::bench::{BenchProgress, BenchSettings, Truth};
+use crate::bench::{BenchProgress, BenchSettings, Truth, median};
 use crate::score::{ScoreSettings, default_config};
 
 /// `auto` matches the best fixed engine within 5 % of its error.
@@ -126,12 +126,6 @@ pub struct GovernorReport {
 pub enum GovernorProgress<'a> {
     Reference(BenchProgress<'a>),
     Run { scene: &'a str, engine: String },
-}
-
-/// Median of `times` (sorted in place).
-fn median(times: &mut [f64]) -> f64 {
-    times.sort_by(f64::total_cmp);
-    times.get(times.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
 /// One engine's run on a scene: frames no faster than the sensor's, on the engine's own clock.

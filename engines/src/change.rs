@@ -106,6 +106,22 @@ pub fn focus_depth_m(camera: &SceneCamera, focus: Option<(Vec3, Vec3)>) -> f32 {
         .unwrap_or(1.0)
 }
 
+/// [`focus_depth_m`] of `scene`'s camera at its virtual object, or at its real geometry when
+/// it has none: where the picture's motion matters.
+pub fn scene_focus_depth_m(scene: &Scene) -> f32 {
+    focus_depth_m(
+        &scene.camera,
+        scene.virtual_bounds().or_else(|| scene.real_bounds()),
+    )
+}
+
+/// Whether `scene`'s camera, `height_px` pixels tall, moves the picture by at most
+/// [`STILL_PX`] from `held` at the scene's focus: a camera still enough to keep what was
+/// accumulated from `held`.
+pub fn camera_still(held: &SceneCamera, scene: &Scene, height_px: u32) -> bool {
+    image_shift_px(held, &scene.camera, height_px, scene_focus_depth_m(scene)) <= STILL_PX
+}
+
 #[cfg(test)]
 mod tests {
     use glam::Quat;

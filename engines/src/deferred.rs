@@ -14,7 +14,7 @@ use relight_core::scene::{Scene, SceneCamera};
 use relight_core::{Image, PixelFormat};
 use wgpu::util::DeviceExt;
 
-use crate::change::{self, STILL_PX, focus_depth_m, image_shift_px};
+use crate::change::{self, camera_still};
 use crate::engine::{EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::{GBufferPass, RsmPass, RsmRedraw, Targets};
 use crate::gpu::GpuContext;
@@ -103,12 +103,13 @@ pub fn accumulate_param() -> ParamSpec {
 /// drawn at the k-th point of the Halton (2, 3) sequence within the pixel and averaged into a
 /// running mean; the first frame after a change is drawn at the centre and shown alone, exactly
 /// as without accumulation, and after `frames` frames the mean is kept as it is and nothing
-/// more is drawn ([`Deferred::prepare`] finishes such a frame itself). The inputs are what `pt` keeps its means by
-/// ([`change`]): the scene's geometry (a live depth surface by its revision, which the temporal
-/// merge advances only when it resets, so sensor noise on a held surface is averaged, not a
-/// change), materials, lights and environment; the camera within [`STILL_PX`] of image motion
-/// (the held pose is drawn, so a tracked camera's jitter is no change either); the image and
-/// map sizes. Not the background, which the composite takes fresh every frame.
+/// more is drawn ([`Deferred::prepare`] finishes such a frame itself). The inputs are what
+/// `pt` keeps its means by ([`change`]): the scene's geometry (a live depth surface by its
+/// revision, which the temporal merge advances only when it resets, so sensor noise on a held
+/// surface is averaged, not a change), materials, lights and environment; the camera while
+/// [`change::camera_still`] (the held pose is drawn, so a tracked camera's jitter is no change
+/// either); the image and map sizes. Not the background, which the composite takes fresh
+/// every frame.
 #[derive(Debug)]
 struct Accumulation {
     frames: u32,
@@ -642,18 +643,11 @@ impl Deferred {
     }
 
     /// The camera to draw `scene` from: the held one while the scene's content holds
-    /// ([`change::scene_key`], after `prepare` set it) and the real camera has moved less than
-    /// [`STILL_PX`] of image motion from it, else the real one, which is then held.
+    /// ([`change::scene_key`], after `prepare` set it) and the real camera is still from it
+    /// ([`change::camera_still`]), else the real one, which is then held.
     fn still_camera(&mut self, scene: &Scene, height: u32) -> SceneCamera {
-        let depth = focus_depth_m(
-            &scene.camera,
-            scene.virtual_bounds().or_else(|| scene.real_bounds()),
-        );
         let camera = match self.held_camera {
-            Some((key, held))
-                if key == self.scene_key
-                    && image_shift_px(&held, &scene.camera, height, depth) <= STILL_PX =>
-            {
+            Some((key, held)) if key == self.scene_key && camera_still(&held, scene, height) => {
                 held
             }
             _ => scene.camera,

@@ -54,8 +54,7 @@ fn the_first_frame_after_a_change_is_the_pixel_centre_picture() {
         for (i, frame) in frames.iter().enumerate() {
             let a = render(&mut accumulating, frame);
             let b = render(&mut single, frame);
-            let same = a.delta == b.delta && a.composite == b.composite;
-            assert_eq!(same, i == 0 || i == 3, "{name}: frame {i}");
+            assert_eq!(same_picture(&a, &b), i == 0 || i == 3, "{name}: frame {i}");
         }
     }
 }
@@ -122,7 +121,12 @@ fn still_frames_converge_to_the_pixel_area() {
     );
     // Complete after 32 frames: the mean is kept, not drifted by more samples.
     let kept = render(&mut engine, &small);
-    assert!(kept.delta == last.delta && kept.composite == last.composite);
+    assert!(same_picture(&kept, &last));
+}
+
+/// Whether two frames show the same picture: Δ and the composite, bit for bit.
+fn same_picture(a: &RelitFrame, b: &RelitFrame) -> bool {
+    a.delta == b.delta && a.composite == b.composite
 }
 
 /// `frame` with a camera image of one grey `level` instead.
@@ -194,10 +198,7 @@ fn a_complete_mean_is_held_without_drawing() {
             assert_eq!(drew(out), i < 4, "{name}: frame {i}: {:?}", out.work);
         }
         for held in &outs[4..] {
-            assert!(
-                held.delta == outs[3].delta && held.composite == outs[3].composite,
-                "{name}"
-            );
+            assert!(same_picture(held, &outs[3]), "{name}");
         }
         // The live video still shows through a held frame.
         let out = render(&mut engine, &with_background(grey, 200));
@@ -228,7 +229,6 @@ fn a_live_surface_is_still_while_its_revision_holds() {
     let desk = load_scene("desk_box");
     let mut accumulating = engine_with("differential", serde_json::json!({ "accumulate": 4 }));
     let mut single = engine_with("differential", serde_json::json!({ "accumulate": 1 }));
-    let alone = |a: &RelitFrame, b: &RelitFrame| a.delta == b.delta && a.composite == b.composite;
     let offsets = [0.0, 1e-4, -1e-4, 2e-4, 0.0, 1e-4];
     for (revision, first_alone) in [(Some(1), [true, false, false, false]), (None, [true; 4])] {
         for (i, offset) in offsets.iter().enumerate() {
@@ -236,7 +236,11 @@ fn a_live_surface_is_still_while_its_revision_holds() {
             let a = render(&mut accumulating, &f);
             let b = render(&mut single, &f);
             if i < 4 {
-                assert_eq!(alone(&a, &b), first_alone[i], "{revision:?}: frame {i}");
+                assert_eq!(
+                    same_picture(&a, &b),
+                    first_alone[i],
+                    "{revision:?}: frame {i}"
+                );
             }
             assert_eq!(
                 drew(&a),
@@ -248,7 +252,7 @@ fn a_live_surface_is_still_while_its_revision_holds() {
     // The merge resets: revision 2 is a new surface, shown alone.
     let f = frame(noisy_surface(&desk, 0.0, Some(2)), 64, 48);
     let (a, b) = (render(&mut accumulating, &f), render(&mut single, &f));
-    assert!(alone(&a, &b) && drew(&a));
+    assert!(same_picture(&a, &b) && drew(&a));
 }
 
 /// A tracked camera's jitter below a quarter pixel of image motion is no change: the mean goes
@@ -281,8 +285,5 @@ fn camera_jitter_below_a_quarter_pixel_keeps_the_mean() {
         render(&mut accumulating, &moved),
         render(&mut single, &moved),
     );
-    assert!(
-        a.delta == b.delta && a.composite == b.composite,
-        "a pixel's turn is a change"
-    );
+    assert!(same_picture(&a, &b), "a pixel's turn is a change");
 }

@@ -108,10 +108,6 @@ impl DepthStage {
     ) -> DepthOutcome {
         self.surface_held = false;
         self.passes.clear();
-        let colour = match self.stride {
-            1 => colour.map(Cow::Borrowed),
-            stride => colour.map(|c| Cow::Owned(c.subsampled(stride))),
-        };
         let (map, census) = match DepthMap::from_image_with_census(depth, self.range) {
             Ok(parsed) => parsed,
             Err(error) => {
@@ -128,6 +124,10 @@ impl DepthStage {
             &self.filter.noise,
             self.filter.max_deviation_sigmas,
         );
+        let colour = match self.stride {
+            1 => colour.map(Cow::Borrowed),
+            stride => colour.map(|c| Cow::Owned(c.subsampled(stride))),
+        };
         let guide = colour
             .as_deref()
             .filter(|c| c.width() == map.width && c.height() == map.height);

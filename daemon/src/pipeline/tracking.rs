@@ -23,8 +23,8 @@ use relight_core::rig::RigCalibration;
 use relight_core::{MarkerSet, Pose};
 use serde::{Deserialize, Serialize};
 
-/// Where the camera pose comes from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+/// Where the camera pose comes from (`[tracking] source`, `relightd replay --tracking`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum TrackingSource {
     /// The world-defining marker board, seen by the colour camera.

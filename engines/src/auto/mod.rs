@@ -27,7 +27,7 @@ use serde_json::{Map, Value, json};
 
 use self::features::scene_features;
 use self::governor::{Action, Governor, Motion, PtFrame, Settings};
-use crate::change::{STILL_PX, focus_depth_m, image_shift_px, scene_key};
+use crate::change::{STILL_PX, image_shift_px, scene_focus_depth_m, scene_key};
 use crate::engine::{Engine, EngineError, RelitFrame, SceneFrame};
 use crate::gpu::GpuError;
 use crate::params::{ParamSpec, ParamsSchema};
@@ -327,10 +327,7 @@ impl Engine for Auto {
                 key
             }
         };
-        let depth = focus_depth_m(
-            &scene.camera,
-            scene.virtual_bounds().or_else(|| scene.real_bounds()),
-        );
+        let depth = scene_focus_depth_m(scene);
         self.motion = self.stillness.update(key, scene.camera, size.1, depth);
         self.frames_since_features = self.frames_since_features.saturating_add(1);
         let stale = self.features_for.is_none_or(|(k, camera)| {

@@ -12,9 +12,9 @@
 //! - the geometry, materials, lights or environment map (hashed; a live depth surface by its
 //!   [`Scene::surface_revision`], which the temporal depth merge advances only when it resets,
 //!   so sensor noise on a held surface does not restart the means);
-//! - the camera moving by more than [`STILL_PX`] of image motion at the object's depth
-//!   ([`crate::change`]); below that the held pose is traced, so a tracked camera's
-//!   jitter does not restart them either;
+//! - the camera moving by more than [`STILL_PX`](crate::change::STILL_PX) of image motion
+//!   at the object's depth ([`crate::change::camera_still`]); below that the held pose is
+//!   traced, so a tracked camera's jitter does not restart them either;
 //! - the image size or any parameter.
 //!
 //! Samples per frame follow `budget_ms` (measured per sample, so the frame fits the budget on
@@ -41,7 +41,7 @@ use relight_core::scene::{Scene, SceneCamera};
 use serde_json::{Map, Value};
 
 use self::scene::PtScene;
-use crate::change::{STILL_PX, focus_depth_m, image_shift_px, scene_key};
+use crate::change::{camera_still, scene_key};
 use crate::deferred::KeptInputs;
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gpu::{GpuContext, GpuError};
@@ -137,7 +137,7 @@ struct FrameBuffers {
 struct Accumulated {
     /// The scene's key ([`scene_key`]) and the parameters.
     key: u64,
-    /// The camera traced (held while the real one moves less than [`STILL_PX`]).
+    /// The camera traced (held while the real one is still: [`crate::change::camera_still`]).
     camera: SceneCamera,
     /// Units traced ([`TILE_PHASES`] to a sample per pixel).
     units: u32,
@@ -410,13 +410,9 @@ impl Engine for Pt {
             &self.settings.bounces.to_le_bytes(),
             &self.settings.seed.to_le_bytes(),
         ]);
-        let depth = focus_depth_m(
-            &scene.camera,
-            scene.virtual_bounds().or_else(|| scene.real_bounds()),
-        );
-        let still = self.accumulated.filter(|a| {
-            a.key == key && image_shift_px(&a.camera, &scene.camera, height, depth) <= STILL_PX
-        });
+        let still = self
+            .accumulated
+            .filter(|a| a.key == key && camera_still(&a.camera, scene, height));
         let mut accumulated = still.unwrap_or(Accumulated {
             key,
             camera: scene.camera,

@@ -10,15 +10,6 @@ use relight_daemon::config::{self, Config, OutputConfig, ReplayConfig, SourceCon
 use relight_daemon::pipeline::PipelineOptions;
 use relight_daemon::pipeline::tracking::TrackingSource;
 
-/// `[tracking] source`: where the camera pose comes from.
-#[derive(Debug, Clone, Copy, ValueEnum)]
-pub enum Tracking {
-    /// The marker board the recording's calibration describes.
-    Markers,
-    /// The scene file's camera pose: a tripod registered once.
-    Scene,
-}
-
 #[derive(Debug, Clone, Copy, ValueEnum)]
 pub enum Mode {
     Realtime,
@@ -66,7 +57,7 @@ pub struct Args {
     /// Where the camera pose comes from, as `[tracking] source` (default: the markers when the
     /// recording's calibration knows a board, else the scene's camera).
     #[arg(long, value_enum)]
-    tracking: Option<Tracking>,
+    tracking: Option<TrackingSource>,
     /// Read a stream from another topic, for a bag another tool recorded (repeatable):
     /// `--topic color=/camera/color/image_raw --topic depth=/camera/depth/image_rect_raw`.
     #[arg(long = "topic", value_name = "STREAM=TOPIC", value_parser = stream_topic)]
@@ -111,10 +102,7 @@ pub fn run(args: Args) -> Result<()> {
     };
     config.engine.name = args.engine;
     config.scene.dir = args.scene;
-    config.tracking.source = args.tracking.map(|t| match t {
-        Tracking::Markers => TrackingSource::Markers,
-        Tracking::Scene => TrackingSource::Scene,
-    });
+    config.tracking.source = args.tracking;
     config.live_view.foxglove = args.live_view;
     config.live_view.page = args.live_page;
     if let Some(socket) = args.socket {
