@@ -243,12 +243,29 @@ fn brdf(m: Material, albedo: vec3<f32>, n: vec3<f32>, wi: vec3<f32>, wo: vec3<f3
 // same ray.
 fn lit(l: Light, face: Face, layer: u32, p: vec3<f32>, n: vec3<f32>, to_light: vec3<f32>,
        map: texture_depth_2d_array, size: u32, bias_texels: f32) -> f32 {
+    let probe = shadow_probe(l, face, p, n, to_light, size, bias_texels);
+    if !probe.tested {
+        return 1.0;
+    }
+    return select(0.0, 1.0, probe.depth <= textureLoad(map, probe.texel, i32(layer), 0));
+}
+
+// Where `lit` looks in a shadow map, and the depth it compares there: the same for every map of
+// one face, so two maps (R^ρ and R^μ) are tested for the cost of one. `tested` is false where
+// no test is needed (outside the face, or behind a point light): the point is lit.
+struct ShadowProbe {
+    texel: vec2<i32>,
+    depth: f32,
+    tested: bool,
+}
+
+fn shadow_probe(l: Light, face: Face, p: vec3<f32>, n: vec3<f32>, to_light: vec3<f32>,
+                size: u32, bias_texels: f32) -> ShadowProbe {
     let s = f32(size);
     let t = face_texel(face, p, s);
     if any(t < vec2<f32>(0.0)) || any(t >= vec2<f32>(s)) {
-        return 1.0;
+        return ShadowProbe(vec2<i32>(0), 0.0, false);
     }
-    let stored = textureLoad(map, vec2<i32>(floor(t)), i32(layer), 0);
     let cos_theta = clamp(dot(n, to_light), 0.05, 1.0);
     let tan_theta = sqrt(1.0 - cos_theta * cos_theta) / cos_theta;
     let bias = texel_footprint(face, light_distance(l, p), s) * bias_texels
@@ -256,9 +273,9 @@ fn lit(l: Light, face: Face, layer: u32, p: vec3<f32>, n: vec3<f32>, to_light: v
     let clip = face.view_proj * vec4<f32>(p + to_light * bias, 1.0);
     // Behind a point light: p is within the bias of it.
     if clip.w <= 0.0 {
-        return 1.0;
+        return ShadowProbe(vec2<i32>(0), 0.0, false);
     }
-    return select(0.0, 1.0, clip.z / clip.w <= stored);
+    return ShadowProbe(vec2<i32>(floor(t)), clip.z / clip.w, true);
 }
 
 // Flux Φ_p (W) a shadow-map texel reflects as a VPL: its albedo times the light's flux through

@@ -42,7 +42,45 @@ struct ShadeParams {
 // Two vec4 a pixel: (O, c) and (Δ, 0).
 @group(0) @binding(17) var<storage, read_write> history: array<vec4<f32>>;
 
-// `on_virtual`: the point is on the virtual object, which LIGHT_SHADOW_ONLY lights do not shade.
+// Light `l` arriving at `p` (normal `n`), and where its shadow maps are tested. `reaches` is
+// false where `l` does not light the side `n` faces.
+struct Arrival {
+    inc: Incident,
+    cos_theta: f32,
+    probe: ShadowProbe,
+    layer: u32,
+    reaches: bool,
+}
+
+fn arrival(l: Light, p: vec3<f32>, n: vec3<f32>) -> Arrival {
+    var a: Arrival;
+    a.inc = incident(l, p);
+    a.cos_theta = dot(n, a.inc.to_light);
+    a.reaches = a.cos_theta > 0.0 && any(a.inc.irradiance > vec3<f32>(0.0));
+    if a.reaches {
+        a.layer = face_of(l, p);
+        a.probe = shadow_probe(l, faces[a.layer], p, n, a.inc.to_light, params.size.w, params.options.x);
+    }
+    return a;
+}
+
+// 1 where the arrival's point is lit in `map`.
+fn visible(a: Arrival, map: texture_depth_2d_array) -> f32 {
+    if !a.probe.tested {
+        return 1.0;
+    }
+    return select(0.0, 1.0, a.probe.depth <= textureLoad(map, a.probe.texel, i32(a.layer), 0));
+}
+
+// What the arriving light reflects towards `wo`, unshadowed. Evaluated only where some light
+// gets through (or, for Δ, where the two maps differ): most pixels are outside the object's
+// shadow, and the BRDF is the costly part.
+fn reflected(a: Arrival, m: Material, albedo: vec3<f32>, n: vec3<f32>, wo: vec3<f32>) -> vec3<f32> {
+    return brdf(m, albedo, n, a.inc.to_light, wo) * a.inc.irradiance * a.cos_theta;
+}
+
+// Direct light at `p` with the shadows of R^ρ (`rho`) or R^μ. `on_virtual`: the point is on the
+// virtual object, which LIGHT_SHADOW_ONLY lights do not shade.
 fn direct(p: vec4<f32>, n: vec3<f32>, albedo: vec3<f32>, rho: bool, on_virtual: bool) -> vec3<f32> {
     let m = materials[u32(p.w) - 1u];
     let wo = normalize(camera.position.xyz - p.xyz);
@@ -52,19 +90,39 @@ fn direct(p: vec4<f32>, n: vec3<f32>, albedo: vec3<f32>, rho: bool, on_virtual: 
         if on_virtual && l.faces.z == LIGHT_SHADOW_ONLY {
             continue;
         }
-        let inc = incident(l, p.xyz);
-        let cos_theta = dot(n, inc.to_light);
-        if cos_theta <= 0.0 || all(inc.irradiance <= vec3<f32>(0.0)) {
+        let a = arrival(l, p.xyz, n);
+        if !a.reaches {
             continue;
         }
-        let layer = face_of(l, p.xyz);
         var vis: f32;
         if rho {
-            vis = lit(l, faces[layer], layer, p.xyz, n, inc.to_light, rsm_rho, params.size.w, params.options.x);
+            vis = visible(a, rsm_rho);
         } else {
-            vis = lit(l, faces[layer], layer, p.xyz, n, inc.to_light, rsm_mu, params.size.w, params.options.x);
+            vis = visible(a, rsm_mu);
         }
-        sum += brdf(m, albedo, n, inc.to_light, wo) * inc.irradiance * cos_theta * vis;
+        if vis > 0.0 {
+            sum += reflected(a, m, albedo, n, wo) * vis;
+        }
+    }
+    return sum;
+}
+
+// direct^ρ − direct^μ at a real point, which both G-buffers hold alike (ρ is μ with the object
+// drawn over it): the light and its shadow-map lookup are computed once, only the two maps'
+// visibilities differ, and the light is reflected only where they do.
+fn direct_delta(p: vec4<f32>, n: vec3<f32>, albedo: vec3<f32>) -> vec3<f32> {
+    var sum = vec3<f32>(0.0);
+    for (var i = 0u; i < params.size.z; i++) {
+        let a = arrival(lights[i], p.xyz, n);
+        if !a.reaches || !a.probe.tested {
+            continue;
+        }
+        let difference = visible(a, rsm_rho) - visible(a, rsm_mu);
+        if difference != 0.0 {
+            let m = materials[u32(p.w) - 1u];
+            let wo = normalize(camera.position.xyz - p.xyz);
+            sum += reflected(a, m, albedo, n, wo) * difference;
+        }
     }
     return sum;
 }
@@ -78,31 +136,26 @@ struct Shaded {
 
 fn shade_pixel(xy: vec2<i32>, i: u32) -> Shaded {
     let p_rho = textureLoad(gb_rho_position, xy, 0);
+    if p_rho.w < 0.5 {
+        return Shaded(vec4<f32>(0.0), vec3<f32>(0.0));
+    }
     let n_rho = textureLoad(gb_rho_normal, xy, 0);
-    let p_mu = textureLoad(gb_mu_position, xy, 0);
-    var l_rho = vec3<f32>(0.0);
-    var l_mu = vec3<f32>(0.0);
-    if p_rho.w > 0.5 {
-        l_rho = direct(p_rho, normalize(n_rho.xyz), textureLoad(gb_rho_albedo, xy, 0).rgb, true, n_rho.w > 0.5);
-    }
-    if p_mu.w > 0.5 {
-        let n_mu = textureLoad(gb_mu_normal, xy, 0).xyz;
-        l_mu = direct(p_mu, normalize(n_mu), textureLoad(gb_mu_albedo, xy, 0).rgb, false, false);
-    }
-    var d = vec3<f32>(0.0);
-    var overlay = vec4<f32>(0.0);
-    if p_rho.w > 0.5 && n_rho.w > 0.5 {
-        l_rho += indirect[i].rgb;
-        d = l_rho - l_mu;
-        overlay = vec4<f32>(l_rho, 1.0);
-    } else if p_rho.w > 0.5 {
-        if params.options.y > 0.5 {
-            d = l_rho - l_mu;
+    let albedo_rho = textureLoad(gb_rho_albedo, xy, 0).rgb;
+    if n_rho.w > 0.5 {
+        var l_rho = direct(p_rho, normalize(n_rho.xyz), albedo_rho, true, true) + indirect[i].rgb;
+        let p_mu = textureLoad(gb_mu_position, xy, 0);
+        var l_mu = vec3<f32>(0.0);
+        if p_mu.w > 0.5 {
+            let n_mu = textureLoad(gb_mu_normal, xy, 0).xyz;
+            l_mu = direct(p_mu, normalize(n_mu), textureLoad(gb_mu_albedo, xy, 0).rgb, false, false);
         }
-        d += indirect[i].rgb;
-        overlay = vec4<f32>(d, 0.0);
+        return Shaded(vec4<f32>(l_rho, 1.0), l_rho - l_mu);
     }
-    return Shaded(overlay, d);
+    var d = indirect[i].rgb;
+    if params.options.y > 0.5 {
+        d += direct_delta(p_rho, normalize(n_rho.xyz), albedo_rho);
+    }
+    return Shaded(vec4<f32>(d, 0.0), d);
 }
 
 @compute @workgroup_size(8, 8)
@@ -112,7 +165,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let i = id.y * params.size.x + id.x;
     let xy = vec2<i32>(id.xy);
-    let background_linear = srgb_to_linear(textureLoad(background, xy, 0).rgb);
+    let background_linear = textureLoad(background, xy, 0).rgb;
     let weight = params.options.z;
     // A frame that holds the complete mean (weight 0, `Deferred::prepare`) drew nothing: it keeps
     // the mean.
