@@ -528,38 +528,49 @@ pub fn box_sum_weighted(
             .collect()
     };
     let (kernel_x, kernel_y) = (kernel(weight_x), kernel(weight_y));
-    let r = radius as i64;
+    // Offset by offset over whole lines, each output still adding its in-range offsets in
+    // ascending order: the same sums as one output at a time, in a loop that vectorises.
+    let r = radius as isize;
     rows.par_chunks_mut(width)
         .zip(values.par_chunks(width))
+        .with_min_len(ROWS_PER_TASK)
         .for_each(|(out, row)| {
-            for (x, o) in out.iter_mut().enumerate() {
-                let mut sum = 0.0f32;
-                for (d, k) in (-r..=r).zip(&kernel_x) {
-                    let xx = x as i64 + d;
-                    if xx >= 0 && (xx as usize) < width {
-                        sum += k * row[xx as usize];
-                    }
+            for (d, k) in (-r..=r).zip(&kernel_x) {
+                // Outputs whose offset `d` lies in the line: first..end.
+                let first = (-d).max(0) as usize;
+                let end = (width as isize - d.max(0)).max(0) as usize;
+                if first >= end {
+                    continue;
                 }
-                *o = sum;
+                let shifted = &row[(first as isize + d) as usize..(end as isize + d) as usize];
+                for (o, v) in out[first..end].iter_mut().zip(shifted) {
+                    *o += k * v;
+                }
             }
         });
     let mut out = vec![0.0f32; values.len()];
     out.par_chunks_mut(width)
         .enumerate()
+        .with_min_len(ROWS_PER_TASK)
         .for_each(|(y, out_row)| {
-            for (x, o) in out_row.iter_mut().enumerate() {
-                let mut sum = 0.0f32;
-                for (d, k) in (-r..=r).zip(&kernel_y) {
-                    let yy = y as i64 + d;
-                    if yy >= 0 && (yy as usize) < height {
-                        sum += k * rows[yy as usize * width + x];
-                    }
+            let y = y as isize;
+            for (d, k) in (-r..=r).zip(&kernel_y) {
+                let yy = y + d;
+                if yy < 0 || yy >= height as isize {
+                    continue;
                 }
-                *o = sum;
+                let row = &rows[yy as usize * width..(yy as usize + 1) * width];
+                for (o, v) in out_row.iter_mut().zip(row) {
+                    *o += k * v;
+                }
             }
         });
     out
 }
+
+/// Image rows one parallel task of [`box_sum_weighted`] takes: a task of a few thousand
+/// multiply-adds, so the live grid's small images are not split finer than the threads' cost.
+const ROWS_PER_TASK: usize = 16;
 
 /// Plain sum over the (2r + 1)² window around every pixel, clipped at the border.
 pub fn box_sum(values: &[f32], width: usize, height: usize, radius: usize) -> Vec<f32> {
@@ -574,6 +585,9 @@ pub fn box_sum(values: &[f32], width: usize, height: usize, radius: usize) -> Ve
 
 /// Guide channels: colour (3) and the offset from the window centre (2).
 const GUIDE: usize = 5;
+
+/// Pixels one parallel task of [`guided_filter`]'s per-pixel loops takes.
+const PIXELS_PER_TASK: usize = 1024;
 
 /// Solve `m · x = rhs` for a symmetric positive definite `m` by Cholesky decomposition;
 /// `None` if a pivot is not positive or the result not finite.
@@ -640,36 +654,54 @@ pub fn guided_filter(
     let r = settings.radius_px as usize;
     let n = w * h;
     let valid: Vec<bool> = depth.metres.iter().map(|z| is_valid_depth(*z)).collect();
-    let boxed = |f: &dyn Fn(usize) -> f32, weights: (BoxWeight, BoxWeight)| {
+    let boxed = |f: &(dyn Fn(usize) -> f32 + Sync), weights: (BoxWeight, BoxWeight)| {
         let masked: Vec<f32> = (0..n).map(|i| if valid[i] { f(i) } else { 0.0 }).collect();
         box_sum_weighted(&masked, w, h, r, weights)
     };
     let p = |i: usize| 1.0 / depth.metres[i];
     let one = |_: usize| 1.0;
+    let colour = &colour;
 
-    // Window moments of the mask (pixel offsets), of p, and of the colour.
-    let m_1 = boxed(&one, (One, One));
-    let m_x = boxed(&one, (D, One));
-    let m_y = boxed(&one, (One, D));
-    let m_xx = boxed(&one, (D2, One));
-    let m_yy = boxed(&one, (One, D2));
-    let m_xy = boxed(&one, (D, D));
-    let p_1 = boxed(&p, (One, One));
-    let p_x = boxed(&p, (D, One));
-    let p_y = boxed(&p, (One, D));
-    let c_1: [Vec<f32>; 3] = std::array::from_fn(|c| boxed(&|i| colour[i][c], (One, One)));
-    let c_x: [Vec<f32>; 3] = std::array::from_fn(|c| boxed(&|i| colour[i][c], (D, One)));
-    let c_y: [Vec<f32>; 3] = std::array::from_fn(|c| boxed(&|i| colour[i][c], (One, D)));
-    let c_p: [Vec<f32>; 3] = std::array::from_fn(|c| boxed(&|i| colour[i][c] * p(i), (One, One)));
+    // Window moments of the mask (pixel offsets), of p, and of the colour: 27 independent
+    // sums, computed side by side.
     const PAIRS: [(usize, usize); 6] = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
-    let c_c: [Vec<f32>; 6] = std::array::from_fn(|k| {
-        let (a, b) = PAIRS[k];
-        boxed(&|i| colour[i][a] * colour[i][b], (One, One))
-    });
+    type Moment<'a> = (
+        Box<dyn Fn(usize) -> f32 + Sync + 'a>,
+        (BoxWeight, BoxWeight),
+    );
+    let mut moments: Vec<Moment> = vec![
+        (Box::new(one), (One, One)),
+        (Box::new(one), (D, One)),
+        (Box::new(one), (One, D)),
+        (Box::new(one), (D2, One)),
+        (Box::new(one), (One, D2)),
+        (Box::new(one), (D, D)),
+        (Box::new(p), (One, One)),
+        (Box::new(p), (D, One)),
+        (Box::new(p), (One, D)),
+    ];
+    for weights in [(One, One), (D, One), (One, D)] {
+        moments.extend((0..3).map(|c| -> Moment { (Box::new(move |i| colour[i][c]), weights) }));
+    }
+    moments
+        .extend((0..3).map(|c| -> Moment { (Box::new(move |i| colour[i][c] * p(i)), (One, One)) }));
+    for (a, b) in PAIRS {
+        moments.push((Box::new(move |i| colour[i][a] * colour[i][b]), (One, One)));
+    }
+    let mut sums = moments
+        .par_iter()
+        .map(|(f, weights)| boxed(f.as_ref(), *weights))
+        .collect::<Vec<_>>()
+        .into_iter();
+    let mut next = || sums.next().expect("one sum per moment");
+    let [m_1, m_x, m_y, m_xx, m_yy, m_xy, p_1, p_x, p_y] = std::array::from_fn(|_| next());
+    let c_1: [Vec<f32>; 3] = std::array::from_fn(|_| next());
+    let c_x: [Vec<f32>; 3] = std::array::from_fn(|_| next());
+    let c_y: [Vec<f32>; 3] = std::array::from_fn(|_| next());
+    let c_p: [Vec<f32>; 3] = std::array::from_fn(|_| next());
+    let c_c: [Vec<f32>; 6] = std::array::from_fn(|_| next());
 
     // Per window k: n_k · a_k (5) and n_k · b_k; zero for windows without valid depth.
-    let mut weighted_a: [Vec<f32>; GUIDE] = std::array::from_fn(|_| vec![0.0; n]);
-    let mut weighted_b = vec![0.0f32; n];
     let regularisation = [
         settings.eps,
         settings.eps,
@@ -677,10 +709,10 @@ pub fn guided_filter(
         settings.eps_position,
         settings.eps_position,
     ];
-    for k in 0..n {
+    let window_coefficients = |k: usize| -> [f32; GUIDE + 1] {
         let n_k = m_1[k];
         if n_k < 1.0 {
-            continue;
+            return [0.0; GUIDE + 1];
         }
         let mu = [
             c_1[0][k] / n_k,
@@ -723,21 +755,44 @@ pub fn guided_filter(
         }
         let a_k = solve_spd(system, rhs).unwrap_or([0.0; GUIDE]);
         let b_k = p_mean - (0..GUIDE).map(|j| a_k[j] * mu[j]).sum::<f32>();
+        let mut out = [0.0; GUIDE + 1];
         for j in 0..GUIDE {
-            weighted_a[j][k] = n_k * a_k[j];
+            out[j] = n_k * a_k[j];
         }
-        weighted_b[k] = n_k * b_k;
-    }
+        out[GUIDE] = n_k * b_k;
+        out
+    };
+    let coefficients: Vec<[f32; GUIDE + 1]> = (0..n)
+        .into_par_iter()
+        .with_min_len(PIXELS_PER_TASK)
+        .map(window_coefficients)
+        .collect();
+    let [a_r, a_g, a_b, a_x, a_y, weighted_b]: [Vec<f32>; GUIDE + 1] =
+        std::array::from_fn(|j| coefficients.iter().map(|c| c[j]).collect());
 
     // Per pixel i: Σ_k n_k (a_k · g_i + b_k) over the windows k containing i. The offset of i
     // from k's centre is minus the offset of k from i's, hence the negated offset sums.
-    let weight_sum = box_sum(&m_1, w, h, r);
-    let sum_colour: [Vec<f32>; 3] = std::array::from_fn(|c| box_sum(&weighted_a[c], w, h, r));
-    let sum_x = box_sum_weighted(&weighted_a[3], w, h, r, (D, One));
-    let sum_y = box_sum_weighted(&weighted_a[4], w, h, r, (One, D));
-    let sum_b = box_sum(&weighted_b, w, h, r);
+    let mut sums = [
+        (&m_1, (One, One)),
+        (&a_r, (One, One)),
+        (&a_g, (One, One)),
+        (&a_b, (One, One)),
+        (&a_x, (D, One)),
+        (&a_y, (One, D)),
+        (&weighted_b, (One, One)),
+    ]
+    .par_iter()
+    .map(|(values, weights)| box_sum_weighted(values, w, h, r, *weights))
+    .collect::<Vec<_>>()
+    .into_iter();
+    let mut next = || sums.next().expect("one sum per term");
+    let weight_sum = next();
+    let sum_colour: [Vec<f32>; 3] = std::array::from_fn(|_| next());
+    let [sum_x, sum_y, sum_b] = std::array::from_fn(|_| next());
 
     let metres = (0..n)
+        .into_par_iter()
+        .with_min_len(PIXELS_PER_TASK)
         .map(|i| {
             let raw = depth.metres[i];
             if !valid[i] || weight_sum[i] <= 0.0 {
@@ -905,6 +960,54 @@ mod tests {
         for y in 0..4 {
             for x in 0..5 {
                 assert_eq!(sums[(y * 5 + x) as usize], direct(x, y));
+            }
+        }
+    }
+
+    /// The line-at-a-time passes give exactly the sums of one output at a time adding its
+    /// in-range offsets in ascending order (what the GPU port adds), for every weight and for
+    /// a window wider than the image.
+    #[test]
+    fn weighted_box_sums_add_in_the_order_of_the_gpu_port() {
+        use BoxWeight::{Offset, OffsetSquared, One};
+        let (w, h) = (5usize, 4usize);
+        let values: Vec<f32> = (0..w * h)
+            .map(|i| ((i * 7919) % 13) as f32 * 0.37 - 2.1)
+            .collect();
+        for radius in [1usize, 2, 7] {
+            for weights in [
+                (One, One),
+                (Offset, One),
+                (One, OffsetSquared),
+                (Offset, Offset),
+            ] {
+                let sums = box_sum_weighted(&values, w, h, radius, weights);
+                let r = radius as i64;
+                let line = |centre: i64, len: i64, weight: BoxWeight, at: &dyn Fn(i64) -> f32| {
+                    let mut sum = 0.0f32;
+                    for d in -r..=r {
+                        if (0..len).contains(&(centre + d)) {
+                            sum += weight.at(d, radius) * at(centre + d);
+                        }
+                    }
+                    sum
+                };
+                for y in 0..h as i64 {
+                    for x in 0..w as i64 {
+                        let row = |yy: i64| {
+                            line(x, w as i64, weights.0, &|xx| {
+                                values[(yy * w as i64 + xx) as usize]
+                            })
+                        };
+                        let expected = line(y, h as i64, weights.1, &row);
+                        let got = sums[y as usize * w + x as usize];
+                        assert_eq!(
+                            got.to_bits(),
+                            expected.to_bits(),
+                            "r {radius} {weights:?} at ({x}, {y})"
+                        );
+                    }
+                }
             }
         }
     }
