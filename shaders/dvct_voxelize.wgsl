@@ -11,9 +11,10 @@
 
 @group(0) @binding(0) var<uniform> dvct: Dvct;
 // The scene's vertex buffer (engines/src/gpu_scene.rs `GpuVertex`, 8 words each: position,
-// normal, material, flags), three vertices per triangle.
+// normal, material, flags) and its triangles, three indices each.
 @group(0) @binding(1) var<storage, read> vertices: array<u32>;
 @group(0) @binding(2) var<storage, read_write> occupancy: array<atomic<u32>>;
+@group(0) @binding(3) var<storage, read> indices: array<u32>;
 
 fn vertex_position(i: u32) -> vec3<f32> {
     let b = i * 8u;
@@ -64,10 +65,11 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let corner = dvct.voxelized.x + 3u * k;
-    let a = vertex_position(corner);
-    let b = vertex_position(corner + 1u);
-    let c = vertex_position(corner + 2u);
-    let bit = select(1u, 2u, (vertices[8u * corner + 7u] & FLAG_VIRTUAL) != 0u);
+    let first_vertex = indices[corner];
+    let a = vertex_position(first_vertex);
+    let b = vertex_position(indices[corner + 1u]);
+    let c = vertex_position(indices[corner + 2u]);
+    let bit = select(1u, 2u, (vertices[8u * first_vertex + 7u] & FLAG_VIRTUAL) != 0u);
     let n = i32(dvct.dims.x);
     let s = dvct.origin.w;
     // Positions in cells from the volume's corner.

@@ -136,9 +136,9 @@ impl Targets {
         })
     }
 
-    /// Draw `vertices` of `scene` into layer `layer`, with the layer as the draw's instance
-    /// index: cleared first (to zero, depth to the far plane) unless `start` says to draw over
-    /// what the layer holds, depth test included.
+    /// Draw the triangles of `scene` whose indices are `corners` into layer `layer`, with the
+    /// layer as the draw's instance index: cleared first (to zero, depth to the far plane)
+    /// unless `start` says to draw over what the layer holds, depth test included.
     #[allow(clippy::too_many_arguments)]
     fn draw(
         &self,
@@ -146,7 +146,7 @@ impl Targets {
         pipeline: &wgpu::RenderPipeline,
         bind_group: &wgpu::BindGroup,
         scene: &GpuScene,
-        vertices: std::ops::Range<u32>,
+        corners: std::ops::Range<u32>,
         layer: u32,
         start: LayerStart,
         timestamps: Option<wgpu::RenderPassTimestampWrites>,
@@ -193,11 +193,12 @@ impl Targets {
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        if !vertices.is_empty() {
+        if !corners.is_empty() {
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, bind_group, &[]);
             pass.set_vertex_buffer(0, scene.vertices.slice(..));
-            pass.draw(vertices, layer..layer + 1);
+            pass.set_index_buffer(scene.indices.slice(..), wgpu::IndexFormat::Uint32);
+            pass.draw_indexed(corners, 0, layer..layer + 1);
         }
     }
 

@@ -1,6 +1,10 @@
-//! The scene as the GPU passes see it: one vertex buffer (real meshes first, then virtual, so the
-//! real-only draws are a prefix), the materials, the camera, and every light with its shadow-map
-//! faces. Layouts match `shaders/common.wgsl`.
+//! The scene as the GPU passes see it: each mesh's vertices once and one index buffer of
+//! triangles (real meshes first, then virtual, so the real-only draws are a prefix), the
+//! materials, the camera, and every light with its shadow-map faces. Layouts match
+//! `shaders/common.wgsl`.
+//!
+//! Indexed, because a depth mesh shares each vertex among six triangles: drawn as a triangle
+//! soup, the raster passes shaded and fetched every vertex six times and uploaded six copies.
 
 use std::ops::Range;
 
@@ -79,12 +83,15 @@ const MAX_SPOT_HALF_ANGLE_RAD: f32 = 80.0 * std::f32::consts::PI / 180.0;
 /// The scene's geometry and materials on the GPU.
 #[derive(Debug)]
 pub struct GpuScene {
+    /// Every mesh's vertices with a finite position, each once.
     pub vertices: wgpu::Buffer,
-    /// Vertices of the real meshes (drawn first).
+    /// Three indices into [`Self::vertices`] per triangle.
+    pub indices: wgpu::Buffer,
+    /// Indices of the real meshes' triangles (drawn first).
     pub real_vertices: u32,
     pub all_vertices: u32,
     pub materials: wgpu::Buffer,
-    /// Vertices the light-space passes draw for the real meshes: the [`Scene::shadow_proxy`]'s
+    /// Indices the light-space passes draw for the real meshes: the [`Scene::shadow_proxy`]'s
     /// (after every mesh's) when the scene has one, else the real meshes'.
     pub shadow_real: Range<u32>,
     /// World-space bounds of every mesh.
@@ -129,23 +136,27 @@ impl GpuScene {
             specular: [0.0; 4],
         });
         let mut vertices = Vec::new();
-        let push_mesh = |mesh: &Mesh, vertices: &mut Vec<GpuVertex>| {
+        let mut indices: Vec<u32> = Vec::new();
+        // Each mesh's vertices, then its triangles as indices into them; a triangle with a
+        // vertex whose position is not finite is left out.
+        let push_mesh = |mesh: &Mesh, vertices: &mut Vec<GpuVertex>, indices: &mut Vec<u32>| {
             let material = if mesh.material < scene.materials.len() {
                 mesh.material as u32
             } else {
                 fallback
             };
             let virtual_flag = if mesh.is_virtual { FLAG_VIRTUAL } else { 0 };
-            // Each vertex once (a depth mesh's is shared by six triangles), then copied to the
-            // corners that use it; `None` where its position is not finite.
-            let shared: Vec<Option<GpuVertex>> = mesh
+            let index_of: Vec<Option<u32>> = mesh
                 .positions_in_world
                 .iter()
                 .enumerate()
                 .map(|(i, p)| {
+                    if !p.is_finite() {
+                        return None;
+                    }
                     let n = mesh.normals_in_world.get(i).copied();
                     let n = n.filter(|n| n.is_finite()).unwrap_or(Vec3::ZERO);
-                    p.is_finite().then(|| GpuVertex {
+                    vertices.push(GpuVertex {
                         position: p.to_array(),
                         normal: n.normalize_or_zero().to_array(),
                         material,
@@ -153,66 +164,88 @@ impl GpuScene {
                             | mesh
                                 .measured_albedo(i as u32)
                                 .map_or(0, pack_measured_albedo),
-                    })
+                    });
+                    Some(vertices.len() as u32 - 1)
                 })
                 .collect();
-            vertices.reserve(3 * mesh.triangles.len());
+            indices.reserve(3 * mesh.triangles.len());
             for tri in &mesh.triangles {
                 if let [Some(a), Some(b), Some(c)] =
-                    tri.map(|i| shared.get(i as usize).copied().flatten())
+                    tri.map(|i| index_of.get(i as usize).copied().flatten())
                 {
-                    vertices.extend([a, b, c]);
+                    indices.extend([a, b, c]);
                 }
             }
+            vertices.len() as u32
         };
+        // The index ranges of the real meshes, the virtual ones and the proxy, and the vertex
+        // ranges each draws from.
         let mut real_vertices = 0;
+        let mut vertex_ranges = [0..0, 0..0, 0..0];
         for want_virtual in [false, true] {
+            let first = vertices.len() as u32;
             for mesh in scene.meshes.iter().filter(|m| m.is_virtual == want_virtual) {
-                push_mesh(mesh, &mut vertices);
+                push_mesh(mesh, &mut vertices, &mut indices);
             }
+            vertex_ranges[usize::from(want_virtual)] = first..vertices.len() as u32;
             if !want_virtual {
-                real_vertices = vertices.len() as u32;
+                real_vertices = indices.len() as u32;
             }
         }
-        let all_vertices = vertices.len() as u32;
+        let all_vertices = indices.len() as u32;
         let shadow_real = match &scene.shadow_proxy {
             Some(proxy) => {
-                push_mesh(proxy, &mut vertices);
-                all_vertices..vertices.len() as u32
+                let first = vertices.len() as u32;
+                vertex_ranges[2] = first..push_mesh(proxy, &mut vertices, &mut indices);
+                all_vertices..indices.len() as u32
             }
-            None => 0..real_vertices,
+            None => {
+                vertex_ranges[2] = vertex_ranges[0].clone();
+                0..real_vertices
+            }
         };
-        let bounds_of = |vertices: &[GpuVertex]| {
-            vertices.iter().map(|v| Vec3::from(v.position)).fold(
+        let corners = |r: Range<u32>| &indices[r.start as usize..r.end as usize];
+        let bounds_of = |r: Range<u32>| {
+            corners(r).iter().map(|&i| Vec3::from(vertices[i as usize].position)).fold(
                 None,
                 |acc: Option<(Vec3, Vec3)>, p| {
                     Some(acc.map_or((p, p), |(lo, hi)| (lo.min(p), hi.max(p))))
                 },
             )
         };
-        let range = |r: Range<u32>| &vertices[r.start as usize..r.end as usize];
-        let bounds =
-            bounds_of(&vertices[..all_vertices as usize]).unwrap_or((Vec3::ZERO, Vec3::ZERO));
+        let bounds = bounds_of(0..all_vertices).unwrap_or((Vec3::ZERO, Vec3::ZERO));
         let light_bounds = [
-            bounds_of(range(shadow_real.clone())),
-            bounds_of(range(real_vertices..all_vertices)),
+            bounds_of(shadow_real.clone()),
+            bounds_of(real_vertices..all_vertices),
         ]
         .into_iter()
         .flatten()
         .reduce(|(lo, hi), (l, h)| (lo.min(l), hi.max(h)))
         .unwrap_or((Vec3::ZERO, Vec3::ZERO));
-        let fingerprint = KeptInputs::hash_of;
-        let materials_bytes: &[u8] = bytemuck::cast_slice(&materials);
+        // The triangles of an index range and the vertices they draw from, with the indices
+        // relative to the first of those: a held proxy hashes alike whatever precedes it.
+        let geometry_hash = |r: Range<u32>, from: &Range<u32>, extra: &[u8]| {
+            let relative: Vec<u32> = corners(r).iter().map(|i| i - from.start).collect();
+            KeptInputs::hash_of(&[
+                bytemuck::cast_slice(&relative),
+                bytemuck::cast_slice(&vertices[from.start as usize..from.end as usize]),
+                extra,
+            ])
+        };
         let light_fingerprint = [
-            fingerprint(&[
-                bytemuck::cast_slice(range(shadow_real.clone())),
-                materials_bytes,
-            ]),
-            fingerprint(&[bytemuck::cast_slice(range(real_vertices..all_vertices))]),
+            geometry_hash(
+                shadow_real.clone(),
+                &vertex_ranges[2],
+                bytemuck::cast_slice(&materials),
+            ),
+            geometry_hash(real_vertices..all_vertices, &vertex_ranges[1], &[]),
         ];
-        // wgpu refuses zero-sized vertex buffers; one degenerate vertex is never drawn.
+        // wgpu refuses zero-sized buffers; one degenerate triangle is never drawn.
         if vertices.is_empty() {
             vertices.push(GpuVertex::zeroed());
+        }
+        if indices.is_empty() {
+            indices.extend([0; 3]);
         }
         let all_vertices = if scene.meshes.is_empty() {
             0
@@ -227,6 +260,13 @@ impl GpuScene {
                     contents: bytemuck::cast_slice(&vertices),
                     // Storage too: DVCT voxelises the triangles in a compute pass.
                     usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::STORAGE,
+                }),
+            indices: ctx
+                .device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("scene triangles"),
+                    contents: bytemuck::cast_slice(&indices),
+                    usage: wgpu::BufferUsages::INDEX | wgpu::BufferUsages::STORAGE,
                 }),
             real_vertices,
             all_vertices,
@@ -247,8 +287,9 @@ impl GpuScene {
 }
 
 impl GpuScene {
-    /// Every vertex the light-space passes draw, as one range: the virtual object's and the
-    /// shadow proxy's, which follows it, or every mesh's when there is no proxy.
+    /// Every triangle the light-space passes draw, as one range of indices: the virtual
+    /// object's and the shadow proxy's, which follows it, or every mesh's when there is no
+    /// proxy.
     pub fn light_space_vertices(&self) -> Range<u32> {
         if self.shadow_real.start == self.all_vertices {
             self.real_vertices..self.shadow_real.end

@@ -520,6 +520,7 @@ impl Engine for Dvct {
                     self.dvct_uniform.as_entire_binding(),
                     scene.vertices.as_entire_binding(),
                     v.occupancy.as_entire_binding(),
+                    scene.indices.as_entire_binding(),
                 ],
             );
             let inject_group = self.inject.bind_group(
@@ -790,6 +791,8 @@ mod tests {
         }
         use wgpu::BufferUsages as U;
         let vertices = ctx.buffer_with("vertices", bytemuck::cast_slice(&words), U::STORAGE);
+        let corners: Vec<u32> = (0..3 * triangles.len() as u32).collect();
+        let indices = ctx.buffer_with("indices", bytemuck::cast_slice(&corners), U::STORAGE);
         let pipeline = shaders::compute_pipeline(&ctx.device, "voxelize", shaders::DVCT_VOXELIZE);
         let size = 4 * (n * n * n) as u64;
         for lanes in [1, 32] {
@@ -809,6 +812,7 @@ mod tests {
                         uniform.as_entire_binding(),
                         vertices.as_entire_binding(),
                         occupancy.as_entire_binding(),
+                        indices.as_entire_binding(),
                     ],
                     (triangles.len() as u32 * lanes).div_ceil(64),
                     &occupancy,
