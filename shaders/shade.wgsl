@@ -16,6 +16,9 @@
 struct ShadeParams {
     // width, height, light count, shadow-map size
     size: vec4<u32>,
+    // The virtual object's bounds in the world (`virtual_hi.w`: 1 when there is an object).
+    virtual_lo: vec4<f32>,
+    virtual_hi: vec4<f32>,
     // x: shadow bias in texels; y: 1 to add the shadow-mapped direct Δ on real pixels;
     // z: this frame's weight in the running mean (1: alone, 0: keep the mean); w: 1 to write
     // the mean.
@@ -107,12 +110,50 @@ fn direct(p: vec4<f32>, n: vec3<f32>, albedo: vec3<f32>, rho: bool, on_virtual: 
     return sum;
 }
 
+// Whether the virtual object can shadow `p` from light `l` in R^ρ: the segment from `p` to a
+// point or spot light, or the ray towards a directional one, meets the object's bounds grown by
+// one shadow-map texel at the object's far side. R^ρ is R^μ with the object drawn over it, so
+// they differ at p's texel only where the object covers that texel's centre nearer the light
+// than p; that centre's ray passes within half a texel's diagonal of p's. Elsewhere both maps
+// hold the same depth there, and Δ's direct term is exactly 0 without a lookup.
+fn may_shadow(l: Light, p: vec3<f32>) -> bool {
+    let lo = params.virtual_lo.xyz;
+    let hi = params.virtual_hi.xyz;
+    var towards = l.position.xyz - p;
+    var reach = 1.0;
+    var farthest = 0.0;
+    if u32(l.position.w) == KIND_DIRECTIONAL {
+        towards = -l.direction.xyz;
+        reach = 3.0e38;
+    } else {
+        let from_light = max(abs(hi - l.position.xyz), abs(lo - l.position.xyz));
+        farthest = length(from_light);
+    }
+    let grow = texel_footprint(faces[l.faces.x], farthest, f32(params.size.w));
+    // Slab test: the parameter interval in which the segment is inside each pair of planes.
+    let tiny = abs(towards) < vec3<f32>(1e-20);
+    let inverse = 1.0 / select(towards, vec3<f32>(1e-20), tiny);
+    let t0 = (lo - grow - p) * inverse;
+    let t1 = (hi + grow - p) * inverse;
+    let near = min(t0, t1);
+    let far = max(t0, t1);
+    let enter = max(max(near.x, near.y), max(near.z, 0.0));
+    let leave = min(min(far.x, far.y), min(far.z, reach));
+    return enter <= leave;
+}
+
 // direct^ρ − direct^μ at a real point, which both G-buffers hold alike (ρ is μ with the object
 // drawn over it): the light and its shadow-map lookup are computed once, only the two maps'
 // visibilities differ, and the light is reflected only where they do.
 fn direct_delta(p: vec4<f32>, n: vec3<f32>, albedo: vec3<f32>) -> vec3<f32> {
     var sum = vec3<f32>(0.0);
+    if params.virtual_hi.w < 0.5 {
+        return sum;
+    }
     for (var i = 0u; i < params.size.z; i++) {
+        if !may_shadow(lights[i], p.xyz) {
+            continue;
+        }
         let a = arrival(lights[i], p.xyz, n);
         if !a.reaches || !a.probe.tested {
             continue;

@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
-use glam::Vec2;
+use glam::{Vec2, Vec4};
 use relight_core::light::Light;
 use relight_core::scene::{Scene, SceneCamera};
 use relight_core::{Image, PixelFormat};
@@ -30,6 +30,8 @@ use crate::timer::GpuTimer;
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct ShadeParams {
     size: [u32; 4],
+    virtual_lo: [f32; 4],
+    virtual_hi: [f32; 4],
     options: [f32; 4],
 }
 
@@ -340,6 +342,9 @@ pub struct Deferred {
     /// `environment_lights` of its own (a scene file's map; the probe path sets them).
     derived_environment_lights: crate::dir::EnvironmentLights,
     timer: Option<GpuTimer>,
+    /// Whether the shade pass skips a real pixel's shadow-map lookups where the virtual object
+    /// cannot shadow it (`may_shadow` in shade.wgsl); off only to test that it changes nothing.
+    shadow_reach_cull: bool,
 }
 
 const MAX_LAYERS: u32 = 64;
@@ -388,8 +393,15 @@ impl Deferred {
             environment_lights: true,
             derived_environment_lights: crate::dir::EnvironmentLights::default(),
             timer: GpuTimer::new(&ctx),
+            shadow_reach_cull: true,
             ctx,
         }
+    }
+
+    /// Shade every real pixel's shadow-map lookups, as without `may_shadow`.
+    #[cfg(test)]
+    pub(crate) fn without_shadow_reach_cull(&mut self) {
+        self.shadow_reach_cull = false;
     }
 
     /// For an engine that lights with the scene's environment map itself (`dir`, `ibl`): the
@@ -783,8 +795,19 @@ impl Deferred {
             return Err(EngineError::NotPrepared);
         };
         let (width, height) = (frame_res.width, frame_res.height);
+        // Bounds that hold everything the shade pass can meet disable the cull.
+        const EVERYWHERE: f32 = 1e18;
+        let (virtual_lo, virtual_hi) = match gpu_scene.virtual_bounds {
+            Some(_) if !self.shadow_reach_cull => {
+                (Vec4::splat(-EVERYWHERE), Vec4::splat(EVERYWHERE))
+            }
+            Some((lo, hi)) => (lo.extend(0.0), hi.extend(1.0)),
+            None => (Vec4::ZERO, Vec4::ZERO),
+        };
         let params = ShadeParams {
             size: [width, height, self.light_count, light_res.sizes.shadow],
+            virtual_lo: virtual_lo.to_array(),
+            virtual_hi: virtual_hi.to_array(),
             options: [
                 options.shadow_bias_texels,
                 if options.direct_delta { 1.0 } else { 0.0 },

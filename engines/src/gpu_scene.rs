@@ -206,12 +206,12 @@ impl GpuScene {
         };
         let corners = |r: Range<u32>| &indices[r.start as usize..r.end as usize];
         let bounds_of = |r: Range<u32>| {
-            corners(r).iter().map(|&i| Vec3::from(vertices[i as usize].position)).fold(
-                None,
-                |acc: Option<(Vec3, Vec3)>, p| {
+            corners(r)
+                .iter()
+                .map(|&i| Vec3::from(vertices[i as usize].position))
+                .fold(None, |acc: Option<(Vec3, Vec3)>, p| {
                     Some(acc.map_or((p, p), |(lo, hi)| (lo.min(p), hi.max(p))))
-                },
-            )
+                })
         };
         let bounds = bounds_of(0..all_vertices).unwrap_or((Vec3::ZERO, Vec3::ZERO));
         let light_bounds = [
