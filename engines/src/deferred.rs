@@ -903,20 +903,22 @@ impl Deferred {
     }
 }
 
-/// The shading pass's work over `pixels`: both G-buffers (32 bytes a texel each), the
-/// background and the indirect term read, Δ and the composite written; per light and G-buffer
-/// one shadow-map texel (16 bytes) and about 200 operations (the light's incidence, the BRDF,
-/// the depth test and its bias); the running mean's 32 bytes read and written as `sample`
-/// needs them. A frame that holds the mean reads it and the background, and nothing else.
+/// The shading pass's least work over `pixels`: the ρ G-buffer (32 bytes a texel), the
+/// background (4) and the indirect term (16) read, Δ (8) and the composite (4) written; per
+/// light the test of whether the object can shadow the pixel (`may_shadow`, about 40
+/// operations); the running mean's 32 bytes read and written as `sample` needs them. The
+/// shadow-map lookups and BRDFs where the object can shadow, and the μ G-buffer on the
+/// object's pixels, depend on the picture and are left out, so the model is a floor. A frame
+/// that holds the mean reads it and the background, and nothing else.
 fn shade_work(pixels: u64, lights: u32, sample: Sample) -> Work {
     if sample.holds() {
         // The mean read, the background read, Δ and the composite written.
         return Work::new(32.0 + 4.0 + 8.0 + 4.0, 20.0).times(pixels as f64);
     }
-    let per_light = Work::new(16.0, 200.0).times(2.0 * f64::from(lights));
+    let per_light = Work::new(0.0, 40.0).times(f64::from(lights));
     let read = if sample.weight < 1.0 { 32.0 } else { 0.0 };
     let written = if sample.write { 32.0 } else { 0.0 };
-    (Work::new(2.0 * 32.0 + 4.0 + 16.0 + 16.0 + 4.0 + read + written, 50.0) + per_light)
+    (Work::new(32.0 + 4.0 + 16.0 + 8.0 + 4.0 + read + written, 50.0) + per_light)
         .times(pixels as f64)
 }
 
