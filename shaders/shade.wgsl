@@ -183,7 +183,7 @@ fn shade_pixel(xy: vec2<i32>, i: u32) -> Shaded {
     let n_rho = textureLoad(gb_rho_normal, xy, 0);
     let albedo_rho = textureLoad(gb_rho_albedo, xy, 0).rgb;
     if n_rho.w > 0.5 {
-        var l_rho = direct(p_rho, normalize(n_rho.xyz), albedo_rho, true, true) + indirect[i].rgb;
+        let l_rho = direct(p_rho, normalize(n_rho.xyz), albedo_rho, true, true) + indirect[i].rgb;
         let p_mu = textureLoad(gb_mu_position, xy, 0);
         var l_mu = vec3<f32>(0.0);
         if p_mu.w > 0.5 {

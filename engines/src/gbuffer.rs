@@ -349,7 +349,7 @@ impl GBufferPass {
             &self.pipeline,
             bind_group,
             scene,
-            0..scene.real_vertices,
+            0..scene.real_indices,
             0,
             LayerStart::Clear,
             timer.as_deref_mut().and_then(|t| t.render("gpu.gbuffer")),
@@ -360,15 +360,15 @@ impl GBufferPass {
             &self.pipeline,
             bind_group,
             scene,
-            scene.real_vertices..scene.all_vertices,
+            scene.real_indices..scene.all_indices,
             0,
             LayerStart::Over,
             timer.and_then(|t| t.render("gpu.gbuffer")),
         );
         let (texels, texel_bytes) = (mu.layer_texels(), mu.texel_bytes());
-        roofline::raster(scene.real_vertices, texels, texel_bytes)
+        roofline::raster(scene.real_indices, texels, texel_bytes)
             + roofline::copy(texels * texel_bytes)
-            + roofline::raster(scene.all_vertices - scene.real_vertices, 0, 0)
+            + roofline::raster(scene.all_indices - scene.real_indices, 0, 0)
     }
 }
 
@@ -486,21 +486,21 @@ impl RsmPass {
             }
         }
         rho.copy_from(encoder, mu);
-        let virtual_vertices = scene.real_vertices..scene.all_vertices;
-        if !virtual_vertices.is_empty() {
+        let virtual_indices = scene.real_indices..scene.all_indices;
+        if !virtual_indices.is_empty() {
             for face in 0..rho.layers {
                 rho.draw(
                     encoder,
                     &self.pipeline,
                     bind_group,
                     scene,
-                    virtual_vertices.clone(),
+                    virtual_indices.clone(),
                     face,
                     LayerStart::Over,
                     timer.as_deref_mut().and_then(|t| t.render(timing)),
                 );
             }
         }
-        work + roofline::raster(scene.all_vertices - scene.real_vertices, 0, 0).times(layers)
+        work + roofline::raster(scene.all_indices - scene.real_indices, 0, 0).times(layers)
     }
 }

@@ -88,8 +88,8 @@ pub struct GpuScene {
     /// Three indices into [`Self::vertices`] per triangle.
     pub indices: wgpu::Buffer,
     /// Indices of the real meshes' triangles (drawn first).
-    pub real_vertices: u32,
-    pub all_vertices: u32,
+    pub real_indices: u32,
+    pub all_indices: u32,
     pub materials: wgpu::Buffer,
     /// Indices the light-space passes draw for the real meshes: the [`Scene::shadow_proxy`]'s
     /// (after every mesh's) when the scene has one, else the real meshes'.
@@ -137,8 +137,8 @@ impl GpuScene {
         });
         let mut vertices = Vec::new();
         let mut indices: Vec<u32> = Vec::new();
-        // Each mesh's vertices, then its triangles as indices into them; a triangle with a
-        // vertex whose position is not finite is left out.
+        // Each mesh's vertices, then its triangles as indices into them (a triangle with a
+        // vertex whose position is not finite is left out); returns where its vertices end.
         let push_mesh = |mesh: &Mesh, vertices: &mut Vec<GpuVertex>, indices: &mut Vec<u32>| {
             let material = if mesh.material < scene.materials.len() {
                 mesh.material as u32
@@ -180,7 +180,7 @@ impl GpuScene {
         };
         // The index ranges of the real meshes, the virtual ones and the proxy, and the vertex
         // ranges each draws from.
-        let mut real_vertices = 0;
+        let mut real_indices = 0;
         let mut vertex_ranges = [0..0, 0..0, 0..0];
         for want_virtual in [false, true] {
             let first = vertices.len() as u32;
@@ -189,19 +189,19 @@ impl GpuScene {
             }
             vertex_ranges[usize::from(want_virtual)] = first..vertices.len() as u32;
             if !want_virtual {
-                real_vertices = indices.len() as u32;
+                real_indices = indices.len() as u32;
             }
         }
-        let all_vertices = indices.len() as u32;
+        let all_indices = indices.len() as u32;
         let shadow_real = match &scene.shadow_proxy {
             Some(proxy) => {
                 let first = vertices.len() as u32;
                 vertex_ranges[2] = first..push_mesh(proxy, &mut vertices, &mut indices);
-                all_vertices..indices.len() as u32
+                all_indices..indices.len() as u32
             }
             None => {
                 vertex_ranges[2] = vertex_ranges[0].clone();
-                0..real_vertices
+                0..real_indices
             }
         };
         let corners = |r: Range<u32>| &indices[r.start as usize..r.end as usize];
@@ -213,10 +213,10 @@ impl GpuScene {
                     Some(acc.map_or((p, p), |(lo, hi)| (lo.min(p), hi.max(p))))
                 })
         };
-        let bounds = bounds_of(0..all_vertices).unwrap_or((Vec3::ZERO, Vec3::ZERO));
+        let bounds = bounds_of(0..all_indices).unwrap_or((Vec3::ZERO, Vec3::ZERO));
         let light_bounds = [
             bounds_of(shadow_real.clone()),
-            bounds_of(real_vertices..all_vertices),
+            bounds_of(real_indices..all_indices),
         ]
         .into_iter()
         .flatten()
@@ -238,7 +238,7 @@ impl GpuScene {
                 &vertex_ranges[2],
                 bytemuck::cast_slice(&materials),
             ),
-            geometry_hash(real_vertices..all_vertices, &vertex_ranges[1], &[]),
+            geometry_hash(real_indices..all_indices, &vertex_ranges[1], &[]),
         ];
         // wgpu refuses zero-sized buffers; one degenerate triangle is never drawn.
         if vertices.is_empty() {
@@ -247,10 +247,10 @@ impl GpuScene {
         if indices.is_empty() {
             indices.extend([0; 3]);
         }
-        let all_vertices = if scene.meshes.is_empty() {
+        let all_indices = if scene.meshes.is_empty() {
             0
         } else {
-            all_vertices
+            all_indices
         };
         Self {
             vertices: ctx
@@ -268,8 +268,8 @@ impl GpuScene {
                     contents: bytemuck::cast_slice(&indices),
                     usage: wgpu::BufferUsages::INDEX | wgpu::BufferUsages::STORAGE,
                 }),
-            real_vertices,
-            all_vertices,
+            real_indices,
+            all_indices,
             shadow_real,
             materials: ctx
                 .device
@@ -290,15 +290,15 @@ impl GpuScene {
     /// Every triangle the light-space passes draw, as one range of indices: the virtual
     /// object's and the shadow proxy's, which follows it, or every mesh's when there is no
     /// proxy.
-    pub fn light_space_vertices(&self) -> Range<u32> {
-        if self.shadow_real.start == self.all_vertices {
-            self.real_vertices..self.shadow_real.end
+    pub fn light_space_indices(&self) -> Range<u32> {
+        if self.shadow_real.start == self.all_indices {
+            self.real_indices..self.shadow_real.end
         } else {
-            0..self.all_vertices
+            0..self.all_indices
         }
     }
 
-    /// A hash of [`Self::light_space_vertices`] and the materials.
+    /// A hash of [`Self::light_space_indices`] and the materials.
     pub fn light_space_fingerprint(&self) -> u64 {
         KeptInputs::hash_of(&[
             &self.light_fingerprint[0].to_le_bytes(),

@@ -433,7 +433,7 @@ impl Engine for Dvct {
         let (bounds, virtual_bounds, voxelized, scene_geometry) = (
             scene.bounds,
             scene.virtual_bounds,
-            scene.light_space_vertices(),
+            scene.light_space_indices(),
             scene.light_space_fingerprint(),
         );
         let triangles = voxelized.len() as u32 / 3;
