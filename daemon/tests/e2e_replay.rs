@@ -706,3 +706,43 @@ fn replay_takes_the_tracking_source_from_the_command_line() {
     assert!(replay(&[]).contains(r#"camera tracking source="markers""#));
     assert!(replay(&["--tracking", "scene"]).contains(r#"camera tracking source="scene""#));
 }
+
+/// `relightd replay --live-config` takes the live settings (`[tracking]`, `[scene]`, `[sync]`)
+/// from a configuration file, the command line's `--tracking` still wins, and a bad file is
+/// refused with its line before anything runs.
+#[test]
+fn replay_takes_live_settings_from_a_configuration_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let live = dir.path().join("live.toml");
+    let replay = |extra: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_relightd"))
+            .args(["--config", "/dev/null", "replay"])
+            .arg(fixture())
+            .args(["--mode", "fast", "--engine", "passthrough", "--socket"])
+            .arg(dir.path().join("control.sock"))
+            .arg("--live-config")
+            .arg(&live)
+            .args(extra)
+            .env("RUST_LOG", "info")
+            .output()
+            .unwrap()
+    };
+    let tracked_by = |extra: &[&str]| {
+        let out = replay(extra);
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(out.status.success(), "{stderr}");
+        stderr
+    };
+    std::fs::write(&live, "[tracking]\nsource = \"scene\"\n").unwrap();
+    assert!(tracked_by(&[]).contains(r#"camera tracking source="scene""#));
+    assert!(tracked_by(&["--tracking", "markers"]).contains(r#"camera tracking source="markers""#));
+    std::fs::write(&live, "[scene]\ndepth_stride = 99\n").unwrap();
+    let refused = replay(&[]);
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        !refused.status.success()
+            && stderr.contains("live.toml:2")
+            && stderr.contains("depth_stride"),
+        "{stderr}"
+    );
+}

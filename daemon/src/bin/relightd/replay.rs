@@ -1,4 +1,5 @@
-//! `relightd replay`: a recording through the pipeline without a configuration file (the demo).
+//! `relightd replay`: a recording through the pipeline without a configuration file (the demo),
+//! or with the live settings of one (`--live-config`).
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -62,6 +63,11 @@ pub struct Args {
     /// `--topic color=/camera/color/image_raw --topic depth=/camera/depth/image_rect_raw`.
     #[arg(long = "topic", value_name = "STREAM=TOPIC", value_parser = stream_topic)]
     topics: Vec<(StreamKind, String)>,
+    /// Take `[scene]`, `[tracking]` and `[sync]` from this configuration file, as `relightd
+    /// score --live-config` does (default: the built-in defaults), to try live settings such as
+    /// `[scene] depth_stride` on a recording; `--scene` and `--tracking` override the file's.
+    #[arg(long = "live-config")]
+    live_config: Option<PathBuf>,
 }
 
 fn stream_topic(text: &str) -> Result<(StreamKind, String), String> {
@@ -81,6 +87,10 @@ fn stream_topic(text: &str) -> Result<(StreamKind, String), String> {
 }
 
 pub fn run(args: Args) -> Result<()> {
+    let live = match &args.live_config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
     let mut config = Config {
         path: PathBuf::from("(command line)"),
         source: SourceConfig::Replay(ReplayConfig {
@@ -98,11 +108,18 @@ pub fn run(args: Args) -> Result<()> {
             dir: args.output,
             every_n: args.every_n,
         },
+        sync: live.sync,
+        scene: live.scene,
+        tracking: live.tracking,
         ..Config::default()
     };
     config.engine.name = args.engine;
-    config.scene.dir = args.scene;
-    config.tracking.source = args.tracking;
+    if args.scene.is_some() {
+        config.scene.dir = args.scene;
+    }
+    if args.tracking.is_some() {
+        config.tracking.source = args.tracking;
+    }
     config.live_view.foxglove = args.live_view;
     config.live_view.page = args.live_page;
     if let Some(socket) = args.socket {
