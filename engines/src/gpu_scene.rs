@@ -12,7 +12,6 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec2, Vec3};
 use relight_core::light::Light;
 use relight_core::scene::{Mesh, Scene, SceneCamera, box_corners};
-use wgpu::util::DeviceExt;
 
 use crate::deferred::KeptInputs;
 use crate::gpu::GpuContext;
@@ -253,31 +252,25 @@ impl GpuScene {
             all_indices
         };
         Self {
-            vertices: ctx
-                .device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("scene vertices"),
-                    contents: bytemuck::cast_slice(&vertices),
-                    // Storage too: DVCT voxelises the triangles in a compute pass.
-                    usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::STORAGE,
-                }),
-            indices: ctx
-                .device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("scene triangles"),
-                    contents: bytemuck::cast_slice(&indices),
-                    usage: wgpu::BufferUsages::INDEX | wgpu::BufferUsages::STORAGE,
-                }),
+            // Storage too: DVCT voxelises the triangles in a compute pass.
+            vertices: ctx.buffer_with(
+                "scene vertices",
+                bytemuck::cast_slice(&vertices),
+                wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::STORAGE,
+            ),
+            indices: ctx.buffer_with(
+                "scene triangles",
+                bytemuck::cast_slice(&indices),
+                wgpu::BufferUsages::INDEX | wgpu::BufferUsages::STORAGE,
+            ),
             real_indices,
             all_indices,
             shadow_real,
-            materials: ctx
-                .device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("materials"),
-                    contents: bytemuck::cast_slice(&materials),
-                    usage: wgpu::BufferUsages::STORAGE,
-                }),
+            materials: ctx.buffer_with(
+                "materials",
+                bytemuck::cast_slice(&materials),
+                wgpu::BufferUsages::STORAGE,
+            ),
             bounds,
             light_bounds,
             light_fingerprint,
