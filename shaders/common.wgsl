@@ -278,6 +278,24 @@ fn shadow_probe(l: Light, face: Face, p: vec3<f32>, n: vec3<f32>, to_light: vec3
     return ShadowProbe(vec2<i32>(floor(t)), clip.z / clip.w, true);
 }
 
+// Entry distance of the ray into a box, or +∞ when it misses or enters beyond `t_max`.
+fn box_entry(lo: vec3<f32>, hi: vec3<f32>, o: vec3<f32>, inv_d: vec3<f32>, t_max: f32) -> f32 {
+    let t0 = (lo - o) * inv_d;
+    let t1 = (hi - o) * inv_d;
+    let near = min(t0, t1);
+    let far = max(t0, t1);
+    let enter = max(max(near.x, near.y), max(near.z, 0.0));
+    let exit = min(min(far.x, far.y), min(far.z, t_max));
+    return select(3.4e38, enter, enter <= exit);
+}
+
+// The ray direction the box tests divide by: a zero component becomes a tiny one of its sign
+// (the reference's culling ray), so no 0 · ∞ reads as a miss.
+fn inverse_direction(d: vec3<f32>) -> vec3<f32> {
+    let tiny = select(vec3<f32>(1e-20), vec3<f32>(-1e-20), d < vec3<f32>(0.0));
+    return 1.0 / select(d, tiny, abs(d) < vec3<f32>(1e-20));
+}
+
 // Flux Φ_p (W) a shadow-map texel reflects as a VPL: its albedo times the light's flux through
 // the texel, I · Ω_texel for point and spot lights (Ω = (2 tan(fov/2) / size)² cos³ of the angle
 // off the face axis), E · A_texel for directional ones.

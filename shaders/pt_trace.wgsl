@@ -160,24 +160,6 @@ fn moller_trumbore(i: u32, o: vec3<f32>, d: vec3<f32>) -> vec3<f32> {
     return vec3<f32>(dot(e2, q) * inv, u, v);
 }
 
-// Entry distance of the ray into a box, or +∞ when it misses or enters beyond `t_max`.
-fn box_entry(lo: vec3<f32>, hi: vec3<f32>, o: vec3<f32>, inv_d: vec3<f32>, t_max: f32) -> f32 {
-    let t0 = (lo - o) * inv_d;
-    let t1 = (hi - o) * inv_d;
-    let near = min(t0, t1);
-    let far = max(t0, t1);
-    let enter = max(max(near.x, near.y), max(near.z, 0.0));
-    let exit = min(min(far.x, far.y), min(far.z, t_max));
-    return select(3.4e38, enter, enter <= exit);
-}
-
-// The ray direction the box tests divide by: a zero component becomes a tiny one of its sign
-// (the reference's culling ray), so no 0 · ∞ reads as a miss.
-fn inverse_direction(d: vec3<f32>) -> vec3<f32> {
-    let tiny = select(vec3<f32>(1e-20), vec3<f32>(-1e-20), d < vec3<f32>(0.0));
-    return 1.0 / select(d, tiny, abs(d) < vec3<f32>(1e-20));
-}
-
 // The closest hit with t in (0, t_max), or with `any_hit` the first one found (near child
 // first either way). Ties go to the lower triangle index, so the closest hit depends only on the
 // set of triangles met. `real_only` skips the virtual triangles (L^μ): on a ray the object does

@@ -130,16 +130,7 @@ fn may_shadow(l: Light, p: vec3<f32>) -> bool {
         farthest = length(from_light);
     }
     let grow = texel_footprint(faces[l.faces.x], farthest, f32(params.size.w));
-    // Slab test: the parameter interval in which the segment is inside each pair of planes.
-    let tiny = abs(towards) < vec3<f32>(1e-20);
-    let inverse = 1.0 / select(towards, vec3<f32>(1e-20), tiny);
-    let t0 = (lo - grow - p) * inverse;
-    let t1 = (hi + grow - p) * inverse;
-    let near = min(t0, t1);
-    let far = max(t0, t1);
-    let enter = max(max(near.x, near.y), max(near.z, 0.0));
-    let leave = min(min(far.x, far.y), min(far.z, reach));
-    return enter <= leave;
+    return box_entry(lo - grow, hi + grow, p, inverse_direction(towards), reach) < 3.4e38;
 }
 
 // direct^ρ − direct^μ at a real point, which both G-buffers hold alike (ρ is μ with the object
