@@ -379,6 +379,8 @@ struct Volume {
     // x: fixed-point counts per unit; y: 1 = direct injection; z: dampening of negative light;
     // w: lookup offset along the normal, in cells.
     scale: vec4<f32>,
+    // x: 1 = gather the far field (`dlpv_inject.wgsl`) and light the object with it.
+    options: vec4<u32>,
 }
 
 // L1 SH basis (Y00, Y1−1, Y10, Y11 = 0.2821, 0.4886 · (y, z, x)) at unit `d`: a function's
@@ -391,6 +393,59 @@ fn sh_basis(d: vec3<f32>) -> vec4<f32> {
 // Also the kernel of the cosine convolution: ∫ f(ω) ⟨d, ω⟩₊ dω = ⟨f_SH, cosine_lobe(d)⟩.
 fn cosine_lobe(d: vec3<f32>) -> vec4<f32> {
     return vec4<f32>(0.886226925, 1.023326708 * d.y, 1.023326708 * d.z, 1.023326708 * d.x);
+}
+
+// The far field of a volume (`engines/src/volume.rs`, `FarField`): the light arriving at the
+// volume's centre from the VPLs of R^ρ that fall outside it, which the volume cannot carry, as
+// L2 SH of incident radiance per colour channel (coefficient k of RGB), injected as 27
+// fixed-point sums in units of `volume scale × h²` (h: half the volume's edge).
+const FAR_FIELD_VALUES: u32 = 27u;
+
+// L2 SH basis (Ramamoorthi & Hanrahan 2001, eq. 3: Y00; Y1−1, Y10, Y11; Y2−2, Y2−1, Y20, Y21,
+// Y22) at unit `d`; the first four are `sh_basis`.
+fn sh9_basis(d: vec3<f32>) -> array<f32, 9> {
+    return array<f32, 9>(
+        0.282094792,
+        0.488602512 * d.y, 0.488602512 * d.z, 0.488602512 * d.x,
+        1.092548431 * d.x * d.y, 1.092548431 * d.y * d.z, 0.315391565 * (3.0 * d.z * d.z - 1.0),
+        1.092548431 * d.x * d.z, 0.546274215 * (d.x * d.x - d.y * d.y),
+    );
+}
+
+// The far field's sums as incident radiance SH (W/sr/m² per unit of the basis): counts over
+// `units`, the fixed-point scale times h².
+fn far_field_sh(counts: array<i32, 27>, units: f32) -> array<vec3<f32>, 9> {
+    var sh: array<vec3<f32>, 9>;
+    for (var k = 0u; k < 9u; k++) {
+        sh[k] = vec3<f32>(f32(counts[3u * k]), f32(counts[3u * k + 1u]), f32(counts[3u * k + 2u]))
+            / units;
+    }
+    return sh;
+}
+
+// Irradiance the far field gives a surface of normal `n`: the SH cosine convolution (Ramamoorthi
+// & Hanrahan 2001, eq. 7; Â = π, 2π/3, π/4 per band), clamped where the truncation rings
+// below zero.
+fn far_field_irradiance(sh: array<vec3<f32>, 9>, n: vec3<f32>) -> vec3<f32> {
+    let y = sh9_basis(n);
+    var e = PI * sh[0] * y[0];
+    for (var k = 1u; k < 4u; k++) {
+        e += (2.0 * PI / 3.0) * sh[k] * y[k];
+    }
+    for (var k = 4u; k < 9u; k++) {
+        e += (PI / 4.0) * sh[k] * y[k];
+    }
+    return max(e, vec3<f32>(0.0));
+}
+
+// Radiance arriving from unit direction `d` (towards the source), clamped at zero.
+fn far_field_radiance(sh: array<vec3<f32>, 9>, d: vec3<f32>) -> vec3<f32> {
+    let y = sh9_basis(d);
+    var l = vec3<f32>(0.0);
+    for (var k = 0u; k < 9u; k++) {
+        l += sh[k] * y[k];
+    }
+    return max(l, vec3<f32>(0.0));
 }
 
 // The DVCT volumes (engines/src/dvct): occlusion (x: any surface, y: the virtual object, z: the
@@ -409,7 +464,8 @@ struct Dvct {
     // x: first vertex of the triangles voxelised, y: how many triangles (the light-space
     // geometry: the virtual object and the real scene's shadow proxy, or every mesh).
     voxelized: vec4<u32>,
-    // x: 1 = directional occlusion on real pixels (`CONE_OCCLUDED` in dvct_trace.wgsl).
+    // x: 1 = directional occlusion on real pixels (`CONE_OCCLUDED` in dvct_trace.wgsl); y: 1 =
+    // virtual pixels' cones take the far field beyond the volume.
     modes: vec4<u32>,
 }
 

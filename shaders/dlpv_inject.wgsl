@@ -6,6 +6,11 @@
 // direction of travel, moved half a cell back towards the light, into V^Δ only: where the
 // object blocks light, R^μ's floor texels inject it negatively (antiradiance, the shadow).
 //
+// The R^ρ VPLs that land outside the volume light the object from afar: each adds its intensity
+// towards the volume's centre over the squared distance, as L2 SH of the direction it arrives
+// from, to the far field (`far_field`, see common.wgsl), summed per thread, then per workgroup,
+// then once per workgroup into the buffer.
+//
 // Accumulation is fixed point: WGSL has no float atomics, and integer addition commutes, so the
 // result does not depend on the order threads run in and identical VPLs of R^ρ and R^μ cancel
 // to exactly zero. `volume.scale.x` (counts per unit) is chosen on the CPU from a bound on the
@@ -24,6 +29,9 @@
 // so that each stays within the adapter's largest storage binding).
 @group(0) @binding(9) var<storage, read_write> cells_delta: array<atomic<i32>>;
 @group(0) @binding(10) var<storage, read_write> cells_rho: array<atomic<i32>>;
+@group(0) @binding(11) var<storage, read_write> far_field: array<atomic<i32>, FAR_FIELD_VALUES>;
+
+var<workgroup> far_group: array<atomic<i32>, FAR_FIELD_VALUES>;
 
 fn cell_of(p: vec3<f32>) -> i32 {
     let n = i32(volume.dims.x);
@@ -93,13 +101,37 @@ struct Texel {
 }
 
 // A texel's VPL: its reflected flux as a cosine lobe around its normal, moved half a cell
-// along the normal.
+// along the normal. False where that lands outside the volume (nothing injected).
 fn inject_reflected(which: u32, p: ptr<function, Pending>, t: Texel, face: Face, l: Light,
-                    sign: f32) {
+                    sign: f32) -> bool {
     let n = normalize(t.normal.xyz);
     let cell = cell_of(t.position.xyz + n * (0.5 * volume.origin.w));
+    if cell < 0 {
+        return false;
+    }
     let flux = vpl_flux(l, face, t.position.xyz, t.albedo.rgb, volume.dims.y);
     inject(which, p, cell, cosine_lobe(n), sign * flux);
+    return true;
+}
+
+// An R^ρ VPL outside the volume into the thread's far-field sums (in units of the fixed-point
+// scale × h², so that a VPL's share is at most its intensity, as in the volume): I_p(t) / d² along
+// its direction t to the centre, as arriving from −t.
+fn gather_far(far: ptr<function, array<vec3<f32>, 9>>, t: Texel, face: Face, l: Light) {
+    let half_edge = 0.5 * f32(volume.dims.x) * volume.origin.w;
+    let to_centre = volume.origin.xyz + vec3<f32>(half_edge) - t.position.xyz;
+    let d2 = max(dot(to_centre, to_centre), half_edge * half_edge);
+    let travel = to_centre * inverseSqrt(max(dot(to_centre, to_centre), 1e-12));
+    let cos_out = dot(normalize(t.normal.xyz), travel);
+    if cos_out <= 0.0 {
+        return;
+    }
+    let flux = vpl_flux(l, face, t.position.xyz, t.albedo.rgb, volume.dims.y);
+    let value = flux * (cos_out / PI * half_edge * half_edge / d2 * volume.scale.x);
+    let y = sh9_basis(-travel);
+    for (var k = 0u; k < 9u; k++) {
+        (*far)[k] += value * y[k];
+    }
 }
 
 // Direct injection: the light's incident flux at the texel along its direction of travel,
@@ -121,12 +153,36 @@ const TILE: u32 = 4u;
 // goes into V^ρ, and R^μ is not read. The volumes hold the same counts as if every texel were
 // injected alone.
 @compute @workgroup_size(8, 8)
-fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+fn main(@builtin(global_invocation_id) id: vec3<u32>,
+        @builtin(local_invocation_index) local: u32) {
     let size = volume.dims.y;
     let layer = id.z;
-    if id.x * TILE >= size || id.y * TILE >= size || layer >= volume.dims.z {
-        return;
+    // Every thread reaches the workgroup barrier below, so none returns early.
+    let tiles = id.x * TILE < size && id.y * TILE < size && layer < volume.dims.z;
+    var far: array<vec3<f32>, 9>;
+    if tiles {
+        inject_tile(id, &far);
     }
+    for (var k = 0u; k < 9u; k++) {
+        let counts = vec3<i32>(round(far[k]));
+        for (var c = 0u; c < 3u; c++) {
+            if counts[c] != 0 {
+                atomicAdd(&far_group[3u * k + c], counts[c]);
+            }
+        }
+    }
+    workgroupBarrier();
+    if local < FAR_FIELD_VALUES {
+        let sum = atomicLoad(&far_group[local]);
+        if sum != 0 {
+            atomicAdd(&far_field[local], sum);
+        }
+    }
+}
+
+fn inject_tile(id: vec3<u32>, far: ptr<function, array<vec3<f32>, 9>>) {
+    let size = volume.dims.y;
+    let layer = id.z;
     let face = faces[layer];
     let l = lights[face.light.x];
     // Pending counts: V^Δ indirect, V^ρ indirect, V^Δ direct (each its own run of cells).
@@ -149,12 +205,15 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
             // R^ρ is R^μ copied with the object drawn over it (`RsmPass::render`): a texel
             // the object did not win is a bit copy of R^μ's, so R^μ is read only where it did.
             if rho.albedo.w >= 0.5 {
-                inject_reflected(1u, &rho_only, rho, face, l, 1.0);
+                let inside = inject_reflected(1u, &rho_only, rho, face, l, 1.0);
+                if !inside && volume.options.x == 1u {
+                    gather_far(far, rho, face, l);
+                }
             }
             if rho.normal.w < 0.5 {
                 continue;
             }
-            inject_reflected(0u, &delta, rho, face, l, 1.0);
+            _ = inject_reflected(0u, &delta, rho, face, l, 1.0);
             if direct_on {
                 inject_direct(&direct, rho, face, l, 1.0);
             }
@@ -164,7 +223,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
                 textureLoad(rsm_mu_albedo, texel, i32(layer), 0),
             );
             if mu.albedo.w >= 0.5 {
-                inject_reflected(0u, &delta, mu, face, l, -1.0);
+                _ = inject_reflected(0u, &delta, mu, face, l, -1.0);
                 if direct_on {
                     inject_direct(&direct, mu, face, l, -1.0);
                 }

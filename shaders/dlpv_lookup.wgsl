@@ -3,6 +3,8 @@
 // convolution of the light arriving against the normal, E = ⟨SH, cosine lobe(−n)⟩ / cell²
 // (each cell's intensity spread over its face, Kaplanyan & Dachsbacher), and diffuse radiance
 // albedo/π · E into the engine's indirect buffer, which the shading pass adds to Δ or L^ρ.
+// Virtual pixels add the far field's irradiance (the light of real surfaces outside the volume,
+// `volume.options.x`).
 
 struct LookupParams {
     // width, height
@@ -16,6 +18,7 @@ struct LookupParams {
 @group(0) @binding(4) var gb_normal: texture_2d<f32>;
 @group(0) @binding(5) var gb_albedo: texture_2d<f32>;
 @group(0) @binding(6) var<storage, read_write> indirect: array<vec4<f32>>;
+@group(0) @binding(7) var<storage, read> far_field: array<i32, FAR_FIELD_VALUES>;
 
 fn cell_sh(which: u32, c: vec3<i32>, ch: u32) -> vec4<f32> {
     let n = i32(volume.dims.x);
@@ -63,5 +66,10 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let albedo = textureLoad(gb_albedo, xy, 0).rgb;
     // The volume's units (`pack_sh`) back to intensity: counts, then the injection's scale.
     let units = 1.0 / (SH_UNITS_PER_COUNT * volume.scale.x);
-    indirect[i] = vec4<f32>(albedo / PI * e * units / (cell * cell), 0.0);
+    e *= units / (cell * cell);
+    if which == 1u && volume.options.x == 1u {
+        let half_edge = 0.5 * f32(volume.dims.x) * cell;
+        e += far_field_irradiance(far_field_sh(far_field, volume.scale.x * half_edge * half_edge), n);
+    }
+    indirect[i] = vec4<f32>(albedo / PI * e, 0.0);
 }

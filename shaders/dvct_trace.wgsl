@@ -7,7 +7,9 @@
 //                   with directional occlusion, each cone through V^ρ (every surface occluding)
 //                   minus through V^μ = V^ρ − V^Δ (the real surfaces occluding), so that the
 //                   real light the object blocks is taken away too;
-//   virtual pixels: the same diffuse and glossy cones through V^ρ.
+//   virtual pixels: the same diffuse and glossy cones through V^ρ; what a cone lets through
+//                   out of the volume takes the far field's radiance in its direction (the
+//                   light of real surfaces outside the volume, `dvct.modes.y`).
 // Cones march front to back through the mip chain at the level whose cells match the cone's
 // diameter (quadrilinear), accumulating premultiplied radiance and opacity
 // (c += (1 − a) L Δt/d, a += (1 − a) α).
@@ -32,6 +34,7 @@
 @group(0) @binding(15) var occlusion: texture_3d<f32>;
 @group(0) @binding(16) var volume_sampler: sampler;
 @group(0) @binding(17) var<storage, read_write> indirect: array<vec4<f32>>;
+@group(0) @binding(18) var<storage, read> far_field: array<i32, FAR_FIELD_VALUES>;
 
 // The hemisphere split into a central cone (half angle acos(8/9)) and eight around it, each
 // holding an equal solid angle; weights are ∫ cos θ dω over each part (they sum to π), ring
@@ -112,24 +115,45 @@ fn trace(kind: u32, apex: vec3<f32>, dir: vec3<f32>, tan_half: f32, max_t: f32) 
                 mu.alpha += (1.0 - mu.alpha) * absorbed(occ.z, dt / s0);
             }
         }
-        out.alpha += (1.0 - out.alpha) * absorbed(select(occ.x, occ.y, kind == CONE_SHADOW), dt / s0);
+        // A virtual pixel's cone is not stopped by the object's own voxels: within a few cells of
+        // the apex the mip cell a wide cone samples holds the object's own surface, so a convex
+        // object occluded its own light.
+        var blocking = occ.x;
+        if kind == CONE_SHADOW {
+            blocking = occ.y;
+        } else if kind == CONE_RHO {
+            blocking = occ.z;
+        }
+        out.alpha += (1.0 - out.alpha) * absorbed(blocking, dt / s0);
         t += dt;
     }
     out.light -= mu.light;
     return out;
 }
 
+// The light a cone gathers, plus, where `far` is on, the far field's radiance from its
+// direction times what the cone lets through.
+fn gathered(kind: u32, apex: vec3<f32>, dir: vec3<f32>, tan_half: f32, far: bool,
+            far_sh: array<vec3<f32>, 9>) -> vec3<f32> {
+    let cone = trace(kind, apex, dir, tan_half, 1e30);
+    if !far {
+        return cone.light;
+    }
+    return cone.light + (1.0 - cone.alpha) * far_field_radiance(far_sh, dir);
+}
+
 // Irradiance from the nine diffuse cones around `n`.
-fn diffuse(kind: u32, apex: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+fn diffuse(kind: u32, apex: vec3<f32>, n: vec3<f32>, far: bool, far_sh: array<vec3<f32>, 9>)
+    -> vec3<f32> {
     let up = select(vec3<f32>(0.0, 0.0, 1.0), vec3<f32>(1.0, 0.0, 0.0), abs(n.z) > 0.9);
     let t1 = normalize(cross(up, n));
     let t2 = cross(n, t1);
     let tan_half = dvct.cone.x;
-    var e = CENTRAL_WEIGHT * trace(kind, apex, n, tan_half, 1e30).light;
+    var e = CENTRAL_WEIGHT * gathered(kind, apex, n, tan_half, far, far_sh);
     for (var k = 0u; k < 8u; k++) {
         let phi = f32(k) * PI / 4.0;
         let dir = n * RING_COS + (t1 * cos(phi) + t2 * sin(phi)) * RING_SIN;
-        e += RING_WEIGHT * trace(kind, apex, dir, tan_half, 1e30).light;
+        e += RING_WEIGHT * gathered(kind, apex, dir, tan_half, far, far_sh);
     }
     return e;
 }
@@ -158,7 +182,13 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let m = materials[u32(p.w) - 1u];
     let wo = normalize(camera.position.xyz - p.xyz);
     let apex = p.xyz + n * dvct.cone.w * dvct.origin.w;
-    var out = albedo / PI * diffuse(kind, apex, n);
+    let far = is_virtual && dvct.modes.y == 1u;
+    var far_sh: array<vec3<f32>, 9>;
+    if far {
+        let half_edge = 0.5 * f32(dvct.dims.x) * dvct.origin.w;
+        far_sh = far_field_sh(far_field, dvct.options.w * half_edge * half_edge);
+    }
+    var out = albedo / PI * diffuse(kind, apex, n, far, far_sh);
     let shininess = m.albedo.w;
     if shininess > 0.0 && any(m.specular.rgb > vec3<f32>(0.0)) {
         // A normalised Phong lobe holds its energy within 2π/(n + 1) sr: a cone of
@@ -166,8 +196,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         let c = shininess / (shininess + 1.0);
         let tan_half = max(sqrt(1.0 - c * c) / c, dvct.options.z);
         let r = reflect(-wo, n);
-        let cone = trace(kind, apex, r, tan_half, 1e30);
-        out += m.specular.rgb * cone.light * max(dot(n, r), 0.0);
+        out += m.specular.rgb * gathered(kind, apex, r, tan_half, far, far_sh) * max(dot(n, r), 0.0);
     }
     if !is_virtual && dvct.options.x > 0.5 {
         for (var li = 0u; li < dvct.dims.z; li++) {

@@ -8,6 +8,7 @@ use glam::Vec3;
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
 use crate::gpu_scene::GpuLight;
+use crate::params::ParamSpec;
 use crate::roofline::Work;
 use crate::shaders;
 use crate::timer::GpuTimer;
@@ -18,6 +19,7 @@ pub(crate) struct VolumeUniform {
     pub origin: [f32; 4],
     pub dims: [u32; 4],
     pub scale: [f32; 4],
+    pub options: [u32; 4],
 }
 
 /// A cube of `n`³ cells centred on the virtual object's bounds `(lo, hi)`, `scale` × their
@@ -55,6 +57,16 @@ pub(crate) fn fixed_point_scale(lights: &[GpuLight], scene_radius: f32) -> f32 {
     }
 }
 
+/// The `far_field` setting both volume engines have: `probe` (default) lights the object with
+/// [`CellCounts::far_field`] as well as the volume, `none` with the volume alone (the papers).
+pub(crate) fn far_field_param() -> ParamSpec {
+    ParamSpec::choice(
+        "far_field",
+        "`probe`: the object also takes the light of real surfaces outside the volume, gathered at its centre as L2 SH (a volume reaches only `volume_scale` × the object); `none`: the volume's light alone, as in the paper",
+        vec!["probe", "none"],
+    )
+}
+
 /// A compute pass with start/end timestamps under `label` when the adapter has them.
 pub(crate) fn timed_pass<'e>(
     encoder: &'e mut wgpu::CommandEncoder,
@@ -79,7 +91,8 @@ pub(crate) fn uniform_buffer(device: &wgpu::Device, label: &str, size: usize) ->
 
 /// The injection's fixed-point counts, n³ cells × 12 (4 SH × RGB) i32 each of V^Δ and V^ρ, in
 /// one buffer whose halves are bound apart: each half need only fit the adapter's largest
-/// storage binding (lavapipe's 128 MiB held both only up to 110³).
+/// storage binding (lavapipe's 128 MiB held both only up to 110³). After them, the far field's
+/// 27 sums ([`CellCounts::far_field`]).
 #[derive(Debug)]
 pub(crate) struct CellCounts {
     pub buffer: wgpu::Buffer,
@@ -89,17 +102,20 @@ pub(crate) struct CellCounts {
     half: u64,
 }
 
+/// The far field's bytes: 9 L2 SH coefficients × RGB, i32 (`FAR_FIELD_VALUES` in common.wgsl).
+const FAR_FIELD_BYTES: u64 = 27 * 4;
+
 impl CellCounts {
     pub fn new(ctx: &GpuContext, label: &str, n: u32, setting: &str) -> Result<Self, GpuError> {
         let bytes = u64::from(n).pow(3) * 48;
         let half =
             bytes.next_multiple_of(u64::from(ctx.limits.min_storage_buffer_offset_alignment));
         ctx.require("max_storage_buffer_binding_size", bytes, setting)?;
-        ctx.require("max_buffer_size", 2 * half, setting)?;
+        ctx.require("max_buffer_size", 2 * half + FAR_FIELD_BYTES, setting)?;
         Ok(Self {
             buffer: ctx.buffer(
                 label,
-                2 * half,
+                2 * half + FAR_FIELD_BYTES,
                 wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             ),
             bytes,
@@ -113,6 +129,19 @@ impl CellCounts {
             buffer: &self.buffer,
             offset: which * self.half,
             size: wgpu::BufferSize::new(self.bytes),
+        })
+    }
+
+    /// The far field: the light of R^ρ's VPLs that land outside the volume, gathered at its
+    /// centre as L2 SH of incident radiance (`dlpv_inject.wgsl`). A volume only reaches
+    /// `volume_scale` × the object's size, so without it the object sees none of the room's
+    /// bounce light (on desk_box 30–40 % of its radiance); the object's pixels add it
+    /// (`dlpv_lookup.wgsl`, `dvct_trace.wgsl`).
+    pub fn far_field(&self) -> wgpu::BindingResource<'_> {
+        wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: &self.buffer,
+            offset: 2 * self.half,
+            size: wgpu::BufferSize::new(FAR_FIELD_BYTES),
         })
     }
 }
@@ -147,7 +176,7 @@ impl InjectPass {
             faces.as_entire_binding(),
         ];
         resources.extend(rsm_views.iter().map(wgpu::BindingResource::TextureView));
-        resources.extend([cells.binding(0), cells.binding(1)]);
+        resources.extend([cells.binding(0), cells.binding(1), cells.far_field()]);
         shaders::pipeline_bind_group(device, &self.pipeline, "inject", &resources)
     }
 

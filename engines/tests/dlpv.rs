@@ -158,3 +158,10 @@ fn the_object_lit_by_fewer_propagation_steps_is_closer_to_the_reference() {
         assert_eq!(delta, delta_all, "{name}: V^Δ must not change");
     }
 }
+
+/// The far field (`CellCounts::far_field`): the room's bounce light from beyond the volume
+/// (2 × the object) lights the object, and nothing else changes.
+#[test]
+fn the_far_field_brings_the_object_closer_to_the_reference() {
+    support::far_field_brings_the_object_closer("dlpv", 0.9);
+}

@@ -72,6 +72,8 @@ pub struct DlpvSettings {
     pub volume_scale: f32,
     pub shadow_bias: f32,
     pub lookup_offset: f32,
+    /// Light the object with the far field too (`CellCounts::far_field`).
+    pub far_field: bool,
 }
 
 impl Default for DlpvSettings {
@@ -87,6 +89,7 @@ impl Default for DlpvSettings {
             volume_scale: 2.0,
             shadow_bias: 1.5,
             lookup_offset: 0.0,
+            far_field: true,
         }
     }
 }
@@ -179,6 +182,7 @@ impl Dlpv {
                 1.0,
                 0.0,
             ),
+            crate::volume::far_field_param(),
             crate::deferred::accumulate_param(),
         ])
     }
@@ -304,6 +308,7 @@ impl Engine for Dlpv {
                     settings.dampening,
                     settings.lookup_offset,
                 ],
+                options: [u32::from(settings.far_field), 0, 0, 0],
             };
             ctx.queue
                 .write_buffer(&self.volume_uniform, 0, bytemuck::bytes_of(&volume));
@@ -358,7 +363,7 @@ impl Engine for Dlpv {
                 v.accumulated.as_entire_binding(),
             ];
             lookup_resources.extend(gb_views.iter().map(wgpu::BindingResource::TextureView));
-            lookup_resources.push(indirect.as_entire_binding());
+            lookup_resources.extend([indirect.as_entire_binding(), v.cells.far_field()]);
             let lookup_group = group(&self.lookup, "dlpv lookup", &lookup_resources);
 
             let mut encoder = ctx
@@ -440,6 +445,7 @@ impl Engine for Dlpv {
             volume_scale: float("volume_scale"),
             shadow_bias: float("shadow_bias"),
             lookup_offset: float("lookup_offset"),
+            far_field: schema.choice(params, "far_field") == "probe",
         };
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);

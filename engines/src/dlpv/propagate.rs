@@ -265,6 +265,7 @@ mod tests {
             origin: [0.0; 4],
             dims: [n as u32, 0, 0, 0],
             scale: [1.0, 0.0, dampening as f32, 0.0],
+            options: [0; 4],
         };
         ctx.queue
             .write_buffer(buffers.uniform, 0, bytemuck::bytes_of(&volume));

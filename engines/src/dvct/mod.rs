@@ -80,6 +80,9 @@ pub struct DvctSettings {
     /// through V^ρ with every surface occluding, minus through V^μ = V^ρ − V^Δ with the real
     /// ones (directional occlusion); else through V^Δ alone (the paper).
     pub directional_occlusion: bool,
+    /// Virtual pixels' cones that leave the volume take the far field
+    /// (`CellCounts::far_field`) beyond it.
+    pub far_field: bool,
 }
 
 impl Default for DvctSettings {
@@ -97,6 +100,7 @@ impl Default for DvctSettings {
             shadow_cones: false,
             shadow_bias: 1.5,
             directional_occlusion: true,
+            far_field: true,
         }
     }
 }
@@ -229,6 +233,7 @@ impl Dvct {
                 "`directional`: real pixels' cones also take away the real indirect light the object blocks (through V^ρ minus V^μ, each with its occluders); `none`: the paper's cones through V^Δ",
                 vec!["directional", "none"],
             ),
+            crate::volume::far_field_param(),
             crate::deferred::accumulate_param(),
         ])
     }
@@ -454,6 +459,7 @@ impl Engine for Dvct {
                     self.deferred.lights().len() as u32,
                 ],
                 scale: [scale, 0.0, 0.0, 0.0],
+                options: [u32::from(settings.far_field), 0, 0, 0],
             };
             ctx.queue
                 .write_buffer(&self.inject_uniform, 0, bytemuck::bytes_of(&inject_volume));
@@ -481,7 +487,12 @@ impl Engine for Dvct {
                         scale,
                     ],
                     voxelized: [voxelized.start, triangles, voxelize_lanes(&ctx, n), 0],
-                    modes: [u32::from(settings.directional_occlusion), 0, 0, 0],
+                    modes: [
+                        u32::from(settings.directional_occlusion),
+                        u32::from(settings.far_field),
+                        0,
+                        0,
+                    ],
                 }),
             );
             self.volume_buffers()?;
@@ -547,6 +558,7 @@ impl Engine for Dvct {
             trace_resources.extend([
                 wgpu::BindingResource::Sampler(&self.sampler),
                 indirect.as_entire_binding(),
+                v.cells.far_field(),
             ]);
             let trace_group = group(&self.trace, "dvct trace", &trace_resources);
 
@@ -654,6 +666,7 @@ impl Engine for Dvct {
             shadow_cones: schema.choice(params, "shadows") == "cones",
             shadow_bias: float("shadow_bias"),
             directional_occlusion: schema.choice(params, "occlusion") == "directional",
+            far_field: schema.choice(params, "far_field") == "probe",
         };
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);

@@ -56,6 +56,57 @@ pub fn delta_of(engine: &mut Box<dyn Engine>, frame: &SceneFrame) -> (Vec<Vec3>,
     (relight_engines::offline::delta_pixels(&out.delta), out)
 }
 
+/// The far field's test for a volume engine: on scenes whose object sees much of the room's
+/// bounce light from outside its volume (desk_box's walls and floor, touching_wall's wall),
+/// `engine` with `far_field = "probe"` must draw the object's pixels closer to the full reference
+/// than with `"none"`, by at least `gain` (error ratio), and leave every real pixel's Δ as it is
+/// (the far field lights the object alone). Returns (scene, with, without) per scene.
+pub fn far_field_brings_the_object_closer(
+    engine: &str,
+    gain: f64,
+) -> Vec<(&'static str, f64, f64)> {
+    let mut errors = Vec::new();
+    for name in ["desk_box", "touching_wall"] {
+        let scene = Arc::new(load_scene(name));
+        let (w, h) = (80, 60);
+        let reference = reference_full(&scene, w, h, 64);
+        let render = |far_field| {
+            let (delta, out) = delta_of(
+                &mut engine_with(engine, serde_json::json!({ "far_field": far_field })),
+                &frame(scene.clone(), w, h),
+            );
+            let object = relight_engines::offline::object_error(
+                &out.composite,
+                &reference.l_rho,
+                &reference.virtual_mask,
+            )
+            .expect("the object is in view");
+            (object, delta)
+        };
+        let ((with, delta_with), (without, delta_without)) = (render("probe"), render("none"));
+        eprintln!("{engine} on {name}: object {with:.4} with the far field, {without:.4} without");
+        assert!(
+            with < gain * without,
+            "{engine} on {name}: object {with} with the far field, {without} without"
+        );
+        let real = |delta: &[Vec3]| -> Vec<Vec3> {
+            delta
+                .iter()
+                .zip(&reference.virtual_mask)
+                .filter(|(_, on_object)| !**on_object)
+                .map(|(d, _)| *d)
+                .collect()
+        };
+        assert_eq!(
+            real(&delta_with),
+            real(&delta_without),
+            "{engine} on {name}: Δ on real pixels"
+        );
+        errors.push((name, with, without));
+    }
+    errors
+}
+
 /// The reference with direct light only (no bounce after the first hit), sampling pixel
 /// centres as the engines' rasteriser does (so silhouettes agree pixel for pixel).
 pub fn reference_direct(scene: &Scene, width: u32, height: u32, spp: u32) -> ReferenceImages {
