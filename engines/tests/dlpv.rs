@@ -117,11 +117,11 @@ fn bleeding_beats_the_no_indirect_baseline() {
     assert!(e_dlpv < e_base, "dlpv {e_dlpv} vs differential {e_base}");
 }
 
-/// V^ρ, the light on the object, propagates `rho_steps` (8) rather than all 32 steps: nothing
+/// V^ρ, the light on the object, propagates `rho_steps` (4) rather than all 32 steps: nothing
 /// in the volume occludes, so later steps carry the floor's light around and through the object
-/// onto it, and it grows without settling (see ALGORITHMS.md). Measured at 160 × 120 against
-/// the bench's references, object relative L2 with 32 / 8: glossy_floor 0.795 / 0.268,
-/// window_env 0.371 / 0.126; Δ on real pixels is unchanged (V^Δ still takes 32).
+/// onto it, and it grows without settling (see ALGORITHMS.md). Here (80 × 60, 64 spp), object
+/// relative L2 with 4 / 32: glossy_floor 0.127 / 0.824, window_env 0.223 / 0.541; Δ on real
+/// pixels is unchanged (V^Δ still takes 32).
 #[test]
 fn the_object_lit_by_fewer_propagation_steps_is_closer_to_the_reference() {
     for name in ["glossy_floor", "window_env"] {

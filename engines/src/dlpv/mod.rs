@@ -15,13 +15,16 @@
 //! 2. **resolve** the counts to SH, stored as f16 ([`SH_CELL_BYTES`]); **propagate** N steps
 //!    (gather from the six neighbours over their faces' solid angles, written out per
 //!    direction: `dlpv_propagate.wgsl`, `propagate.rs`), accumulating every step; negative
-//!    light is dampened per step. V^ρ, the light on the object, stops after `rho_steps` (8): nothing
+//!    light is dampened per step. V^ρ, the light on the object, stops after `rho_steps` (4): nothing
 //!    occludes in the volume, so later steps only carry the floor's light around and through
 //!    the object onto it (object relative L2 0.28–0.80 at 32 steps, 0.13–0.28 at 8; the
-//!    geometry volume of Kaplanyan & Dachsbacher would be the principled fix).
-//! 3. **look up** (`dlpv_lookup.wgsl`): trilinear V^Δ on real pixels, V^ρ on virtual ones.
+//!    geometry volume of Kaplanyan & Dachsbacher would be the principled fix). The light from
+//!    beyond the volume comes from the far field instead (`far_field`, 0.12–0.21 at 4).
+//! 3. **look up** (`dlpv_lookup.wgsl`): trilinear V^Δ on real pixels, V^ρ plus the far field's
+//!    irradiance (`CellCounts::far_field`) on virtual ones.
 //! 4. the shared shading pass composites (Algorithm 1): real pixels B + albedo · V^Δ (+ the
-//!    shadow-mapped direct Δ when `shadows = "shadow_map"`), virtual pixels direct + albedo · V^ρ.
+//!    shadow-mapped direct Δ when `shadows = "shadow_map"`), virtual pixels direct + albedo ·
+//!    (V^ρ + far field).
 //!
 //! The volume is centred on the virtual object's bounding box, `volume_scale` × its largest edge
 //! on a side (the paper: about 2×).
@@ -83,7 +86,7 @@ impl Default for DlpvSettings {
             shadow_size: crate::deferred::SHADOW_SIZE_DEFAULT,
             volume_size: 32,
             steps: 32,
-            rho_steps: 8,
+            rho_steps: 4,
             dampening: 0.5,
             antiradiance: false,
             volume_scale: 2.0,
@@ -147,7 +150,7 @@ impl Dlpv {
                 "propagation steps of V^ρ, the light on the object (at most `steps`): nothing in the volume occludes, so more steps carry light around and through the object onto it",
                 0,
                 256,
-                8,
+                4,
             ),
             float(
                 "dampening",
