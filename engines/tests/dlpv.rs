@@ -165,3 +165,15 @@ fn the_object_lit_by_fewer_propagation_steps_is_closer_to_the_reference() {
 fn the_far_field_brings_the_object_closer_to_the_reference() {
     support::far_field_brings_the_object_closer("dlpv", 0.9);
 }
+
+/// The far field's units and SH against an analytic integral (see the helper). L2 SH of a floor
+/// seen from above reproduces a vertical face's irradiance to a few percent; the RSM's texels
+/// stand for the floor as a sum of points.
+#[test]
+fn the_far_field_of_a_floor_matches_its_integral() {
+    let (measured, expected) = support::far_field_over_a_floor("dlpv");
+    assert!(
+        (measured / expected - 1.0).abs() < 0.1,
+        "measured {measured}, expected {expected}"
+    );
+}

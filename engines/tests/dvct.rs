@@ -190,3 +190,15 @@ fn the_far_field_brings_the_object_closer_to_the_reference() {
         "touching_wall without the far field: {without}"
     );
 }
+
+/// The far field through the object's cones against an analytic integral (see the helper):
+/// nothing in the volume occludes the floor, so the nine cones' sum of its radiance must give
+/// the face's irradiance.
+#[test]
+fn the_far_field_of_a_floor_matches_its_integral() {
+    let (measured, expected) = support::far_field_over_a_floor("dvct");
+    assert!(
+        (measured / expected - 1.0).abs() < 0.1,
+        "measured {measured}, expected {expected}"
+    );
+}

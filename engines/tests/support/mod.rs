@@ -107,6 +107,100 @@ pub fn far_field_brings_the_object_closer(
     errors
 }
 
+/// The far field against an analytic value: desk_box's object alone over a white floor 8 m
+/// square, far enough below that none of it falls in the volume, lit from straight above by a
+/// directional light. Only the floor's bounce light reaches the object's vertical faces, and all
+/// of it through the far field, so `far_field = "probe"` minus `"none"` on the front face (normal
+/// +z) must be the box's albedo/π times the floor's irradiance at the volume's centre,
+/// ∫ L_floor ⟨n, ω⟩₊ cos θ_floor / r² dA (integrated here on a fine grid). Returns (measured
+/// mean over the face's pixels, expected), in radiance.
+pub fn far_field_over_a_floor(engine: &str) -> (f64, f64) {
+    let mut scene = load_scene("desk_box");
+    let (lo, hi) = scene.virtual_bounds().expect("desk_box has an object");
+    let edge = (hi - lo).max_element();
+    let centre = (lo + hi) / 2.0;
+    let floor_y = lo.y - 3.0 * edge;
+    let half = 4.0f32;
+    scene.meshes.retain(|m| m.is_virtual);
+    let corner = |dx: f32, dz: f32| Vec3::new(centre.x + dx, floor_y, centre.z + dz);
+    let white = 0;
+    scene.meshes.push(relight_core::scene::Mesh {
+        name: "floor".into(),
+        positions_in_world: vec![
+            corner(-half, -half),
+            corner(half, -half),
+            corner(half, half),
+            corner(-half, half),
+        ],
+        normals_in_world: vec![Vec3::Y; 4],
+        triangles: vec![[0, 2, 1], [0, 3, 2]],
+        material: white,
+        is_virtual: false,
+        vertex_albedo: Vec::new(),
+    });
+    let irradiance = 1.0f32;
+    scene.lights = vec![relight_core::light::Light::Directional {
+        direction_in_world: Vec3::NEG_Y,
+        irradiance: Vec3::splat(irradiance),
+    }];
+    scene.environment = None;
+    let box_albedo = {
+        let object = scene.meshes.iter().find(|m| m.is_virtual).expect("the box");
+        f64::from(scene.materials[object.material].albedo.x)
+    };
+    let floor_radiance =
+        f64::from(scene.materials[white].albedo.x * irradiance) / std::f64::consts::PI;
+    // ∫ over the floor, n = +z, at the centre.
+    let steps = 800;
+    let cell = 2.0 * f64::from(half) / f64::from(steps);
+    let height = f64::from(centre.y - floor_y);
+    let mut expected_irradiance = 0.0;
+    for i in 0..steps {
+        for j in 0..steps {
+            let x = -f64::from(half) + (f64::from(i) + 0.5) * cell;
+            let z = -f64::from(half) + (f64::from(j) + 0.5) * cell;
+            let r2 = x * x + z * z + height * height;
+            let cos_face = (z / r2.sqrt()).max(0.0);
+            let cos_floor = height / r2.sqrt();
+            expected_irradiance += floor_radiance * cos_face * cos_floor / r2 * cell * cell;
+        }
+    }
+    let expected = box_albedo / std::f64::consts::PI * expected_irradiance;
+
+    let scene = Arc::new(scene);
+    let (w, h) = (160, 120);
+    let render = |far_field| {
+        delta_of(
+            &mut engine_with(
+                engine,
+                serde_json::json!({ "far_field": far_field, "accumulate": 1 }),
+            ),
+            &frame(scene.clone(), w, h),
+        )
+        .0
+    };
+    let (with, without) = (render("probe"), render("none"));
+    // The object's pixels are the ones the far field changes; its front face gets most (the
+    // top faces away from the floor).
+    let added: Vec<f64> = with
+        .iter()
+        .zip(&without)
+        .map(|(a, b)| f64::from(a.x - b.x))
+        .filter(|d| *d > 0.5 * expected)
+        .collect();
+    assert!(
+        added.len() > 50,
+        "{engine}: {} front-face pixels",
+        added.len()
+    );
+    let measured = added.iter().sum::<f64>() / added.len() as f64;
+    eprintln!(
+        "{engine}: far field on the front face {measured:.5} over {} pixels, expected {expected:.5}",
+        added.len()
+    );
+    (measured, expected)
+}
+
 /// The reference with direct light only (no bounce after the first hit), sampling pixel
 /// centres as the engines' rasteriser does (so silhouettes agree pixel for pixel).
 pub fn reference_direct(scene: &Scene, width: u32, height: u32, spp: u32) -> ReferenceImages {
