@@ -395,10 +395,13 @@ fn cosine_lobe(d: vec3<f32>) -> vec4<f32> {
     return vec4<f32>(0.886226925, 1.023326708 * d.y, 1.023326708 * d.z, 1.023326708 * d.x);
 }
 
-// The far field of a volume (`engines/src/volume.rs`, `FarField`): the light arriving at the
-// volume's centre from the VPLs of R^ρ that fall outside it, which the volume cannot carry, as
-// L2 SH of incident radiance per colour channel (coefficient k of RGB), injected as 27
-// fixed-point sums in units of `volume scale × h²` (h: half the volume's edge).
+// The far field of a volume (`CellCounts::far_field` in engines/src/volume.rs): the light
+// arriving at the volume's centre from the VPLs of R^ρ that fall outside it, which the volume
+// cannot carry, as L2 SH of incident radiance per colour channel (coefficient k of RGB),
+// injected as 27 fixed-point sums in units of `volume scale × h²` (h: half the volume's edge).
+// A VPL outside is at least h from the centre, so its share of a sum is at most 1.09 × its
+// intensity (the largest L2 basis value): within the bound `fixed_point_scale` keeps for the
+// four sums of its cell's coefficient, so the far field cannot overflow either.
 const FAR_FIELD_VALUES: u32 = 27u;
 
 // L2 SH basis (Ramamoorthi & Hanrahan 2001, eq. 3: Y00; Y1−1, Y10, Y11; Y2−2, Y2−1, Y20, Y21,

@@ -179,8 +179,8 @@ fn a_128_cube_volume_renders() {
 
 /// The far field (`CellCounts::far_field`): cones that leave the volume (3 × the object) take
 /// the room's bounce light from beyond it, and nothing else changes. And the object's cones are
-/// not stopped by its own voxels: with them, touching_wall's object read 0.375 without the far
-/// field at this size (0.34 without them).
+/// not stopped by its own voxels: while they were, touching_wall's object read 0.375 without
+/// the far field at this size (0.337 now).
 #[test]
 fn the_far_field_brings_the_object_closer_to_the_reference() {
     let errors = support::far_field_brings_the_object_closer("dvct", 0.95);
