@@ -183,7 +183,12 @@ fn a_128_cube_volume_renders() {
 /// the far field at this size (0.337 now).
 #[test]
 fn the_far_field_brings_the_object_closer_to_the_reference() {
-    let errors = support::far_field_brings_the_object_closer("dvct", 0.95);
+    let errors = support::setting_brings_the_object_closer(
+        "dvct",
+        ("far_field", "probe", "none"),
+        &["desk_box", "touching_wall"],
+        0.95,
+    );
     let (_, _, without) = errors[1];
     assert!(
         without < 0.35,

@@ -31,7 +31,7 @@
 //!   renderer; see `accel.rs` for why the triangle test and closest-hit choice are ours.
 
 pub mod accel;
-mod brdf;
+pub mod brdf;
 mod integrator;
 mod sampling;
 

@@ -5,6 +5,12 @@
 //!   with the BRDF — a diffuse irradiance map E_d(n) and one specular map E_s^n(r) per Phong
 //!   exponent, all in one pass. The exponents are the ones the scene needs (the virtual
 //!   materials' own, up to eight) unless `levels` asks for a fixed log-spaced set.
+//! - **The environment**: live, the rig's probe picture (it sees the room as well as the sky).
+//!   For a scene file, by default (`environment = "local"`), the picture a probe at the
+//!   object's centre would take ([`local_probe`]): the real meshes under the scene's lights
+//!   where its rays meet them, the file's map where they escape. The file's map alone (`"map"`,
+//!   the paper's input) leaves out the room's bounce light: window_env's front face came out
+//!   black, and a room lit by lamps alone lit the object with its lamps' direct light only.
 //! - **Recomputed only on change**: the maps are kept until the environment differs from the one
 //!   they were made from by more than `update_threshold` (relative L1 over the resampled map),
 //!   or the exponents change. Comparing with the map they were made from, not the previous
@@ -17,6 +23,7 @@
 //!   contact occlusion, nothing added: no bounce off the object), on the object the ambient
 //!   occlusion of its diffuse term.
 
+pub mod local_probe;
 pub mod maps;
 
 use std::sync::Arc;
@@ -34,6 +41,7 @@ use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::volume::{timed_pass, uniform_buffer};
+use local_probe::local_probe;
 use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, log_spaced_shininess, resample};
 
 /// The engine's settings (see [`Ibl::schema`]).
@@ -46,6 +54,9 @@ pub struct IblSettings {
     pub rsm_size: u32,
     pub shadow_bias: f32,
     pub update_threshold: f32,
+    /// A scene file's object is lit by the picture from its centre ([`local_probe`]), not by
+    /// the file's distant map alone.
+    pub local_probe: bool,
 }
 
 impl Default for IblSettings {
@@ -58,6 +69,7 @@ impl Default for IblSettings {
             rsm_size: 512,
             shadow_bias: 1.5,
             update_threshold: 0.02,
+            local_probe: true,
         }
     }
 }
@@ -141,6 +153,11 @@ impl Ibl {
                 1.0,
                 d.update_threshold,
             ),
+            ParamSpec::choice(
+                "environment",
+                "what lights a scene file's object (live, the rig's probe does): `local`, the picture a probe at the object's centre would take (the real meshes under the scene's lights, the map where rays escape); `map`, the file's distant map alone",
+                vec!["local", "map"],
+            ),
             crate::deferred::accumulate_param(),
         ])
     }
@@ -180,10 +197,18 @@ impl Ibl {
         {
             return Ok(None);
         }
-        let input = scene
+        // A live scene (a depth surface, `surface_revision`) or one lit by the rig's probe
+        // (`environment_lights`) has the probe's picture as its map already.
+        let scene_file = scene.surface_revision.is_none() && scene.environment_lights.is_empty();
+        let distant = scene
             .environment
             .as_ref()
             .map(|env| resample(env, s.input_width));
+        let input = if s.local_probe && scene_file {
+            local_probe(scene, s.input_width).or_else(|| distant.clone())
+        } else {
+            distant.clone()
+        };
         let shininess = specular_levels(scene, s.levels);
         let unchanged = self.environment.as_ref().is_some_and(|e| {
             e.settings == s
@@ -204,18 +229,22 @@ impl Ibl {
         let ctx = self.deferred.ctx().clone();
         let mut work = Work::default();
         let lights = match &input {
-            Some(env) => {
+            Some(input) => {
                 let mut timer = self.deferred.lend_timer();
                 work = self.maps.convolve(
                     &ctx,
-                    &input_texels(env),
+                    &input_texels(input),
                     s.map_size,
                     &shininess,
                     &mut timer,
                 )?;
                 self.deferred.return_timer(timer);
                 self.convolutions += 1;
-                shadow_lights(env, s.env_lights)
+                // The shadows on real pixels are the distant map's: the real surfaces in the
+                // local picture cast none of their own.
+                distant
+                    .as_ref()
+                    .map_or_else(Vec::new, |env| shadow_lights(env, s.env_lights))
             }
             None => Vec::new(),
         };
@@ -410,6 +439,7 @@ impl Engine for Ibl {
             rsm_size: int("rsm_size"),
             shadow_bias: float("shadow_bias"),
             update_threshold: float("update_threshold"),
+            local_probe: schema.choice(params, "environment") == "local",
         };
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);

@@ -56,23 +56,26 @@ pub fn delta_of(engine: &mut Box<dyn Engine>, frame: &SceneFrame) -> (Vec<Vec3>,
     (relight_engines::offline::delta_pixels(&out.delta), out)
 }
 
-/// The far field's test for a volume engine: on scenes whose object sees much of the room's
-/// bounce light from outside its volume (desk_box's walls and floor, touching_wall's wall),
-/// `engine` with `far_field = "probe"` must draw the object's pixels closer to the full reference
-/// than with `"none"`, by at least `gain` (error ratio), and leave every real pixel's Δ as it is
-/// (the far field lights the object alone). Returns (scene, with, without) per scene.
-pub fn far_field_brings_the_object_closer(
+/// A setting that lights the object with the room's bounce light (`far_field` of the volume
+/// engines, `environment` of `ibl`): on `scenes`, whose object sees much of it (desk_box's walls
+/// and floor, touching_wall's wall, window_env's floor), `engine` with `setting = on` must draw
+/// the object's pixels closer to the full reference than with `off`, by at least `gain` (error
+/// ratio), and leave every real pixel's Δ as it is (the setting lights the object alone).
+/// Returns (scene, with, without) per scene.
+pub fn setting_brings_the_object_closer(
     engine: &str,
+    (setting, on, off): (&str, &str, &str),
+    scenes: &[&'static str],
     gain: f64,
 ) -> Vec<(&'static str, f64, f64)> {
     let mut errors = Vec::new();
-    for name in ["desk_box", "touching_wall"] {
+    for &name in scenes {
         let scene = Arc::new(load_scene(name));
         let (w, h) = (80, 60);
         let reference = reference_full(&scene, w, h, 64);
-        let render = |far_field| {
+        let render = |value: &str| {
             let (delta, out) = delta_of(
-                &mut engine_with(engine, serde_json::json!({ "far_field": far_field })),
+                &mut engine_with(engine, serde_json::json!({ setting: value })),
                 &frame(scene.clone(), w, h),
             );
             let object = relight_engines::offline::object_error(
@@ -83,11 +86,13 @@ pub fn far_field_brings_the_object_closer(
             .expect("the object is in view");
             (object, delta)
         };
-        let ((with, delta_with), (without, delta_without)) = (render("probe"), render("none"));
-        eprintln!("{engine} on {name}: object {with:.4} with the far field, {without:.4} without");
+        let ((with, delta_with), (without, delta_without)) = (render(on), render(off));
+        eprintln!(
+            "{engine} on {name}: object {with:.4} with {setting} = {on}, {without:.4} with {off}"
+        );
         assert!(
             with < gain * without,
-            "{engine} on {name}: object {with} with the far field, {without} without"
+            "{engine} on {name}: object {with} with {setting} = {on}, {without} with {off}"
         );
         let real = |delta: &[Vec3]| -> Vec<Vec3> {
             delta

@@ -1,0 +1,182 @@
+//! The environment a scene file's virtual object sees from its centre: what a light probe
+//! standing there would photograph.
+//!
+//! Kan et al. light the object with a fish-eye probe taken where it stands, and live that is
+//! what `ibl` gets: the rig's probe sees the table and the room as well as the sky. A scene
+//! file's environment map holds only the distant part, and its real meshes are lit by its lamps
+//! and by that map, so `ibl` lit the object with neither the floor's bounce light (window_env's
+//! front face came out black) nor, in a room lit by lamps alone, anything at all.
+//!
+//! Here each texel of the map is a ray from the object's centre through the real meshes (the
+//! reference's BVH): where it escapes, the map's radiance; where it meets a surface, the
+//! radiance that surface sends back along the ray under the scene's lights and
+//! [`ENV_LIGHTS`] directional lights cut from the map, each tested with a shadow ray. One bounce,
+//! as the probe's picture holds it. The object itself is not in the picture (a probe where it
+//! stands would not see it), but its shadow is: the shadow rays meet it, so the floor it darkens
+//! sends it nothing (without that, glossy_floor's object read 1.35× the reference's radiance). Scene files have a few hundred triangles, so this runs on the CPU
+//! when the scene changes; the maps are convolved again only when the picture does.
+
+use glam::Vec3;
+use relight_core::light::Light;
+use relight_core::scene::{EnvironmentMap, Scene};
+use relight_recon::envmap::texel_direction;
+use relight_reference::accel::Geometry;
+use relight_reference::brdf::Bsdf;
+use relight_reference::env_radiance;
+
+/// Directional lights standing in for the map when shading the surfaces the rays meet.
+pub const ENV_LIGHTS: u32 = 16;
+
+/// Offset of shadow rays off the surface (m).
+const SURFACE_EPSILON: f32 = 1e-4;
+
+/// The `width` × `width/2` equirectangular picture from the centre of `scene`'s virtual
+/// object's bounds; `None` without a virtual object.
+pub fn local_probe(scene: &Scene, width: u32) -> Option<EnvironmentMap> {
+    let (lo, hi) = scene.virtual_bounds()?;
+    let centre = (lo + hi) / 2.0;
+    let (real, with_object) = (Geometry::new(scene, false), Geometry::new(scene, true));
+    let env = scene.environment.as_ref();
+    let env_lights = env.map_or_else(Vec::new, |e| crate::dir::environment_lights(e, ENV_LIGHTS));
+    let lights: Vec<&Light> = scene.lights.iter().chain(&env_lights).collect();
+    let (w, h) = (width.max(2), (width / 2).max(1));
+    let radiance = (0..h)
+        .flat_map(|y| (0..w).map(move |x| texel_direction(w, h, x, y)))
+        .map(
+            |dir| match real.intersect(centre, dir, 0.0, f32::INFINITY) {
+                None => env.map_or(Vec3::ZERO, |e| env_radiance(e, dir)),
+                Some(hit) => {
+                    let triangle = &real.triangles()[hit.triangle];
+                    let material = &scene.materials[triangle.material];
+                    let albedo = triangle
+                        .measured_albedo_at(hit.u, hit.v)
+                        .unwrap_or(material.albedo);
+                    let normal = triangle.normal_against(dir);
+                    let at = centre + dir * hit.t + normal * SURFACE_EPSILON;
+                    let bsdf = Bsdf::new(material, albedo, normal, -dir);
+                    let reflected: Vec3 = lights
+                        .iter()
+                        .filter_map(|light| light.incident(at))
+                        .filter(|inc| {
+                            inc.direction_to_light.dot(normal) > 0.0
+                                && with_object
+                                    .occluder(at, inc.direction_to_light, 0.0, inc.distance_m)
+                                    .is_none()
+                        })
+                        .map(|inc| {
+                            bsdf.eval(inc.direction_to_light)
+                                * inc.irradiance
+                                * inc.direction_to_light.dot(normal)
+                        })
+                        .sum();
+                    material.emission + reflected
+                }
+            },
+        )
+        .map(|l| {
+            if l.is_finite() {
+                l.max(Vec3::ZERO)
+            } else {
+                Vec3::ZERO
+            }
+        })
+        .collect();
+    Some(EnvironmentMap {
+        width: w,
+        height: h,
+        radiance,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use relight_core::Pose;
+    use relight_core::scene::{Material, Mesh, SceneCamera};
+
+    /// A 0.2 m box floating 0.5 m above a floor 20 m square of albedo 0.6, lit from straight
+    /// above with irradiance 2, under a uniform sky of radiance `sky`.
+    fn floating_box(sky: f32) -> Scene {
+        let floor = Mesh::cuboid(
+            "floor",
+            Vec3::new(-10.0, -0.01, -10.0),
+            Vec3::new(10.0, 0.0, 10.0),
+            0,
+            false,
+        );
+        let object = Mesh::cuboid(
+            "box",
+            Vec3::new(-0.1, 0.5, -0.1),
+            Vec3::new(0.1, 0.7, 0.1),
+            1,
+            true,
+        );
+        let material = |albedo| Material {
+            albedo: Vec3::splat(albedo),
+            ..Material::default()
+        };
+        Scene {
+            name: "floating box".into(),
+            meshes: vec![floor, object],
+            materials: vec![material(0.6), material(0.5)],
+            camera: SceneCamera {
+                world_from_camera: Pose::IDENTITY,
+                yfov_rad: 1.0,
+                width: 4,
+                height: 4,
+            },
+            lights: vec![Light::Directional {
+                direction_in_world: Vec3::NEG_Y,
+                irradiance: Vec3::splat(2.0),
+            }],
+            environment: (sky > 0.0).then(|| EnvironmentMap {
+                width: 64,
+                height: 32,
+                radiance: vec![Vec3::splat(sky); 64 * 32],
+            }),
+            environment_lights: Vec::new(),
+            shadow_proxy: None,
+            surface_revision: None,
+        }
+    }
+
+    fn texel(probe: &EnvironmentMap, dir: Vec3) -> Vec3 {
+        let (w, h) = (probe.width, probe.height);
+        let (x, y) = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .max_by(|a, b| {
+                let da = texel_direction(w, h, a.0, a.1).dot(dir);
+                let db = texel_direction(w, h, b.0, b.1).dot(dir);
+                da.total_cmp(&db)
+            })
+            .expect("a texel");
+        probe.radiance[(y * w + x) as usize]
+    }
+
+    #[test]
+    fn the_picture_holds_the_lit_floor_the_objects_shadow_and_the_sky() {
+        // Without a sky: the floor away from the shadow is Lambertian under irradiance 2,
+        // 0.6 · 2 / π; straight down it lies in the box's shadow; up there is nothing.
+        let probe = local_probe(&floating_box(0.0), 64).expect("the scene has an object");
+        assert_eq!((probe.width, probe.height), (64, 32));
+        let lit = 0.6 * 2.0 / std::f32::consts::PI;
+        let aside = texel(&probe, Vec3::new(1.0, -1.0, 0.0).normalize());
+        assert!((aside.x / lit - 1.0).abs() < 1e-4, "{aside} against {lit}");
+        assert_eq!(texel(&probe, Vec3::NEG_Y), Vec3::ZERO);
+        assert_eq!(texel(&probe, Vec3::Y), Vec3::ZERO);
+        // With a sky of radiance 0.1 (as 16 directional lights on the floor, a Monte Carlo
+        // estimate of its irradiance π · 0.1): the sky where the rays escape, the floor brighter.
+        let probe = local_probe(&floating_box(0.1), 64).expect("the scene has an object");
+        assert!((texel(&probe, Vec3::Y).x - 0.1).abs() < 1e-6);
+        let brighter = texel(&probe, Vec3::new(1.0, -1.0, 0.0).normalize()).x;
+        let expected = 0.6 * (2.0 + std::f32::consts::PI * 0.1) / std::f32::consts::PI;
+        assert!(
+            (brighter / expected - 1.0).abs() < 0.15,
+            "{brighter} against {expected}"
+        );
+        // No object, no picture.
+        let mut empty = floating_box(0.0);
+        empty.meshes.retain(|m| !m.is_virtual);
+        assert!(local_probe(&empty, 64).is_none());
+    }
+}
