@@ -11,14 +11,16 @@
 //! reference's BVH): where it escapes, the map's radiance; where it meets a surface, the
 //! radiance that surface sends back along the ray under the scene's lights and
 //! [`ENV_LIGHTS`] directional lights cut from the map, each tested with a shadow ray. One bounce,
-//! as the probe's picture holds it. The object itself is not in the picture (a probe where it
+//! as the probe's picture holds it. A live scene's real surface is its decimated shadow proxy
+//! (`Scene::shadow_proxy`), a few thousand triangles where the depth mesh has tens of thousands.
+//! The object itself is not in the picture (a probe where it
 //! stands would not see it), but its shadow is: the shadow rays meet it, so the floor it darkens
 //! sends it nothing (without that, glossy_floor's object read 1.35× the reference's radiance). Scene files have a few hundred triangles, so this runs on the CPU
 //! when the scene changes; the maps are convolved again only when the picture does.
 
 use glam::Vec3;
 use relight_core::light::Light;
-use relight_core::scene::{EnvironmentMap, Scene};
+use relight_core::scene::{EnvironmentMap, Mesh, Scene};
 use relight_recon::envmap::texel_direction;
 use relight_reference::accel::Geometry;
 use relight_reference::brdf::Bsdf;
@@ -35,7 +37,16 @@ const SURFACE_EPSILON: f32 = 1e-4;
 pub fn local_probe(scene: &Scene, width: u32) -> Option<EnvironmentMap> {
     let (lo, hi) = scene.virtual_bounds()?;
     let centre = (lo + hi) / 2.0;
-    let (real, with_object) = (Geometry::new(scene, false), Geometry::new(scene, true));
+    let meshes: Vec<Mesh> = match &scene.shadow_proxy {
+        Some(proxy) => std::iter::once(proxy.as_ref().clone())
+            .chain(scene.meshes.iter().filter(|m| m.is_virtual).cloned())
+            .collect(),
+        None => scene.meshes.clone(),
+    };
+    let (real, with_object) = (
+        Geometry::of_meshes(&meshes, false),
+        Geometry::of_meshes(&meshes, true),
+    );
     let env = scene.environment.as_ref();
     let env_lights = env.map_or_else(Vec::new, |e| crate::dir::environment_lights(e, ENV_LIGHTS));
     let lights: Vec<&Light> = scene.lights.iter().chain(&env_lights).collect();
@@ -92,7 +103,7 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<EnvironmentMap> {
 mod tests {
     use super::*;
     use relight_core::Pose;
-    use relight_core::scene::{Material, Mesh, SceneCamera};
+    use relight_core::scene::{Material, SceneCamera};
 
     /// A 0.2 m box floating 0.5 m above a floor 20 m square of albedo 0.6, lit from straight
     /// above with irradiance 2, under a uniform sky of radiance `sky`.

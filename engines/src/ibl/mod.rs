@@ -82,6 +82,69 @@ struct Environment {
     input: Option<EnvironmentMap>,
     shininess: Vec<f32>,
     settings: IblSettings,
+    /// What a live scene's local picture was taken of (`None` for any other input).
+    picture_of: Option<PictureKey>,
+}
+
+/// The width of the local picture of a live depth surface (its held shadow proxy; height
+/// half). It is taken on the render thread whenever the proxy changes: on the bundled recording
+/// 128 × 64 rays held the frame for most of a second, 32 × 16 for a few tens of ms.
+const LIVE_PICTURE_WIDTH: u32 = 32;
+
+/// What a local picture was taken of ([`local_probe`]): the real geometry (a live scene's held
+/// shadow proxy by identity, a scene file's real meshes by content), the lights, the distant
+/// map (resampled), and the object's bounds. A live scene is a new `Arc` every frame; while these hold, so does the
+/// picture, and the object may move by [`PICTURE_HOLDS_WITHIN`] of its size before it is taken
+/// again (marker tracking moves it a little on every frame).
+#[derive(Debug, Clone, PartialEq)]
+struct PictureKey {
+    /// The real geometry and the distant map, hashed.
+    real: u64,
+    lights: Vec<Light>,
+    object: Option<(glam::Vec3, glam::Vec3)>,
+}
+
+/// How far (a share of its largest edge) the object may move before its picture is taken again.
+const PICTURE_HOLDS_WITHIN: f32 = 0.05;
+
+impl PictureKey {
+    fn of(scene: &Scene, distant: Option<&EnvironmentMap>) -> Self {
+        use std::hash::{Hash, Hasher};
+        let mut hasher = std::collections::hash_map::DefaultHasher::new();
+        match &scene.shadow_proxy {
+            Some(proxy) => (Arc::as_ptr(proxy) as usize).hash(&mut hasher),
+            None => {
+                for mesh in scene.meshes.iter().filter(|m| !m.is_virtual) {
+                    for p in &mesh.positions_in_world {
+                        p.to_array().map(f32::to_bits).hash(&mut hasher);
+                    }
+                    mesh.triangles.hash(&mut hasher);
+                    mesh.material.hash(&mut hasher);
+                }
+            }
+        }
+        for l in distant.iter().flat_map(|env| &env.radiance) {
+            l.to_array().map(f32::to_bits).hash(&mut hasher);
+        }
+        Self {
+            real: hasher.finish(),
+            lights: scene.lights.clone(),
+            object: scene.virtual_bounds(),
+        }
+    }
+
+    fn holds(&self, other: &Self) -> bool {
+        let near = match (self.object, other.object) {
+            (Some((a_lo, a_hi)), Some((b_lo, b_hi))) => {
+                let tolerance = PICTURE_HOLDS_WITHIN * (a_hi - a_lo).max_element();
+                (a_lo - b_lo).abs().max_element() <= tolerance
+                    && (a_hi - b_hi).abs().max_element() <= tolerance
+            }
+            (None, None) => true,
+            _ => false,
+        };
+        near && self.real == other.real && self.lights == other.lights
+    }
 }
 
 #[derive(Debug)]
@@ -197,17 +260,32 @@ impl Ibl {
         {
             return Ok(None);
         }
-        // A live scene (a depth surface, `surface_revision`) or one lit by the rig's probe
-        // (`environment_lights`) has the probe's picture as its map already.
+        // A live scene's map, when it has one, is the rig's probe picture, which sees the room
+        // already. A scene file's (no depth surface, no probe lights) is the distant sky alone.
         let scene_file = scene.surface_revision.is_none() && scene.environment_lights.is_empty();
         let distant = scene
             .environment
             .as_ref()
             .map(|env| resample(env, s.input_width));
-        let input = if s.local_probe && scene_file {
-            local_probe(scene, s.input_width).or_else(|| distant.clone())
-        } else {
-            distant.clone()
+        let picture_of = (s.local_probe && (scene_file || scene.environment.is_none()))
+            .then(|| PictureKey::of(scene, distant.as_ref()));
+        if let (Some(key), Some(e)) = (&picture_of, self.environment.as_mut())
+            && e.settings == s
+            && e.picture_of.as_ref().is_some_and(|k| k.holds(key))
+        {
+            e.scene = scene.clone();
+            return Ok(None);
+        }
+        let input = match &picture_of {
+            Some(_) => {
+                let width = if scene.shadow_proxy.is_some() {
+                    s.input_width.min(LIVE_PICTURE_WIDTH)
+                } else {
+                    s.input_width
+                };
+                local_probe(scene, width).or_else(|| distant.clone())
+            }
+            None => distant.clone(),
         };
         let shininess = specular_levels(scene, s.levels);
         let unchanged = self.environment.as_ref().is_some_and(|e| {
@@ -222,6 +300,7 @@ impl Ibl {
         if unchanged {
             if let Some(e) = self.environment.as_mut() {
                 e.scene = scene.clone();
+                e.picture_of = picture_of;
             }
             return Ok(None);
         }
@@ -255,6 +334,7 @@ impl Ibl {
             input,
             shininess,
             settings: s,
+            picture_of,
         });
         Ok(Some((
             PassTiming {
@@ -465,6 +545,52 @@ mod tests {
         assert!((relative_change(&map(1.0), &map(1.05)) - 0.05).abs() < 1e-5);
         assert_eq!(relative_change(&map(0.0), &map(1.0)), 1.0);
         assert_eq!(relative_change(&map(0.0), &map(0.0)), 0.0);
+    }
+
+    /// The local picture is taken again when the real geometry, the lights or the map change,
+    /// or when the object moves by more than 5 % of its size, not for a tracker's jitter.
+    #[test]
+    fn a_local_picture_holds_while_what_it_shows_holds() {
+        let mut scene = Scene {
+            name: String::new(),
+            meshes: vec![
+                relight_core::scene::Mesh::cuboid("floor", Vec3::splat(-1.0), Vec3::ZERO, 0, false),
+                relight_core::scene::Mesh::cuboid("box", Vec3::ZERO, Vec3::splat(0.2), 0, true),
+            ],
+            materials: Vec::new(),
+            camera: relight_core::scene::SceneCamera {
+                world_from_camera: relight_core::Pose::IDENTITY,
+                yfov_rad: 1.0,
+                width: 4,
+                height: 4,
+            },
+            lights: Vec::new(),
+            environment: None,
+            environment_lights: Vec::new(),
+            shadow_proxy: None,
+            surface_revision: None,
+        };
+        let key = |scene: &Scene, env: Option<&EnvironmentMap>| PictureKey::of(scene, env);
+        let first = key(&scene, None);
+        let shift = |scene: &mut Scene, by: f32| {
+            for p in &mut scene.meshes[1].positions_in_world {
+                p.x += by;
+            }
+        };
+        shift(&mut scene, 0.002);
+        assert!(first.holds(&key(&scene, None)), "2 mm of jitter");
+        shift(&mut scene, 0.02);
+        assert!(!first.holds(&key(&scene, None)), "the object moved 2.2 cm");
+        shift(&mut scene, -0.022);
+        assert!(!first.holds(&key(&scene, Some(&map(1.0)))), "another map");
+        scene.lights.push(Light::Directional {
+            direction_in_world: Vec3::NEG_Y,
+            irradiance: Vec3::ONE,
+        });
+        assert!(!first.holds(&key(&scene, None)), "another light");
+        scene.lights.clear();
+        scene.meshes[0].positions_in_world[0].y += 1e-5;
+        assert!(!first.holds(&key(&scene, None)), "the real geometry moved");
     }
 
     #[test]
