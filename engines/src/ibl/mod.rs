@@ -5,12 +5,13 @@
 //!   with the BRDF — a diffuse irradiance map E_d(n) and one specular map E_s^n(r) per Phong
 //!   exponent, all in one pass. The exponents are the ones the scene needs (the virtual
 //!   materials' own, up to eight) unless `levels` asks for a fixed log-spaced set.
-//! - **The environment**: live, the rig's probe picture (it sees the room as well as the sky).
-//!   For a scene file, by default (`environment = "local"`), the picture a probe at the
-//!   object's centre would take ([`local_probe`]): the real meshes under the scene's lights
-//!   where its rays meet them, the file's map where they escape. The file's map alone (`"map"`,
-//!   the paper's input) leaves out the room's bounce light: window_env's front face came out
-//!   black, and a room lit by lamps alone lit the object with its lamps' direct light only.
+//! - **The environment**: live with the rig's probe, the probe's picture (it sees the room as
+//!   well as the sky). Otherwise, by default (`environment = "local"`), the picture a probe at
+//!   the object's centre would take ([`local_probe`]): the real meshes (live, the held shadow
+//!   proxy) under the scene's lights where its rays meet them, a scene file's map where they
+//!   escape. The file's map alone (`"map"`, the paper's input) leaves out the room's bounce
+//!   light: window_env's front face came out black, and a room lit by lamps alone, live or not,
+//!   lit the object with its lamps' direct light only.
 //! - **Recomputed only on change**: the maps are kept until the environment differs from the one
 //!   they were made from by more than `update_threshold` (relative L1 over the resampled map),
 //!   or the exponents change. Comparing with the map they were made from, not the previous
@@ -54,8 +55,8 @@ pub struct IblSettings {
     pub rsm_size: u32,
     pub shadow_bias: f32,
     pub update_threshold: f32,
-    /// A scene file's object is lit by the picture from its centre ([`local_probe`]), not by
-    /// the file's distant map alone.
+    /// Where no probe picture lights the object (a scene file, a live rig without a probe), it
+    /// is lit by the picture from its centre ([`local_probe`]).
     pub local_probe: bool,
 }
 
@@ -82,7 +83,7 @@ struct Environment {
     input: Option<EnvironmentMap>,
     shininess: Vec<f32>,
     settings: IblSettings,
-    /// What a live scene's local picture was taken of (`None` for any other input).
+    /// What the local picture was taken of (`None` for the map alone or a probe's picture).
     picture_of: Option<PictureKey>,
 }
 
@@ -93,9 +94,9 @@ const LIVE_PICTURE_WIDTH: u32 = 32;
 
 /// What a local picture was taken of ([`local_probe`]): the real geometry (a live scene's held
 /// shadow proxy by identity, a scene file's real meshes by content), the lights, the distant
-/// map (resampled), and the object's bounds. A live scene is a new `Arc` every frame; while these hold, so does the
-/// picture, and the object may move by [`PICTURE_HOLDS_WITHIN`] of its size before it is taken
-/// again (marker tracking moves it a little on every frame).
+/// map (resampled), and the object's bounds. A live scene is a new `Arc` every frame; while
+/// these hold, so does the picture, and the object may move by [`PICTURE_HOLDS_WITHIN`] of its
+/// size before it is taken again (marker tracking moves it a little on every frame).
 #[derive(Debug, Clone, PartialEq)]
 struct PictureKey {
     /// The real geometry and the distant map, hashed.
@@ -218,7 +219,7 @@ impl Ibl {
             ),
             ParamSpec::choice(
                 "environment",
-                "what lights a scene file's object (live, the rig's probe does): `local`, the picture a probe at the object's centre would take (the real meshes under the scene's lights, the map where rays escape); `map`, the file's distant map alone",
+                "what lights the object where no probe picture does (a scene file, a live rig without a probe): `local`, the picture a probe at the object's centre would take (the real meshes under the scene's lights, the map where rays escape); `map`, the scene's map alone (the paper's input)",
                 vec!["local", "map"],
             ),
             crate::deferred::accumulate_param(),
