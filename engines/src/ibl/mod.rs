@@ -7,7 +7,7 @@
 //!   materials' own, up to eight) unless `levels` asks for a fixed log-spaced set.
 //! - **The environment**: live with the rig's probe, the probe's picture (it sees the room as
 //!   well as the sky). Otherwise, by default (`environment = "local"`), the picture a probe at
-//!   the object's centre would take ([`local_probe`]): the real meshes (live, the held shadow
+//!   the object's centre would take ([`local_probe()`]): the real meshes (live, the held shadow
 //!   proxy) under the scene's lights where its rays meet them, a scene file's map where they
 //!   escape. The file's map alone (`"map"`, the paper's input) leaves out the room's bounce
 //!   light: window_env's front face came out black, and a room lit by lamps alone, live or not,
@@ -56,7 +56,7 @@ pub struct IblSettings {
     pub shadow_bias: f32,
     pub update_threshold: f32,
     /// Where no probe picture lights the object (a scene file, a live rig without a probe), it
-    /// is lit by the picture from its centre ([`local_probe`]).
+    /// is lit by the picture from its centre ([`local_probe()`]).
     pub local_probe: bool,
 }
 
@@ -92,7 +92,7 @@ struct Environment {
 /// 128 × 64 rays held the frame for most of a second, 32 × 16 for a few tens of ms.
 const LIVE_PICTURE_WIDTH: u32 = 32;
 
-/// What a local picture was taken of ([`local_probe`]): the real geometry (a live scene's held
+/// What a local picture was taken of ([`local_probe()`]): the real geometry (a live scene's held
 /// shadow proxy by identity, a scene file's real meshes by content), the lights, the distant
 /// map (resampled), and the object's bounds. A live scene is a new `Arc` every frame; while
 /// these hold, so does the picture, and the object may move by [`PICTURE_HOLDS_WITHIN`] of its
