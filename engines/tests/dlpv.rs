@@ -129,16 +129,8 @@ fn the_object_lit_by_fewer_propagation_steps_is_closer_to_the_reference() {
         let (w, h) = (80, 60);
         let reference = reference_full(&scene, w, h, 64);
         let error = |params| {
-            let (delta, out) = delta_of(
-                &mut engine_with("dlpv", params),
-                &frame(scene.clone(), w, h),
-            );
-            let object = relight_engines::offline::object_error(
-                &out.composite,
-                &reference.l_rho,
-                &reference.virtual_mask,
-            )
-            .expect("the object is in view");
+            let (object, delta) =
+                support::object_and_delta("dlpv", params, &frame(scene.clone(), w, h), &reference);
             (
                 object,
                 relative_l2(&delta, &reference.delta, &reference.virtual_mask).0,

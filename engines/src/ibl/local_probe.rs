@@ -37,15 +37,20 @@ const SURFACE_EPSILON: f32 = 1e-4;
 pub fn local_probe(scene: &Scene, width: u32) -> Option<EnvironmentMap> {
     let (lo, hi) = scene.virtual_bounds()?;
     let centre = (lo + hi) / 2.0;
-    let meshes: Vec<Mesh> = match &scene.shadow_proxy {
-        Some(proxy) => std::iter::once(proxy.as_ref().clone())
-            .chain(scene.meshes.iter().filter(|m| m.is_virtual).cloned())
-            .collect(),
-        None => scene.meshes.clone(),
+    // A live scene's proxy stands in for its real meshes; a scene file's are used as they are.
+    let with_proxy: Vec<Mesh>;
+    let meshes: &[Mesh] = match &scene.shadow_proxy {
+        Some(proxy) => {
+            with_proxy = std::iter::once(proxy.as_ref().clone())
+                .chain(scene.meshes.iter().filter(|m| m.is_virtual).cloned())
+                .collect();
+            &with_proxy
+        }
+        None => &scene.meshes,
     };
     let (real, with_object) = (
-        Geometry::of_meshes(&meshes, false),
-        Geometry::of_meshes(&meshes, true),
+        Geometry::of_meshes(meshes, false),
+        Geometry::of_meshes(meshes, true),
     );
     let env = scene.environment.as_ref();
     let env_lights = env.map_or_else(Vec::new, |e| crate::dir::environment_lights(e, ENV_LIGHTS));

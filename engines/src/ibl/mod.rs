@@ -548,16 +548,11 @@ mod tests {
         assert_eq!(relative_change(&map(0.0), &map(0.0)), 0.0);
     }
 
-    /// The local picture is taken again when the real geometry, the lights or the map change,
-    /// or when the object moves by more than 5 % of its size, not for a tracker's jitter.
-    #[test]
-    fn a_local_picture_holds_while_what_it_shows_holds() {
-        let mut scene = Scene {
+    /// A scene with nothing in it, for the tests to fill.
+    fn empty_scene() -> Scene {
+        Scene {
             name: String::new(),
-            meshes: vec![
-                relight_core::scene::Mesh::cuboid("floor", Vec3::splat(-1.0), Vec3::ZERO, 0, false),
-                relight_core::scene::Mesh::cuboid("box", Vec3::ZERO, Vec3::splat(0.2), 0, true),
-            ],
+            meshes: Vec::new(),
             materials: Vec::new(),
             camera: relight_core::scene::SceneCamera {
                 world_from_camera: relight_core::Pose::IDENTITY,
@@ -570,6 +565,19 @@ mod tests {
             environment_lights: Vec::new(),
             shadow_proxy: None,
             surface_revision: None,
+        }
+    }
+
+    /// The local picture is taken again when the real geometry, the lights or the map change,
+    /// or when the object moves by more than 5 % of its size, not for a tracker's jitter.
+    #[test]
+    fn a_local_picture_holds_while_what_it_shows_holds() {
+        let mut scene = Scene {
+            meshes: vec![
+                relight_core::scene::Mesh::cuboid("floor", Vec3::splat(-1.0), Vec3::ZERO, 0, false),
+                relight_core::scene::Mesh::cuboid("box", Vec3::ZERO, Vec3::splat(0.2), 0, true),
+            ],
+            ..empty_scene()
         };
         let key = |scene: &Scene, env: Option<&EnvironmentMap>| PictureKey::of(scene, env);
         let first = key(&scene, None);
@@ -596,22 +604,7 @@ mod tests {
 
     #[test]
     fn fixed_levels_span_one_to_512() {
-        let scene = Scene {
-            name: String::new(),
-            meshes: Vec::new(),
-            materials: Vec::new(),
-            camera: relight_core::scene::SceneCamera {
-                world_from_camera: relight_core::Pose::IDENTITY,
-                yfov_rad: 1.0,
-                width: 4,
-                height: 4,
-            },
-            lights: Vec::new(),
-            environment: None,
-            environment_lights: Vec::new(),
-            shadow_proxy: None,
-            surface_revision: None,
-        };
+        let scene = empty_scene();
         let levels = specular_levels(&scene, 8);
         assert_eq!(levels.len(), 8);
         assert_eq!((levels[0], levels[7]), (1.0, 512.0));

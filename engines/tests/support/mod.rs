@@ -56,6 +56,24 @@ pub fn delta_of(engine: &mut Box<dyn Engine>, frame: &SceneFrame) -> (Vec<Vec3>,
     (relight_engines::offline::delta_pixels(&out.delta), out)
 }
 
+/// `engine` with `params` on `frame`: the object's error against `reference`
+/// ([`relight_engines::offline::object_error`]) and Δ per pixel.
+pub fn object_and_delta(
+    engine: &str,
+    params: serde_json::Value,
+    frame: &SceneFrame,
+    reference: &ReferenceImages,
+) -> (f64, Vec<Vec3>) {
+    let (delta, out) = delta_of(&mut engine_with(engine, params), frame);
+    let object = relight_engines::offline::object_error(
+        &out.composite,
+        &reference.l_rho,
+        &reference.virtual_mask,
+    )
+    .expect("the object is in view");
+    (object, delta)
+}
+
 /// A setting that lights the object with the room's bounce light (`far_field` of the volume
 /// engines, `environment` of `ibl`): on `scenes`, whose object sees much of it (desk_box's walls
 /// and floor, touching_wall's wall, window_env's floor), `engine` with `setting = on` must draw
@@ -74,17 +92,12 @@ pub fn setting_brings_the_object_closer(
         let (w, h) = (80, 60);
         let reference = reference_full(&scene, w, h, 64);
         let render = |value: &str| {
-            let (delta, out) = delta_of(
-                &mut engine_with(engine, serde_json::json!({ setting: value })),
+            object_and_delta(
+                engine,
+                serde_json::json!({ setting: value }),
                 &frame(scene.clone(), w, h),
-            );
-            let object = relight_engines::offline::object_error(
-                &out.composite,
-                &reference.l_rho,
-                &reference.virtual_mask,
+                &reference,
             )
-            .expect("the object is in view");
-            (object, delta)
         };
         let ((with, delta_with), (without, delta_without)) = (render(on), render(off));
         eprintln!(
