@@ -341,6 +341,8 @@ pub struct Deferred {
     /// Directional lights cut from the scene's environment map when it has no
     /// `environment_lights` of its own (a scene file's map; the probe path sets them).
     derived_environment_lights: crate::dir::EnvironmentLights,
+    /// How many lights [`Self::derived_environment_lights`] cuts ([`env_lights_param`]).
+    derived_light_count: u32,
     timer: Option<GpuTimer>,
     /// Whether the shade pass skips a real pixel's shadow-map lookups where the virtual object
     /// cannot shadow it (`may_shadow` in shade.wgsl); off only to test that it changes nothing.
@@ -349,11 +351,21 @@ pub struct Deferred {
 
 const MAX_LAYERS: u32 = 64;
 
-/// How many directional lights stand for a scene file's environment map in the engines that do
-/// not sample it (`differential`, `dlpv`, `dvct`): as many as the probe path cuts its map into
-/// by default (`[scene] probe_lights`). Without them those engines lit an environment-only
-/// scene with nothing, and drew the virtual object black.
-const DERIVED_ENVIRONMENT_LIGHTS: u32 = 8;
+/// The `env_lights` parameter of the engines that light a scene file's environment map with
+/// directional lights cut from it (`differential`, `dlpv`, `dvct`): how many, each with its own
+/// shadow map (and VPLs, in the engines that have them). `default` is chosen per engine by
+/// measured error (`docs/ALGORITHMS.md`, "Environment lights"). Without these lights those
+/// engines lit an environment-only scene with nothing and drew the virtual object black. The
+/// live probe path cuts its own map into `[scene] probe_lights` and ignores this.
+pub fn env_lights_param(default: u32) -> ParamSpec {
+    ParamSpec::int(
+        "env_lights",
+        "directional lights cut from a scene file's environment map (0: ignore it); each costs a shadow map",
+        0,
+        48,
+        i64::from(default),
+    )
+}
 
 /// `LIGHT_SHADOW_ONLY` in `shaders/common.wgsl`, in `GpuLight::faces[2]`.
 const LIGHT_SHADOW_ONLY: u32 = 1;
@@ -392,6 +404,7 @@ impl Deferred {
             extra_role: ExtraLights::Full,
             environment_lights: true,
             derived_environment_lights: crate::dir::EnvironmentLights::default(),
+            derived_light_count: 8,
             timer: GpuTimer::new(&ctx),
             shadow_reach_cull: true,
             ctx,
@@ -411,6 +424,28 @@ impl Deferred {
             environment_lights: false,
             ..Self::new(ctx)
         }
+    }
+
+    /// Light a scene file's environment map with `count` directional lights cut from it
+    /// ([`env_lights_param`]; for the engines built with [`Self::new`]).
+    pub fn set_environment_light_count(&mut self, count: u32) {
+        if count != self.derived_light_count {
+            self.derived_light_count = count;
+            self.derive_environment_lights();
+        }
+    }
+
+    /// Cut the uploaded scene's environment map into [`Self::derived_light_count`] lights,
+    /// where this engine lights with them and the scene has none of its own (the probe path's).
+    fn derive_environment_lights(&mut self) {
+        let map = self.scene.as_ref().and_then(|(scene, _)| {
+            scene
+                .environment
+                .as_ref()
+                .filter(|_| self.environment_lights && scene.environment_lights.is_empty())
+        });
+        self.derived_environment_lights
+            .update(map, self.derived_light_count);
     }
 
     /// Average `frames` frames over sub-pixel offsets while the picture holds still
@@ -512,12 +547,7 @@ impl Deferred {
         }
         if !uploaded {
             self.scene = Some((scene.clone(), GpuScene::new(&ctx, scene)));
-            let map = scene
-                .environment
-                .as_ref()
-                .filter(|_| self.environment_lights && scene.environment_lights.is_empty());
-            self.derived_environment_lights
-                .update(map, DERIVED_ENVIRONMENT_LIGHTS);
+            self.derive_environment_lights();
         }
         if !self
             .frame

@@ -38,6 +38,7 @@ impl Differential {
                 8.0,
                 1.5,
             ),
+            crate::deferred::env_lights_param(8),
             crate::deferred::accumulate_param(),
         ])
     }
@@ -76,6 +77,8 @@ impl Engine for Differential {
         let schema = Self::schema();
         self.rsm_size = schema.int(params, "rsm_size") as u32;
         self.shadow_bias_texels = schema.float(params, "shadow_bias") as f32;
+        self.deferred
+            .set_environment_light_count(schema.int(params, "env_lights") as u32);
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
     }

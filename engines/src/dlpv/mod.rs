@@ -56,6 +56,10 @@ use crate::volume::{
     CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer,
 };
 
+/// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
+/// "Environment lights").
+const ENV_LIGHTS_DEFAULT: u32 = 24;
+
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct LookupUniform {
@@ -186,6 +190,7 @@ impl Dlpv {
                 0.0,
             ),
             crate::volume::far_field_param(),
+            crate::deferred::env_lights_param(ENV_LIGHTS_DEFAULT),
             crate::deferred::accumulate_param(),
         ])
     }
@@ -450,6 +455,8 @@ impl Engine for Dlpv {
             lookup_offset: float("lookup_offset"),
             far_field: schema.choice(params, "far_field") == "probe",
         };
+        self.deferred
+            .set_environment_light_count(schema.int(params, "env_lights") as u32);
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
     }

@@ -44,6 +44,10 @@ use crate::volume::{
     CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer,
 };
 
+/// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
+/// "Environment lights").
+const ENV_LIGHTS_DEFAULT: u32 = 16;
+
 /// `Dvct` in `shaders/common.wgsl`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -234,6 +238,7 @@ impl Dvct {
                 vec!["directional", "none"],
             ),
             crate::volume::far_field_param(),
+            crate::deferred::env_lights_param(ENV_LIGHTS_DEFAULT),
             crate::deferred::accumulate_param(),
         ])
     }
@@ -668,6 +673,8 @@ impl Engine for Dvct {
             directional_occlusion: schema.choice(params, "occlusion") == "directional",
             far_field: schema.choice(params, "far_field") == "probe",
         };
+        self.deferred
+            .set_environment_light_count(schema.int(params, "env_lights") as u32);
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
     }

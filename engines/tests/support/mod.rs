@@ -125,6 +125,39 @@ pub fn setting_brings_the_object_closer(
     errors
 }
 
+/// window_env, lit by its map alone, rendered by `engine` with its default `env_lights` and with
+/// 8 (the count every engine used before the parameter), each judged against the full
+/// reference at 80 × 60: with the default, Δ L2 on real pixels and the object's L2 must both be
+/// under 0.9 × their values with 8. More lights share the window's light more finely, so its
+/// shadows soften as the reference's do and the far field gathers a smoother floor.
+pub fn more_environment_lights_bring_window_env_closer(engine: &str) {
+    let scene = Arc::new(load_scene("window_env"));
+    let (w, h) = (80, 60);
+    let reference = reference_full(&scene, w, h, 64);
+    let errors = |params: serde_json::Value| {
+        let (object, delta) =
+            object_and_delta(engine, params, &frame(scene.clone(), w, h), &reference);
+        let (delta_l2, _) = relative_l2(&delta, &reference.delta, &reference.virtual_mask);
+        [f64::from(delta_l2), object]
+    };
+    let [[delta, object], [delta_8, object_8]] = [
+        errors(serde_json::json!({})),
+        errors(serde_json::json!({ "env_lights": 8 })),
+    ];
+    eprintln!(
+        "{engine} on window_env, Δ / object: {delta:.4} / {object:.4} by default, \
+         {delta_8:.4} / {object_8:.4} with 8 lights"
+    );
+    assert!(
+        delta < 0.9 * delta_8,
+        "{engine}: Δ L2 {delta} against {delta_8}"
+    );
+    assert!(
+        object < 0.9 * object_8,
+        "{engine}: object L2 {object} against {object_8}"
+    );
+}
+
 /// The far field against an analytic value: desk_box's object alone over a white floor 8 m
 /// square, far enough below that none of it falls in the volume, lit from straight above by a
 /// directional light. Only the floor's bounce light reaches the object's vertical faces, and all
