@@ -94,9 +94,9 @@ impl Default for DvctSettings {
         Self {
             rsm_size: 256,
             shadow_size: crate::deferred::SHADOW_SIZE_DEFAULT,
-            volume_size: 64,
+            volume_size: 32,
             volume_scale: 3.0,
-            step: 0.5,
+            step: 1.0,
             cone_aperture_deg: 27.3,
             glossy_min_aperture_deg: 2.0,
             shadow_aperture_deg: 3.0,
