@@ -221,7 +221,8 @@ fn more_environment_lights_bring_window_env_closer() {
 /// (the defaults until stop 43): on spot_bleed, whose bleeding is the largest of the five
 /// scenes', both Δ on real pixels and the object's pixels come closer to the full reference
 /// (the bench at 160 × 120: Δ 0.181 → 0.139, object 0.191 → 0.147; here at 80 × 60 against
-/// 256 spp), in less time.
+/// 256 spp), in less time. Its VPL maps at 128² (`rsm_size`; 256² before) are as good as at
+/// 256² there.
 #[test]
 fn the_default_volume_brings_spot_bleed_closer_than_the_finer_one() {
     let scene = Arc::new(load_scene("spot_bleed"));
@@ -234,7 +235,8 @@ fn the_default_volume_brings_spot_bleed_closer_than_the_finer_one() {
         (f64::from(delta_l2), object)
     };
     let (delta, object) = errors(serde_json::json!({}));
-    let (delta_fine, object_fine) = errors(serde_json::json!({ "volume_size": 64, "step": 0.5 }));
+    let (delta_fine, object_fine) =
+        errors(serde_json::json!({ "volume_size": 64, "step": 0.5, "rsm_size": 256 }));
     eprintln!(
         "spot_bleed Δ / object: {delta:.4} / {object:.4} by default, \
          {delta_fine:.4} / {object_fine:.4} at 64³"
@@ -243,5 +245,16 @@ fn the_default_volume_brings_spot_bleed_closer_than_the_finer_one() {
     assert!(
         object < 0.95 * object_fine,
         "object {object} against {object_fine}"
+    );
+    // The VPLs' maps at 128² (the default) hold what 256² gives at 32³.
+    let (delta_256, object_256) = errors(serde_json::json!({ "rsm_size": 256 }));
+    eprintln!("with 256² VPL maps: {delta_256:.4} / {object_256:.4}");
+    assert!(
+        (delta / delta_256 - 1.0).abs() < 0.03,
+        "Δ {delta} against {delta_256}"
+    );
+    assert!(
+        (object / object_256 - 1.0).abs() < 0.03,
+        "object {object} against {object_256}"
     );
 }

@@ -92,7 +92,7 @@ pub struct DvctSettings {
 impl Default for DvctSettings {
     fn default() -> Self {
         Self {
-            rsm_size: 256,
+            rsm_size: 128,
             shadow_size: crate::deferred::SHADOW_SIZE_DEFAULT,
             volume_size: 32,
             volume_scale: 3.0,
