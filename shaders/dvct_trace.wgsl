@@ -158,37 +158,66 @@ fn diffuse(kind: u32, apex: vec3<f32>, n: vec3<f32>, far: bool, far_sh: array<ve
     return e;
 }
 
-@compute @workgroup_size(8, 8)
-fn main(@builtin(global_invocation_id) id: vec3<u32>) {
-    let size = vec2<u32>(camera.size.xy);
-    if id.x >= size.x || id.y >= size.y {
-        return;
+// Where pixel `xy` is and what it is made of; `found` is false where nothing was drawn.
+struct Surface {
+    p: vec4<f32>,
+    n: vec3<f32>,
+    is_virtual: bool,
+    found: bool,
+}
+
+fn surface_at(xy: vec2<i32>) -> Surface {
+    var s: Surface;
+    s.p = textureLoad(gb_position, xy, 0);
+    s.found = s.p.w >= 0.5;
+    if s.found {
+        let normal = textureLoad(gb_normal, xy, 0);
+        s.n = normalize(normal.xyz);
+        s.is_virtual = normal.w > 0.5;
     }
-    let i = id.y * size.x + id.x;
-    let xy = vec2<i32>(id.xy);
-    let p = textureLoad(gb_position, xy, 0);
-    if p.w < 0.5 {
-        indirect[i] = vec4<f32>(0.0);
-        return;
+    return s;
+}
+
+fn cone_kind(s: Surface) -> u32 {
+    if s.is_virtual {
+        return CONE_RHO;
     }
-    let normal = textureLoad(gb_normal, xy, 0);
-    let n = normalize(normal.xyz);
-    let is_virtual = normal.w > 0.5;
-    var kind = select(CONE_DELTA, CONE_OCCLUDED, dvct.modes.x == 1u);
-    if is_virtual {
-        kind = CONE_RHO;
-    }
-    let albedo = textureLoad(gb_albedo, xy, 0).rgb;
-    let m = materials[u32(p.w) - 1u];
-    let wo = normalize(camera.position.xyz - p.xyz);
-    let apex = p.xyz + n * dvct.cone.w * dvct.origin.w;
-    let far = is_virtual && dvct.modes.y == 1u;
+    return select(CONE_DELTA, CONE_OCCLUDED, dvct.modes.x == 1u);
+}
+
+fn cone_apex(s: Surface) -> vec3<f32> {
+    return s.p.xyz + s.n * dvct.cone.w * dvct.origin.w;
+}
+
+fn far_on(s: Surface) -> bool {
+    return s.is_virtual && dvct.modes.y == 1u;
+}
+
+fn far_sh_of(s: Surface) -> array<vec3<f32>, 9> {
     var far_sh: array<vec3<f32>, 9>;
-    if far {
+    if far_on(s) {
         let half_edge = 0.5 * f32(dvct.dims.x) * dvct.origin.w;
         far_sh = far_field_sh(far_field, dvct.options.w * half_edge * half_edge);
     }
-    var out = albedo / PI * diffuse(kind, apex, n, far, far_sh);
+    return far_sh;
+}
+
+// The irradiance the nine diffuse cones gather at `s`.
+fn irradiance_at(s: Surface) -> vec3<f32> {
+    return diffuse(cone_kind(s), cone_apex(s), s.n, far_on(s), far_sh_of(s));
+}
+
+// The pixel's indirect term given its diffuse irradiance `e`: albedo/π · e, the glossy cone,
+// and with shadow cones their antiradiance.
+fn indirect_from(xy: vec2<i32>, s: Surface, e: vec3<f32>) -> vec3<f32> {
+    let kind = cone_kind(s);
+    let apex = cone_apex(s);
+    let n = s.n;
+    let p = s.p;
+    let albedo = textureLoad(gb_albedo, xy, 0).rgb;
+    let m = materials[u32(p.w) - 1u];
+    let wo = normalize(camera.position.xyz - p.xyz);
+    var out = albedo / PI * e;
     let shininess = m.albedo.w;
     if shininess > 0.0 && any(m.specular.rgb > vec3<f32>(0.0)) {
         // A normalised Phong lobe holds its energy within 2π/(n + 1) sr: a cone of
@@ -196,9 +225,10 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         let c = shininess / (shininess + 1.0);
         let tan_half = max(sqrt(1.0 - c * c) / c, dvct.options.z);
         let r = reflect(-wo, n);
-        out += m.specular.rgb * gathered(kind, apex, r, tan_half, far, far_sh) * max(dot(n, r), 0.0);
+        out += m.specular.rgb * gathered(kind, apex, r, tan_half, far_on(s), far_sh_of(s))
+            * max(dot(n, r), 0.0);
     }
-    if !is_virtual && dvct.options.x > 0.5 {
+    if !s.is_virtual && dvct.options.x > 0.5 {
         for (var li = 0u; li < dvct.dims.z; li++) {
             let l = lights[li];
             let inc = incident(l, p.xyz);
@@ -221,5 +251,102 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
             out -= shadow.alpha * direct;
         }
     }
-    indirect[i] = vec4<f32>(out, 0.0);
+    return out;
+}
+
+// The diffuse cones are traced at every `dvct.modes.z`-th pixel per axis. At 1 (every pixel)
+// `main` alone writes each pixel's indirect term. Above 1, three dispatches over one buffer:
+//   `main`:    a traced pixel's diffuse irradiance into `indirect`;
+//   `fill`:    every other pixel's indirect term, from its traced neighbours' irradiance
+//              (bilinear, over the neighbours whose surface is like its own) or, where none is,
+//              from its own cones;
+//   `resolve`: each traced pixel's irradiance into its indirect term.
+// Irradiance is smooth across a surface, so it is what is shared; each pixel applies its own
+// albedo, glossy cone and shadow cones. (Every entry reads every binding, so that each
+// pipeline's derived layout takes the same bind group's resources.)
+fn traced_pixel(id: vec3<u32>) -> vec2<u32> {
+    return id.xy * dvct.modes.z;
+}
+
+@compute @workgroup_size(8, 8)
+fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    let size = vec2<u32>(camera.size.xy);
+    let xy = traced_pixel(id);
+    if xy.x >= size.x || xy.y >= size.y {
+        return;
+    }
+    let i = xy.y * size.x + xy.x;
+    let s = surface_at(vec2<i32>(xy));
+    if !s.found {
+        indirect[i] = vec4<f32>(0.0);
+        return;
+    }
+    let e = irradiance_at(s);
+    if dvct.modes.z == 1u {
+        indirect[i] = vec4<f32>(indirect_from(vec2<i32>(xy), s, e), 0.0);
+    } else {
+        indirect[i] = vec4<f32>(e, 0.0);
+    }
+}
+
+// Neighbours alike enough to share irradiance: normals within about 25°, and the neighbour
+// within 1 % of the camera distance of the pixel's plane (no depth edge between them).
+const ALIKE_NORMAL: f32 = 0.9;
+const ALIKE_PLANE: f32 = 0.01;
+
+@compute @workgroup_size(8, 8)
+fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
+    let size = vec2<u32>(camera.size.xy);
+    let stride = dvct.modes.z;
+    if id.x >= size.x || id.y >= size.y || (id.x % stride == 0u && id.y % stride == 0u) {
+        return;
+    }
+    let xy = vec2<i32>(id.xy);
+    let i = id.y * size.x + id.x;
+    let s = surface_at(xy);
+    if !s.found {
+        indirect[i] = vec4<f32>(0.0);
+        return;
+    }
+    let base = (id.xy / stride) * stride;
+    let f = vec2<f32>(id.xy - base) / f32(stride);
+    let tolerance = ALIKE_PLANE * distance(camera.position.xyz, s.p.xyz);
+    var sum = vec3<f32>(0.0);
+    var weight = 0.0;
+    for (var k = 0u; k < 4u; k++) {
+        let corner = vec2<u32>(k & 1u, k >> 1u);
+        let at = base + corner * stride;
+        if at.x >= size.x || at.y >= size.y {
+            continue;
+        }
+        let t = surface_at(vec2<i32>(at));
+        let alike = t.found && t.is_virtual == s.is_virtual && dot(t.n, s.n) > ALIKE_NORMAL
+            && abs(dot(t.p.xyz - s.p.xyz, s.n)) < tolerance;
+        let w = select(1.0 - f.x, f.x, corner.x == 1u) * select(1.0 - f.y, f.y, corner.y == 1u);
+        if alike && w > 0.0 {
+            sum += w * indirect[at.y * size.x + at.x].rgb;
+            weight += w;
+        }
+    }
+    var e: vec3<f32>;
+    if weight > 0.0 {
+        e = sum / weight;
+    } else {
+        e = irradiance_at(s);
+    }
+    indirect[i] = vec4<f32>(indirect_from(xy, s, e), 0.0);
+}
+
+@compute @workgroup_size(8, 8)
+fn resolve(@builtin(global_invocation_id) id: vec3<u32>) {
+    let size = vec2<u32>(camera.size.xy);
+    let xy = traced_pixel(id);
+    if xy.x >= size.x || xy.y >= size.y {
+        return;
+    }
+    let i = xy.y * size.x + xy.x;
+    let s = surface_at(vec2<i32>(xy));
+    if s.found {
+        indirect[i] = vec4<f32>(indirect_from(vec2<i32>(xy), s, indirect[i].rgb), 0.0);
+    }
 }

@@ -746,3 +746,23 @@ fn replay_takes_live_settings_from_a_configuration_file() {
         "{stderr}"
     );
 }
+
+/// `relightd replay --param name=value` sets the engine's parameters as a configuration's
+/// `[engine.params]` would, checked against its schema before anything runs.
+#[test]
+fn replay_refuses_an_engine_parameter_out_of_range() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_relightd"))
+        .args(["--config", "/dev/null", "replay"])
+        .arg(fixture())
+        .args(["--mode", "fast", "--engine", "dvct", "--socket"])
+        .arg(dir.path().join("control.sock"))
+        .args(["--param", "trace_stride=9"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && stderr.contains("trace_stride") && stderr.contains("[1, 4]"),
+        "{stderr}"
+    );
+}

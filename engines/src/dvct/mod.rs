@@ -12,7 +12,10 @@
 //!    quadrilinear sample is one filtered fetch per texture: with storage buffers and the
 //!    eight-corner sum written out, the fetches held 90 % of a still frame on lavapipe;
 //! 4. **cone tracing** (`dvct_trace.wgsl`) per pixel: 9 diffuse cones and 1 glossy cone whose
-//!    aperture follows the Phong exponent, through V^Δ on real pixels and V^ρ on virtual ones;
+//!    aperture follows the Phong exponent, through V^Δ on real pixels and V^ρ on virtual ones
+//!    (the diffuse cones at every `trace_stride`-th pixel per axis, 2 by default: the pixels
+//!    between take the irradiance of their traced neighbours whose surface is like their own,
+//!    or trace their own where none is);
 //!    with directional occlusion (the default, by measurement), a real pixel's cones go
 //!    through V^ρ with every surface occluding minus through V^μ = V^ρ − V^Δ with the real
 //!    surfaces alone, so the real indirect light the object blocks is taken away as well;
@@ -87,6 +90,9 @@ pub struct DvctSettings {
     /// Virtual pixels' cones that leave the volume take the far field
     /// (`CellCounts::far_field`) beyond it.
     pub far_field: bool,
+    /// Diffuse cones at every `trace_stride`-th pixel per axis; the pixels between share their
+    /// irradiance where their surfaces are alike (`dvct_trace.wgsl`, `fill`).
+    pub trace_stride: u32,
 }
 
 impl Default for DvctSettings {
@@ -105,6 +111,7 @@ impl Default for DvctSettings {
             shadow_bias: 1.5,
             directional_occlusion: true,
             far_field: true,
+            trace_stride: 2,
         }
     }
 }
@@ -143,7 +150,9 @@ pub struct Dvct {
     inject: InjectPass,
     /// Level 0 of the mip chains, from the injected cells, and the coarser levels.
     mip: [wgpu::ComputePipeline; 2],
-    trace: wgpu::ComputePipeline,
+    /// The cone tracer's entries (`dvct_trace.wgsl`): `main`, and with a `trace_stride` above
+    /// 1 `fill` and `resolve` after it.
+    trace: [wgpu::ComputePipeline; 3],
     sampler: wgpu::Sampler,
     inject_uniform: wgpu::Buffer,
     dvct_uniform: wgpu::Buffer,
@@ -238,6 +247,13 @@ impl Dvct {
                 vec!["directional", "none"],
             ),
             crate::volume::far_field_param(),
+            int(
+                "trace_stride",
+                "diffuse cones at every n-th pixel per axis; the pixels between take their alike neighbours' irradiance (1: every pixel, as the paper)",
+                1,
+                4,
+                d.trace_stride,
+            ),
             crate::deferred::env_lights_param(ENV_LIGHTS_DEFAULT),
             crate::deferred::accumulate_param(),
         ])
@@ -251,7 +267,9 @@ impl Dvct {
             mip: ["first", "coarser"].map(|entry| {
                 shaders::compute_pipeline_at(&ctx.device, "dvct mip", shaders::DVCT_MIP, entry)
             }),
-            trace: pipeline("dvct trace", shaders::DVCT_TRACE),
+            trace: ["main", "fill", "resolve"].map(|entry| {
+                shaders::compute_pipeline_at(&ctx.device, "dvct trace", shaders::DVCT_TRACE, entry)
+            }),
             sampler: ctx.device.create_sampler(&wgpu::SamplerDescriptor {
                 label: Some("dvct volume"),
                 address_mode_u: wgpu::AddressMode::ClampToBorder,
@@ -495,7 +513,7 @@ impl Engine for Dvct {
                     modes: [
                         u32::from(settings.directional_occlusion),
                         u32::from(settings.far_field),
-                        0,
+                        settings.trace_stride,
                         0,
                     ],
                 }),
@@ -565,7 +583,10 @@ impl Engine for Dvct {
                 indirect.as_entire_binding(),
                 v.cells.far_field(),
             ]);
-            let trace_group = group(&self.trace, "dvct trace", &trace_resources);
+            let trace_groups = self
+                .trace
+                .each_ref()
+                .map(|pipeline| group(pipeline, "dvct trace", &trace_resources));
 
             let mut encoder = ctx
                 .device
@@ -623,16 +644,33 @@ impl Engine for Dvct {
                 work: trace_work(
                     &settings,
                     n,
-                    width * height,
+                    width.div_ceil(settings.trace_stride) * height.div_ceil(settings.trace_stride),
                     self.deferred.lights().len() as u32,
                     mip_cells as f64,
                 ),
             });
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.trace");
-                pass.set_pipeline(&self.trace);
-                pass.set_bind_group(0, &trace_group, &[]);
-                pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+                let stride = settings.trace_stride;
+                let (traced_x, traced_y) = (width.div_ceil(stride), height.div_ceil(stride));
+                let passes = if stride > 1 { 3 } else { 1 };
+                for (k, (pipeline, group)) in self
+                    .trace
+                    .iter()
+                    .zip(&trace_groups)
+                    .take(passes)
+                    .enumerate()
+                {
+                    pass.set_pipeline(pipeline);
+                    pass.set_bind_group(0, group, &[]);
+                    // `fill` runs over every pixel, `main` and `resolve` over the traced ones.
+                    let (x, y) = if k == 1 {
+                        (width, height)
+                    } else {
+                        (traced_x, traced_y)
+                    };
+                    pass.dispatch_workgroups(x.div_ceil(8), y.div_ceil(8), 1);
+                }
             }
             ctx.queue.submit([encoder.finish()]);
             ctx.check()?;
@@ -672,6 +710,7 @@ impl Engine for Dvct {
             shadow_bias: float("shadow_bias"),
             directional_occlusion: schema.choice(params, "occlusion") == "directional",
             far_field: schema.choice(params, "far_field") == "probe",
+            trace_stride: int("trace_stride"),
         };
         self.deferred
             .set_environment_light_count(schema.int(params, "env_lights") as u32);

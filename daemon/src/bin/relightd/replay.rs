@@ -35,6 +35,9 @@ pub struct Args {
     /// The engine to start with.
     #[arg(long, default_value = "passthrough", value_parser = crate::engine_name())]
     engine: String,
+    /// Its parameters (`name=value`, repeatable), as `relightctl engine params set`.
+    #[arg(long = "param")]
+    params: Vec<String>,
     /// Write composite PNGs here.
     #[arg(long)]
     output: Option<PathBuf>,
@@ -114,6 +117,7 @@ pub fn run(args: Args) -> Result<()> {
         ..Config::default()
     };
     config.engine.name = args.engine;
+    config.engine.params = serde_json::Value::Object(crate::params::parse_params(&args.params)?);
     if args.scene.is_some() {
         config.scene.dir = args.scene;
     }
