@@ -609,3 +609,28 @@ fn oct_encode(d: vec3<f32>) -> vec2<f32> {
 fn ibl_shininess(ibl: Ibl, level: u32) -> f32 {
     return ibl.shininess[level / 4u][level % 4u];
 }
+
+// Irradiance traced at a stride (`dvct` `trace_stride`, `dir` `gather_stride`): the engine
+// gathers at every `stride`-th pixel per axis, and each pixel between takes the bilinear blend
+// of the four traced pixels around it, over those whose surface is like its own (irradiance is
+// smooth across one surface, not across a silhouette or a depth edge). Each pixel then applies
+// its own albedo.
+
+// The traced pixel at corner `k` (0–3: x then y) of the stride cell holding pixel `xy`.
+fn stride_corner(xy: vec2<u32>, stride: u32, k: u32) -> vec2<u32> {
+    return (xy / stride) * stride + vec2<u32>(k & 1u, k >> 1u) * stride;
+}
+
+// Pixel `xy`'s bilinear weight on corner `k` of its stride cell.
+fn stride_weight(xy: vec2<u32>, stride: u32, k: u32) -> f32 {
+    let f = vec2<f32>(xy % vec2<u32>(stride)) / f32(stride);
+    return select(1.0 - f.x, f.x, (k & 1u) == 1u) * select(1.0 - f.y, f.y, (k >> 1u) == 1u);
+}
+
+// Whether a traced surface (at `q`, unit normal `nq`, on the virtual object `vq`) may lend its
+// irradiance to one at `p` (`n`, `v`) seen from `eye`: the same side of the object's silhouette,
+// normals within about 25°, and within 1 % of the camera distance of the receiver's plane.
+fn alike(p: vec3<f32>, n: vec3<f32>, v: bool, q: vec3<f32>, nq: vec3<f32>, vq: bool,
+         eye: vec3<f32>) -> bool {
+    return v == vq && dot(n, nq) > 0.9 && abs(dot(q - p, n)) < 0.01 * distance(eye, p);
+}

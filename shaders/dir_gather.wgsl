@@ -25,21 +25,39 @@ fn visible(k: u32, layer: u32, t: vec2<u32>, dist: f32, bias: f32) -> f32 {
     return select(0.0, 1.0, dist <= bitcast<f32>(~stored) + bias);
 }
 
-@compute @workgroup_size(8, 8)
-fn main(@builtin(global_invocation_id) id: vec3<u32>) {
-    if id.x >= dir.size.x || id.y >= dir.size.y {
-        return;
+// What the gather needs of pixel `xy`; `found` is false where nothing was drawn.
+struct Receiver {
+    p: vec4<f32>,
+    n: vec3<f32>,
+    is_virtual: bool,
+    found: bool,
+}
+
+fn receiver_at(xy: vec2<i32>) -> Receiver {
+    var r: Receiver;
+    r.p = textureLoad(gb_position, xy, 0);
+    r.found = r.p.w >= 0.5;
+    if r.found {
+        let normal = textureLoad(gb_normal, xy, 0);
+        r.n = normalize(normal.xyz);
+        r.is_virtual = normal.w > 0.5;
     }
-    let i = id.y * dir.size.x + id.x;
-    let xy = vec2<i32>(id.xy);
-    let p = textureLoad(gb_position, xy, 0);
-    if p.w < 0.5 {
-        indirect[i] = vec4<f32>(0.0);
-        return;
-    }
-    let normal = textureLoad(gb_normal, xy, 0);
-    let n = normalize(normal.xyz);
-    let is_virtual = normal.w > 0.5;
+    return r;
+}
+
+// Whether the receiver's BRDF is its albedo/π alone, so that its light is its albedo times an
+// irradiance its neighbours may share.
+fn is_diffuse(r: Receiver) -> bool {
+    let m = materials[u32(r.p.w) - 1u];
+    return !(m.albedo.w > 0.0 && any(m.specular.rgb > vec3<f32>(0.0)));
+}
+
+// Every VPL's light at the receiver: L_rv on the object, L_rv − L_r on real surfaces. With
+// `irradiance`, the BRDF is taken as 1/π: a diffuse receiver's light divided by its albedo.
+fn gathered(xy: vec2<i32>, r: Receiver, irradiance: bool) -> vec3<f32> {
+    let p = r.p;
+    let n = r.n;
+    let is_virtual = r.is_virtual;
     let albedo = textureLoad(gb_albedo, xy, 0).rgb;
     let m = materials[u32(p.w) - 1u];
     let wo = normalize(camera.position.xyz - p.xyz);
@@ -65,8 +83,12 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         if cos_vpl <= 0.0 || cos_p <= 0.0 {
             continue;
         }
+        var f = vec3<f32>(1.0 / PI);
+        if !irradiance {
+            f = brdf(m, albedo, n, -w, wo);
+        }
         // A second-bounce VPL clamps within its footprint (normal.w, m), wider than the first's.
-        let l_o = brdf(m, albedo, n, -w, wo) * vpl.flux.rgb / PI * cos_vpl * cos_p
+        let l_o = f * vpl.flux.rgb / PI * cos_vpl * cos_p
             / max(dist2, max(clamp2, vpl.normal.w * vpl.normal.w));
         let t = vec2<u32>(paraboloid_texel(vpl.normal.xyz, w, s));
         // The depth a texel holds can differ from the receiver's by the texel's footprint.
@@ -80,9 +102,92 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
             l_r += l_o * st_r;
         }
     }
-    var out = l_rv;
-    if !is_virtual {
-        out = l_rv - l_r;
+    if is_virtual {
+        return l_rv;
+    }
+    return l_rv - l_r;
+}
+
+// The gather runs at every `dir.sampling.y`-th pixel per axis. At 1 (every pixel) `main` alone
+// writes each pixel's light. Above 1 (see `stride_corner` in common.wgsl), three dispatches over
+// one buffer: `main` writes a traced diffuse pixel's irradiance (w = 1) or a glossy one's own
+// light (w = 0); `fill` gives every other pixel its albedo times the blend of its alike traced
+// diffuse neighbours' irradiance, or gathers its own where it is glossy or none is alike;
+// `resolve` turns each traced irradiance into light. (Every entry reads every binding, so that
+// each pipeline's derived layout takes the same bind group's resources.)
+fn gather_stride() -> u32 {
+    return u32(dir.sampling.y);
+}
+
+@compute @workgroup_size(8, 8)
+fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    let stride = gather_stride();
+    let at = id.xy * stride;
+    if at.x >= dir.size.x || at.y >= dir.size.y {
+        return;
+    }
+    let i = at.y * dir.size.x + at.x;
+    let xy = vec2<i32>(at);
+    let r = receiver_at(xy);
+    if !r.found {
+        indirect[i] = vec4<f32>(0.0);
+        return;
+    }
+    let lent = stride > 1u && is_diffuse(r);
+    indirect[i] = vec4<f32>(gathered(xy, r, lent), select(0.0, 1.0, lent));
+}
+
+@compute @workgroup_size(8, 8)
+fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
+    let size = dir.size.xy;
+    let stride = gather_stride();
+    if id.x >= size.x || id.y >= size.y || all(id.xy % vec2<u32>(stride) == vec2<u32>(0u)) {
+        return;
+    }
+    let xy = vec2<i32>(id.xy);
+    let i = id.y * size.x + id.x;
+    let r = receiver_at(xy);
+    if !r.found {
+        indirect[i] = vec4<f32>(0.0);
+        return;
+    }
+    var sum = vec3<f32>(0.0);
+    var weight = 0.0;
+    if is_diffuse(r) {
+        for (var k = 0u; k < 4u; k++) {
+            let at = stride_corner(id.xy, stride, k);
+            let w = stride_weight(id.xy, stride, k);
+            if w <= 0.0 || at.x >= size.x || at.y >= size.y {
+                continue;
+            }
+            let traced = indirect[at.y * size.x + at.x];
+            let t = receiver_at(vec2<i32>(at));
+            if traced.w > 0.5 && t.found
+                && alike(r.p.xyz, r.n, r.is_virtual, t.p.xyz, t.n, t.is_virtual,
+                         camera.position.xyz) {
+                sum += w * traced.rgb;
+                weight += w;
+            }
+        }
+    }
+    var out: vec3<f32>;
+    if weight > 0.0 {
+        out = textureLoad(gb_albedo, xy, 0).rgb * sum / weight;
+    } else {
+        out = gathered(xy, r, false);
     }
     indirect[i] = vec4<f32>(out, 0.0);
+}
+
+@compute @workgroup_size(8, 8)
+fn resolve(@builtin(global_invocation_id) id: vec3<u32>) {
+    let at = id.xy * gather_stride();
+    if at.x >= dir.size.x || at.y >= dir.size.y {
+        return;
+    }
+    let i = at.y * dir.size.x + at.x;
+    let traced = indirect[i];
+    if traced.w > 0.5 {
+        indirect[i] = vec4<f32>(textureLoad(gb_albedo, vec2<i32>(at), 0).rgb * traced.rgb, 0.0);
+    }
 }

@@ -289,16 +289,11 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     }
 }
 
-// Neighbours alike enough to share irradiance: normals within about 25°, and the neighbour
-// within 1 % of the camera distance of the pixel's plane (no depth edge between them).
-const ALIKE_NORMAL: f32 = 0.9;
-const ALIKE_PLANE: f32 = 0.01;
-
 @compute @workgroup_size(8, 8)
 fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
     let size = vec2<u32>(camera.size.xy);
     let stride = dvct.modes.z;
-    if id.x >= size.x || id.y >= size.y || (id.x % stride == 0u && id.y % stride == 0u) {
+    if id.x >= size.x || id.y >= size.y || all(id.xy % vec2<u32>(stride) == vec2<u32>(0u)) {
         return;
     }
     let xy = vec2<i32>(id.xy);
@@ -308,22 +303,17 @@ fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
         indirect[i] = vec4<f32>(0.0);
         return;
     }
-    let base = (id.xy / stride) * stride;
-    let f = vec2<f32>(id.xy - base) / f32(stride);
-    let tolerance = ALIKE_PLANE * distance(camera.position.xyz, s.p.xyz);
     var sum = vec3<f32>(0.0);
     var weight = 0.0;
     for (var k = 0u; k < 4u; k++) {
-        let corner = vec2<u32>(k & 1u, k >> 1u);
-        let at = base + corner * stride;
-        if at.x >= size.x || at.y >= size.y {
+        let at = stride_corner(id.xy, stride, k);
+        let w = stride_weight(id.xy, stride, k);
+        if w <= 0.0 || at.x >= size.x || at.y >= size.y {
             continue;
         }
         let t = surface_at(vec2<i32>(at));
-        let alike = t.found && t.is_virtual == s.is_virtual && dot(t.n, s.n) > ALIKE_NORMAL
-            && abs(dot(t.p.xyz - s.p.xyz, s.n)) < tolerance;
-        let w = select(1.0 - f.x, f.x, corner.x == 1u) * select(1.0 - f.y, f.y, corner.y == 1u);
-        if alike && w > 0.0 {
+        if t.found && alike(s.p.xyz, s.n, s.is_virtual, t.p.xyz, t.n, t.is_virtual,
+                            camera.position.xyz) {
             sum += w * indirect[at.y * size.x + at.x].rgb;
             weight += w;
         }

@@ -141,6 +141,30 @@ pub fn bind_group(
     })
 }
 
+/// A bind group for group 0 of `pipeline`'s derived layout with `resources[b]` at each binding
+/// `b` of `bindings` alone: an entry point that reads only some of its shader's bindings derives
+/// a layout of those.
+pub fn pipeline_bind_group_of(
+    device: &wgpu::Device,
+    pipeline: &wgpu::ComputePipeline,
+    label: &str,
+    resources: &[wgpu::BindingResource],
+    bindings: &[u32],
+) -> wgpu::BindGroup {
+    let entries: Vec<wgpu::BindGroupEntry> = bindings
+        .iter()
+        .map(|&binding| wgpu::BindGroupEntry {
+            binding,
+            resource: resources[binding as usize].clone(),
+        })
+        .collect();
+    device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(label),
+        layout: &pipeline.get_bind_group_layout(0),
+        entries: &entries,
+    })
+}
+
 /// A bind group for group 0 of `pipeline`'s derived layout (see [`bind_group`]).
 pub fn pipeline_bind_group(
     device: &wgpu::Device,

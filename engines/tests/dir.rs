@@ -283,9 +283,11 @@ fn the_second_bounce_brings_delta_closer_to_the_reference() {
 fn the_footprint_clamp_brings_the_object_closer_to_the_reference() {
     let (reference, frame) = against_reference("desk_box", 64);
     let error = |params| dir_errors(&frame, &reference, params).1;
+    // Every pixel gathered: at 80 × 60 a stride of 2 leaves the object a few gathered pixels
+    // across, and blends away the hot spots the clamp is for.
     let (footprint, global) = (
-        error(serde_json::json!({})),
-        error(serde_json::json!({ "footprint_clamp": 0.0 })),
+        error(serde_json::json!({ "gather_stride": 1 })),
+        error(serde_json::json!({ "footprint_clamp": 0.0, "gather_stride": 1 })),
     );
     // 0.121 against 0.186 at 80 × 60.
     assert!(
@@ -329,4 +331,13 @@ fn still_frames_average_as_many_vpl_sets() {
         per_frame < 0.95 * fixed,
         "converged Δ: VPLs per frame {per_frame}, fixed {fixed}"
     );
+}
+
+/// The VPL gather at every second pixel per axis (`gather_stride` 2, the default), the diffuse
+/// pixels between taking their alike neighbours' irradiance: see the helper. The bench at
+/// 160 × 120 against 2048 spp: Δ 0.2705 → 0.2538 (the blend averages some of the VPLs' noise
+/// away), object 0.0865 → 0.0894, in 0.71 of the time.
+#[test]
+fn gathering_every_second_pixel_keeps_the_error() {
+    support::a_stride_of_two_keeps_the_error("dir", "gather_stride");
 }

@@ -260,36 +260,11 @@ fn the_default_volume_brings_spot_bleed_closer_than_the_finer_one() {
 }
 
 /// The diffuse cones at every second pixel per axis (`trace_stride` 2, the default), the pixels
-/// between taking their alike neighbours' irradiance: on desk_box, whose object stands on the
-/// desk against the wall (silhouettes and depth edges where no neighbour is alike), Δ and the
-/// object's error stay within 0.01 of tracing every pixel at the bench's 160 × 120 (there
-/// against 2048 spp: Δ 0.2098 → 0.2125, object 0.1788 → 0.1804), while the pictures do differ:
-/// the stride is in effect. At 80 × 60 the object is a few traced pixels across, and its error
-/// rose by 0.02: the stride suits pictures of the bench's size and up (live is 320 × 240).
+/// between taking their alike neighbours' irradiance: see the helper. The bench at 160 × 120
+/// against 2048 spp: Δ 0.2098 → 0.2125, object 0.1788 → 0.1804. At 80 × 60 the object is a few
+/// traced pixels across, and its error rose by 0.02: the stride suits pictures of the bench's
+/// size and up (live is 320 × 240).
 #[test]
 fn tracing_every_second_pixel_keeps_the_error() {
-    let scene = Arc::new(load_scene("desk_box"));
-    let (w, h) = (160, 120);
-    let reference = reference_full(&scene, w, h, 128);
-    let errors = |params: serde_json::Value| {
-        let (object, delta) =
-            support::object_and_delta("dvct", params, &frame(scene.clone(), w, h), &reference);
-        let (delta_l2, _) = relative_l2(&delta, &reference.delta, &reference.virtual_mask);
-        (f64::from(delta_l2), object, delta)
-    };
-    let (delta_l2, object, delta) = errors(serde_json::json!({}));
-    let (delta_l2_1, object_1, delta_1) = errors(serde_json::json!({ "trace_stride": 1 }));
-    eprintln!(
-        "desk_box Δ / object: {delta_l2:.4} / {object:.4} by default, \
-         {delta_l2_1:.4} / {object_1:.4} tracing every pixel"
-    );
-    assert!(
-        (delta_l2 - delta_l2_1).abs() < 0.01,
-        "Δ {delta_l2} against {delta_l2_1}"
-    );
-    assert!(
-        (object - object_1).abs() < 0.01,
-        "object {object} against {object_1}"
-    );
-    assert_ne!(delta, delta_1, "the stride changed nothing");
+    support::a_stride_of_two_keeps_the_error("dvct", "trace_stride");
 }

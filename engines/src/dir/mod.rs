@@ -52,6 +52,9 @@ use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::volume::{timed_pass, uniform_buffer};
 
+/// `gather_stride` by default: chosen by measured error (`docs/ALGORITHMS.md`, `dir`).
+const GATHER_STRIDE_DEFAULT: u32 = 2;
+
 /// `Dir` in `shaders/common.wgsl`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -91,6 +94,8 @@ pub struct DirSettings {
     /// Each still frame averaged into the picture draws its VPLs anew ([`vpl_stratum`]); off,
     /// every frame has the same ones.
     pub vpls_per_frame: bool,
+    /// The gather at every `gather_stride`-th pixel per axis (`crate::strided`).
+    pub gather_stride: u32,
 }
 
 impl DirSettings {
@@ -119,6 +124,7 @@ impl Default for DirSettings {
             env_lights: 16,
             second_bounce: 1.0,
             footprint_clamp: 1.0,
+            gather_stride: GATHER_STRIDE_DEFAULT,
             vpls_per_frame: true,
         }
     }
@@ -145,7 +151,9 @@ pub struct Dir {
     alloc: wgpu::ComputePipeline,
     vpl: wgpu::ComputePipeline,
     ism: wgpu::ComputePipeline,
-    gather: wgpu::ComputePipeline,
+    /// The gather's entries (`dir_gather.wgsl`): `main`, and with a `gather_stride` above 1
+    /// `fill` and `resolve` after it.
+    gather: [wgpu::ComputePipeline; 3],
     uniform: wgpu::Buffer,
     /// The surface points, the light-space geometry they were sampled from (its
     /// [`GpuScene::light_space_fingerprint`](crate::gpu_scene::GpuScene::light_space_fingerprint)),
@@ -250,6 +258,13 @@ impl Dir {
                 "`per_frame` (default, the lower converged error measured): each still frame averaged into the picture (`accumulate`) places its VPLs at another point of their strata of the flux, so the picture averages as many VPL sets; `fixed`: the same VPLs every frame",
                 vec!["per_frame", "fixed"],
             ),
+            int(
+                "gather_stride",
+                "the VPL gather at every n-th pixel per axis; the diffuse pixels between take their alike neighbours' irradiance (1: every pixel, as the paper)",
+                1,
+                4,
+                d.gather_stride,
+            ),
             crate::deferred::accumulate_param(),
         ])
     }
@@ -261,7 +276,9 @@ impl Dir {
             alloc: pipeline("dir alloc", shaders::DIR_ALLOC),
             vpl: pipeline("dir vpl", shaders::DIR_VPL),
             ism: pipeline("dir ism", shaders::DIR_ISM),
-            gather: pipeline("dir gather", shaders::DIR_GATHER),
+            gather: ["main", "fill", "resolve"].map(|entry| {
+                shaders::compute_pipeline_at(&ctx.device, "dir gather", shaders::DIR_GATHER, entry)
+            }),
             uniform: uniform_buffer(&ctx.device, "dir", size_of::<DirUniform>()),
             deferred: Deferred::sampling_the_environment(ctx),
             settings: DirSettings::default(),
@@ -422,7 +439,7 @@ impl Engine for Dir {
                     } else {
                         0
                     }),
-                    0.0,
+                    s.gather_stride as f32,
                     0.0,
                     0.0,
                 ],
@@ -502,7 +519,19 @@ impl Engine for Dir {
             ];
             gather_resources.extend(gb_views.iter().map(wgpu::BindingResource::TextureView));
             gather_resources.extend([&b.vpls, &b.ism, indirect].map(|b| b.as_entire_binding()));
-            let gather_group = group(&self.gather, "dir gather", &gather_resources);
+            let [gather, fill, resolve] = &self.gather;
+            let gather_groups = [
+                group(gather, "dir gather", &gather_resources),
+                group(fill, "dir gather fill", &gather_resources),
+                // `resolve` reads the uniform, the albedo and the light alone.
+                shaders::pipeline_bind_group_of(
+                    &ctx.device,
+                    resolve,
+                    "dir gather resolve",
+                    &gather_resources,
+                    &[0, 5, 8],
+                ),
+            ];
 
             let mut encoder = ctx
                 .device
@@ -590,9 +619,13 @@ impl Engine for Dir {
             });
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.gather");
-                pass.set_pipeline(&self.gather);
-                pass.set_bind_group(0, &gather_group, &[]);
-                pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+                crate::strided::dispatch(
+                    &mut pass,
+                    &self.gather,
+                    &gather_groups,
+                    (width, height),
+                    s.gather_stride,
+                );
             }
             ctx.queue.submit([encoder.finish()]);
             ctx.check()?;
@@ -637,6 +670,7 @@ impl Engine for Dir {
             env_lights: int("env_lights"),
             second_bounce: float("second_bounce"),
             footprint_clamp: float("footprint_clamp"),
+            gather_stride: int("gather_stride"),
             vpls_per_frame: schema.choice(params, "vpl_placement") == "per_frame",
         };
         self.deferred

@@ -651,26 +651,13 @@ impl Engine for Dvct {
             });
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.trace");
-                let stride = settings.trace_stride;
-                let (traced_x, traced_y) = (width.div_ceil(stride), height.div_ceil(stride));
-                let passes = if stride > 1 { 3 } else { 1 };
-                for (k, (pipeline, group)) in self
-                    .trace
-                    .iter()
-                    .zip(&trace_groups)
-                    .take(passes)
-                    .enumerate()
-                {
-                    pass.set_pipeline(pipeline);
-                    pass.set_bind_group(0, group, &[]);
-                    // `fill` runs over every pixel, `main` and `resolve` over the traced ones.
-                    let (x, y) = if k == 1 {
-                        (width, height)
-                    } else {
-                        (traced_x, traced_y)
-                    };
-                    pass.dispatch_workgroups(x.div_ceil(8), y.div_ceil(8), 1);
-                }
+                crate::strided::dispatch(
+                    &mut pass,
+                    &self.trace,
+                    &trace_groups,
+                    (width, height),
+                    settings.trace_stride,
+                );
             }
             ctx.queue.submit([encoder.finish()]);
             ctx.check()?;
