@@ -627,10 +627,30 @@ fn stride_weight(xy: vec2<u32>, stride: u32, k: u32) -> f32 {
     return select(1.0 - f.x, f.x, (k & 1u) == 1u) * select(1.0 - f.y, f.y, (k >> 1u) == 1u);
 }
 
-// Whether a traced surface (at `q`, unit normal `nq`, on the virtual object `vq`) may lend its
-// irradiance to one at `p` (`n`, `v`) seen from `eye`: the same side of the object's silhouette,
-// normals within about 25°, and within 1 % of the camera distance of the receiver's plane.
-fn alike(p: vec3<f32>, n: vec3<f32>, v: bool, q: vec3<f32>, nq: vec3<f32>, vq: bool,
-         eye: vec3<f32>) -> bool {
-    return v == vq && dot(n, nq) > 0.9 && abs(dot(q - p, n)) < 0.01 * distance(eye, p);
+// What a pixel of the camera's G-buffer holds (`position`: world position, material index + 1
+// in w; `normal`: the virtual flag in w): `found` is false where nothing was drawn.
+struct PixelSurface {
+    p: vec4<f32>,
+    n: vec3<f32>,
+    is_virtual: bool,
+    found: bool,
+}
+
+fn pixel_surface(position: vec4<f32>, normal: vec4<f32>) -> PixelSurface {
+    var s: PixelSurface;
+    s.p = position;
+    s.found = position.w >= 0.5;
+    if s.found {
+        s.n = normalize(normal.xyz);
+        s.is_virtual = normal.w > 0.5;
+    }
+    return s;
+}
+
+// Whether a traced surface `t` may lend its irradiance to `s`, seen from `eye`: both drawn, the
+// same side of the object's silhouette, normals within about 25°, and `t` within 1 % of the
+// camera distance of `s`'s plane.
+fn alike(s: PixelSurface, t: PixelSurface, eye: vec3<f32>) -> bool {
+    return s.found && t.found && s.is_virtual == t.is_virtual && dot(s.n, t.n) > 0.9
+        && abs(dot(t.p.xyz - s.p.xyz, s.n)) < 0.01 * distance(eye, s.p.xyz);
 }

@@ -25,36 +25,20 @@ fn visible(k: u32, layer: u32, t: vec2<u32>, dist: f32, bias: f32) -> f32 {
     return select(0.0, 1.0, dist <= bitcast<f32>(~stored) + bias);
 }
 
-// What the gather needs of pixel `xy`; `found` is false where nothing was drawn.
-struct Receiver {
-    p: vec4<f32>,
-    n: vec3<f32>,
-    is_virtual: bool,
-    found: bool,
-}
-
-fn receiver_at(xy: vec2<i32>) -> Receiver {
-    var r: Receiver;
-    r.p = textureLoad(gb_position, xy, 0);
-    r.found = r.p.w >= 0.5;
-    if r.found {
-        let normal = textureLoad(gb_normal, xy, 0);
-        r.n = normalize(normal.xyz);
-        r.is_virtual = normal.w > 0.5;
-    }
-    return r;
+fn receiver_at(xy: vec2<i32>) -> PixelSurface {
+    return pixel_surface(textureLoad(gb_position, xy, 0), textureLoad(gb_normal, xy, 0));
 }
 
 // Whether the receiver's BRDF is its albedo/π alone, so that its light is its albedo times an
 // irradiance its neighbours may share.
-fn is_diffuse(r: Receiver) -> bool {
+fn is_diffuse(r: PixelSurface) -> bool {
     let m = materials[u32(r.p.w) - 1u];
     return !(m.albedo.w > 0.0 && any(m.specular.rgb > vec3<f32>(0.0)));
 }
 
 // Every VPL's light at the receiver: L_rv on the object, L_rv − L_r on real surfaces. With
 // `irradiance`, the BRDF is taken as 1/π: a diffuse receiver's light divided by its albedo.
-fn gathered(xy: vec2<i32>, r: Receiver, irradiance: bool) -> vec3<f32> {
+fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
     let p = r.p;
     let n = r.n;
     let is_virtual = r.is_virtual;
@@ -113,8 +97,8 @@ fn gathered(xy: vec2<i32>, r: Receiver, irradiance: bool) -> vec3<f32> {
 // one buffer: `main` writes a traced diffuse pixel's irradiance (w = 1) or a glossy one's own
 // light (w = 0); `fill` gives every other pixel its albedo times the blend of its alike traced
 // diffuse neighbours' irradiance, or gathers its own where it is glossy or none is alike;
-// `resolve` turns each traced irradiance into light. (Every entry reads every binding, so that
-// each pipeline's derived layout takes the same bind group's resources.)
+// `resolve` turns each traced irradiance into light (and reads only the uniform, the albedo and
+// the buffer: its derived layout has those bindings alone).
 fn gather_stride() -> u32 {
     return u32(dir.sampling.y);
 }
@@ -161,10 +145,7 @@ fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
                 continue;
             }
             let traced = indirect[at.y * size.x + at.x];
-            let t = receiver_at(vec2<i32>(at));
-            if traced.w > 0.5 && t.found
-                && alike(r.p.xyz, r.n, r.is_virtual, t.p.xyz, t.n, t.is_virtual,
-                         camera.position.xyz) {
+            if traced.w > 0.5 && alike(r, receiver_at(vec2<i32>(at)), camera.position.xyz) {
                 sum += w * traced.rgb;
                 weight += w;
             }

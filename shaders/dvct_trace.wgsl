@@ -158,42 +158,26 @@ fn diffuse(kind: u32, apex: vec3<f32>, n: vec3<f32>, far: bool, far_sh: array<ve
     return e;
 }
 
-// Where pixel `xy` is and what it is made of; `found` is false where nothing was drawn.
-struct Surface {
-    p: vec4<f32>,
-    n: vec3<f32>,
-    is_virtual: bool,
-    found: bool,
+fn surface_at(xy: vec2<i32>) -> PixelSurface {
+    return pixel_surface(textureLoad(gb_position, xy, 0), textureLoad(gb_normal, xy, 0));
 }
 
-fn surface_at(xy: vec2<i32>) -> Surface {
-    var s: Surface;
-    s.p = textureLoad(gb_position, xy, 0);
-    s.found = s.p.w >= 0.5;
-    if s.found {
-        let normal = textureLoad(gb_normal, xy, 0);
-        s.n = normalize(normal.xyz);
-        s.is_virtual = normal.w > 0.5;
-    }
-    return s;
-}
-
-fn cone_kind(s: Surface) -> u32 {
+fn cone_kind(s: PixelSurface) -> u32 {
     if s.is_virtual {
         return CONE_RHO;
     }
     return select(CONE_DELTA, CONE_OCCLUDED, dvct.modes.x == 1u);
 }
 
-fn cone_apex(s: Surface) -> vec3<f32> {
+fn cone_apex(s: PixelSurface) -> vec3<f32> {
     return s.p.xyz + s.n * dvct.cone.w * dvct.origin.w;
 }
 
-fn far_on(s: Surface) -> bool {
+fn far_on(s: PixelSurface) -> bool {
     return s.is_virtual && dvct.modes.y == 1u;
 }
 
-fn far_sh_of(s: Surface) -> array<vec3<f32>, 9> {
+fn far_sh_of(s: PixelSurface) -> array<vec3<f32>, 9> {
     var far_sh: array<vec3<f32>, 9>;
     if far_on(s) {
         let half_edge = 0.5 * f32(dvct.dims.x) * dvct.origin.w;
@@ -203,13 +187,13 @@ fn far_sh_of(s: Surface) -> array<vec3<f32>, 9> {
 }
 
 // The irradiance the nine diffuse cones gather at `s`.
-fn irradiance_at(s: Surface) -> vec3<f32> {
+fn irradiance_at(s: PixelSurface) -> vec3<f32> {
     return diffuse(cone_kind(s), cone_apex(s), s.n, far_on(s), far_sh_of(s));
 }
 
 // The pixel's indirect term given its diffuse irradiance `e`: albedo/π · e, the glossy cone,
 // and with shadow cones their antiradiance.
-fn indirect_from(xy: vec2<i32>, s: Surface, e: vec3<f32>) -> vec3<f32> {
+fn indirect_from(xy: vec2<i32>, s: PixelSurface, e: vec3<f32>) -> vec3<f32> {
     let kind = cone_kind(s);
     let apex = cone_apex(s);
     let n = s.n;
@@ -311,9 +295,7 @@ fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
         if w <= 0.0 || at.x >= size.x || at.y >= size.y {
             continue;
         }
-        let t = surface_at(vec2<i32>(at));
-        if t.found && alike(s.p.xyz, s.n, s.is_virtual, t.p.xyz, t.n, t.is_virtual,
-                            camera.position.xyz) {
+        if alike(s, surface_at(vec2<i32>(at)), camera.position.xyz) {
             sum += w * indirect[at.y * size.x + at.x].rgb;
             weight += w;
         }

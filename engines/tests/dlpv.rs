@@ -192,13 +192,10 @@ fn more_environment_lights_bring_window_env_closer() {
 #[test]
 fn the_default_volume_leaks_less_into_the_shadow_than_the_papers() {
     let scene = Arc::new(load_scene("touching_wall"));
-    let (w, h) = (80, 60);
-    let reference = reference_full(&scene, w, h, 256);
-    let errors = |params: serde_json::Value| {
-        let (object, delta) =
-            support::object_and_delta("dlpv", params, &frame(scene.clone(), w, h), &reference);
-        let (delta_l2, _) = relative_l2(&delta, &reference.delta, &reference.virtual_mask);
-        (f64::from(delta_l2), object)
+    let reference = reference_full(&scene, 80, 60, 256);
+    let errors = |params| {
+        let (delta, object, _) = support::errors_against("dlpv", params, &scene, &reference);
+        (delta, object)
     };
     let (delta, object) = errors(serde_json::json!({}));
     let (delta_paper, object_paper) = errors(serde_json::json!({ "volume_size": 32, "steps": 32 }));

@@ -74,6 +74,20 @@ pub fn object_and_delta(
     (object, delta)
 }
 
+/// `engine` with `params` on `scene`, at `reference`'s size, judged against it: Δ L2 on real
+/// pixels, the object's L2, and Δ per pixel.
+pub fn errors_against(
+    engine: &str,
+    params: serde_json::Value,
+    scene: &Arc<Scene>,
+    reference: &ReferenceImages,
+) -> (f64, f64, Vec<Vec3>) {
+    let frame = frame(scene.clone(), reference.width, reference.height);
+    let (object, delta) = object_and_delta(engine, params, &frame, reference);
+    let (delta_l2, _) = relative_l2(&delta, &reference.delta, &reference.virtual_mask);
+    (f64::from(delta_l2), object, delta)
+}
+
 /// A setting that lights the object with the room's bounce light (`far_field` of the volume
 /// engines, `environment` of `ibl`): on `scenes`, whose object sees much of it (desk_box's walls
 /// and floor, touching_wall's wall, window_env's floor), `engine` with `setting = on` must draw
@@ -132,18 +146,10 @@ pub fn setting_brings_the_object_closer(
 /// shadows soften as the reference's do and the far field gathers a smoother floor.
 pub fn more_environment_lights_bring_window_env_closer(engine: &str) {
     let scene = Arc::new(load_scene("window_env"));
-    let (w, h) = (80, 60);
-    let reference = reference_full(&scene, w, h, 64);
-    let errors = |params: serde_json::Value| {
-        let (object, delta) =
-            object_and_delta(engine, params, &frame(scene.clone(), w, h), &reference);
-        let (delta_l2, _) = relative_l2(&delta, &reference.delta, &reference.virtual_mask);
-        [f64::from(delta_l2), object]
-    };
-    let [[delta, object], [delta_8, object_8]] = [
-        errors(serde_json::json!({})),
-        errors(serde_json::json!({ "env_lights": 8 })),
-    ];
+    let reference = reference_full(&scene, 80, 60, 64);
+    let errors = |params| errors_against(engine, params, &scene, &reference);
+    let (delta, object, _) = errors(serde_json::json!({}));
+    let (delta_8, object_8, _) = errors(serde_json::json!({ "env_lights": 8 }));
     eprintln!(
         "{engine} on window_env, Δ / object: {delta:.4} / {object:.4} by default, \
          {delta_8:.4} / {object_8:.4} with 8 lights"
@@ -165,14 +171,8 @@ pub fn more_environment_lights_bring_window_env_closer(engine: &str) {
 /// 0.01 above gathering every pixel, and the pictures differ (the stride is in effect).
 pub fn a_stride_of_two_keeps_the_error(engine: &str, param: &str) {
     let scene = Arc::new(load_scene("desk_box"));
-    let (w, h) = (160, 120);
-    let reference = reference_full(&scene, w, h, 128);
-    let errors = |params: serde_json::Value| {
-        let (object, delta) =
-            object_and_delta(engine, params, &frame(scene.clone(), w, h), &reference);
-        let (delta_l2, _) = relative_l2(&delta, &reference.delta, &reference.virtual_mask);
-        (f64::from(delta_l2), object, delta)
-    };
+    let reference = reference_full(&scene, 160, 120, 128);
+    let errors = |params| errors_against(engine, params, &scene, &reference);
     let (delta_l2, object, delta) = errors(serde_json::json!({}));
     let (delta_l2_1, object_1, delta_1) = errors(serde_json::json!({ param: 1 }));
     eprintln!(
