@@ -606,12 +606,15 @@ impl Engine for Dir {
             }
             out.work.push(PassWork {
                 pass: "gather",
-                // Per pixel the G-buffer read and the result written, and per VPL about 80
-                // operations (its geometry term, BRDF and one ISM lookup); the VPLs and their
-                // maps read once.
+                // Per pixel the G-buffer read and the result written, and per gathered pixel
+                // (every `gather_stride`-th per axis) and VPL about 80 operations (its geometry
+                // term, BRDF and one ISM lookup); the VPLs and their maps read once.
                 work: Work::new(32.0 + 16.0, 0.0).times(f64::from(width) * f64::from(height))
-                    + Work::new(0.0, 80.0)
-                        .times(f64::from(width) * f64::from(height) * f64::from(self.vpls_made))
+                    + Work::new(0.0, 80.0).times(
+                        f64::from(width.div_ceil(s.gather_stride))
+                            * f64::from(height.div_ceil(s.gather_stride))
+                            * f64::from(self.vpls_made),
+                    )
                     + Work::new(
                         64.0 * f64::from(self.vpls_made) + ism_size_bytes(&s, self.vpls_made),
                         0.0,
