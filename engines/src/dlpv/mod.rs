@@ -93,7 +93,7 @@ pub struct DlpvSettings {
 impl Default for DlpvSettings {
     fn default() -> Self {
         Self {
-            rsm_size: 256,
+            rsm_size: 192,
             shadow_size: crate::deferred::SHADOW_SIZE_DEFAULT,
             volume_size: 16,
             steps: 8,
@@ -151,7 +151,7 @@ impl Dlpv {
                  have their own map, `shadow_size`)",
                 32,
                 2048,
-                256,
+                192,
             ),
             crate::deferred::shadow_size_param(),
             int(
