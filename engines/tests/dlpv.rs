@@ -192,36 +192,9 @@ fn more_environment_lights_bring_window_env_closer() {
 /// 192² (`rsm_size`; 256² before) are as good as at 256² there.
 #[test]
 fn the_default_volume_leaks_less_into_the_shadow_than_the_papers() {
-    let scene = Arc::new(load_scene("touching_wall"));
-    let reference = reference_full(&scene, 80, 60, 256);
-    let errors = |params| {
-        let (delta, object, _) = support::errors_against("dlpv", params, &scene, &reference);
-        (delta, object)
-    };
-    let (delta, object) = errors(serde_json::json!({}));
-    let (delta_paper, object_paper) =
-        errors(serde_json::json!({ "volume_size": 32, "steps": 32, "rsm_size": 256 }));
-    eprintln!(
-        "touching_wall Δ / object: {delta:.4} / {object:.4} by default, \
-         {delta_paper:.4} / {object_paper:.4} with the paper's volume"
-    );
-    assert!(
-        delta < 0.95 * delta_paper,
-        "Δ {delta} against {delta_paper}"
-    );
-    assert!(
-        object < 0.95 * object_paper,
-        "object {object} against {object_paper}"
-    );
-    // The VPLs' maps at 192² (the default) hold what 256² gives at 16³.
-    let (delta_256, object_256) = errors(serde_json::json!({ "rsm_size": 256 }));
-    eprintln!("with 256² VPL maps: {delta_256:.4} / {object_256:.4}");
-    assert!(
-        (delta / delta_256 - 1.0).abs() < 0.03,
-        "Δ {delta} against {delta_256}"
-    );
-    assert!(
-        (object / object_256 - 1.0).abs() < 0.03,
-        "object {object} against {object_256}"
+    support::the_defaults_beat(
+        "dlpv",
+        "touching_wall",
+        serde_json::json!({ "volume_size": 32, "steps": 32, "rsm_size": 256 }),
     );
 }

@@ -225,34 +225,10 @@ fn more_environment_lights_bring_window_env_closer() {
 /// 256² there.
 #[test]
 fn the_default_volume_brings_spot_bleed_closer_than_the_finer_one() {
-    let scene = Arc::new(load_scene("spot_bleed"));
-    let reference = reference_full(&scene, 80, 60, 256);
-    let errors = |params| {
-        let (delta, object, _) = support::errors_against("dvct", params, &scene, &reference);
-        (delta, object)
-    };
-    let (delta, object) = errors(serde_json::json!({}));
-    let (delta_fine, object_fine) =
-        errors(serde_json::json!({ "volume_size": 64, "step": 0.5, "rsm_size": 256 }));
-    eprintln!(
-        "spot_bleed Δ / object: {delta:.4} / {object:.4} by default, \
-         {delta_fine:.4} / {object_fine:.4} at 64³"
-    );
-    assert!(delta < 0.95 * delta_fine, "Δ {delta} against {delta_fine}");
-    assert!(
-        object < 0.95 * object_fine,
-        "object {object} against {object_fine}"
-    );
-    // The VPLs' maps at 128² (the default) hold what 256² gives at 32³.
-    let (delta_256, object_256) = errors(serde_json::json!({ "rsm_size": 256 }));
-    eprintln!("with 256² VPL maps: {delta_256:.4} / {object_256:.4}");
-    assert!(
-        (delta / delta_256 - 1.0).abs() < 0.03,
-        "Δ {delta} against {delta_256}"
-    );
-    assert!(
-        (object / object_256 - 1.0).abs() < 0.03,
-        "object {object} against {object_256}"
+    support::the_defaults_beat(
+        "dvct",
+        "spot_bleed",
+        serde_json::json!({ "volume_size": 64, "step": 0.5, "rsm_size": 256, "trace_stride": 1 }),
     );
 }
 

@@ -190,6 +190,42 @@ pub fn a_stride_of_two_keeps_the_error(engine: &str, param: &str) {
     assert_ne!(delta, delta_1, "{param} 2 changed nothing");
 }
 
+/// `engine`'s defaults on `scene` against `before`, the settings it had until stop 43, at 80 × 60
+/// against 256 spp: Δ on real pixels and the object's error must both be under 0.95 × theirs;
+/// and its VPL maps at their default size (`rsm_size`) within 3 % of what 256² gives.
+pub fn the_defaults_beat(engine: &str, scene: &'static str, before: serde_json::Value) {
+    let scene_arc = Arc::new(load_scene(scene));
+    let reference = reference_full(&scene_arc, 80, 60, 256);
+    let errors = |params| {
+        let (delta, object, _) = errors_against(engine, params, &scene_arc, &reference);
+        (delta, object)
+    };
+    let (delta, object) = errors(serde_json::json!({}));
+    let (delta_before, object_before) = errors(before);
+    let (delta_256, object_256) = errors(serde_json::json!({ "rsm_size": 256 }));
+    eprintln!(
+        "{engine} on {scene}, Δ / object: {delta:.4} / {object:.4} by default, \
+         {delta_before:.4} / {object_before:.4} before, {delta_256:.4} / {object_256:.4} with \
+         256² VPL maps"
+    );
+    assert!(
+        delta < 0.95 * delta_before,
+        "Δ {delta} against {delta_before}"
+    );
+    assert!(
+        object < 0.95 * object_before,
+        "object {object} against {object_before}"
+    );
+    assert!(
+        (delta / delta_256 - 1.0).abs() < 0.03,
+        "Δ {delta} against {delta_256}"
+    );
+    assert!(
+        (object / object_256 - 1.0).abs() < 0.03,
+        "object {object} against {object_256}"
+    );
+}
+
 /// The far field against an analytic value: desk_box's object alone over a white floor 8 m
 /// square, far enough below that none of it falls in the volume, lit from straight above by a
 /// directional light. Only the floor's bounce light reaches the object's vertical faces, and all
