@@ -621,10 +621,19 @@ fn stride_corner(xy: vec2<u32>, stride: u32, k: u32) -> vec2<u32> {
     return (xy / stride) * stride + vec2<u32>(k & 1u, k >> 1u) * stride;
 }
 
-// Pixel `xy`'s bilinear weight on corner `k` of its stride cell.
-fn stride_weight(xy: vec2<u32>, stride: u32, k: u32) -> f32 {
+// Pixel `xy`'s bilinear weight on corner `k` of its stride cell: 0 where that corner lies
+// outside a picture of `size`.
+fn stride_weight(xy: vec2<u32>, stride: u32, k: u32, size: vec2<u32>) -> f32 {
+    if any(stride_corner(xy, stride, k) >= size) {
+        return 0.0;
+    }
     let f = vec2<f32>(xy % vec2<u32>(stride)) / f32(stride);
     return select(1.0 - f.x, f.x, (k & 1u) == 1u) * select(1.0 - f.y, f.y, (k >> 1u) == 1u);
+}
+
+// Whether pixel `xy` is one the engine gathers at (a stride cell's first corner).
+fn is_gathered(xy: vec2<u32>, stride: u32) -> bool {
+    return all(xy % vec2<u32>(stride) == vec2<u32>(0u));
 }
 
 // What a pixel of the camera's G-buffer holds (`position`: world position, material index + 1

@@ -125,7 +125,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
 fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
     let size = dir.size.xy;
     let stride = gather_stride();
-    if id.x >= size.x || id.y >= size.y || all(id.xy % vec2<u32>(stride) == vec2<u32>(0u)) {
+    if id.x >= size.x || id.y >= size.y || is_gathered(id.xy, stride) {
         return;
     }
     let xy = vec2<i32>(id.xy);
@@ -140,8 +140,8 @@ fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
     if is_diffuse(r) {
         for (var k = 0u; k < 4u; k++) {
             let at = stride_corner(id.xy, stride, k);
-            let w = stride_weight(id.xy, stride, k);
-            if w <= 0.0 || at.x >= size.x || at.y >= size.y {
+            let w = stride_weight(id.xy, stride, k, size);
+            if w <= 0.0 {
                 continue;
             }
             let traced = indirect[at.y * size.x + at.x];

@@ -277,7 +277,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
 fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
     let size = vec2<u32>(camera.size.xy);
     let stride = dvct.modes.z;
-    if id.x >= size.x || id.y >= size.y || all(id.xy % vec2<u32>(stride) == vec2<u32>(0u)) {
+    if id.x >= size.x || id.y >= size.y || is_gathered(id.xy, stride) {
         return;
     }
     let xy = vec2<i32>(id.xy);
@@ -291,8 +291,8 @@ fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
     var weight = 0.0;
     for (var k = 0u; k < 4u; k++) {
         let at = stride_corner(id.xy, stride, k);
-        let w = stride_weight(id.xy, stride, k);
-        if w <= 0.0 || at.x >= size.x || at.y >= size.y {
+        let w = stride_weight(id.xy, stride, k, size);
+        if w <= 0.0 {
             continue;
         }
         if alike(s, surface_at(vec2<i32>(at)), camera.position.xyz) {
