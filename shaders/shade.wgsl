@@ -23,6 +23,10 @@ struct ShadeParams {
     // z: this frame's weight in the running mean (1: alone, 0: keep the mean); w: 1 to write
     // the mean.
     options: vec4<f32>,
+    // The pixels shaded, first (xy) to last + 1 (zw): the whole image, or where the virtual
+    // object can change a real pixel (`deferred.rs`, `real_pixels`); the CPU shows the camera's
+    // own picture outside.
+    region: vec4<u32>,
 }
 
 @group(0) @binding(0) var<uniform> params: ShadeParams;
@@ -192,11 +196,12 @@ fn shade_pixel(xy: vec2<i32>, i: u32) -> Shaded {
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
-    if id.x >= params.size.x || id.y >= params.size.y {
+    let pixel = id.xy + params.region.xy;
+    if pixel.x >= params.region.z || pixel.y >= params.region.w {
         return;
     }
-    let i = id.y * params.size.x + id.x;
-    let xy = vec2<i32>(id.xy);
+    let i = pixel.y * params.size.x + pixel.x;
+    let xy = vec2<i32>(pixel);
     let background_linear = textureLoad(background, xy, 0).rgb;
     let weight = params.options.z;
     // A frame that holds the complete mean (weight 0, `Deferred::prepare`) drew nothing: it keeps

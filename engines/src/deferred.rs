@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
-use glam::{Vec2, Vec4};
+use glam::{Mat4, Vec2, Vec4};
 use relight_core::light::Light;
 use relight_core::scene::{Scene, SceneCamera};
 use relight_core::{Image, PixelFormat};
@@ -24,6 +24,7 @@ use crate::gpu_scene::{
 use crate::params::ParamSpec;
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
+use crate::shadow_reach::{self, PixelRect};
 use crate::timer::GpuTimer;
 
 #[repr(C)]
@@ -33,6 +34,7 @@ struct ShadeParams {
     virtual_lo: [f32; 4],
     virtual_hi: [f32; 4],
     options: [f32; 4],
+    region: [u32; 4],
 }
 
 /// What an engine's result derived from the scene and its lights alone was computed from, so
@@ -345,8 +347,15 @@ pub struct Deferred {
     derived_light_count: u32,
     timer: Option<GpuTimer>,
     /// Whether the shade pass skips a real pixel's shadow-map lookups where the virtual object
-    /// cannot shadow it (`may_shadow` in shade.wgsl); off only to test that it changes nothing.
+    /// cannot shadow it (`may_shadow` in shade.wgsl), and (with [`Self::real_direct_only`])
+    /// draws the real meshes into the G-buffer only where it can; off only to test that it
+    /// changes nothing.
     shadow_reach_cull: bool,
+    /// The engine adds nothing but direct light to a real pixel's Δ
+    /// ([`set_real_direct_only`](Self::set_real_direct_only)).
+    real_direct_only: bool,
+    /// The pixels this frame's real meshes were drawn in, when not all.
+    real_pixels: Option<PixelRect>,
 }
 
 const MAX_LAYERS: u32 = 64;
@@ -407,8 +416,24 @@ impl Deferred {
             derived_light_count: 8,
             timer: GpuTimer::new(&ctx),
             shadow_reach_cull: true,
+            real_direct_only: false,
+            real_pixels: None,
             ctx,
         }
+    }
+
+    /// For an engine that adds no indirect light to real pixels (`differential`, `ibl`): a real
+    /// pixel's Δ is then nonzero only where the virtual object can shadow it, so the real
+    /// meshes are drawn into the camera's G-buffers only within the pixels that can hold such
+    /// a point or the object ([`shadow_reach`](crate::shadow_reach)). The picture is the same.
+    pub fn set_real_direct_only(&mut self) {
+        self.real_direct_only = true;
+    }
+
+    /// The pixels the last frame's real meshes were drawn in (after [`prepare`](Self::prepare)),
+    /// when [`set_real_direct_only`](Self::set_real_direct_only) limited them.
+    pub fn real_pixels(&self) -> Option<PixelRect> {
+        self.real_pixels
     }
 
     /// Shade every real pixel's shadow-map lookups, as without `may_shadow`.
@@ -623,6 +648,26 @@ impl Deferred {
         let camera = camera_uniform(&camera, width, height, bounds).jittered(self.sample.offset_px);
         ctx.queue
             .write_buffer(&self.camera, 0, bytemuck::bytes_of(&camera));
+        let real_pixels = match gpu_scene.virtual_bounds {
+            Some(object) if self.real_direct_only && self.shadow_reach_cull => {
+                Some(shadow_reach::reach_rect(
+                    Mat4::from_cols_array_2d(&camera.view_proj),
+                    (width, height),
+                    &self.lights_cpu,
+                    &self.faces_cpu,
+                    sizes.shadow,
+                    object,
+                    bounds,
+                ))
+            }
+            _ => None,
+        };
+        // The shading pass covers every pixel drawn in since the running mean began, so that
+        // each one's mean takes every frame's sample.
+        self.real_pixels = match (real_pixels, self.real_pixels) {
+            (Some(rect), Some(before)) if self.sample.index > 0 => Some(rect.union(before)),
+            _ => real_pixels,
+        };
 
         let mut encoder = ctx
             .device
@@ -635,6 +680,7 @@ impl Deferred {
             &camera_group,
             gpu_scene,
             (&frame_res.gb_rho, &frame_res.gb_mu),
+            real_pixels,
             self.timer.as_mut(),
         );
         out.work.push(PassWork {
@@ -675,6 +721,10 @@ impl Deferred {
             self.rsm_drawn = Some(drawn);
         }
         encoder.clear_buffer(&frame_res.indirect, 0, None);
+        if self.real_pixels.is_some() && self.sample.write && self.sample.index == 0 {
+            // A new mean: the pixels it never shades must read 0 when a later frame does.
+            encoder.clear_buffer(&frame_res.history, 0, None);
+        }
         ctx.queue.submit([encoder.finish()]);
         ctx.check()?;
         out.timings.push(PassTiming {
@@ -825,6 +875,7 @@ impl Deferred {
             return Err(EngineError::NotPrepared);
         };
         let (width, height) = (frame_res.width, frame_res.height);
+        let region = self.real_pixels.unwrap_or(PixelRect::full(width, height));
         // Bounds that hold everything the shade pass can meet disable the cull.
         const EVERYWHERE: f32 = 1e18;
         let (virtual_lo, virtual_hi) = match gpu_scene.virtual_bounds {
@@ -843,6 +894,12 @@ impl Deferred {
                 if options.direct_delta { 1.0 } else { 0.0 },
                 self.sample.weight,
                 if self.sample.write { 1.0 } else { 0.0 },
+            ],
+            region: [
+                region.x,
+                region.y,
+                region.x + region.width,
+                region.y + region.height,
             ],
         };
         ctx.queue
@@ -894,34 +951,49 @@ impl Deferred {
             });
             pass.set_pipeline(&self.shade);
             pass.set_bind_group(0, &group, &[]);
-            pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+            pass.dispatch_workgroups(region.width.div_ceil(8), region.height.div_ceil(8), 1);
         }
         out.work.push(PassWork {
             pass: "shade",
-            work: shade_work(
-                u64::from(width) * u64::from(height),
-                self.light_count,
-                self.sample,
-            ),
+            work: shade_work(region.area(), self.light_count, self.sample),
         });
         if let Some(timer) = &self.timer {
             timer.resolve(&mut encoder);
         }
         ctx.queue.submit([encoder.finish()]);
-        let pixels = u64::from(width) * u64::from(height);
-        let delta_bytes = pixels * 8;
-        ctx.read_back_all(
-            &[
-                (&frame_res.delta, delta_bytes),
-                (&frame_res.composite, pixels * 4),
-            ],
-            &frame_res.staging,
-            |bytes| {
-                let (delta, composite) = bytes.split_at(delta_bytes as usize);
-                out.non_finite = unpack_delta(delta, &mut out.delta);
-                write_composite(composite, &mut out.composite);
-            },
-        )?;
+        if region != PixelRect::full(width, height) {
+            // Outside the region no pixel holds a real surface Δ can change, nor the object:
+            // the camera's own picture, and Δ = 0.
+            if let (Some(composite), Some(delta)) =
+                (out.composite.as_u8_mut(), out.delta.as_u16_mut())
+            {
+                copy_composite(&self.rgba, composite);
+                let one = half::f16::ONE.to_bits();
+                for px in delta.chunks_exact_mut(4) {
+                    px.copy_from_slice(&[0, 0, 0, one]);
+                }
+            }
+        }
+        if !region.is_empty() {
+            // The region's rows, whole: one range of each buffer.
+            let rows = u64::from(region.y)..u64::from(region.y + region.height);
+            let row = u64::from(width);
+            let delta_bytes = (rows.end - rows.start) * row * 8;
+            ctx.read_back_all(
+                &[
+                    (&frame_res.delta, rows.start * row * 8..rows.end * row * 8),
+                    (
+                        &frame_res.composite,
+                        rows.start * row * 4..rows.end * row * 4,
+                    ),
+                ],
+                &frame_res.staging,
+                |bytes| {
+                    let (delta, composite) = bytes.split_at(delta_bytes as usize);
+                    out.non_finite = read_region(delta, composite, region, width, out);
+                },
+            )?;
+        }
         out.timings.push(PassTiming {
             pass: "shade+readback",
             ms: started.elapsed().as_secs_f64() * 1e3,
@@ -987,10 +1059,7 @@ pub(crate) fn write_delta(bytes: &[u8], delta: &mut Image) -> usize {
 /// The shading pass's packed f16 Δ (`pack_delta` in common.wgsl) → the frame's Rgba16F Δ: a
 /// copy, then each alpha that is not 1 counted as that many channels the pass found not finite
 /// or beyond f16's range (it wrote 0 or f16's largest value there) and set back to 1.
-pub(crate) fn unpack_delta(bytes: &[u8], delta: &mut Image) -> usize {
-    let Some(out) = delta.as_u16_mut() else {
-        return 0;
-    };
+fn unpack_delta(bytes: &[u8], out: &mut [u16]) -> usize {
     let one = half::f16::ONE.to_bits();
     let mut non_finite = 0;
     let n = out.len().min(bytes.len() / 2);
@@ -1007,12 +1076,47 @@ pub(crate) fn unpack_delta(bytes: &[u8], delta: &mut Image) -> usize {
 /// RGBA8 → the frame's RGB8 composite (alpha dropped).
 pub(crate) fn write_composite(bytes: &[u8], composite: &mut Image) {
     debug_assert_eq!(composite.format(), PixelFormat::Rgb8);
-    let Some(out) = composite.as_u8_mut() else {
-        return;
-    };
+    if let Some(out) = composite.as_u8_mut() {
+        copy_composite(bytes, out);
+    }
+}
+
+fn copy_composite(bytes: &[u8], out: &mut [u8]) {
     for (o, px) in out.chunks_exact_mut(3).zip(bytes.chunks_exact(4)) {
         o.copy_from_slice(&px[..3]);
     }
+}
+
+/// The shading pass's Δ and composite of `region`'s rows (`delta`, `composite`: whole rows of a
+/// `width`-pixel image, as read back) into `out`'s pixels of the region; returns the channels
+/// the pass found not finite ([`unpack_delta`]).
+fn read_region(
+    delta: &[u8],
+    composite: &[u8],
+    region: PixelRect,
+    width: u32,
+    out: &mut RelitFrame,
+) -> usize {
+    let (Some(out_delta), Some(out_composite)) =
+        (out.delta.as_u16_mut(), out.composite.as_u8_mut())
+    else {
+        return 0;
+    };
+    let (width, x, span) = (width as usize, region.x as usize, region.width as usize);
+    let mut non_finite = 0;
+    for row in 0..region.height as usize {
+        let read = row * width + x;
+        let pixel = (region.y as usize + row) * width + x;
+        non_finite += unpack_delta(
+            &delta[8 * read..8 * (read + span)],
+            &mut out_delta[4 * pixel..4 * (pixel + span)],
+        );
+        copy_composite(
+            &composite[4 * read..4 * (read + span)],
+            &mut out_composite[3 * pixel..3 * (pixel + span)],
+        );
+    }
+    non_finite
 }
 
 impl FrameResources {
@@ -1045,7 +1149,7 @@ impl FrameResources {
             delta: buffer("delta", pixels * 8, U::STORAGE | U::COPY_SRC),
             composite: buffer("composite", pixels * 4, U::STORAGE | U::COPY_SRC),
             staging: buffer("frame staging", pixels * 12, U::MAP_READ | U::COPY_DST),
-            history: buffer("accumulated", pixels * 32, U::STORAGE),
+            history: buffer("accumulated", pixels * 32, U::STORAGE | U::COPY_DST),
         }
     }
 }
@@ -1148,7 +1252,7 @@ mod tests {
                 values.len() as u32,
                 &output,
                 size,
-                |bytes| unpack_delta(bytes, &mut delta),
+                |bytes| unpack_delta(bytes, delta.as_u16_mut().unwrap()),
             )
             .unwrap();
         assert_eq!((non_finite, expected_non_finite), (5, 5));

@@ -6,6 +6,7 @@ use crate::gpu::GpuContext;
 use crate::gpu_scene::{GpuScene, GpuVertex};
 use crate::roofline::{self, Work};
 use crate::shaders;
+use crate::shadow_reach::PixelRect;
 use crate::timer::GpuTimer;
 
 const POSITION: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
@@ -149,6 +150,7 @@ impl Targets {
         corners: std::ops::Range<u32>,
         layer: u32,
         start: LayerStart,
+        scissor: Option<PixelRect>,
         timestamps: Option<wgpu::RenderPassTimestampWrites>,
     ) {
         let views: Vec<wgpu::TextureView> = self
@@ -193,6 +195,12 @@ impl Targets {
             occlusion_query_set: None,
             multiview_mask: None,
         });
+        if let Some(rect) = scissor {
+            if rect.is_empty() {
+                return;
+            }
+            pass.set_scissor_rect(rect.x, rect.y, rect.width, rect.height);
+        }
         if !corners.is_empty() {
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, bind_group, &[]);
@@ -335,13 +343,16 @@ impl GBufferPass {
     /// Render the μ G-buffer (the real meshes) and the ρ one (every mesh). As with the shadow
     /// maps ([`RsmPass::render`]), μ is drawn with its depth kept and copied into ρ, and only
     /// the virtual object is drawn over the copy: the real meshes (the live depth mesh) are
-    /// rasterised once.
+    /// rasterised once. With `real_pixels`, the real meshes are drawn inside that rectangle
+    /// alone ([`shadow_reach`](crate::shadow_reach)), and every pixel outside it holds no real
+    /// surface.
     pub fn render(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         bind_group: &wgpu::BindGroup,
         scene: &GpuScene,
         (rho, mu): (&Targets, &Targets),
+        real_pixels: Option<PixelRect>,
         mut timer: Option<&mut GpuTimer>,
     ) -> Work {
         mu.draw(
@@ -352,6 +363,7 @@ impl GBufferPass {
             0..scene.real_indices,
             0,
             LayerStart::Clear,
+            real_pixels,
             timer.as_deref_mut().and_then(|t| t.render("gpu.gbuffer")),
         );
         rho.copy_from(encoder, mu);
@@ -363,6 +375,7 @@ impl GBufferPass {
             scene.real_indices..scene.all_indices,
             0,
             LayerStart::Over,
+            None,
             timer.and_then(|t| t.render("gpu.gbuffer")),
         );
         let (texels, texel_bytes) = (mu.layer_texels(), mu.texel_bytes());
@@ -481,6 +494,7 @@ impl RsmPass {
                     scene.shadow_real.clone(),
                     face,
                     LayerStart::Clear,
+                    None,
                     timer.as_deref_mut().and_then(|t| t.render(timing)),
                 );
             }
@@ -497,6 +511,7 @@ impl RsmPass {
                     virtual_indices.clone(),
                     face,
                     LayerStart::Over,
+                    None,
                     timer.as_deref_mut().and_then(|t| t.render(timing)),
                 );
             }

@@ -406,14 +406,14 @@ impl GpuContext {
         size: u64,
         read: impl FnOnce(&[u8]) -> T,
     ) -> Result<T, GpuError> {
-        self.read_back_all(&[(source, size)], staging, read)
+        self.read_back_all(&[(source, 0..size)], staging, read)
     }
 
-    /// [`read_back`](Self::read_back) of several buffers' first bytes (each size a multiple of
-    /// 4), laid end to end in `staging` in one copy and one wait: `read` gets them in order.
+    /// [`read_back`](Self::read_back) of byte ranges of several buffers (each bound a multiple
+    /// of 4), laid end to end in `staging` in one copy and one wait: `read` gets them in order.
     pub fn read_back_all<T>(
         &self,
-        sources: &[(&wgpu::Buffer, u64)],
+        sources: &[(&wgpu::Buffer, std::ops::Range<u64>)],
         staging: &wgpu::Buffer,
         read: impl FnOnce(&[u8]) -> T,
     ) -> Result<T, GpuError> {
@@ -424,8 +424,9 @@ impl GpuContext {
             });
         let mut size = 0;
         for (source, bytes) in sources {
-            encoder.copy_buffer_to_buffer(source, 0, staging, size, *bytes);
-            size += bytes;
+            let length = bytes.end - bytes.start;
+            encoder.copy_buffer_to_buffer(source, bytes.start, staging, size, length);
+            size += length;
         }
         self.queue.submit([encoder.finish()]);
         let slice = staging.slice(..size);

@@ -27,6 +27,7 @@ pub mod registry;
 pub mod roofline;
 pub mod shaders;
 pub mod shadow_proxy;
+pub mod shadow_reach;
 mod strided;
 pub mod surface_albedo;
 pub mod timer;

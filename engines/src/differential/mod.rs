@@ -44,8 +44,10 @@ impl Differential {
     }
 
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
+        let mut deferred = Deferred::new(ctx);
+        deferred.set_real_direct_only();
         Ok(Self {
-            deferred: Deferred::new(ctx),
+            deferred,
             rsm_size: 512,
             shadow_bias_texels: 1.5,
         })
@@ -85,64 +87,8 @@ impl Engine for Differential {
 }
 
 #[cfg(test)]
-mod tests {
-    use std::path::Path;
-
-    use glam::Vec3;
-    use relight_core::light::Light;
-    use relight_core::scene::Scene;
-    use relight_core::{Frame, Image, PixelFormat, Timestamp};
-
-    use super::*;
-    use crate::offline::delta_pixels;
-
-    fn render(scene: &Arc<Scene>, cull: bool) -> Vec<Vec3> {
-        let ctx = Arc::new(GpuContext::new().expect("a GPU adapter (lavapipe in CI)"));
-        let mut engine = Differential::new(ctx).expect("the engine builds");
-        if !cull {
-            engine.deferred.without_shadow_reach_cull();
-        }
-        let color = Image::new(96, 72, PixelFormat::Rgb8);
-        let frame = SceneFrame {
-            stamp: Timestamp::new(0, 0),
-            seq: 0,
-            color: Some(Arc::new(Frame::new(0, Timestamp::new(0, 0), color))),
-            depth: None,
-            scene: Some(scene.clone()),
-        };
-        let mut out = RelitFrame::default();
-        engine.render(&frame, &mut out).expect("it renders");
-        delta_pixels(&out.delta)
-    }
-
-    /// Skipping the shadow-map lookups of pixels the object cannot shadow changes no pixel:
-    /// under the scene's own light, and under a low one whose long shadows graze the floor
-    /// and reach the wall.
-    #[test]
-    fn the_shadow_reach_cull_changes_no_pixel() {
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/desk_box");
-        let desk = Scene::load(&dir).expect("the scene loads");
-        let mut low = desk.clone();
-        low.lights = vec![Light::Point {
-            position_in_world: Vec3::new(0.9, 0.35, 0.6),
-            intensity: Vec3::splat(2.0),
-        }];
-        for (name, scene) in [("desk_box", desk), ("low light", low)] {
-            let scene = Arc::new(scene);
-            let culled = render(&scene, true);
-            let full = render(&scene, false);
-            let shadowed = full.iter().filter(|d| d.x < -1e-4).count();
-            assert!(
-                shadowed > 50,
-                "{name}: the object shadows {shadowed} pixels"
-            );
-            for (i, (a, b)) in culled.iter().zip(&full).enumerate() {
-                assert_eq!(
-                    a.to_array().map(f32::to_bits),
-                    b.to_array().map(f32::to_bits),
-                    "{name}: pixel {i}"
-                );
-            }
-        }
+impl crate::shadow_reach::tests::WithDeferred for Differential {
+    fn deferred_mut(&mut self) -> &mut Deferred {
+        &mut self.deferred
     }
 }

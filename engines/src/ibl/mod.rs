@@ -227,11 +227,15 @@ impl Ibl {
     }
 
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
+        // The maps light the object alone; real pixels take the shadows of the direct and
+        // environment lights.
+        let mut deferred = Deferred::sampling_the_environment(ctx.clone());
+        deferred.set_real_direct_only();
         Ok(Self {
             shade: shaders::compute_pipeline(&ctx.device, "ibl shade", shaders::IBL_SHADE),
             uniform: uniform_buffer(&ctx.device, "ibl shade", size_of::<IblUniform>()),
             maps: ReflectionMaps::new(&ctx),
-            deferred: Deferred::sampling_the_environment(ctx),
+            deferred,
             settings: IblSettings::default(),
             environment: None,
             convolutions: 0,
@@ -524,6 +528,13 @@ impl Engine for Ibl {
         };
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
+    }
+}
+
+#[cfg(test)]
+impl crate::shadow_reach::tests::WithDeferred for Ibl {
+    fn deferred_mut(&mut self) -> &mut Deferred {
+        &mut self.deferred
     }
 }
 

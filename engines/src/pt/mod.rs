@@ -575,8 +575,8 @@ impl Engine for Pt {
         let composite_bytes = pixels * 4;
         let (variance, square) = ctx.read_back_all(
             &[
-                (&frame_res.composite, composite_bytes),
-                (&frame_res.delta, pixels * 16),
+                (&frame_res.composite, 0..composite_bytes),
+                (&frame_res.delta, 0..pixels * 16),
             ],
             &frame_res.staging,
             |bytes| {

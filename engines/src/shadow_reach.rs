@@ -1,0 +1,441 @@
+//! The camera pixels on which the virtual object can change a real pixel's direct light: the
+//! only pixels an engine with no indirect term on real pixels (`differential`, `ibl`) needs the
+//! real scene's G-buffer for.
+//!
+//! The shading pass culls a real point `p`'s shadow-map lookups where the segment from `p` to a
+//! light misses the object's bounds grown by one shadow-map texel (`may_shadow` in
+//! `shaders/shade.wgsl`): there both maps hold the same depth, and Δ's direct term is exactly 0.
+//! For a point or spot light at `L`, the points that pass the test are
+//! C = {L + t (b − L) : b in the grown box, t ≥ 1}, the box and its shadow cone behind it, which
+//! is convex; for a directional light, the box swept along the light's direction. Every real
+//! point lies in the real meshes' bounds `A`, so the pixels that may hold a nonzero Δ lie in the
+//! camera's projection of C ∩ A for some light, or of the object itself (whose own pixels read
+//! the μ G-buffer behind it). [`reach_rect`] bounds that projection by a pixel rectangle; the
+//! μ G-buffer's real meshes are rasterised inside it alone (a scissor), and every real pixel
+//! outside it is empty, which the shading pass composites as the camera's own picture, exactly
+//! what it computed for those pixels before (`differential::tests`).
+//!
+//! The bound is conservative at each step: C truncated where it leaves A (the far end of the
+//! cone at the distance of A's farthest corner from the light), its axis-aligned box
+//! intersected with A's, that box's corners projected after clipping at the camera's near
+//! plane, and the rectangle grown by a pixel. On the live depth mesh the G-buffer was bound by
+//! its triangles (about 38 000), which llvmpipe drops at setup when they fall outside the
+//! scissor.
+
+use glam::{Mat4, Vec3, Vec4, Vec4Swizzles};
+use relight_core::scene::box_corners;
+
+use crate::gpu_scene::{GpuFace, GpuLight};
+
+/// `KIND_DIRECTIONAL` in `shaders/common.wgsl`.
+const KIND_DIRECTIONAL: u32 = 2;
+
+/// A pixel rectangle: `x`, `y` of its first pixel, then its width and height (0: no pixel).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PixelRect {
+    pub x: u32,
+    pub y: u32,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl PixelRect {
+    pub fn full(width: u32, height: u32) -> Self {
+        Self {
+            x: 0,
+            y: 0,
+            width,
+            height,
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.width == 0 || self.height == 0
+    }
+
+    pub fn area(&self) -> u64 {
+        u64::from(self.width) * u64::from(self.height)
+    }
+
+    /// The smallest rectangle holding both.
+    pub fn union(self, other: Self) -> Self {
+        if self.is_empty() {
+            return other;
+        }
+        if other.is_empty() {
+            return self;
+        }
+        let (x, y) = (self.x.min(other.x), self.y.min(other.y));
+        let right = (self.x + self.width).max(other.x + other.width);
+        let bottom = (self.y + self.height).max(other.y + other.height);
+        Self {
+            x,
+            y,
+            width: right - x,
+            height: bottom - y,
+        }
+    }
+}
+
+/// The pixels of a `width` × `height` image drawn with `view_proj` where the object (bounds
+/// `object`) can change a real point's direct light from any of `lights` (shadow maps of
+/// `shadow_size`² texels per face), the real points lying in `real` (bounds).
+pub fn reach_rect(
+    view_proj: Mat4,
+    (width, height): (u32, u32),
+    lights: &[GpuLight],
+    faces: &[GpuFace],
+    shadow_size: u32,
+    object: (Vec3, Vec3),
+    real: (Vec3, Vec3),
+) -> PixelRect {
+    let mut boxes = vec![object];
+    for light in lights {
+        let grown = grown_object(light, faces, shadow_size, object);
+        match reach_bounds(light, grown, real) {
+            Reach::Everywhere => return PixelRect::full(width, height),
+            Reach::Within(b) => boxes.push(b),
+            Reach::Nowhere => {}
+        }
+    }
+    screen_rect(view_proj, (width, height), &boxes)
+}
+
+/// Where a light's reach, C ∩ A, lies.
+enum Reach {
+    /// The light is inside the grown object: every point may be shadowed.
+    Everywhere,
+    Within((Vec3, Vec3)),
+    Nowhere,
+}
+
+/// The object's bounds grown by one shadow-map texel at its far side from the light, as
+/// `may_shadow` grows them (`texel_footprint`), and a little more for rounding.
+fn grown_object(
+    light: &GpuLight,
+    faces: &[GpuFace],
+    shadow_size: u32,
+    (lo, hi): (Vec3, Vec3),
+) -> (Vec3, Vec3) {
+    let Some(face) = faces.get(light.faces[0] as usize) else {
+        return (lo, hi);
+    };
+    let size = shadow_size.max(1) as f32;
+    let footprint = if face.light[1] == 1 {
+        face.axis[3].sqrt() / size
+    } else {
+        let at = Vec4::from(light.position).xyz();
+        let farthest = (hi - at).abs().max((lo - at).abs()).length();
+        2.0 * face.axis[3] * farthest / size
+    };
+    let grow = Vec3::splat(footprint * 1.01 + 1e-5 * (1.0 + lo.abs().max(hi.abs()).max_element()));
+    (lo - grow, hi + grow)
+}
+
+/// The bounds of C ∩ A for one light (module doc).
+fn reach_bounds(light: &GpuLight, (lo, hi): (Vec3, Vec3), real: (Vec3, Vec3)) -> Reach {
+    let corners = box_corners((lo, hi));
+    let whole = (lo.min(real.0), hi.max(real.1));
+    let mut points = corners.to_vec();
+    if light.position[3] as u32 == KIND_DIRECTIONAL {
+        // Past the diagonal of everything, a point swept along the light has left A.
+        let travel = Vec4::from(light.direction).xyz().normalize_or_zero();
+        let reach = (whole.1 - whole.0).length() * 1.01;
+        points.extend(corners.iter().map(|&b| b + travel * reach));
+    } else {
+        let at = Vec4::from(light.position).xyz();
+        // Nearest point of the box to the light: 0 inside it.
+        let nearest = (at.clamp(lo, hi) - at).length();
+        if nearest <= 0.0 {
+            return Reach::Everywhere;
+        }
+        let farthest = box_corners(whole)
+            .iter()
+            .map(|c| c.distance(at))
+            .fold(0.0f32, f32::max);
+        // Beyond t = farthest / nearest every point of the cone is farther from the light than
+        // any point of A.
+        let t = farthest / nearest * 1.01;
+        points.extend(corners.iter().map(|&b| at + (b - at) * t));
+    }
+    let (cone_lo, cone_hi) = points
+        .iter()
+        .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(l, h), &p| {
+            (l.min(p), h.max(p))
+        });
+    let slack = Vec3::splat(1e-4 * (1.0 + whole.0.abs().max(whole.1.abs()).max_element()));
+    let (a_lo, a_hi) = (cone_lo.max(real.0 - slack), cone_hi.min(real.1 + slack));
+    if a_lo.cmple(a_hi).all() {
+        Reach::Within((a_lo, a_hi))
+    } else {
+        Reach::Nowhere
+    }
+}
+
+/// The pixels the boxes can cover in the image, one pixel of margin around them: each box's
+/// corners and the points where its edges cross the near plane (clip z = 0), projected.
+fn screen_rect(view_proj: Mat4, (width, height): (u32, u32), boxes: &[(Vec3, Vec3)]) -> PixelRect {
+    let (mut lo, mut hi) = (glam::Vec2::INFINITY, glam::Vec2::NEG_INFINITY);
+    let mut include = |clip: Vec4| {
+        let ndc = clip.xy() / clip.w;
+        let px = glam::Vec2::new(
+            (ndc.x * 0.5 + 0.5) * width as f32,
+            (0.5 - ndc.y * 0.5) * height as f32,
+        );
+        lo = lo.min(px);
+        hi = hi.max(px);
+    };
+    for &b in boxes {
+        let clip = box_corners(b).map(|c| view_proj * c.extend(1.0));
+        for (i, c) in clip.iter().enumerate() {
+            if c.z >= 0.0 && c.w > 0.0 {
+                include(*c);
+            }
+            for d in &clip[i + 1..] {
+                if (c.z >= 0.0) != (d.z >= 0.0) {
+                    let s = c.z / (c.z - d.z);
+                    let on_plane = c.lerp(*d, s);
+                    if on_plane.w > 0.0 {
+                        include(on_plane);
+                    }
+                }
+            }
+        }
+    }
+    if !(lo.x <= hi.x && lo.y <= hi.y) {
+        return PixelRect {
+            x: 0,
+            y: 0,
+            width: 0,
+            height: 0,
+        };
+    }
+    let clamp = |v: f32, max: u32| v.clamp(0.0, max as f32) as u32;
+    let (x0, y0) = (
+        clamp(lo.x.floor() - 1.0, width),
+        clamp(lo.y.floor() - 1.0, height),
+    );
+    let (x1, y1) = (
+        clamp(hi.x.ceil() + 1.0, width),
+        clamp(hi.y.ceil() + 1.0, height),
+    );
+    PixelRect {
+        x: x0,
+        y: y0,
+        width: x1 - x0,
+        height: y1 - y0,
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use std::path::Path;
+    use std::sync::Arc;
+
+    use relight_core::light::Light;
+    use relight_core::scene::Scene;
+    use relight_core::{Frame, Image, PixelFormat, Timestamp};
+    use serde_json::Map;
+
+    use super::*;
+    use crate::deferred::Deferred;
+    use crate::differential::Differential;
+    use crate::engine::{Engine, RelitFrame, SceneFrame};
+    use crate::gpu::GpuContext;
+    use crate::ibl::Ibl;
+    use crate::offline::delta_pixels;
+
+    /// An engine whose shared passes a test can reach.
+    pub(crate) trait WithDeferred: Engine {
+        fn deferred_mut(&mut self) -> &mut Deferred;
+    }
+
+    /// Δ, the composite, and the pixels the real meshes were drawn in, after `frames` frames
+    /// of a still camera averaged over `accumulate`.
+    fn render(
+        engine: &mut dyn WithDeferred,
+        scene: &Arc<Scene>,
+        cull: bool,
+        (frames, accumulate): (u32, u32),
+    ) -> (Vec<Vec3>, Vec<u8>, Option<PixelRect>) {
+        let mut params = Map::new();
+        params.insert("accumulate".into(), accumulate.into());
+        engine.set_params(&params);
+        if !cull {
+            engine.deferred_mut().without_shadow_reach_cull();
+        }
+        // Every 8-bit value in each channel, so that the camera's picture the composite keeps
+        // outside the object's reach is checked against the shading pass's own.
+        let mut color = Image::new(96, 72, PixelFormat::Rgb8);
+        for (i, px) in color.as_u8_mut().unwrap().chunks_exact_mut(3).enumerate() {
+            px.copy_from_slice(&[i as u8, (i * 7) as u8, (i * 13 / 5) as u8]);
+        }
+        let frame = SceneFrame {
+            stamp: Timestamp::new(0, 0),
+            seq: 0,
+            color: Some(Arc::new(Frame::new(0, Timestamp::new(0, 0), color))),
+            depth: None,
+            scene: Some(scene.clone()),
+        };
+        let mut out = RelitFrame::default();
+        for _ in 0..frames {
+            engine.render(&frame, &mut out).expect("it renders");
+        }
+        (
+            delta_pixels(&out.delta),
+            out.composite.as_u8().unwrap().to_vec(),
+            engine.deferred_mut().real_pixels(),
+        )
+    }
+
+    fn scene(name: &str) -> Scene {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../tests/scenes")
+            .join(name);
+        Scene::load(&dir).expect("the scene loads")
+    }
+
+    /// Skipping the shadow-map lookups of pixels the object cannot shadow (`may_shadow`), and
+    /// drawing the real meshes and shading only within the pixels where it can, changes no
+    /// pixel of Δ or of the composite. `differential` under desk_box's light, under a low one
+    /// whose long shadows graze the floor and reach the wall, and on a mean of four still
+    /// frames at sub-pixel offsets (each drawn within its own pixels) held for two more;
+    /// `ibl` on desk_box and under window_env's environment lights (directional).
+    #[test]
+    fn the_objects_reach_changes_no_pixel() {
+        let ctx = Arc::new(GpuContext::new().expect("a GPU adapter (lavapipe in CI)"));
+        let desk = scene("desk_box");
+        let mut low = desk.clone();
+        low.lights = vec![Light::Point {
+            position_in_world: Vec3::new(0.9, 0.35, 0.6),
+            intensity: Vec3::splat(2.0),
+        }];
+        let (desk, low, window) = (Arc::new(desk), Arc::new(low), Arc::new(scene("window_env")));
+        let engine = |name: &str| -> Box<dyn WithDeferred> {
+            match name {
+                "ibl" => Box::new(Ibl::new(ctx.clone()).unwrap()),
+                _ => Box::new(Differential::new(ctx.clone()).unwrap()),
+            }
+        };
+        let cases = [
+            ("differential", "desk_box", &desk, (1, 32)),
+            ("differential", "low light", &low, (1, 32)),
+            ("differential", "a mean held", &desk, (6, 4)),
+            ("ibl", "desk_box", &desk, (1, 32)),
+            ("ibl", "window_env", &window, (1, 32)),
+        ];
+        for (engine_name, case, scene, frames) in cases {
+            let name = format!("{engine_name}, {case}");
+            let (culled, culled_composite, reach) =
+                render(&mut *engine(engine_name), scene, true, frames);
+            let (full, full_composite, everywhere) =
+                render(&mut *engine(engine_name), scene, false, frames);
+            assert_eq!(
+                everywhere, None,
+                "{name}: without the cull every pixel is drawn"
+            );
+            let reach = reach.expect("the object's reach is drawn alone");
+            println!("{name}: the object can change {reach:?} of 96 × 72");
+            assert!(
+                reach.area() < 96 * 72,
+                "{name}: {reach:?} is the whole image"
+            );
+            let shadowed = full.iter().filter(|d| d.x < -1e-4).count();
+            assert!(
+                shadowed > 50,
+                "{name}: the object shadows {shadowed} pixels"
+            );
+            for (i, (a, b)) in culled.iter().zip(&full).enumerate() {
+                assert_eq!(
+                    a.to_array().map(f32::to_bits),
+                    b.to_array().map(f32::to_bits),
+                    "{name}: Δ at pixel {i}"
+                );
+            }
+            for (i, (a, b)) in culled_composite
+                .chunks_exact(3)
+                .zip(full_composite.chunks_exact(3))
+                .enumerate()
+            {
+                assert_eq!(a, b, "{name}: composite pixel {i}");
+            }
+        }
+    }
+
+    fn point_light(at: Vec3) -> GpuLight {
+        GpuLight {
+            position: at.extend(0.0).to_array(),
+            direction: [0.0, -1.0, 0.0, 0.0],
+            intensity: [1.0; 4],
+            faces: [0, 6, 0, 0],
+        }
+    }
+
+    fn face() -> GpuFace {
+        GpuFace {
+            view_proj: Mat4::IDENTITY.to_cols_array_2d(),
+            axis: [0.0, -1.0, 0.0, 1.0],
+            light: [0; 4],
+        }
+    }
+
+    /// A camera 2 m in front of the origin looking at it, 60° vertical field of view.
+    fn camera() -> Mat4 {
+        let view = Mat4::look_at_rh(Vec3::new(0.0, 0.5, 2.0), Vec3::ZERO, Vec3::Y);
+        Mat4::perspective_rh(60f32.to_radians(), 4.0 / 3.0, 0.01, 10.0) * view
+    }
+
+    /// Under a light straight above a small object on a wide floor, the rectangle holds the
+    /// object and its shadow on the floor, and leaves out the floor's far sides.
+    #[test]
+    fn a_light_above_reaches_the_floor_under_the_object_alone() {
+        let object = (Vec3::new(-0.05, 0.0, -0.05), Vec3::new(0.05, 0.1, 0.05));
+        let floor = (Vec3::new(-3.0, -0.001, -3.0), Vec3::new(3.0, 0.001, 3.0));
+        let rect = reach_rect(
+            camera(),
+            (320, 240),
+            &[point_light(Vec3::new(0.0, 1.0, 0.0))],
+            &[face()],
+            512,
+            object,
+            floor,
+        );
+        assert!(!rect.is_empty());
+        assert!(
+            rect.area() * 20 < 320 * 240,
+            "{rect:?} covers more than a twentieth of the image"
+        );
+        // The object's centre projects inside the rectangle.
+        let centre = camera() * Vec3::new(0.0, 0.05, 0.0).extend(1.0);
+        let px = (centre.x / centre.w * 0.5 + 0.5) * 320.0;
+        let py = (0.5 - centre.y / centre.w * 0.5) * 240.0;
+        assert!(px > rect.x as f32 && px < (rect.x + rect.width) as f32);
+        assert!(py > rect.y as f32 && py < (rect.y + rect.height) as f32);
+    }
+
+    /// A light inside the object, or a real scene around the camera, reaches every pixel.
+    #[test]
+    fn a_light_inside_the_object_reaches_everywhere() {
+        let object = (Vec3::splat(-0.1), Vec3::splat(0.1));
+        let room = (Vec3::splat(-5.0), Vec3::splat(5.0));
+        let rect = reach_rect(
+            camera(),
+            (320, 240),
+            &[point_light(Vec3::ZERO)],
+            &[face()],
+            512,
+            object,
+            room,
+        );
+        assert_eq!(rect, PixelRect::full(320, 240));
+    }
+
+    /// A box reaching behind the camera is clipped at its near plane, not mirrored: the
+    /// rectangle spans the image.
+    #[test]
+    fn a_box_behind_the_camera_is_clipped_at_the_near_plane() {
+        let around_camera = (Vec3::new(-0.1, 0.4, 1.0), Vec3::new(0.1, 0.6, 3.0));
+        let rect = screen_rect(camera(), (320, 240), &[around_camera]);
+        assert_eq!(rect, PixelRect::full(320, 240));
+    }
+}
