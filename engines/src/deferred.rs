@@ -16,7 +16,7 @@ use wgpu::util::DeviceExt;
 
 use crate::change::{self, camera_still};
 use crate::engine::{EngineError, PassTiming, RelitFrame, SceneFrame};
-use crate::gbuffer::{GBufferPass, RsmPass, RsmRedraw, Targets};
+use crate::gbuffer::{GBufferPass, LayerRedraw, RsmPass, Targets};
 use crate::gpu::GpuContext;
 use crate::gpu_scene::{
     GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, is_shadowed, light_faces,
@@ -329,7 +329,8 @@ pub struct Deferred {
     frame: Option<FrameResources>,
     light: Option<LightResources>,
     /// [`Self::rsm_keys`] of what `light`'s maps hold, once drawn.
-    rsm_drawn: Option<[u64; 2]>,
+    /// What each light's μ and ρ maps were last drawn from ([`Self::rsm_keys`]).
+    rsm_drawn: Option<Vec<[u64; 2]>>,
     light_count: u32,
     rgba: Vec<u8>,
     lights_cpu: Vec<GpuLight>,
@@ -688,13 +689,27 @@ impl Deferred {
             work: gbuffer_work,
         });
         let drawn = self.rsm_keys(gpu_scene, sizes, layers);
-        let redraw = match self.rsm_drawn {
-            _ if self.faces_cpu.is_empty() => None,
-            Some(before) if before == drawn => None,
-            Some([mu, _]) if mu == drawn[0] => Some(RsmRedraw::Rho),
-            _ => Some(RsmRedraw::Both),
-        };
-        if let Some(redraw) = redraw {
+        let before = self
+            .rsm_drawn
+            .as_ref()
+            .filter(|before| before.len() == drawn.len());
+        let redraw: Vec<LayerRedraw> = self
+            .lights_cpu
+            .iter()
+            .zip(&drawn)
+            .enumerate()
+            .flat_map(|(i, (light, key))| {
+                let mu = match before.map(|b| b[i]) {
+                    Some(b) if b == *key => None,
+                    Some([mu, _]) => Some(mu != key[0]),
+                    None => Some(true),
+                };
+                let faces = light.faces[0]..light.faces[0] + light.faces[1];
+                mu.into_iter()
+                    .flat_map(move |mu| faces.clone().map(move |layer| LayerRedraw { layer, mu }))
+            })
+            .collect();
+        if !redraw.is_empty() {
             let maps = [
                 (
                     &self.shadow,
@@ -710,7 +725,7 @@ impl Deferred {
                     &group,
                     gpu_scene,
                     targets,
-                    redraw,
+                    &redraw,
                     self.timer.as_mut(),
                 );
                 out.work.push(PassWork {
@@ -769,20 +784,30 @@ impl Deferred {
         );
     }
 
-    /// What the μ and ρ maps (shadow maps and RSMs) would hold for this frame, as hashes of
-    /// everything they are drawn from: the light-space geometry
-    /// ([`GpuScene::light_fingerprint`]), the lights, their faces and the maps' sizes. Equal to
-    /// the last drawn: the maps need no redraw.
-    fn rsm_keys(&self, scene: &GpuScene, sizes: MapSizes, layers: u32) -> [u64; 2] {
-        let mut mu = DefaultHasher::new();
-        scene.light_fingerprint[0].hash(&mut mu);
-        bytemuck::cast_slice::<_, u8>(&self.lights_cpu).hash(&mut mu);
-        bytemuck::cast_slice::<_, u8>(&self.faces_cpu).hash(&mut mu);
-        (sizes, layers).hash(&mut mu);
-        let mu = mu.finish();
-        let mut rho = DefaultHasher::new();
-        (mu, scene.light_fingerprint[1]).hash(&mut rho);
-        [mu, rho.finish()]
+    /// What each light's μ and ρ maps (shadow maps and RSMs) would hold for this frame, as
+    /// hashes of everything they are drawn from: the light-space geometry
+    /// ([`GpuScene::light_fingerprint`]), the light, its faces and the maps' sizes. A light
+    /// whose hashes equal the last drawn needs no redraw of its faces.
+    fn rsm_keys(&self, scene: &GpuScene, sizes: MapSizes, layers: u32) -> Vec<[u64; 2]> {
+        self.lights_cpu
+            .iter()
+            .map(|light| {
+                let first = light.faces[0] as usize;
+                let faces = self
+                    .faces_cpu
+                    .get(first..first + light.faces[1] as usize)
+                    .unwrap_or_default();
+                let mut mu = DefaultHasher::new();
+                scene.light_fingerprint[0].hash(&mut mu);
+                bytemuck::bytes_of(light).hash(&mut mu);
+                bytemuck::cast_slice::<_, u8>(faces).hash(&mut mu);
+                (sizes, layers).hash(&mut mu);
+                let mu = mu.finish();
+                let mut rho = DefaultHasher::new();
+                (mu, scene.light_fingerprint[1]).hash(&mut rho);
+                [mu, rho.finish()]
+            })
+            .collect()
     }
 
     /// A hash of what this frame's shadow maps hold (after [`prepare`](Self::prepare)): equal

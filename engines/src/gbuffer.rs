@@ -229,15 +229,39 @@ impl Targets {
             encoder.copy_texture_to_texture(from.as_image_copy(), to.as_image_copy(), from.size());
         }
     }
+
+    /// [`copy_from`](Self::copy_from) of one layer.
+    fn copy_layer_from(&self, encoder: &mut wgpu::CommandEncoder, source: &Targets, layer: u32) {
+        for (from, to) in source
+            .drawn_colour()
+            .chain([&source.depth])
+            .zip(self.drawn_colour().chain([&self.depth]))
+        {
+            let at = |texture| wgpu::TexelCopyTextureInfo {
+                texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d {
+                    x: 0,
+                    y: 0,
+                    z: layer,
+                },
+                aspect: wgpu::TextureAspect::All,
+            };
+            let size = wgpu::Extent3d {
+                depth_or_array_layers: 1,
+                ..from.size()
+            };
+            encoder.copy_texture_to_texture(at(from), at(to), size);
+        }
+    }
 }
 
-/// Which reflective shadow maps [`RsmPass::render`] draws.
+/// One light face (layer) of the maps [`RsmPass::render`] redraws: R^ρ over a copy of R^μ, and
+/// R^μ first when `mu` (else R^μ still holds this frame's real scene and lights).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum RsmRedraw {
-    /// R^μ, then R^ρ over its copy.
-    Both,
-    /// R^ρ over a copy of the R^μ drawn before.
-    Rho,
+pub struct LayerRedraw {
+    pub layer: u32,
+    pub mu: bool,
 }
 
 /// How [`Targets::draw`] begins a layer.
@@ -463,15 +487,15 @@ impl RsmPass {
     /// thousands of triangles) are rasterised once per face, not twice. The real meshes are
     /// [`GpuScene::shadow_real`] (a scene's shadow proxy, where it has one).
     ///
-    /// `redraw` says what to draw: [`RsmRedraw::Both`], or [`RsmRedraw::Rho`] when R^μ still
-    /// holds this frame's real scene (only the copy and the object are drawn).
+    /// `redraw` says which faces to draw, and in which of them R^μ too: a light that did not
+    /// change keeps its faces, one that moved redraws its own alone.
     pub fn render(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         bind_group: &wgpu::BindGroup,
         scene: &GpuScene,
         (rho, mu): (&Targets, &Targets),
-        redraw: RsmRedraw,
+        redraw: &[LayerRedraw],
         mut timer: Option<&mut GpuTimer>,
     ) -> Work {
         let timing = if self.depth_only {
@@ -480,42 +504,42 @@ impl RsmPass {
             "gpu.rsm"
         };
         let (texels, texel_bytes) = (mu.layer_texels(), mu.texel_bytes());
-        let layers = f64::from(mu.layers);
-        let mut work = roofline::copy(texels * texel_bytes).times(layers);
-        if redraw == RsmRedraw::Both {
-            let real = scene.shadow_real.end - scene.shadow_real.start;
-            work = work + roofline::raster(real, texels, texel_bytes).times(layers);
-            for face in 0..mu.layers {
-                mu.draw(
-                    encoder,
-                    &self.pipeline,
-                    bind_group,
-                    scene,
-                    scene.shadow_real.clone(),
-                    face,
-                    LayerStart::Clear,
-                    None,
-                    timer.as_deref_mut().and_then(|t| t.render(timing)),
-                );
-            }
+        let real = scene.shadow_real.end - scene.shadow_real.start;
+        let mut work = roofline::copy(texels * texel_bytes).times(redraw.len() as f64);
+        for face in redraw.iter().filter(|r| r.mu) {
+            work = work + roofline::raster(real, texels, texel_bytes);
+            mu.draw(
+                encoder,
+                &self.pipeline,
+                bind_group,
+                scene,
+                scene.shadow_real.clone(),
+                face.layer,
+                LayerStart::Clear,
+                None,
+                timer.as_deref_mut().and_then(|t| t.render(timing)),
+            );
         }
-        rho.copy_from(encoder, mu);
+        for face in redraw {
+            rho.copy_layer_from(encoder, mu, face.layer);
+        }
         let virtual_indices = scene.real_indices..scene.all_indices;
         if !virtual_indices.is_empty() {
-            for face in 0..rho.layers {
+            for face in redraw {
                 rho.draw(
                     encoder,
                     &self.pipeline,
                     bind_group,
                     scene,
                     virtual_indices.clone(),
-                    face,
+                    face.layer,
                     LayerStart::Over,
                     None,
                     timer.as_deref_mut().and_then(|t| t.render(timing)),
                 );
             }
         }
-        work + roofline::raster(scene.all_indices - scene.real_indices, 0, 0).times(layers)
+        work + roofline::raster(scene.all_indices - scene.real_indices, 0, 0)
+            .times(redraw.len() as f64)
     }
 }

@@ -33,6 +33,37 @@ fn moved_light(scene: &Scene, by: Vec3) -> Scene {
     scene
 }
 
+/// `scene` with a second point light, beside and above its own.
+fn with_second_light(scene: &Scene) -> Scene {
+    let mut scene = scene.clone();
+    scene.lights.push(Light::Point {
+        position_in_world: Vec3::new(-0.5, 0.9, 0.4),
+        intensity: Vec3::splat(1.0),
+    });
+    scene
+}
+
+/// `scene` with its last light moved.
+fn moved_last_light(scene: &Scene, by: Vec3) -> Scene {
+    let mut scene = scene.clone();
+    if let Some(Light::Point {
+        position_in_world, ..
+    }) = scene.lights.last_mut()
+    {
+        *position_in_world += by;
+    }
+    scene
+}
+
+/// The bytes the shadow-map pass moved for a frame (0: not drawn).
+fn shadow_bytes(out: &RelitFrame) -> f64 {
+    out.work
+        .iter()
+        .filter(|w| w.pass == "shadow")
+        .map(|w| w.work.bytes)
+        .sum()
+}
+
 fn moved_object(scene: &Scene, by: Vec3) -> Scene {
     let mut scene = scene.clone();
     for mesh in scene.meshes.iter_mut().filter(|m| m.is_virtual) {
@@ -59,22 +90,27 @@ fn ran(out: &RelitFrame, pass: &str) -> bool {
 /// `dvct` and `dlpv` derive from them alone (voxels and their radiance, the propagated
 /// volume), are recomputed only on the frames whose scene or lights changed: not on a frame
 /// equal to the last (a new `Arc`, as the live scene makes every frame), nor on one where the
-/// camera alone moved. The same holds for `dir`'s VPLs and their imperfect shadow maps.
+/// camera alone moved. The same holds for `dir`'s VPLs and their imperfect shadow maps. When
+/// one of two lights moves, only its own faces are redrawn.
 #[test]
 fn kept_shadow_maps_and_volumes_equal_freshly_drawn_ones() {
-    let desk = load_scene("desk_box");
+    let desk = with_second_light(&load_scene("desk_box"));
     let lit = moved_light(&desk, Vec3::new(0.2, 0.0, 0.0));
+    let moved = moved_object(
+        &moved_camera(&lit, Vec3::new(0.05, 0.0, 0.0)),
+        Vec3::X * 0.05,
+    );
     let frames = [
         desk.clone(),
         lit.clone(),
         lit.clone(),
         moved_camera(&lit, Vec3::new(0.05, 0.0, 0.0)),
-        moved_object(
-            &moved_camera(&lit, Vec3::new(0.05, 0.0, 0.0)),
-            Vec3::X * 0.05,
-        ),
+        moved.clone(),
+        moved_last_light(&moved, Vec3::new(0.0, 0.0, 0.1)),
     ];
-    let recomputed = [true, true, false, false, true];
+    let recomputed = [true, true, false, false, true, true];
+    // Frames where one light of the two moved: half the faces are drawn.
+    let one_light = [false, false, false, false, false, true];
     // Without the sub-pixel accumulation, whose still frames differ from a fresh engine's
     // first by design.
     let small = serde_json::json!({"volume_size": 16, "steps": 8, "accumulate": 1});
@@ -104,6 +140,13 @@ fn kept_shadow_maps_and_volumes_equal_freshly_drawn_ones() {
             );
             if ran(&fresh, "gpu.shadow") {
                 assert_eq!(ran(&out, "gpu.shadow"), recomputed[i], "{name}: frame {i}");
+                if one_light[i] {
+                    assert_eq!(
+                        2.0 * shadow_bytes(&out),
+                        shadow_bytes(&fresh),
+                        "{name}: frame {i} redraws one light's faces"
+                    );
+                }
                 assert_eq!(
                     ran(&out, "gpu.rsm"),
                     recomputed[i] && name != "differential",
