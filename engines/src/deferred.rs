@@ -16,7 +16,7 @@ use wgpu::util::DeviceExt;
 
 use crate::change::{self, camera_still};
 use crate::engine::{EngineError, PassTiming, RelitFrame, SceneFrame};
-use crate::gbuffer::{GBufferPass, LayerRedraw, RsmPass, Targets};
+use crate::gbuffer::{GBufferPass, LayerRedraw, RealWithin, RsmPass, Targets};
 use crate::gpu::GpuContext;
 use crate::gpu_scene::{
     GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, is_shadowed, light_faces,
@@ -357,6 +357,10 @@ pub struct Deferred {
     real_direct_only: bool,
     /// The pixels this frame's real meshes were drawn in, when not all.
     real_pixels: Option<PixelRect>,
+    /// The real triangles that can cover them ([`shadow_reach::triangles_within`]), and the
+    /// buffer they are uploaded to.
+    camera_triangles: Vec<u32>,
+    camera_triangle_buffer: Option<wgpu::Buffer>,
 }
 
 const MAX_LAYERS: u32 = 64;
@@ -419,6 +423,8 @@ impl Deferred {
             shadow_reach_cull: true,
             real_direct_only: false,
             real_pixels: None,
+            camera_triangles: Vec::new(),
+            camera_triangle_buffer: None,
             ctx,
         }
     }
@@ -670,6 +676,42 @@ impl Deferred {
             _ => real_pixels,
         };
 
+        let real_within = match real_pixels {
+            Some(rect) if rect != PixelRect::full(width, height) => {
+                self.camera_triangles.clear();
+                shadow_reach::triangles_within(
+                    Mat4::from_cols_array_2d(&camera.view_proj),
+                    (width, height),
+                    rect,
+                    &gpu_scene.real_positions,
+                    &gpu_scene.real_triangles,
+                    &mut self.camera_triangles,
+                );
+                let bytes = (4 * self.camera_triangles.len()).max(12) as u64;
+                if self
+                    .camera_triangle_buffer
+                    .as_ref()
+                    .is_none_or(|b| b.size() < bytes)
+                {
+                    self.camera_triangle_buffer = Some(ctx.buffer(
+                        "camera triangles",
+                        bytes.next_power_of_two(),
+                        wgpu::BufferUsages::INDEX | wgpu::BufferUsages::COPY_DST,
+                    ));
+                }
+                let buffer = self.camera_triangle_buffer.as_ref().expect("created above");
+                if !self.camera_triangles.is_empty() {
+                    ctx.queue
+                        .write_buffer(buffer, 0, bytemuck::cast_slice(&self.camera_triangles));
+                }
+                Some(RealWithin {
+                    rect,
+                    indices: buffer,
+                    count: self.camera_triangles.len() as u32,
+                })
+            }
+            _ => None,
+        };
         let mut encoder = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -681,7 +723,7 @@ impl Deferred {
             &camera_group,
             gpu_scene,
             (&frame_res.gb_rho, &frame_res.gb_mu),
-            real_pixels,
+            real_within,
             self.timer.as_mut(),
         );
         out.work.push(PassWork {

@@ -147,7 +147,7 @@ impl Targets {
         pipeline: &wgpu::RenderPipeline,
         bind_group: &wgpu::BindGroup,
         scene: &GpuScene,
-        corners: std::ops::Range<u32>,
+        (indices, corners): (&wgpu::Buffer, std::ops::Range<u32>),
         layer: u32,
         start: LayerStart,
         scissor: Option<PixelRect>,
@@ -205,7 +205,7 @@ impl Targets {
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, bind_group, &[]);
             pass.set_vertex_buffer(0, scene.vertices.slice(..));
-            pass.set_index_buffer(scene.indices.slice(..), wgpu::IndexFormat::Uint32);
+            pass.set_index_buffer(indices.slice(..), wgpu::IndexFormat::Uint32);
             pass.draw_indexed(corners, 0, layer..layer + 1);
         }
     }
@@ -367,7 +367,7 @@ impl GBufferPass {
     /// Render the μ G-buffer (the real meshes) and the ρ one (every mesh). As with the shadow
     /// maps ([`RsmPass::render`]), μ is drawn with its depth kept and copied into ρ, and only
     /// the virtual object is drawn over the copy: the real meshes (the live depth mesh) are
-    /// rasterised once. With `real_pixels`, the real meshes are drawn inside that rectangle
+    /// rasterised once. With `real_within`, the real meshes are drawn inside its rectangle
     /// alone ([`shadow_reach`](crate::shadow_reach)), and every pixel outside it holds no real
     /// surface.
     pub fn render(
@@ -376,18 +376,22 @@ impl GBufferPass {
         bind_group: &wgpu::BindGroup,
         scene: &GpuScene,
         (rho, mu): (&Targets, &Targets),
-        real_pixels: Option<PixelRect>,
+        real_within: Option<RealWithin>,
         mut timer: Option<&mut GpuTimer>,
     ) -> Work {
+        let (real, scissor) = match real_within {
+            Some(within) => ((within.indices, 0..within.count), Some(within.rect)),
+            None => ((&scene.indices, 0..scene.real_indices), None),
+        };
         mu.draw(
             encoder,
             &self.pipeline,
             bind_group,
             scene,
-            0..scene.real_indices,
+            real,
             0,
             LayerStart::Clear,
-            real_pixels,
+            scissor,
             timer.as_deref_mut().and_then(|t| t.render("gpu.gbuffer")),
         );
         rho.copy_from(encoder, mu);
@@ -396,7 +400,7 @@ impl GBufferPass {
             &self.pipeline,
             bind_group,
             scene,
-            scene.real_indices..scene.all_indices,
+            (&scene.indices, scene.real_indices..scene.all_indices),
             0,
             LayerStart::Over,
             None,
@@ -407,6 +411,16 @@ impl GBufferPass {
             + roofline::copy(texels * texel_bytes)
             + roofline::raster(scene.all_indices - scene.real_indices, 0, 0)
     }
+}
+
+/// The real meshes' part of the camera's G-buffer when only a rectangle of it is needed: the
+/// scissor, and the triangles that can cover it (`count` indices of `indices`, into
+/// [`GpuScene::vertices`]).
+#[derive(Debug, Clone, Copy)]
+pub struct RealWithin<'a> {
+    pub rect: PixelRect,
+    pub indices: &'a wgpu::Buffer,
+    pub count: u32,
 }
 
 /// The reflective-shadow-map pass: one layer per light face.
@@ -513,7 +527,7 @@ impl RsmPass {
                 &self.pipeline,
                 bind_group,
                 scene,
-                scene.shadow_real.clone(),
+                (&scene.indices, scene.shadow_real.clone()),
                 face.layer,
                 LayerStart::Clear,
                 None,
@@ -531,7 +545,7 @@ impl RsmPass {
                     &self.pipeline,
                     bind_group,
                     scene,
-                    virtual_indices.clone(),
+                    (&scene.indices, virtual_indices.clone()),
                     face.layer,
                     LayerStart::Over,
                     None,

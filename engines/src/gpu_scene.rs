@@ -102,6 +102,11 @@ pub struct GpuScene {
     pub light_fingerprint: [u64; 2],
     /// Bounds of the virtual object(s), if any.
     pub virtual_bounds: Option<(Vec3, Vec3)>,
+    /// The real meshes' vertex positions (the first of [`Self::vertices`]) and their
+    /// triangles' indices (`0..real_indices` of [`Self::indices`]), kept on the CPU to pick
+    /// the triangles a part of the camera's image needs (`shadow_reach::triangles_within`).
+    pub real_positions: Vec<Vec3>,
+    pub real_triangles: Vec<u32>,
 }
 
 impl GpuScene {
@@ -275,6 +280,12 @@ impl GpuScene {
             light_bounds,
             light_fingerprint,
             virtual_bounds: scene.virtual_bounds(),
+            real_positions: vertices
+                [vertex_ranges[0].start as usize..vertex_ranges[0].end as usize]
+                .iter()
+                .map(|v| Vec3::from(v.position))
+                .collect(),
+            real_triangles: indices[..real_indices as usize].to_vec(),
         }
     }
 }

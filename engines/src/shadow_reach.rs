@@ -227,6 +227,62 @@ fn screen_rect(view_proj: Mat4, (width, height): (u32, u32), boxes: &[(Vec3, Vec
     }
 }
 
+/// The triangles of `triangles` (indices into `positions`) that can cover a pixel of `rect`
+/// in the image drawn with `view_proj`, appended to `out`: every triangle but those whose three
+/// corners, all in front of the near plane, lie beyond the same edge of the rectangle (grown by
+/// a pixel). Such a triangle is the hull of its corners' projections, so it misses the
+/// rectangle, and the scissor would drop all it draws; llvmpipe still transforms and sets it up.
+pub fn triangles_within(
+    view_proj: Mat4,
+    (width, height): (u32, u32),
+    rect: PixelRect,
+    positions: &[Vec3],
+    triangles: &[u32],
+    out: &mut Vec<u32>,
+) {
+    const LEFT: u8 = 1;
+    const RIGHT: u8 = 2;
+    const ABOVE: u8 = 4;
+    const BELOW: u8 = 8;
+    let (x0, y0) = (rect.x as f32 - 1.0, rect.y as f32 - 1.0);
+    let (x1, y1) = (
+        (rect.x + rect.width) as f32 + 1.0,
+        (rect.y + rect.height) as f32 + 1.0,
+    );
+    let outside: Vec<u8> = positions
+        .iter()
+        .map(|p| {
+            let clip = view_proj * p.extend(1.0);
+            if !(clip.z >= 0.0 && clip.w > 0.0) {
+                // Behind the near plane (or not finite): the triangle is kept.
+                return 0;
+            }
+            let x = (clip.x / clip.w * 0.5 + 0.5) * width as f32;
+            let y = (0.5 - clip.y / clip.w * 0.5) * height as f32;
+            let mut code = 0;
+            if x < x0 {
+                code |= LEFT;
+            }
+            if x > x1 {
+                code |= RIGHT;
+            }
+            if y < y0 {
+                code |= ABOVE;
+            }
+            if y > y1 {
+                code |= BELOW;
+            }
+            code
+        })
+        .collect();
+    for corners in triangles.chunks_exact(3) {
+        let code = |i: u32| outside.get(i as usize).copied().unwrap_or(0);
+        if code(corners[0]) & code(corners[1]) & code(corners[2]) == 0 {
+            out.extend_from_slice(corners);
+        }
+    }
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use std::path::Path;
@@ -411,6 +467,76 @@ pub(crate) mod tests {
         let py = (0.5 - centre.y / centre.w * 0.5) * 240.0;
         assert!(px > rect.x as f32 && px < (rect.x + rect.width) as f32);
         assert!(py > rect.y as f32 && py < (rect.y + rect.height) as f32);
+    }
+
+    /// A triangle left out covers no point of the rectangle: on a 40 × 40 grid in front of the
+    /// camera, points spread over each dropped triangle all project outside it, and the
+    /// rectangle keeps a small share of the grid.
+    #[test]
+    fn the_triangles_left_out_miss_the_rectangle() {
+        let n = 40;
+        let positions: Vec<Vec3> = (0..=n)
+            .flat_map(|j| {
+                (0..=n).map(move |i| {
+                    Vec3::new(
+                        i as f32 / n as f32 * 4.0 - 2.0,
+                        -0.2,
+                        j as f32 / n as f32 * 4.0 - 2.5,
+                    )
+                })
+            })
+            .collect();
+        let at = |i: u32, j: u32| j * (n + 1) + i;
+        let triangles: Vec<u32> = (0..n)
+            .flat_map(|j| {
+                (0..n).flat_map(move |i| {
+                    [
+                        at(i, j),
+                        at(i + 1, j),
+                        at(i, j + 1),
+                        at(i + 1, j),
+                        at(i + 1, j + 1),
+                        at(i, j + 1),
+                    ]
+                })
+            })
+            .collect();
+        let rect = PixelRect {
+            x: 120,
+            y: 140,
+            width: 60,
+            height: 30,
+        };
+        let mut kept = Vec::new();
+        triangles_within(
+            camera(),
+            (320, 240),
+            rect,
+            &positions,
+            &triangles,
+            &mut kept,
+        );
+        let total = triangles.len() / 3;
+        let kept_count = kept.len() / 3;
+        assert!(
+            kept_count > 0 && kept_count * 4 < total,
+            "{kept_count} of {total} kept"
+        );
+        let kept: std::collections::HashSet<&[u32]> = kept.chunks_exact(3).collect();
+        for corners in triangles.chunks_exact(3).filter(|c| !kept.contains(c)) {
+            let [a, b, c] = [0, 1, 2].map(|k| positions[corners[k] as usize]);
+            for (u, v) in (0..=8).flat_map(|u| (0..=8 - u).map(move |v| (u, v))) {
+                let (u, v) = (u as f32 / 8.0, v as f32 / 8.0);
+                let clip = camera() * (a + (b - a) * u + (c - a) * v).extend(1.0);
+                let x = (clip.x / clip.w * 0.5 + 0.5) * 320.0;
+                let y = (0.5 - clip.y / clip.w * 0.5) * 240.0;
+                let inside = x >= rect.x as f32
+                    && x <= (rect.x + rect.width) as f32
+                    && y >= rect.y as f32
+                    && y <= (rect.y + rect.height) as f32;
+                assert!(!inside, "{corners:?} was left out but covers ({x}, {y})");
+            }
+        }
     }
 
     /// A light inside the object, or a real scene around the camera, reaches every pixel.
