@@ -182,110 +182,181 @@ pub fn probe_to_environment(
     world_from_probe: &Pose,
     settings: &EnvMapSettings,
 ) -> Result<ProbeEnvironment, EnvMapError> {
-    lens.validate()?;
-    let (width, height) = (settings.width, settings.height);
-    if width == 0 || height == 0 {
-        return Err(EnvMapError::EmptyMap { width, height });
-    }
-    let fov = settings.field_of_view_deg;
-    if !(fov > 0.0 && fov <= 360.0) {
-        return Err(EnvMapError::FieldOfView(fov));
-    }
-    if (hdr.width, hdr.height) != (lens.width, lens.height)
-        || hdr.radiance.len() != hdr.width as usize * hdr.height as usize
-    {
-        return Err(EnvMapError::ProbeSize {
-            width: hdr.width,
-            height: hdr.height,
-            len: hdr.radiance.len(),
-            lens_width: lens.width,
-            lens_height: lens.height,
-        });
-    }
-    let factor = downsampling_factor(lens, height);
-    let filtered;
-    let (hdr, lens) = if factor > 1 {
-        filtered = box_filtered(hdr, lens, factor);
-        (&filtered.0, &filtered.1)
-    } else {
-        (hdr, lens)
-    };
-    let sampler = Sampler::new(lens, world_from_probe, settings, fov);
-    let pixel_solid_angle = pixel_solid_angles(lens);
+    ProbeResampler::new(lens, world_from_probe, settings)?.resample(hdr)
+}
 
-    let rows: Vec<u32> = (0..height).collect();
-    let chunk = (height as usize)
-        .div_ceil(4 * rayon::current_num_threads().max(1))
-        .max(1);
-    let pixels = pixel_solid_angle.len();
-    let reached = rows
-        .par_chunks(chunk)
-        .map(|rows| {
-            let mut weights = vec![0.0f64; pixels];
-            for &y in rows {
-                for x in 0..width {
-                    sampler.for_each_sample(x, y, |sample| {
-                        for (p, w) in sample.taps.into_iter().flatten() {
-                            weights[p] += w * sample.solid_angle;
-                        }
-                    });
-                }
-            }
-            weights
-        })
-        .reduce(
-            || vec![0.0f64; pixels],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x += y;
-                }
-                a
-            },
-        );
-    let scaled_radiance: Vec<DVec3> = hdr
-        .radiance
-        .iter()
-        .zip(&pixel_solid_angle)
-        .zip(&reached)
-        .map(|((&l, &solid_angle), &w)| {
-            let factor = if solid_angle > 0.0 && w > 0.0 {
-                (solid_angle / w).min(MAX_RENORMALISATION)
-            } else {
-                1.0
-            };
-            sanitized(l).as_dvec3() * factor
-        })
-        .collect();
+/// [`probe_to_environment`] for one lens, pose and map, with everything that depends on them
+/// alone computed once: where each texel's sample directions land in the probe image, and the
+/// pixels' renormalised weights, as one sparse weight per (texel, probe pixel). A probe fixed in
+/// the room then costs a weighted sum per texel for each merged bracket. Projecting every
+/// sample through the lens model had been most of a bracket's 70 ms on two cores, and ran on
+/// every bracket although the lens and the pose never change.
+#[derive(Debug, Clone)]
+pub struct ProbeResampler {
+    lens: KannalaBrandt,
+    /// The box filter's factor (1: none) and the lens that sees the filtered image.
+    factor: u32,
+    filtered_lens: KannalaBrandt,
+    width: u32,
+    height: u32,
+    /// Per texel, row-major: (filtered probe pixel, weight) pairs whose weighted sum of the
+    /// pixels' radiance is the texel's energy, and the share of the texel the probe sees.
+    weights: Vec<Vec<(u32, f64)>>,
+    coverage: Vec<f32>,
+}
 
-    let texels: Vec<(Vec3, f32)> = (0..width as usize * height as usize)
-        .into_par_iter()
-        .map(|i| {
-            let (x, y) = ((i % width as usize) as u32, (i / width as usize) as u32);
-            let mut energy = DVec3::ZERO;
-            let mut seen = 0.0f64;
-            let total = sampler.for_each_sample(x, y, |sample| {
-                if sample.seen {
-                    seen += sample.solid_angle;
-                    for (p, w) in sample.taps.into_iter().flatten() {
-                        energy += scaled_radiance[p] * (w * sample.solid_angle);
+impl ProbeResampler {
+    pub fn new(
+        lens: &KannalaBrandt,
+        world_from_probe: &Pose,
+        settings: &EnvMapSettings,
+    ) -> Result<Self, EnvMapError> {
+        lens.validate()?;
+        let (width, height) = (settings.width, settings.height);
+        if width == 0 || height == 0 {
+            return Err(EnvMapError::EmptyMap { width, height });
+        }
+        let fov = settings.field_of_view_deg;
+        if !(fov > 0.0 && fov <= 360.0) {
+            return Err(EnvMapError::FieldOfView(fov));
+        }
+        let factor = downsampling_factor(lens, height);
+        let filtered_lens = if factor > 1 {
+            filtered_lens(lens, factor)
+        } else {
+            *lens
+        };
+        let sampler = Sampler::new(&filtered_lens, world_from_probe, settings, fov);
+        let pixel_solid_angle = pixel_solid_angles(&filtered_lens);
+
+        let rows: Vec<u32> = (0..height).collect();
+        let chunk = (height as usize)
+            .div_ceil(4 * rayon::current_num_threads().max(1))
+            .max(1);
+        let pixels = pixel_solid_angle.len();
+        let reached = rows
+            .par_chunks(chunk)
+            .map(|rows| {
+                let mut weights = vec![0.0f64; pixels];
+                for &y in rows {
+                    for x in 0..width {
+                        sampler.for_each_sample(x, y, |sample| {
+                            for (p, w) in sample.taps.into_iter().flatten() {
+                                weights[p] += w * sample.solid_angle;
+                            }
+                        });
                     }
                 }
-            });
-            let texel = texel_solid_angle(width, height, y);
-            let radiance = (energy / texel).as_vec3();
-            let coverage = if total > 0.0 { seen / total } else { 0.0 };
-            (sanitized(radiance), coverage.clamp(0.0, 1.0) as f32)
-        })
-        .collect();
-    let (radiance, coverage) = texels.into_iter().unzip();
-    Ok(ProbeEnvironment {
-        map: EnvironmentMap {
+                weights
+            })
+            .reduce(
+                || vec![0.0f64; pixels],
+                |mut a, b| {
+                    for (x, y) in a.iter_mut().zip(b) {
+                        *x += y;
+                    }
+                    a
+                },
+            );
+        let renormalisation: Vec<f64> = pixel_solid_angle
+            .iter()
+            .zip(&reached)
+            .map(|(&solid_angle, &w)| {
+                if solid_angle > 0.0 && w > 0.0 {
+                    (solid_angle / w).min(MAX_RENORMALISATION)
+                } else {
+                    1.0
+                }
+            })
+            .collect();
+
+        let texels: Vec<(Vec<(u32, f64)>, f32)> = (0..width as usize * height as usize)
+            .into_par_iter()
+            .map(|i| {
+                let (x, y) = ((i % width as usize) as u32, (i / width as usize) as u32);
+                let mut taps: Vec<(u32, f64)> = Vec::new();
+                let mut seen = 0.0f64;
+                let total = sampler.for_each_sample(x, y, |sample| {
+                    if sample.seen {
+                        seen += sample.solid_angle;
+                        for (p, w) in sample.taps.into_iter().flatten() {
+                            taps.push((p as u32, renormalisation[p] * w * sample.solid_angle));
+                        }
+                    }
+                });
+                taps.sort_unstable_by_key(|&(p, _)| p);
+                let mut merged: Vec<(u32, f64)> = Vec::with_capacity(taps.len().min(64));
+                for (p, w) in taps {
+                    match merged.last_mut() {
+                        Some((last, sum)) if *last == p => *sum += w,
+                        _ => merged.push((p, w)),
+                    }
+                }
+                merged.shrink_to_fit();
+                let coverage = if total > 0.0 { seen / total } else { 0.0 };
+                (merged, coverage.clamp(0.0, 1.0) as f32)
+            })
+            .collect();
+        let (weights, coverage) = texels.into_iter().unzip();
+        Ok(Self {
+            lens: *lens,
+            factor,
+            filtered_lens,
             width,
             height,
-            radiance,
-        },
-        coverage,
-    })
+            weights,
+            coverage,
+        })
+    }
+
+    /// The environment map of one merged probe image (as [`probe_to_environment`]).
+    pub fn resample(&self, hdr: &HdrImage) -> Result<ProbeEnvironment, EnvMapError> {
+        let lens = &self.lens;
+        if (hdr.width, hdr.height) != (lens.width, lens.height)
+            || hdr.radiance.len() != hdr.width as usize * hdr.height as usize
+        {
+            return Err(EnvMapError::ProbeSize {
+                width: hdr.width,
+                height: hdr.height,
+                len: hdr.radiance.len(),
+                lens_width: lens.width,
+                lens_height: lens.height,
+            });
+        }
+        let filtered;
+        let hdr = if self.factor > 1 {
+            filtered = box_filtered(hdr, &self.filtered_lens, self.factor);
+            &filtered
+        } else {
+            hdr
+        };
+        let radiance: Vec<DVec3> = hdr
+            .radiance
+            .iter()
+            .map(|&l| sanitized(l).as_dvec3())
+            .collect();
+        let (width, height) = (self.width, self.height);
+        let radiance = self
+            .weights
+            .par_iter()
+            .enumerate()
+            .map(|(i, taps)| {
+                let energy = taps
+                    .iter()
+                    .fold(DVec3::ZERO, |sum, &(p, w)| sum + radiance[p as usize] * w);
+                let texel = texel_solid_angle(width, height, (i / width as usize) as u32);
+                sanitized((energy / texel).as_vec3())
+            })
+            .collect();
+        Ok(ProbeEnvironment {
+            map: EnvironmentMap {
+                width,
+                height,
+                radiance,
+            },
+            coverage: self.coverage.clone(),
+        })
+    }
 }
 
 /// Most probe pixels a texel may span (along θ) before the probe image is box-filtered.
@@ -299,15 +370,21 @@ fn downsampling_factor(lens: &KannalaBrandt, height: u32) -> u32 {
     (factor as u32).min(lens.width.min(lens.height).max(1))
 }
 
-/// The image box-filtered by `factor` (each pixel the mean of `factor²`, which keeps
-/// `Σ L ΔΩ`), cropped to a multiple of `factor`, and the lens that sees it.
-fn box_filtered(hdr: &HdrImage, lens: &KannalaBrandt, factor: u32) -> (HdrImage, KannalaBrandt) {
+/// The lens that sees the image box-filtered by `factor` ([`box_filtered`]).
+fn filtered_lens(lens: &KannalaBrandt, factor: u32) -> KannalaBrandt {
     let (width, height) = (lens.width / factor, lens.height / factor);
     let cropped = KannalaBrandt {
         width: width * factor,
         height: height * factor,
         ..*lens
     };
+    cropped.resized(width, height)
+}
+
+/// The image box-filtered by `factor` into `filtered`'s size (each pixel the mean of
+/// `factor²`, which keeps `Σ L ΔΩ`), cropped to a multiple of `factor`.
+fn box_filtered(hdr: &HdrImage, filtered: &KannalaBrandt, factor: u32) -> HdrImage {
+    let (width, height) = (filtered.width, filtered.height);
     let k = factor as usize;
     let old_width = hdr.width as usize;
     let radiance = (0..width as usize * height as usize)
@@ -324,13 +401,12 @@ fn box_filtered(hdr: &HdrImage, lens: &KannalaBrandt, factor: u32) -> (HdrImage,
             (sum / (k * k) as f64).as_vec3()
         })
         .collect();
-    let filtered = HdrImage {
+    HdrImage {
         width,
         height,
         radiance,
         saturated: vec![false; width as usize * height as usize],
-    };
-    (filtered, cropped.resized(width, height))
+    }
 }
 
 /// Bilinear taps: up to four (pixel index, weight).

@@ -1,6 +1,6 @@
 //! The light probe's estimate, frame by frame: collect one bracket of exposures, merge it to HDR
 //! ([`crate::hdr::merge`], Robertson), resample it into a world-direction environment map through
-//! the calibrated lens and pose ([`crate::envmap::probe_to_environment`]), split it into lights
+//! the calibrated lens and pose ([`crate::envmap::ProbeResampler`], made once: the lens and pose are fixed), split it into lights
 //! ([`crate::median_cut::extract_lights`]) and project it to SH9
 //! ([`crate::irradiance::project_sh9`]).
 //!
@@ -22,7 +22,7 @@ use relight_core::scene::EnvironmentMap;
 use relight_core::sh::Sh9Rgb;
 use relight_core::{Frame, Pose, ProbeImage, Timestamp};
 
-use crate::envmap::{EnvMapError, EnvMapSettings, probe_to_environment, texel_direction};
+use crate::envmap::{EnvMapError, EnvMapSettings, ProbeResampler, texel_direction};
 use crate::hdr::{HdrError, Response, merge};
 use crate::irradiance::project_sh9;
 use crate::median_cut::{MedianCutSettings, extract_lights};
@@ -104,6 +104,8 @@ pub struct ProbeLighting {
     vignetting: Option<Vignetting>,
     /// Where the tracked lights were (host time, ns; world position) over the last brackets.
     tracked: Vec<(u64, Vec3)>,
+    /// The lens and pose's resampling into the map, made on the first estimate.
+    resampler: std::sync::OnceLock<ProbeResampler>,
 }
 
 /// How far (host time) around a bracket's frames a tracked light's report still masks: a lamp
@@ -134,6 +136,7 @@ impl ProbeLighting {
             cycle: None,
             vignetting,
             tracked: Vec::new(),
+            resampler: std::sync::OnceLock::new(),
         })
     }
 
@@ -275,13 +278,15 @@ impl ProbeLighting {
                 *l *= scale;
             }
         }
-        let mut environment = probe_to_environment(
-            &hdr,
-            &self.lens,
-            &self.world_from_probe,
-            &self.settings.envmap,
-        )?
-        .map;
+        let resampler = match self.resampler.get() {
+            Some(resampler) => resampler,
+            None => {
+                let made =
+                    ProbeResampler::new(&self.lens, &self.world_from_probe, &self.settings.envmap)?;
+                self.resampler.get_or_init(|| made)
+            }
+        };
+        let mut environment = resampler.resample(&hdr)?.map;
         self.mask_tracked_lights(&mut environment);
         let lights = extract_lights(&environment, &self.settings.lights)?
             .iter()
