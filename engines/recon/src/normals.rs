@@ -20,6 +20,8 @@ use crate::depth::{DepthError, DepthMap, is_valid_depth};
 /// pixel. Built once per camera; the GPU port uploads the same table.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PixelRays {
+    /// The camera the rays are of.
+    pub camera: Pinhole,
     pub width: u32,
     pub height: u32,
     pub rays: Vec<Option<Vec2>>,
@@ -38,6 +40,7 @@ impl PixelRays {
             })
             .collect();
         Self {
+            camera: *camera,
             width: w,
             height: h,
             rays,
