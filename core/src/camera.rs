@@ -726,6 +726,11 @@ impl Poly {
     /// an interval is positive, so is `p` there (convex-hull property); intervals where that is
     /// inconclusive are halved a few times (de Casteljau) before falling back to root finding.
     fn positive_on(&self, s_max: f64) -> bool {
+        // No negative coefficient and a positive constant: positive on all of [0, ∞) (a lens
+        // without distortion, per point of every projection).
+        if s_max >= 0.0 && self.coeffs[0] > 0.0 && self.coeffs[1..].iter().all(|&c| c >= 0.0) {
+            return true;
+        }
         let mut budget = 16;
         match self.bernstein_positive_on(0.0, s_max, &mut budget) {
             Some(positive) => positive,
