@@ -584,6 +584,9 @@ struct Ibl {
     params: vec4<f32>,
     // Phong exponents of the specular levels (8 at most), in order.
     shininess: array<vec4<f32>, 2>,
+    // The pixels the shading pass covers, first (xy) to last + 1 (zw): the image, or the
+    // pixels the object can change (`Deferred::real_pixels`), which hold its own.
+    region: vec4<u32>,
 }
 
 // Octahedral map (Engelhardt & Dachsbacher 2008): the unit sphere folded onto [0, 1]², +Z at

@@ -72,10 +72,11 @@ fn occlusion(p: vec3<f32>, n: vec3<f32>) -> f32 {
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
-    if id.x >= ibl.frame.x || id.y >= ibl.frame.y {
+    let pixel = id.xy + ibl.region.xy;
+    if pixel.x >= ibl.region.z || pixel.y >= ibl.region.w {
         return;
     }
-    let xy = vec2<i32>(id.xy);
+    let xy = vec2<i32>(pixel);
     let p = textureLoad(gb_position, xy, 0);
     let nv = textureLoad(gb_normal, xy, 0);
     if p.w < 0.5 || nv.w < 0.5 {
@@ -89,5 +90,5 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         let r = reflect(-wo, n);
         l_o += m.specular.rgb * map_lookup(1u + level_of(m.albedo.w), r) * max(dot(n, r), 0.0);
     }
-    indirect[id.y * ibl.frame.x + id.x] = vec4<f32>(l_o, 0.0);
+    indirect[pixel.y * ibl.frame.x + pixel.x] = vec4<f32>(l_o, 0.0);
 }

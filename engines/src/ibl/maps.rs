@@ -43,6 +43,7 @@ pub struct IblUniform {
     pub frame: [u32; 4],
     pub params: [f32; 4],
     pub shininess: [f32; MAX_LEVELS],
+    pub region: [u32; 4],
 }
 
 /// The unit direction at `uv` ∈ [0, 1]² of an octahedral map (`oct_decode` in the shaders).

@@ -41,6 +41,7 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
+use crate::shadow_reach::PixelRect;
 use crate::volume::{timed_pass, uniform_buffer};
 use local_probe::local_probe;
 use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, log_spaced_shininess, resample};
@@ -435,6 +436,12 @@ impl Engine for Ibl {
         if has_maps {
             let started = Instant::now();
             let ctx = self.deferred.ctx().clone();
+            // Only the object's pixels are shaded here, and they lie within the pixels it can
+            // change.
+            let region = self
+                .deferred
+                .real_pixels()
+                .unwrap_or(PixelRect::full(width, height));
             let mut uniform = IblUniform {
                 dims: [self.maps.size(), self.maps.shininess().len() as u32, 0, 0],
                 frame: [
@@ -445,6 +452,12 @@ impl Engine for Ibl {
                 ],
                 params: [s.shadow_bias, 0.0, 0.0, 0.0],
                 shininess: [0.0; MAX_LEVELS],
+                region: [
+                    region.x,
+                    region.y,
+                    region.x + region.width,
+                    region.y + region.height,
+                ],
             };
             uniform.shininess[..self.maps.shininess().len()].copy_from_slice(self.maps.shininess());
             ctx.queue
@@ -484,14 +497,13 @@ impl Engine for Ibl {
                 pass: "ibl_shade",
                 // Per pixel the G-buffer read and the result written, the diffuse and one
                 // specular map read bilinearly (8 texels of 16 bytes), about 300 operations.
-                work: Work::new(32.0 + 16.0 + 8.0 * 16.0, 300.0)
-                    .times(f64::from(width) * f64::from(height)),
+                work: Work::new(32.0 + 16.0 + 8.0 * 16.0, 300.0).times(region.area() as f64),
             });
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.ibl_shade");
                 pass.set_pipeline(&self.shade);
                 pass.set_bind_group(0, &group, &[]);
-                pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
+                pass.dispatch_workgroups(region.width.div_ceil(8), region.height.div_ceil(8), 1);
             }
             ctx.queue.submit([encoder.finish()]);
             ctx.check()?;
