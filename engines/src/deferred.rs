@@ -669,10 +669,16 @@ impl Deferred {
             }
             _ => None,
         };
-        // The shading pass covers every pixel drawn in since the running mean began, so that
-        // each one's mean takes every frame's sample.
+        // A running mean shades one region on all its frames, so that every pixel's mean takes
+        // every frame's sample and no pixel outside it is read: the first frame's rectangle
+        // grown by two pixels, which holds each later frame's (their sub-pixel offsets move a
+        // projection by less than one pixel, and the rectangle's rounding by one more).
         self.real_pixels = match (real_pixels, self.real_pixels) {
-            (Some(rect), Some(before)) if self.sample.index > 0 => Some(rect.union(before)),
+            (Some(rect), Some(held)) if self.sample.index > 0 => {
+                debug_assert!(held.contains(rect), "{rect:?} outside the mean's {held:?}");
+                Some(held)
+            }
+            (Some(rect), _) if self.sample.write => Some(rect.grown(2, width, height)),
             _ => real_pixels,
         };
 
@@ -778,10 +784,6 @@ impl Deferred {
             self.rsm_drawn = Some(drawn);
         }
         encoder.clear_buffer(&frame_res.indirect, 0, None);
-        if self.real_pixels.is_some() && self.sample.write && self.sample.index == 0 {
-            // A new mean: the pixels it never shades must read 0 when a later frame does.
-            encoder.clear_buffer(&frame_res.history, 0, None);
-        }
         ctx.queue.submit([encoder.finish()]);
         ctx.check()?;
         out.timings.push(PassTiming {
@@ -1216,7 +1218,7 @@ impl FrameResources {
             delta: buffer("delta", pixels * 8, U::STORAGE | U::COPY_SRC),
             composite: buffer("composite", pixels * 4, U::STORAGE | U::COPY_SRC),
             staging: buffer("frame staging", pixels * 12, U::MAP_READ | U::COPY_DST),
-            history: buffer("accumulated", pixels * 32, U::STORAGE | U::COPY_DST),
+            history: buffer("accumulated", pixels * 32, U::STORAGE),
         }
     }
 }

@@ -57,17 +57,23 @@ impl PixelRect {
         u64::from(self.width) * u64::from(self.height)
     }
 
-    /// The smallest rectangle holding both.
-    pub fn union(self, other: Self) -> Self {
+    /// Whether every pixel of `other` is in this rectangle.
+    pub fn contains(&self, other: Self) -> bool {
+        other.is_empty()
+            || (other.x >= self.x
+                && other.y >= self.y
+                && other.x + other.width <= self.x + self.width
+                && other.y + other.height <= self.y + self.height)
+    }
+
+    /// The rectangle grown by `by` pixels on every side, within a `width` × `height` image.
+    pub fn grown(self, by: u32, width: u32, height: u32) -> Self {
         if self.is_empty() {
-            return other;
-        }
-        if other.is_empty() {
             return self;
         }
-        let (x, y) = (self.x.min(other.x), self.y.min(other.y));
-        let right = (self.x + self.width).max(other.x + other.width);
-        let bottom = (self.y + self.height).max(other.y + other.height);
+        let (x, y) = (self.x.saturating_sub(by), self.y.saturating_sub(by));
+        let right = (self.x + self.width + by).min(width);
+        let bottom = (self.y + self.height + by).min(height);
         Self {
             x,
             y,
