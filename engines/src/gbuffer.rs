@@ -407,7 +407,10 @@ impl GBufferPass {
             timer.and_then(|t| t.render("gpu.gbuffer")),
         );
         let (texels, texel_bytes) = (mu.layer_texels(), mu.texel_bytes());
-        roofline::raster(scene.real_indices, texels, texel_bytes)
+        // Within a rectangle, the real triangles that can cover it and its texels are the work.
+        let (real_corners, real_texels) =
+            real_within.map_or((scene.real_indices, texels), |w| (w.count, w.rect.area()));
+        roofline::raster(real_corners, real_texels, texel_bytes)
             + roofline::copy(texels * texel_bytes)
             + roofline::raster(scene.all_indices - scene.real_indices, 0, 0)
     }
