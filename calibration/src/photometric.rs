@@ -410,14 +410,7 @@ fn regularised(raw: &[f32], counts: &[u32; RESPONSE_LEN]) -> Result<Vec<f32>, Ph
     Ok(table)
 }
 
-/// A rectangle of pixels: columns `x..x + width`, rows `y..y + height`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct PixelRect {
-    pub x: u32,
-    pub y: u32,
-    pub width: u32,
-    pub height: u32,
-}
+pub use relight_core::PixelRect;
 
 /// Rec. 709 luminance weights: the reference patch's radiance is compared with the luminance of
 /// the merged RGB.

@@ -406,6 +406,61 @@ impl Image {
     }
 }
 
+/// A rectangle of pixels: columns `x..x + width`, rows `y..y + height` (no pixel when either is
+/// 0).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PixelRect {
+    pub x: u32,
+    pub y: u32,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl PixelRect {
+    /// Every pixel of a `width` × `height` image.
+    pub fn full(width: u32, height: u32) -> Self {
+        Self {
+            x: 0,
+            y: 0,
+            width,
+            height,
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.width == 0 || self.height == 0
+    }
+
+    pub fn area(&self) -> u64 {
+        u64::from(self.width) * u64::from(self.height)
+    }
+
+    /// Whether every pixel of `other` is in this rectangle.
+    pub fn contains(&self, other: Self) -> bool {
+        other.is_empty()
+            || (other.x >= self.x
+                && other.y >= self.y
+                && other.x + other.width <= self.x + self.width
+                && other.y + other.height <= self.y + self.height)
+    }
+
+    /// The rectangle grown by `by` pixels on every side, within a `width` × `height` image.
+    pub fn grown(self, by: u32, width: u32, height: u32) -> Self {
+        if self.is_empty() {
+            return self;
+        }
+        let (x, y) = (self.x.saturating_sub(by), self.y.saturating_sub(by));
+        let right = (self.x + self.width + by).min(width);
+        let bottom = (self.y + self.height + by).min(height);
+        Self {
+            x,
+            y,
+            width: right - x,
+            height: bottom - y,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -18,6 +18,6 @@ pub mod srgb;
 pub mod stream;
 pub mod sync;
 
-pub use frame::{Frame, Image, ImageError, PixelFormat, Pixels, Timestamp};
+pub use frame::{Frame, Image, ImageError, PixelFormat, PixelRect, Pixels, Timestamp};
 pub use pose::Pose;
 pub use stream::{LampState, MarkerDetection, MarkerSet, ProbeImage, StreamKind, StreamMessage};

@@ -11,7 +11,7 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec2, Vec4};
 use relight_core::light::Light;
 use relight_core::scene::{Scene, SceneCamera};
-use relight_core::{Image, PixelFormat};
+use relight_core::{Image, PixelFormat, PixelRect};
 use wgpu::util::DeviceExt;
 
 use crate::change::{self, camera_still};
@@ -24,7 +24,7 @@ use crate::gpu_scene::{
 use crate::params::ParamSpec;
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
-use crate::shadow_reach::{self, PixelRect};
+use crate::shadow_reach;
 use crate::timer::GpuTimer;
 
 #[repr(C)]

@@ -2,11 +2,12 @@
 //! reflective shadow maps, both rasterised from the [`GpuScene`] in a ρ variant (every mesh) and
 //! a μ variant (real meshes only).
 
+use relight_core::PixelRect;
+
 use crate::gpu::GpuContext;
 use crate::gpu_scene::{GpuScene, GpuVertex};
 use crate::roofline::{self, Work};
 use crate::shaders;
-use crate::shadow_reach::PixelRect;
 use crate::timer::GpuTimer;
 
 const POSITION: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;

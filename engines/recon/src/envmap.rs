@@ -311,18 +311,7 @@ impl ProbeResampler {
 
     /// The environment map of one merged probe image (as [`probe_to_environment`]).
     pub fn resample(&self, hdr: &HdrImage) -> Result<ProbeEnvironment, EnvMapError> {
-        let lens = &self.lens;
-        if (hdr.width, hdr.height) != (lens.width, lens.height)
-            || hdr.radiance.len() != hdr.width as usize * hdr.height as usize
-        {
-            return Err(EnvMapError::ProbeSize {
-                width: hdr.width,
-                height: hdr.height,
-                len: hdr.radiance.len(),
-                lens_width: lens.width,
-                lens_height: lens.height,
-            });
-        }
+        check_probe_size(hdr, &self.lens)?;
         let filtered;
         let hdr = if self.factor > 1 {
             filtered = box_filtered(hdr, &self.filtered_lens, self.factor);
@@ -357,6 +346,22 @@ impl ProbeResampler {
             coverage: self.coverage.clone(),
         })
     }
+}
+
+/// That `hdr` is the size of the image `lens` sees, and holds a value per pixel.
+fn check_probe_size(hdr: &HdrImage, lens: &KannalaBrandt) -> Result<(), EnvMapError> {
+    if (hdr.width, hdr.height) != (lens.width, lens.height)
+        || hdr.radiance.len() != hdr.width as usize * hdr.height as usize
+    {
+        return Err(EnvMapError::ProbeSize {
+            width: hdr.width,
+            height: hdr.height,
+            len: hdr.radiance.len(),
+            lens_width: lens.width,
+            lens_height: lens.height,
+        });
+    }
+    Ok(())
 }
 
 /// Most probe pixels a texel may span (along θ) before the probe image is box-filtered.
@@ -577,17 +582,7 @@ pub fn probe_energy(
     field_of_view_deg: f64,
 ) -> Result<Vec3, EnvMapError> {
     lens.validate()?;
-    if (hdr.width, hdr.height) != (lens.width, lens.height)
-        || hdr.radiance.len() != hdr.width as usize * hdr.height as usize
-    {
-        return Err(EnvMapError::ProbeSize {
-            width: hdr.width,
-            height: hdr.height,
-            len: hdr.radiance.len(),
-            lens_width: lens.width,
-            lens_height: lens.height,
-        });
-    }
+    check_probe_size(hdr, lens)?;
     let cos_half_fov = (field_of_view_deg / 2.0).to_radians().cos();
     let width = lens.width as usize;
     let solid_angles = pixel_solid_angles(lens);

@@ -30,6 +30,7 @@ pub mod maps;
 use std::sync::Arc;
 use std::time::Instant;
 
+use relight_core::PixelRect;
 use relight_core::light::Light;
 use relight_core::scene::{EnvironmentMap, Scene};
 use serde_json::{Map, Value};
@@ -41,7 +42,6 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
-use crate::shadow_reach::PixelRect;
 use crate::volume::{timed_pass, uniform_buffer};
 use local_probe::local_probe;
 use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, log_spaced_shininess, resample};
