@@ -328,7 +328,6 @@ pub struct Deferred {
     sample: Sample,
     frame: Option<FrameResources>,
     light: Option<LightResources>,
-    /// [`Self::rsm_keys`] of what `light`'s maps hold, once drawn.
     /// What each light's μ and ρ maps were last drawn from ([`Self::rsm_keys`]).
     rsm_drawn: Option<Vec<[u64; 2]>>,
     light_count: u32,
@@ -355,7 +354,8 @@ pub struct Deferred {
     /// The engine adds nothing but direct light to a real pixel's Δ
     /// ([`set_real_direct_only`](Self::set_real_direct_only)).
     real_direct_only: bool,
-    /// The pixels this frame's real meshes were drawn in, when not all.
+    /// The pixels the shading covers, when not all: the object's reach, or a running mean's
+    /// region (`prepare`). The real meshes are drawn within this frame's own reach.
     real_pixels: Option<PixelRect>,
     /// The real triangles that can cover them ([`shadow_reach::triangles_within`]), and the
     /// buffer they are uploaded to.
@@ -437,8 +437,8 @@ impl Deferred {
         self.real_direct_only = true;
     }
 
-    /// The pixels the last frame's real meshes were drawn in (after [`prepare`](Self::prepare)),
-    /// when [`set_real_direct_only`](Self::set_real_direct_only) limited them.
+    /// The pixels the last frame shaded (after [`prepare`](Self::prepare)), when
+    /// [`set_real_direct_only`](Self::set_real_direct_only) limited them to the object's reach.
     pub fn real_pixels(&self) -> Option<PixelRect> {
         self.real_pixels
     }

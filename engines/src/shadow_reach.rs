@@ -11,9 +11,10 @@
 //! point lies in the real meshes' bounds `A`, so the pixels that may hold a nonzero Δ lie in the
 //! camera's projection of C ∩ A for some light, or of the object itself (whose own pixels read
 //! the μ G-buffer behind it). [`reach_rect`] bounds that projection by a pixel rectangle; the
-//! μ G-buffer's real meshes are rasterised inside it alone (a scissor), and every real pixel
-//! outside it is empty, which the shading pass composites as the camera's own picture, exactly
-//! what it computed for those pixels before (`differential::tests`).
+//! μ G-buffer's real meshes are rasterised inside it alone (a scissor, and only the triangles
+//! [`triangles_within`] keeps), the shading passes run over it alone, and every pixel outside it
+//! shows the camera's own picture with Δ = 0: exactly what the full passes computed there (the
+//! tests below, bit for bit).
 //!
 //! The bound is conservative at each step: C truncated where it leaves A (the far end of the
 //! cone at the distance of A's farthest corner from the light), its axis-aligned box
