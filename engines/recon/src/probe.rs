@@ -1,8 +1,8 @@
 //! The light probe's estimate, frame by frame: collect one bracket of exposures, merge it to HDR
 //! ([`crate::hdr::merge`], Robertson), resample it into a world-direction environment map through
-//! the calibrated lens and pose ([`crate::envmap::ProbeResampler`], made once: the lens and pose are fixed), split it into lights
-//! ([`crate::median_cut::extract_lights`]) and project it to SH9
-//! ([`crate::irradiance::project_sh9`]).
+//! the calibrated lens and pose ([`crate::envmap::ProbeResampler`], made once: the lens and its
+//! pose are fixed), split it into lights ([`crate::median_cut::extract_lights`]) and project it
+//! to SH9 ([`crate::irradiance::project_sh9`]).
 //!
 //! Brackets: the probe cycles through its exposures, one per frame. The newest frame of each
 //! exposure is kept. The cycle's length is learned from the stream: it is the number of
