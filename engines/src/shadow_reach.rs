@@ -89,12 +89,18 @@ fn grown_object(
 
 /// The bounds of C ∩ A for one light (module doc).
 fn reach_bounds(light: &GpuLight, (lo, hi): (Vec3, Vec3), real: (Vec3, Vec3)) -> Reach {
+    if !(Vec4::from(light.position).is_finite() && Vec4::from(light.direction).is_finite()) {
+        return Reach::Everywhere;
+    }
     let corners = box_corners((lo, hi));
     let whole = (lo.min(real.0), hi.max(real.1));
     let mut points = corners.to_vec();
     if light.position[3] as u32 == KIND_DIRECTIONAL {
         // Past the diagonal of everything, a point swept along the light has left A.
-        let travel = Vec4::from(light.direction).xyz().normalize_or_zero();
+        let Some(travel) = Vec4::from(light.direction).xyz().try_normalize() else {
+            // No direction (never a valid light): the shading's ray test is then no bound.
+            return Reach::Everywhere;
+        };
         let reach = (whole.1 - whole.0).length() * 1.01;
         points.extend(corners.iter().map(|&b| b + travel * reach));
     } else {
@@ -494,21 +500,25 @@ pub(crate) mod tests {
         }
     }
 
-    /// A light inside the object, or a real scene around the camera, reaches every pixel.
+    /// A light inside the object, a directional light without a direction, or a light that is
+    /// not finite, reaches every pixel: the shading's ray test bounds nothing there.
     #[test]
-    fn a_light_inside_the_object_reaches_everywhere() {
+    fn a_light_inside_the_object_or_malformed_reaches_everywhere() {
         let object = (Vec3::splat(-0.1), Vec3::splat(0.1));
         let room = (Vec3::splat(-5.0), Vec3::splat(5.0));
-        let rect = reach_rect(
-            camera(),
-            (320, 240),
-            &[point_light(Vec3::ZERO)],
-            &[face()],
-            512,
-            object,
-            room,
-        );
-        assert_eq!(rect, PixelRect::full(320, 240));
+        let directional = GpuLight {
+            position: [0.0, 0.0, 0.0, KIND_DIRECTIONAL as f32],
+            direction: [0.0; 4],
+            ..point_light(Vec3::ZERO)
+        };
+        for light in [
+            point_light(Vec3::ZERO),
+            directional,
+            point_light(Vec3::new(f32::NAN, 1.0, 0.0)),
+        ] {
+            let rect = reach_rect(camera(), (320, 240), &[light], &[face()], 512, object, room);
+            assert_eq!(rect, PixelRect::full(320, 240), "{light:?}");
+        }
     }
 
     /// A box reaching behind the camera is clipped at its near plane, not mirrored: the
