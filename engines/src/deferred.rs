@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
-use glam::{Mat4, Vec2, Vec4};
+use glam::{Mat4, Vec2, Vec3, Vec4};
 use relight_core::light::Light;
 use relight_core::scene::{Scene, SceneCamera};
 use relight_core::{Image, PixelFormat, PixelRect};
@@ -347,13 +347,13 @@ pub struct Deferred {
     derived_light_count: u32,
     timer: Option<GpuTimer>,
     /// Whether the shade pass skips a real pixel's shadow-map lookups where the virtual object
-    /// cannot shadow it (`may_shadow` in shade.wgsl), and (with [`Self::real_direct_only`])
-    /// draws the real meshes into the G-buffer only where it can; off only to test that it
-    /// changes nothing.
+    /// cannot shadow it (`may_shadow` in shade.wgsl), and (with [`Self::real_indirect`] other
+    /// than `Anywhere`) draws the real meshes into the G-buffer only where it can; off only to
+    /// test that it changes nothing.
     shadow_reach_cull: bool,
-    /// The engine adds nothing but direct light to a real pixel's Δ
-    /// ([`set_real_direct_only`](Self::set_real_direct_only)).
-    real_direct_only: bool,
+    /// Where the engine's indirect term can be nonzero on real pixels
+    /// ([`set_real_indirect`](Self::set_real_indirect)).
+    real_indirect: RealIndirect,
     /// The pixels the shading covers, when not all: the object's reach, or a running mean's
     /// region (`prepare`). The real meshes are drawn within this frame's own reach.
     real_pixels: Option<PixelRect>,
@@ -364,6 +364,19 @@ pub struct Deferred {
 }
 
 const MAX_LAYERS: u32 = 64;
+
+/// Where an engine's indirect term can be nonzero on real pixels
+/// ([`Deferred::set_real_indirect`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RealIndirect {
+    /// Anywhere (bounced light can reach any real surface).
+    Anywhere,
+    /// Nowhere (`differential`, `ibl`): a real pixel's Δ is its direct term alone.
+    Nowhere,
+    /// Only at points within these world bounds (`dlpv`: its volume, beyond which its lookup
+    /// reads nothing).
+    Within((Vec3, Vec3)),
+}
 
 /// The `env_lights` parameter of the engines that light a scene file's environment map with
 /// directional lights cut from it (`differential`, `dlpv`, `dvct`): how many, each with its own
@@ -421,7 +434,7 @@ impl Deferred {
             derived_light_count: 8,
             timer: GpuTimer::new(&ctx),
             shadow_reach_cull: true,
-            real_direct_only: false,
+            real_indirect: RealIndirect::Anywhere,
             real_pixels: None,
             camera_triangles: Vec::new(),
             camera_triangle_buffer: None,
@@ -429,16 +442,18 @@ impl Deferred {
         }
     }
 
-    /// For an engine that adds no indirect light to real pixels (`differential`, `ibl`): a real
-    /// pixel's Δ is then nonzero only where the virtual object can shadow it, so the real
-    /// meshes are drawn into the camera's G-buffers only within the pixels that can hold such
-    /// a point or the object ([`shadow_reach`](crate::shadow_reach)). The picture is the same.
-    pub fn set_real_direct_only(&mut self) {
-        self.real_direct_only = true;
+    /// Where the engine's indirect term can be nonzero on real pixels, from the next
+    /// [`prepare`](Self::prepare) on. Unless it is `Anywhere`, a real pixel's Δ is nonzero only
+    /// where the virtual object can shadow it or that term reaches, so the real meshes are drawn
+    /// into the camera's G-buffers, and the shading runs, only within the pixels that can hold
+    /// such a point or the object ([`shadow_reach`](crate::shadow_reach)). The picture is the
+    /// same.
+    pub fn set_real_indirect(&mut self, reach: RealIndirect) {
+        self.real_indirect = reach;
     }
 
     /// The pixels the last frame shaded (after [`prepare`](Self::prepare)), when
-    /// [`set_real_direct_only`](Self::set_real_direct_only) limited them to the object's reach.
+    /// [`set_real_indirect`](Self::set_real_indirect) limited them to the object's reach.
     pub fn real_pixels(&self) -> Option<PixelRect> {
         self.real_pixels
     }
@@ -655,15 +670,21 @@ impl Deferred {
         let camera = camera_uniform(&camera, width, height, bounds).jittered(self.sample.offset_px);
         ctx.queue
             .write_buffer(&self.camera, 0, bytemuck::bytes_of(&camera));
+        let indirect: &[(Vec3, Vec3)] = match &self.real_indirect {
+            RealIndirect::Within(b) => std::slice::from_ref(b),
+            _ => &[],
+        };
         let real_pixels = match gpu_scene.virtual_bounds {
-            Some(object) if self.real_direct_only && self.shadow_reach_cull => {
+            Some(object)
+                if self.real_indirect != RealIndirect::Anywhere && self.shadow_reach_cull =>
+            {
                 Some(shadow_reach::reach_rect(
                     Mat4::from_cols_array_2d(&camera.view_proj),
                     (width, height),
                     &self.lights_cpu,
                     &self.faces_cpu,
                     sizes.shadow,
-                    object,
+                    (object, indirect),
                     bounds,
                 ))
             }

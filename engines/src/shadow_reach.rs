@@ -34,17 +34,19 @@ const KIND_DIRECTIONAL: u32 = 2;
 
 /// The pixels of a `width` × `height` image drawn with `view_proj` where the object (bounds
 /// `object`) can change a real point's direct light from any of `lights` (shadow maps of
-/// `shadow_size`² texels per face), the real points lying in `real` (bounds).
+/// `shadow_size`² texels per face), the real points lying in `real` (bounds), or where a point
+/// of one of the boxes `also` (an engine's indirect term's reach) may be seen.
 pub fn reach_rect(
     view_proj: Mat4,
     (width, height): (u32, u32),
     lights: &[GpuLight],
     faces: &[GpuFace],
     shadow_size: u32,
-    object: (Vec3, Vec3),
+    (object, also): ((Vec3, Vec3), &[(Vec3, Vec3)]),
     real: (Vec3, Vec3),
 ) -> PixelRect {
     let mut boxes = vec![object];
+    boxes.extend_from_slice(also);
     for light in lights {
         let grown = grown_object(light, faces, shadow_size, object);
         match reach_bounds(light, grown, real) {
@@ -257,6 +259,7 @@ pub(crate) mod tests {
     use super::*;
     use crate::deferred::Deferred;
     use crate::differential::Differential;
+    use crate::dlpv::Dlpv;
     use crate::engine::{Engine, RelitFrame, SceneFrame};
     use crate::gpu::GpuContext;
     use crate::ibl::Ibl;
@@ -331,6 +334,7 @@ pub(crate) mod tests {
         let engine = |name: &str| -> Box<dyn WithDeferred> {
             match name {
                 "ibl" => Box::new(Ibl::new(ctx.clone()).unwrap()),
+                "dlpv" => Box::new(Dlpv::new(ctx.clone()).unwrap()),
                 _ => Box::new(Differential::new(ctx.clone()).unwrap()),
             }
         };
@@ -340,6 +344,7 @@ pub(crate) mod tests {
             ("differential", "a mean held", &desk, (6, 4)),
             ("ibl", "desk_box", &desk, (1, 32)),
             ("ibl", "window_env", &window, (1, 32)),
+            ("dlpv", "desk_box", &desk, (1, 32)),
         ];
         for (engine_name, case, scene, frames) in cases {
             let name = format!("{engine_name}, {case}");
@@ -414,7 +419,7 @@ pub(crate) mod tests {
             &[point_light(Vec3::new(0.0, 1.0, 0.0))],
             &[face()],
             512,
-            object,
+            (object, &[]),
             floor,
         );
         assert!(!rect.is_empty());
@@ -516,7 +521,15 @@ pub(crate) mod tests {
             directional,
             point_light(Vec3::new(f32::NAN, 1.0, 0.0)),
         ] {
-            let rect = reach_rect(camera(), (320, 240), &[light], &[face()], 512, object, room);
+            let rect = reach_rect(
+                camera(),
+                (320, 240),
+                &[light],
+                &[face()],
+                512,
+                (object, &[]),
+                room,
+            );
             assert_eq!(rect, PixelRect::full(320, 240), "{light:?}");
         }
     }

@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, MapSizes, ShadeOptions};
+use crate::deferred::{Deferred, MapSizes, RealIndirect, ShadeOptions};
 use crate::engine::{Engine, EngineError, RelitFrame, SceneFrame};
 use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
@@ -45,7 +45,7 @@ impl Differential {
 
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
         let mut deferred = Deferred::new(ctx);
-        deferred.set_real_direct_only();
+        deferred.set_real_indirect(RealIndirect::Nowhere);
         Ok(Self {
             deferred,
             rsm_size: 512,

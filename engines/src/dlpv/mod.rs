@@ -50,7 +50,7 @@ use std::time::Instant;
 use bytemuck::{Pod, Zeroable};
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, KeptInputs, MapSizes, ShadeOptions};
+use crate::deferred::{Deferred, KeptInputs, MapSizes, RealIndirect, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -300,6 +300,18 @@ impl Engine for Dlpv {
 
     fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
         let settings = self.settings;
+        // The lookup reads no cell beyond the volume (a trilinear tap reaches half a cell past
+        // its faces, from `lookup_offset` cells off the surface), so a real pixel farther out
+        // takes its direct Δ alone.
+        let object = frame.scene.as_ref().and_then(|s| s.virtual_bounds());
+        self.deferred
+            .set_real_indirect(object.map_or(RealIndirect::Anywhere, |(lo, hi)| {
+                let n = settings.volume_size;
+                let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
+                let grow = glam::Vec3::splat((0.51 + settings.lookup_offset.abs()) * cell);
+                let far = origin + glam::Vec3::splat(n as f32 * cell);
+                RealIndirect::Within((origin - grow, far + grow))
+            }));
         let Some((width, height)) = self.deferred.prepare(
             Self::NAME,
             frame,
@@ -478,5 +490,12 @@ impl Engine for Dlpv {
             .set_environment_light_count(schema.int(params, "env_lights") as u32);
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
+    }
+}
+
+#[cfg(test)]
+impl crate::shadow_reach::tests::WithDeferred for Dlpv {
+    fn deferred_mut(&mut self) -> &mut Deferred {
+        &mut self.deferred
     }
 }

@@ -35,7 +35,7 @@ use relight_core::light::Light;
 use relight_core::scene::{EnvironmentMap, Scene};
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, ExtraLights, MapSizes, ShadeOptions};
+use crate::deferred::{Deferred, ExtraLights, MapSizes, RealIndirect, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -231,7 +231,7 @@ impl Ibl {
         // The maps light the object alone; real pixels take the shadows of the direct and
         // environment lights.
         let mut deferred = Deferred::sampling_the_environment(ctx.clone());
-        deferred.set_real_direct_only();
+        deferred.set_real_indirect(RealIndirect::Nowhere);
         Ok(Self {
             shade: shaders::compute_pipeline(&ctx.device, "ibl shade", shaders::IBL_SHADE),
             uniform: uniform_buffer(&ctx.device, "ibl shade", size_of::<IblUniform>()),
