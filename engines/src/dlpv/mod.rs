@@ -48,6 +48,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
 use serde_json::{Map, Value};
 
 use crate::deferred::{Deferred, KeptInputs, MapSizes, RealIndirect, ShadeOptions};
@@ -308,8 +309,8 @@ impl Engine for Dlpv {
             .set_real_indirect(object.map_or(RealIndirect::Anywhere, |(lo, hi)| {
                 let n = settings.volume_size;
                 let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
-                let grow = glam::Vec3::splat((0.51 + settings.lookup_offset.abs()) * cell);
-                let far = origin + glam::Vec3::splat(n as f32 * cell);
+                let grow = Vec3::splat((0.51 + settings.lookup_offset.abs()) * cell);
+                let far = origin + Vec3::splat(n as f32 * cell);
                 RealIndirect::Within((origin - grow, far + grow))
             }));
         let Some((width, height)) = self.deferred.prepare(
