@@ -373,9 +373,13 @@ pub enum RealIndirect {
     Anywhere,
     /// Nowhere (`differential`, `ibl`): a real pixel's Δ is its direct term alone.
     Nowhere,
-    /// Only at points within these world bounds (`dlpv`: its volume, beyond which its lookup
-    /// reads nothing).
-    Within((Vec3, Vec3)),
+    /// Only at points within `bounds` (`dlpv`, `dvct`: their volume, beyond which their lookup
+    /// or cones read nothing), and at pixels within `margin_px` of where those points are seen
+    /// (`dvct`'s strided gather shares irradiance between neighbouring pixels).
+    Within {
+        bounds: (Vec3, Vec3),
+        margin_px: u32,
+    },
 }
 
 /// The `env_lights` parameter of the engines that light a scene file's environment map with
@@ -670,23 +674,28 @@ impl Deferred {
         let camera = camera_uniform(&camera, width, height, bounds).jittered(self.sample.offset_px);
         ctx.queue
             .write_buffer(&self.camera, 0, bytemuck::bytes_of(&camera));
-        let indirect: &[(Vec3, Vec3)] = match &self.real_indirect {
-            RealIndirect::Within(b) => std::slice::from_ref(b),
-            _ => &[],
+        let (indirect, margin_px): (&[(Vec3, Vec3)], u32) = match &self.real_indirect {
+            RealIndirect::Within { bounds, margin_px } => {
+                (std::slice::from_ref(bounds), *margin_px)
+            }
+            _ => (&[], 0),
         };
         let real_pixels = match gpu_scene.virtual_bounds {
             Some(object)
                 if self.real_indirect != RealIndirect::Anywhere && self.shadow_reach_cull =>
             {
-                Some(shadow_reach::reach_rect(
-                    Mat4::from_cols_array_2d(&camera.view_proj),
-                    (width, height),
-                    &self.lights_cpu,
-                    &self.faces_cpu,
-                    sizes.shadow,
-                    (object, indirect),
-                    bounds,
-                ))
+                Some(
+                    shadow_reach::reach_rect(
+                        Mat4::from_cols_array_2d(&camera.view_proj),
+                        (width, height),
+                        &self.lights_cpu,
+                        &self.faces_cpu,
+                        sizes.shadow,
+                        (object, indirect),
+                        bounds,
+                    )
+                    .grown(margin_px, width, height),
+                )
             }
             _ => None,
         };

@@ -260,6 +260,7 @@ pub(crate) mod tests {
     use crate::deferred::Deferred;
     use crate::differential::Differential;
     use crate::dlpv::Dlpv;
+    use crate::dvct::Dvct;
     use crate::engine::{Engine, RelitFrame, SceneFrame};
     use crate::gpu::GpuContext;
     use crate::ibl::Ibl;
@@ -335,6 +336,7 @@ pub(crate) mod tests {
             match name {
                 "ibl" => Box::new(Ibl::new(ctx.clone()).unwrap()),
                 "dlpv" => Box::new(Dlpv::new(ctx.clone()).unwrap()),
+                "dvct" => Box::new(Dvct::new(ctx.clone()).unwrap()),
                 _ => Box::new(Differential::new(ctx.clone()).unwrap()),
             }
         };
@@ -345,6 +347,8 @@ pub(crate) mod tests {
             ("ibl", "desk_box", &desk, (1, 32)),
             ("ibl", "window_env", &window, (1, 32)),
             ("dlpv", "desk_box", &desk, (1, 32)),
+            ("dvct", "desk_box", &desk, (1, 32)),
+            ("dvct", "low light", &low, (1, 32)),
         ];
         for (engine_name, case, scene, frames) in cases {
             let name = format!("{engine_name}, {case}");

@@ -311,7 +311,10 @@ impl Engine for Dlpv {
                 let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
                 let grow = Vec3::splat((0.51 + settings.lookup_offset.abs()) * cell);
                 let far = origin + Vec3::splat(n as f32 * cell);
-                RealIndirect::Within((origin - grow, far + grow))
+                RealIndirect::Within {
+                    bounds: (origin - grow, far + grow),
+                    margin_px: 0,
+                }
             }));
         let Some((width, height)) = self.deferred.prepare(
             Self::NAME,

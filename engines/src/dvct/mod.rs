@@ -34,9 +34,10 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, KeptInputs, MapSizes, ShadeOptions};
+use crate::deferred::{Deferred, KeptInputs, MapSizes, RealIndirect, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -444,6 +445,22 @@ impl Engine for Dvct {
 
     fn render(&mut self, frame: &SceneFrame, out: &mut RelitFrame) -> Result<(), EngineError> {
         let settings = self.settings;
+        // A cone's first sample is a cell from its apex (`cone_offset` cells off the surface),
+        // and its march ends at the first sample beyond the volume grown by a cell: a real
+        // pixel farther out gathers nothing, and takes its direct Δ alone, as does every pixel
+        // farther than the stride from one that gathers something.
+        let object = frame.scene.as_ref().and_then(|s| s.virtual_bounds());
+        self.deferred
+            .set_real_indirect(object.map_or(RealIndirect::Anywhere, |(lo, hi)| {
+                let n = settings.volume_size;
+                let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
+                let grow = Vec3::splat((2.01 + settings.cone_offset.abs()) * cell);
+                let far = origin + Vec3::splat(n as f32 * cell);
+                RealIndirect::Within {
+                    bounds: (origin - grow, far + grow),
+                    margin_px: 2 * settings.trace_stride + 2,
+                }
+            }));
         let Some((width, height)) = self.deferred.prepare(
             Self::NAME,
             frame,
@@ -703,6 +720,13 @@ impl Engine for Dvct {
             .set_environment_light_count(schema.int(params, "env_lights") as u32);
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
+    }
+}
+
+#[cfg(test)]
+impl crate::shadow_reach::tests::WithDeferred for Dvct {
+    fn deferred_mut(&mut self) -> &mut Deferred {
+        &mut self.deferred
     }
 }
 
