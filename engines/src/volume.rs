@@ -5,6 +5,8 @@
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
+use crate::deferred::RealIndirect;
+use crate::engine::SceneFrame;
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
 use crate::gpu_scene::GpuLight;
@@ -27,6 +29,27 @@ pub(crate) struct VolumeUniform {
 pub(crate) fn placement(lo: Vec3, hi: Vec3, n: u32, scale: f32) -> (Vec3, f32) {
     let edge = (hi - lo).max_element().max(1e-3) * scale;
     ((lo + hi) / 2.0 - Vec3::splat(edge / 2.0), edge / n as f32)
+}
+
+/// Where a volume engine's indirect term can be nonzero on real pixels of `frame`: within its
+/// volume ([`placement`] of `n`³ cells, `scale` × the object) grown by `grow_cells` cells, and
+/// `margin_px` pixels around where that is seen; anywhere without an object.
+pub(crate) fn volume_reach(
+    frame: &SceneFrame,
+    (n, scale): (u32, f32),
+    grow_cells: f32,
+    margin_px: u32,
+) -> RealIndirect {
+    let object = frame.scene.as_ref().and_then(|s| s.virtual_bounds());
+    object.map_or(RealIndirect::Anywhere, |(lo, hi)| {
+        let (origin, cell) = placement(lo, hi, n, scale);
+        let grow = Vec3::splat(grow_cells * cell);
+        let far = origin + Vec3::splat(n as f32 * cell);
+        RealIndirect::Within {
+            bounds: (origin - grow, far + grow),
+            margin_px,
+        }
+    })
 }
 
 /// Fixed-point counts per unit for injection: 2³⁰ over a bound on any single injected SH

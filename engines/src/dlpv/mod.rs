@@ -48,10 +48,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
-use glam::Vec3;
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, KeptInputs, MapSizes, RealIndirect, ShadeOptions};
+use crate::deferred::{Deferred, KeptInputs, MapSizes, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -61,7 +60,8 @@ use crate::shaders;
 use propagate::{Propagation, PropagationBuffers};
 
 use crate::volume::{
-    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer,
+    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass,
+    uniform_buffer, volume_reach,
 };
 
 /// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
@@ -304,18 +304,12 @@ impl Engine for Dlpv {
         // The lookup reads no cell beyond the volume (a trilinear tap reaches half a cell past
         // its faces, from `lookup_offset` cells off the surface), so a real pixel farther out
         // takes its direct Δ alone.
-        let object = frame.scene.as_ref().and_then(|s| s.virtual_bounds());
-        self.deferred
-            .set_real_indirect(object.map_or(RealIndirect::Anywhere, |(lo, hi)| {
-                let n = settings.volume_size;
-                let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
-                let grow = Vec3::splat((0.51 + settings.lookup_offset.abs()) * cell);
-                let far = origin + Vec3::splat(n as f32 * cell);
-                RealIndirect::Within {
-                    bounds: (origin - grow, far + grow),
-                    margin_px: 0,
-                }
-            }));
+        self.deferred.set_real_indirect(volume_reach(
+            frame,
+            (settings.volume_size, settings.volume_scale),
+            0.51 + settings.lookup_offset.abs(),
+            0,
+        ));
         let Some((width, height)) = self.deferred.prepare(
             Self::NAME,
             frame,

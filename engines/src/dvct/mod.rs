@@ -34,10 +34,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
-use glam::Vec3;
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, KeptInputs, MapSizes, RealIndirect, ShadeOptions};
+use crate::deferred::{Deferred, KeptInputs, MapSizes, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -45,7 +44,8 @@ use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::volume::{
-    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, uniform_buffer,
+    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass,
+    uniform_buffer, volume_reach,
 };
 
 /// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
@@ -449,18 +449,12 @@ impl Engine for Dvct {
         // and its march ends at the first sample beyond the volume grown by a cell: a real
         // pixel farther out gathers nothing, and takes its direct Δ alone, as does every pixel
         // farther than the stride from one that gathers something.
-        let object = frame.scene.as_ref().and_then(|s| s.virtual_bounds());
-        self.deferred
-            .set_real_indirect(object.map_or(RealIndirect::Anywhere, |(lo, hi)| {
-                let n = settings.volume_size;
-                let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
-                let grow = Vec3::splat((2.01 + settings.cone_offset.abs()) * cell);
-                let far = origin + Vec3::splat(n as f32 * cell);
-                RealIndirect::Within {
-                    bounds: (origin - grow, far + grow),
-                    margin_px: 2 * settings.trace_stride + 2,
-                }
-            }));
+        self.deferred.set_real_indirect(volume_reach(
+            frame,
+            (settings.volume_size, settings.volume_scale),
+            2.01 + settings.cone_offset.abs(),
+            2 * settings.trace_stride + 2,
+        ));
         let Some((width, height)) = self.deferred.prepare(
             Self::NAME,
             frame,
