@@ -248,28 +248,43 @@ fn indirect_from(xy: vec2<i32>, s: PixelSurface, e: vec3<f32>) -> vec3<f32> {
 // Irradiance is smooth across a surface, so it is what is shared; each pixel applies its own
 // albedo, glossy cone and shadow cones. (Every entry reads every binding, so that each
 // pipeline's derived layout takes the same bind group's resources.)
-fn traced_pixel(id: vec3<u32>) -> vec2<u32> {
-    return id.xy * dvct.modes.z;
+// The traced pixel of invocation `id` (every `dvct.modes.z`-th per axis): its index and
+// surface, or `inside` false beyond the image.
+struct Traced {
+    inside: bool,
+    xy: vec2<i32>,
+    i: u32,
+    s: PixelSurface,
+}
+
+fn traced(id: vec3<u32>) -> Traced {
+    let size = vec2<u32>(camera.size.xy);
+    let xy = id.xy * dvct.modes.z;
+    var t: Traced;
+    t.inside = xy.x < size.x && xy.y < size.y;
+    if t.inside {
+        t.xy = vec2<i32>(xy);
+        t.i = xy.y * size.x + xy.x;
+        t.s = surface_at(t.xy);
+    }
+    return t;
 }
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
-    let size = vec2<u32>(camera.size.xy);
-    let xy = traced_pixel(id);
-    if xy.x >= size.x || xy.y >= size.y {
+    let t = traced(id);
+    if !t.inside {
         return;
     }
-    let i = xy.y * size.x + xy.x;
-    let s = surface_at(vec2<i32>(xy));
-    if !s.found {
-        indirect[i] = vec4<f32>(0.0);
+    if !t.s.found {
+        indirect[t.i] = vec4<f32>(0.0);
         return;
     }
-    let e = irradiance_at(s);
+    let e = irradiance_at(t.s);
     if dvct.modes.z == 1u {
-        indirect[i] = vec4<f32>(indirect_from(vec2<i32>(xy), s, e), 0.0);
+        indirect[t.i] = vec4<f32>(indirect_from(t.xy, t.s, e), 0.0);
     } else {
-        indirect[i] = vec4<f32>(e, 0.0);
+        indirect[t.i] = vec4<f32>(e, 0.0);
     }
 }
 
@@ -311,14 +326,8 @@ fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(8, 8)
 fn resolve(@builtin(global_invocation_id) id: vec3<u32>) {
-    let size = vec2<u32>(camera.size.xy);
-    let xy = traced_pixel(id);
-    if xy.x >= size.x || xy.y >= size.y {
-        return;
-    }
-    let i = xy.y * size.x + xy.x;
-    let s = surface_at(vec2<i32>(xy));
-    if s.found {
-        indirect[i] = vec4<f32>(indirect_from(vec2<i32>(xy), s, indirect[i].rgb), 0.0);
+    let t = traced(id);
+    if t.inside && t.s.found {
+        indirect[t.i] = vec4<f32>(indirect_from(t.xy, t.s, indirect[t.i].rgb), 0.0);
     }
 }
