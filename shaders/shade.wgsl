@@ -27,6 +27,9 @@ struct ShadeParams {
     // object can change a real pixel (`deferred.rs`, `real_pixels`); the CPU shows the camera's
     // own picture outside.
     region: vec4<u32>,
+    // x: 1 to add the engine's indirect term (its `indirect` parameter), 0 for its direct light
+    // alone.
+    terms: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> params: ShadeParams;
@@ -170,6 +173,10 @@ struct Shaded {
     d: vec3<f32>,
 }
 
+fn indirect_term(i: u32) -> vec3<f32> {
+    return select(vec3<f32>(0.0), indirect[i].rgb, params.terms.x > 0.5);
+}
+
 fn shade_pixel(xy: vec2<i32>, i: u32) -> Shaded {
     let p_rho = textureLoad(gb_rho_position, xy, 0);
     if p_rho.w < 0.5 {
@@ -178,7 +185,7 @@ fn shade_pixel(xy: vec2<i32>, i: u32) -> Shaded {
     let n_rho = textureLoad(gb_rho_normal, xy, 0);
     let albedo_rho = textureLoad(gb_rho_albedo, xy, 0).rgb;
     if n_rho.w > 0.5 {
-        let l_rho = direct(p_rho, normalize(n_rho.xyz), albedo_rho, true, true) + indirect[i].rgb;
+        let l_rho = direct(p_rho, normalize(n_rho.xyz), albedo_rho, true, true) + indirect_term(i);
         let p_mu = textureLoad(gb_mu_position, xy, 0);
         var l_mu = vec3<f32>(0.0);
         if p_mu.w > 0.5 {
@@ -187,7 +194,7 @@ fn shade_pixel(xy: vec2<i32>, i: u32) -> Shaded {
         }
         return Shaded(vec4<f32>(l_rho, 1.0), l_rho - l_mu);
     }
-    var d = indirect[i].rgb;
+    var d = indirect_term(i);
     if params.options.y > 0.5 {
         d += direct_delta(p_rho, normalize(n_rho.xyz), albedo_rho);
     }

@@ -19,8 +19,8 @@ use plotters::prelude::*;
 use relight_core::Image;
 use relight_core::scene::Scene;
 use relight_engines::offline::{
-    Sampling, background, delta_error, delta_pixels, object_error, reference_noise,
-    reference_renderer, region_errors, scene_frame,
+    Sampling, TermErrors, Transport, background, composite_pixels, delta_error, delta_pixels,
+    object_error, reference_noise, reference_renderer, region_errors, scene_frame, term_errors,
 };
 use relight_engines::reference::{ReferenceImages, ReferenceRenderer};
 use relight_engines::reference_cache::ReferenceCache;
@@ -154,6 +154,10 @@ pub struct BenchSettings {
     /// Still frames every GPU engine accumulates (its `accumulate` parameter) in place of the
     /// case's own or the engine's default; 1 scores no converged picture.
     pub accumulate: Option<u32>,
+    /// Also render each engine that has an `indirect` parameter with its direct light alone,
+    /// and a direct-light reference, and score which term each error comes from
+    /// ([`TermErrors`]).
+    pub terms: bool,
     pub cases: Vec<BenchCase>,
 }
 
@@ -213,6 +217,18 @@ pub struct BenchRow {
     /// The pixel-area reference's noise and samples per pixel.
     pub area_reference_noise: Option<f64>,
     pub area_reference_spp: Option<u32>,
+    /// With `--terms`: the error of `relative_l2` left when the reference's indirect term
+    /// replaces the engine's (its direct light's error) and when the reference's direct term
+    /// replaces the engine's (its indirect light's), over real pixels ([`TermErrors`]); `None`
+    /// for an engine without an `indirect` parameter.
+    pub direct_term_relative_l2: Option<f64>,
+    pub indirect_term_relative_l2: Option<f64>,
+    /// The same of `object_relative_l2`, over the object's pixels.
+    pub object_direct_term_relative_l2: Option<f64>,
+    pub object_indirect_term_relative_l2: Option<f64>,
+    /// The direct-light reference's noise in the metric of `relative_l2`, and its samples.
+    pub direct_reference_noise: Option<f64>,
+    pub direct_reference_spp: Option<u32>,
 }
 
 /// What a row is scored from, kept until the scene's references are final.
@@ -221,6 +237,9 @@ struct Rendered {
     centre: Picture,
     /// After the engine's accumulation completed, still.
     converged: Option<Picture>,
+    /// As `centre`, shaded without the engine's indirect term (`indirect=off`, with
+    /// `--terms`).
+    direct: Option<Picture>,
 }
 
 struct Picture {
@@ -268,12 +287,51 @@ impl BenchRow {
         self.area_reference_noise = Some(reference_noise(reference));
         self.area_reference_spp = Some(reference.spp);
     }
+
+    /// (Re)score which term the centre frame's errors come from, against the full reference
+    /// `full` and the direct-light one `direct` (pixel centres both).
+    fn score_terms(
+        &mut self,
+        rendered: &Rendered,
+        full: &ReferenceImages,
+        direct: &ReferenceImages,
+    ) {
+        let Some(alone) = &rendered.direct else {
+            return;
+        };
+        let centre = &rendered.centre;
+        let real: Vec<bool> = full.virtual_mask.iter().map(|v| !v).collect();
+        let split =
+            |terms: Option<TermErrors>| (terms.map(|t| t.direct), terms.map(|t| t.indirect));
+        (self.direct_term_relative_l2, self.indirect_term_relative_l2) = split(term_errors(
+            &centre.delta,
+            &alone.delta,
+            &full.delta,
+            &direct.delta,
+            &real,
+            false,
+        ));
+        (
+            self.object_direct_term_relative_l2,
+            self.object_indirect_term_relative_l2,
+        ) = split(term_errors(
+            &composite_pixels(&centre.composite),
+            &composite_pixels(&alone.composite),
+            &full.l_rho,
+            &direct.l_rho,
+            &full.virtual_mask,
+            true,
+        ));
+        self.direct_reference_noise = Some(reference_noise(direct));
+        self.direct_reference_spp = Some(direct.spp);
+    }
 }
 
 /// One of a scene's references: read from the cache or rendered, then refined while its noise
 /// is above a third of the best row's error, and cached once final.
 pub(crate) struct Truth {
     sampling: Sampling,
+    transport: Transport,
     cache: Option<(ReferenceCache, u64)>,
     /// The renderer it was rendered or refined with this run (a cached one starts afresh).
     renderer: Option<ReferenceRenderer>,
@@ -286,12 +344,13 @@ impl Truth {
         dir: &Path,
         scene: &Scene,
         sampling: Sampling,
+        transport: Transport,
         progress: &mut impl FnMut(BenchProgress<'_>),
     ) -> Result<Self> {
         let (w, h) = (settings.width, settings.height);
         let spp = settings.reference_spp.max(2);
         let cache = settings.reference_cache.as_ref().and_then(|dir_of_cache| {
-            let key = ReferenceCache::key(dir, w, h, sampling).ok()?;
+            let key = ReferenceCache::key(dir, w, h, sampling, transport).ok()?;
             Some((ReferenceCache::new(dir_of_cache), key))
         });
         let cached = cache
@@ -303,6 +362,7 @@ impl Truth {
                 progress(BenchProgress::Reference {
                     scene: &scene.name,
                     sampling,
+                    transport,
                     spp: images.spp,
                     cached: true,
                 });
@@ -312,16 +372,18 @@ impl Truth {
                 progress(BenchProgress::Reference {
                     scene: &scene.name,
                     sampling,
+                    transport,
                     spp,
                     cached: false,
                 });
-                let mut renderer = reference_renderer(scene, w, h, sampling)?;
+                let mut renderer = reference_renderer(scene, w, h, sampling, transport)?;
                 renderer.add_samples(spp);
                 (renderer.images(), Some(renderer))
             }
         };
         Ok(Self {
             sampling,
+            transport,
             cache,
             renderer,
             images,
@@ -343,14 +405,19 @@ impl Truth {
             progress(BenchProgress::Reference {
                 scene: &scene.name,
                 sampling: self.sampling,
+                transport: self.transport,
                 spp: target,
                 cached: false,
             });
             let renderer = match self.renderer.take() {
                 Some(renderer) => renderer,
-                None => {
-                    reference_renderer(scene, self.images.width, self.images.height, self.sampling)?
-                }
+                None => reference_renderer(
+                    scene,
+                    self.images.width,
+                    self.images.height,
+                    self.sampling,
+                    self.transport,
+                )?,
             };
             let renderer = self.renderer.insert(renderer);
             renderer.add_samples(target.saturating_sub(renderer.spp()));
@@ -379,6 +446,7 @@ pub enum BenchProgress<'a> {
     Reference {
         scene: &'a str,
         sampling: Sampling,
+        transport: Transport,
         spp: u32,
         cached: bool,
     },
@@ -408,7 +476,14 @@ pub fn run(
     let mut rows = Vec::new();
     for (scene_index, dir) in settings.scenes.iter().enumerate() {
         let scene = Arc::new(Scene::load(dir)?);
-        let mut centre = Truth::new(settings, dir, &scene, Sampling::Centre, &mut progress)?;
+        let mut centre = Truth::new(
+            settings,
+            dir,
+            &scene,
+            Sampling::Centre,
+            Transport::Full,
+            &mut progress,
+        )?;
         let frame = scene_frame(scene.clone(), background(&centre.images));
         let mut scene_rows: Vec<(BenchRow, Rendered)> = Vec::new();
         for (case_index, case) in settings.cases.iter().enumerate() {
@@ -449,9 +524,47 @@ pub fn run(
             }
         }
         centre.store(&scene.name);
+        // The direct-light reference the term split swaps in, refined as the full one is
+        // against the least term error (its noise enters both terms).
+        if scene_rows.iter().any(|(_, r)| r.direct.is_some()) {
+            let mut direct = Truth::new(
+                settings,
+                dir,
+                &scene,
+                Sampling::Centre,
+                Transport::Direct,
+                &mut progress,
+            )?;
+            let score = |rows: &mut Vec<(BenchRow, Rendered)>, direct: &Truth| {
+                for (row, rendered) in rows {
+                    row.score_terms(rendered, &centre.images, &direct.images);
+                }
+            };
+            score(&mut scene_rows, &direct);
+            if direct.refine(
+                &scene,
+                best(&scene_rows, |r| {
+                    r.direct_term_relative_l2
+                        .zip(r.indirect_term_relative_l2)
+                        .map(|(d, i)| d.min(i))
+                }),
+                settings.max_reference_spp,
+                &mut progress,
+            )? {
+                score(&mut scene_rows, &direct);
+            }
+            direct.store(&scene.name);
+        }
         // The pixel-area truth the accumulated frames converge to, where any row has them.
         if scene_rows.iter().any(|(_, r)| r.converged.is_some()) {
-            let mut area = Truth::new(settings, dir, &scene, Sampling::Area, &mut progress)?;
+            let mut area = Truth::new(
+                settings,
+                dir,
+                &scene,
+                Sampling::Area,
+                Transport::Full,
+                &mut progress,
+            )?;
             let score = |rows: &mut Vec<(BenchRow, Rendered)>, area: &Truth| {
                 for (row, rendered) in rows {
                     row.score_area(rendered, &area.images);
@@ -578,7 +691,25 @@ fn measure(
     } else {
         (None, None)
     };
-    let rendered = Rendered { centre, converged };
+    // The centre frame once more, shaded without the engine's indirect term.
+    let direct = if settings.terms && spec.schema.has("indirect") {
+        let mut direct_params = built.params.clone();
+        direct_params.insert("indirect".into(), "off".into());
+        engine.set_params(&direct_params);
+        for frame in [&nudged, frame] {
+            engine
+                .render(frame, &mut out)
+                .with_context(|| case.label())?;
+        }
+        Some(Picture::of(&out))
+    } else {
+        None
+    };
+    let rendered = Rendered {
+        centre,
+        converged,
+        direct,
+    };
     let mut row = BenchRow {
         scene: scene.to_owned(),
         engine: case.engine.clone(),
@@ -603,6 +734,12 @@ fn measure(
         converged_object_relative_l2: None,
         area_reference_noise: None,
         area_reference_spp: None,
+        direct_term_relative_l2: None,
+        indirect_term_relative_l2: None,
+        object_direct_term_relative_l2: None,
+        object_indirect_term_relative_l2: None,
+        direct_reference_noise: None,
+        direct_reference_spp: None,
     };
     row.score(&rendered, reference);
     Ok((row, rendered))
@@ -657,6 +794,46 @@ pub fn table(rows: &[BenchRow]) -> String {
             or_dash(r.converged_relative_l2),
             or_dash(r.converged_object_relative_l2),
             or_dash(r.area_reference_noise)
+        ));
+    }
+    s
+}
+
+/// Which term each row's errors come from (`--terms`, [`TermErrors`]): beside the error of Δ
+/// on real pixels and of the object's pixels, the error left with the reference's indirect
+/// term swapped in (the engine's direct term's) and with its direct term swapped in (the
+/// indirect term's).
+pub fn terms_table(rows: &[BenchRow]) -> String {
+    let mut s = format!(
+        "{:<14} {:<48} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>7}\n",
+        "scene",
+        "engine / setting",
+        "rel L2",
+        "direct",
+        "indirect",
+        "object L2",
+        "obj dir",
+        "obj ind",
+        "ref noise",
+        "dir noise",
+        "dir spp"
+    );
+    let or_dash = |v: Option<f64>| v.map_or("-".to_owned(), |e| format!("{e:.4}"));
+    for r in rows {
+        s.push_str(&format!(
+            "{:<14} {:<48} {:>9.4} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9.4} {:>10} {:>7}\n",
+            r.scene,
+            r.setting,
+            r.relative_l2,
+            or_dash(r.direct_term_relative_l2),
+            or_dash(r.indirect_term_relative_l2),
+            or_dash(r.object_relative_l2),
+            or_dash(r.object_direct_term_relative_l2),
+            or_dash(r.object_indirect_term_relative_l2),
+            r.reference_noise,
+            or_dash(r.direct_reference_noise),
+            r.direct_reference_spp
+                .map_or("-".to_owned(), |n| n.to_string())
         ));
     }
     s
@@ -791,12 +968,12 @@ pub fn write_roofline(
 pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut csv = String::from(
-        "scene,engine,setting,median_ms,min_ms,static_ms,held_ms,gpu_ms,relative_l2,shadow_relative_l2,bleeding_relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp,accumulated_frames,area_relative_l2,converged_relative_l2,converged_object_relative_l2,area_reference_noise,area_reference_spp\n",
+        "scene,engine,setting,median_ms,min_ms,static_ms,held_ms,gpu_ms,relative_l2,shadow_relative_l2,bleeding_relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp,accumulated_frames,area_relative_l2,converged_relative_l2,converged_object_relative_l2,area_reference_noise,area_reference_spp,direct_term_relative_l2,indirect_term_relative_l2,object_direct_term_relative_l2,object_indirect_term_relative_l2,direct_reference_noise,direct_reference_spp\n",
     );
     let or_empty = |v: Option<f64>| v.map_or(String::new(), |e| e.to_string());
     for r in rows {
         csv.push_str(&format!(
-            "{},{},\"{}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},\"{}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
             r.scene,
             r.engine,
             r.setting,
@@ -818,6 +995,13 @@ pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()>
             or_empty(r.converged_object_relative_l2),
             or_empty(r.area_reference_noise),
             r.area_reference_spp
+                .map_or(String::new(), |n| n.to_string()),
+            or_empty(r.direct_term_relative_l2),
+            or_empty(r.indirect_term_relative_l2),
+            or_empty(r.object_direct_term_relative_l2),
+            or_empty(r.object_indirect_term_relative_l2),
+            or_empty(r.direct_reference_noise),
+            r.direct_reference_spp
                 .map_or(String::new(), |n| n.to_string())
         ));
     }

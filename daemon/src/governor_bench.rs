@@ -33,7 +33,9 @@ use plotters::prelude::*;
 use relight_core::scene::Scene;
 use relight_engines::auto::Auto;
 use relight_engines::auto::governor::candidates;
-use relight_engines::offline::{Sampling, background, delta_error, delta_pixels, scene_frame};
+use relight_engines::offline::{
+    Sampling, Transport, background, delta_error, delta_pixels, scene_frame,
+};
 use relight_engines::reference::{ReferenceImages, ReferenceRenderer, ReferenceSettings};
 use relight_engines::{Engine, EngineRegistry, RelitFrame, SceneFrame};
 use serde::Serialize;
@@ -263,9 +265,14 @@ pub fn run(
     for dir in &settings.bench.scenes {
         let scene = Arc::new(Scene::load(dir)?);
         let name = scene.name.clone();
-        let mut truth = Truth::new(&settings.bench, dir, &scene, Sampling::Area, &mut |p| {
-            progress(GovernorProgress::Reference(p))
-        })?;
+        let mut truth = Truth::new(
+            &settings.bench,
+            dir,
+            &scene,
+            Sampling::Area,
+            Transport::Full,
+            &mut |p| progress(GovernorProgress::Reference(p)),
+        )?;
         let frame = scene_frame(scene.clone(), background(&truth.images));
         // Built before the runs start, as a running daemon builds an engine before it swaps it
         // in; `auto`'s candidates too.

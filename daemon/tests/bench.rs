@@ -21,6 +21,7 @@ fn bench_measures_every_case_and_writes_its_outputs() {
         reference_cache: None,
         frames: 1,
         accumulate: Some(4),
+        terms: false,
         cases: default_cases(false),
     };
     let rows = run(&settings, |_| {}).unwrap();
@@ -191,6 +192,7 @@ fn a_cached_reference_is_read_back_on_the_next_run() {
         reference_cache: Some(cache.path().to_owned()),
         frames: 1,
         accumulate: Some(2),
+        terms: false,
         cases: vec![BenchCase::new("differential", serde_json::json!({}))],
     };
     let run_once = || {
@@ -214,4 +216,73 @@ fn a_cached_reference_is_read_back_on_the_next_run() {
         second[0].converged_relative_l2
     );
     assert_eq!(second[0].reference_spp, 8);
+}
+
+/// `--terms`: an engine rendered with its direct light alone, both terms swapped for the
+/// reference's. The shadow-mapped direct light is the same in every engine, and only an engine
+/// with indirect light can bring the indirect term's error below the reference's own indirect
+/// share.
+#[test]
+fn terms_say_which_term_an_error_comes_from() {
+    use relight_daemon::bench::{BenchCase, terms_table};
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/spot_bleed");
+    let settings = BenchSettings {
+        scenes: vec![scene],
+        width: 64,
+        height: 48,
+        reference_spp: 16,
+        max_reference_spp: 64,
+        reference_cache: None,
+        frames: 1,
+        accumulate: Some(1),
+        terms: true,
+        cases: ["differential", "dvct", "ibl"]
+            .map(|e| BenchCase::new(e, serde_json::json!({})))
+            .to_vec(),
+    };
+    let rows = run(&settings, |_| {}).unwrap();
+    let [differential, dvct, ibl] = [&rows[0], &rows[1], &rows[2]];
+    // ibl carries the environment's light in its indirect buffer, so it has no such split.
+    assert_eq!(ibl.direct_term_relative_l2, None);
+    assert_eq!(ibl.object_indirect_term_relative_l2, None);
+    for row in [differential, dvct] {
+        for error in [
+            row.direct_term_relative_l2,
+            row.indirect_term_relative_l2,
+            row.object_direct_term_relative_l2,
+            row.object_indirect_term_relative_l2,
+            row.direct_reference_noise,
+        ] {
+            assert!(error.is_some_and(f64::is_finite), "{row:?}");
+        }
+        assert!(row.direct_reference_spp.is_some_and(|spp| spp >= 16));
+    }
+    let term = |row: &relight_daemon::bench::BenchRow| {
+        (
+            row.direct_term_relative_l2.unwrap(),
+            row.indirect_term_relative_l2.unwrap(),
+        )
+    };
+    let (differential_direct, differential_indirect) = term(differential);
+    let (dvct_direct, dvct_indirect) = term(dvct);
+    // One direct light: `indirect=off` shades exactly what `differential` shades.
+    assert!(
+        (differential_direct - dvct_direct).abs() < 1e-9,
+        "{differential_direct} {dvct_direct}"
+    );
+    assert_eq!(
+        differential.object_direct_term_relative_l2,
+        dvct.object_direct_term_relative_l2
+    );
+    // spot_bleed's object bleeds onto the floor: without indirect light that is most of the
+    // error, and dvct's bleeding brings it down.
+    assert!(
+        differential_indirect > differential_direct,
+        "{differential_indirect} {differential_direct}"
+    );
+    assert!(
+        dvct_indirect < 0.9 * differential_indirect,
+        "{dvct_indirect} {differential_indirect}"
+    );
+    assert!(terms_table(&rows).lines().count() == 4);
 }

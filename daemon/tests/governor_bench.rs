@@ -43,6 +43,7 @@ fn governor_bench_compares_auto_with_what_fits_and_writes_its_outputs() {
             reference_cache: None,
             frames: 1,
             accumulate: None,
+            terms: false,
             cases: Vec::new(),
         },
         budgets_ms: vec![33.0, 1000.0],

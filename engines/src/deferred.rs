@@ -35,6 +35,7 @@ struct ShadeParams {
     virtual_hi: [f32; 4],
     options: [f32; 4],
     region: [u32; 4],
+    terms: [f32; 4],
 }
 
 /// What an engine's result derived from the scene and its lights alone was computed from, so
@@ -163,6 +164,11 @@ impl Accumulation {
 
     fn set_frames(&mut self, frames: u32) {
         self.frames = frames.max(1);
+        self.restart();
+    }
+
+    /// The next frame starts a new mean, whatever its inputs.
+    fn restart(&mut self) {
         self.key = None;
     }
 
@@ -361,6 +367,8 @@ pub struct Deferred {
     /// buffer they are uploaded to.
     camera_triangles: Vec<u32>,
     camera_triangle_buffer: Option<wgpu::Buffer>,
+    /// Whether the shading adds the engine's indirect term ([`indirect_param`]).
+    indirect_term: bool,
 }
 
 const MAX_LAYERS: u32 = 64;
@@ -395,6 +403,18 @@ pub fn env_lights_param(default: u32) -> ParamSpec {
         0,
         48,
         i64::from(default),
+    )
+}
+
+/// The `indirect` parameter of the engines whose indirect light the shading adds from the
+/// per-pixel indirect buffer: `off` shades their direct light alone, the same shadow-mapped
+/// direct light as with it `on`. `relightd bench --terms` renders both and swaps each engine
+/// term for the reference's, to say which term an error comes from.
+pub fn indirect_param() -> ParamSpec {
+    ParamSpec::choice(
+        "indirect",
+        "on: add the engine's indirect light; off: its direct light alone, to tell which term an error comes from",
+        vec!["on", "off"],
     )
 }
 
@@ -442,6 +462,7 @@ impl Deferred {
             real_pixels: None,
             camera_triangles: Vec::new(),
             camera_triangle_buffer: None,
+            indirect_term: true,
             ctx,
         }
     }
@@ -504,6 +525,15 @@ impl Deferred {
     /// parameters must.
     pub fn set_accumulate(&mut self, frames: u32) {
         self.accumulation.set_frames(frames);
+    }
+
+    /// Add the engine's indirect term in the shading, or shade its direct light alone
+    /// ([`indirect_param`]). Starts the mean afresh.
+    pub fn set_indirect_term(&mut self, on: bool) {
+        if on != self.indirect_term {
+            self.indirect_term = on;
+            self.accumulation.restart();
+        }
     }
 
     pub fn ctx(&self) -> &Arc<GpuContext> {
@@ -1000,6 +1030,7 @@ impl Deferred {
                 region.x + region.width,
                 region.y + region.height,
             ],
+            terms: [f32::from(u8::from(self.indirect_term)), 0.0, 0.0, 0.0],
         };
         ctx.queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));

@@ -24,6 +24,17 @@ pub enum Sampling {
     Area,
 }
 
+/// Which light a reference carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Transport {
+    /// Every bounce (up to the reference's `max_bounces`): the truth.
+    Full,
+    /// The lights' direct light at the first surface a camera ray meets, and emission
+    /// (`max_bounces` 0): the reference's direct term, whose visibility the engines' shadow
+    /// maps approximate. The full reference less this is its indirect term.
+    Direct,
+}
+
 /// What the engines are judged against: the reference with full light transport, `spp` samples
 /// at pixel centres (as the engines' rasteriser samples, so silhouettes agree pixel for pixel).
 pub fn reference(
@@ -34,7 +45,7 @@ pub fn reference(
 ) -> Result<ReferenceImages, ReferenceError> {
     render_reference(
         scene,
-        reference_settings(width, height, spp, Sampling::Centre),
+        reference_settings(width, height, spp, Sampling::Centre, Transport::Full),
     )
 }
 
@@ -45,8 +56,12 @@ pub fn reference_renderer(
     width: u32,
     height: u32,
     sampling: Sampling,
+    transport: Transport,
 ) -> Result<ReferenceRenderer, ReferenceError> {
-    ReferenceRenderer::new(scene, reference_settings(width, height, 0, sampling))
+    ReferenceRenderer::new(
+        scene,
+        reference_settings(width, height, 0, sampling, transport),
+    )
 }
 
 pub(crate) fn reference_settings(
@@ -54,12 +69,18 @@ pub(crate) fn reference_settings(
     height: u32,
     spp: u32,
     sampling: Sampling,
+    transport: Transport,
 ) -> ReferenceSettings {
+    let defaults = ReferenceSettings::default();
     ReferenceSettings {
         spp,
         pixel_jitter: sampling == Sampling::Area,
         size: Some((width, height)),
-        ..ReferenceSettings::default()
+        max_bounces: match transport {
+            Transport::Full => defaults.max_bounces,
+            Transport::Direct => 0,
+        },
+        ..defaults
     }
 }
 
@@ -249,6 +270,60 @@ pub fn masked_relative_l2(a: &[Vec3], b: &[Vec3], mask: &[bool]) -> Option<f64> 
     (norm > 0.0).then(|| (err / norm).sqrt())
 }
 
+/// Which of an engine's two terms its error comes from, each measured by swapping the other
+/// for the reference's: `direct` is the error left with the reference's indirect term in place
+/// of the engine's (what its direct light, the shadow maps' visibility, gets wrong), `indirect`
+/// the error left with the reference's direct term in place of the engine's (what its indirect
+/// light gets wrong). Each is ‖swapped − full_ref‖₂ / ‖full_ref‖₂ over the pixels `mask`
+/// selects, as the engine's own error is; the two parts of that error may cancel or add, so
+/// they need not sum to it in quadrature.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct TermErrors {
+    pub direct: f64,
+    pub indirect: f64,
+}
+
+/// [`TermErrors`] from the engine's picture with both terms (`full`) and with its direct term
+/// alone (`direct`), and the reference's with every bounce (`full_ref`) and with none
+/// (`direct_ref`, [`Transport::Direct`]); the indirect terms are the differences. `clip` clips
+/// every picture to [0, 1] first, as an 8-bit composite is (the object's pixels, as
+/// [`object_error`] judges them). `None` on mismatched sizes or where the reference is zero
+/// over the mask.
+pub fn term_errors(
+    full: &[Vec3],
+    direct: &[Vec3],
+    full_ref: &[Vec3],
+    direct_ref: &[Vec3],
+    mask: &[bool],
+    clip: bool,
+) -> Option<TermErrors> {
+    let n = full_ref.len();
+    if [full.len(), direct.len(), direct_ref.len(), mask.len()] != [n; 4] {
+        return None;
+    }
+    let shown = |v: Vec3| {
+        if clip {
+            v.clamp(Vec3::ZERO, Vec3::ONE)
+        } else {
+            v
+        }
+    };
+    let swapped = |pick: fn(Vec3, Vec3, Vec3, Vec3) -> Vec3| -> Vec<Vec3> {
+        (0..n)
+            .map(|i| shown(pick(full[i], direct[i], full_ref[i], direct_ref[i])))
+            .collect()
+    };
+    let truth: Vec<Vec3> = full_ref.iter().map(|&v| shown(v)).collect();
+    // The engine's direct term with the reference's indirect one, and the reference's direct
+    // term with the engine's indirect one.
+    let reference_indirect = swapped(|_, d, r, r0| d + (r - r0));
+    let reference_direct = swapped(|f, d, _, r0| r0 + (f - d));
+    Some(TermErrors {
+        direct: masked_relative_l2(&reference_indirect, &truth, mask)?,
+        indirect: masked_relative_l2(&reference_direct, &truth, mask)?,
+    })
+}
+
 /// Δ's error in the object's shadow and in its bleeding ([`Regions`]), each ‖Δ − Δ_ref‖₂ /
 /// ‖Δ_ref‖₂ over its pixels: `None` where the reference has no such pixel (an object that casts
 /// no visible shadow, a dark object that bleeds nothing) or Δ is missing or mis-sized.
@@ -309,6 +384,53 @@ mod tests {
             l_rho_std_error: vec![Vec3::ZERO; n],
             virtual_mask,
         }
+    }
+
+    #[test]
+    fn swapping_a_term_for_the_references_leaves_the_others_error() {
+        let (direct_ref, indirect_ref) = (Vec3::new(-0.4, -0.4, -0.4), Vec3::splat(0.1));
+        let full_ref = vec![direct_ref + indirect_ref; 4];
+        let direct_refs = vec![direct_ref; 4];
+        let mask = [true, true, false, true];
+        let errors = |full: Vec3, direct: Vec3| {
+            term_errors(
+                &[full; 4],
+                &[direct; 4],
+                &full_ref,
+                &direct_refs,
+                &mask,
+                false,
+            )
+            .unwrap()
+        };
+        let norm = f64::from((direct_ref + indirect_ref).length());
+        // Exact: both parts 0.
+        let exact = errors(direct_ref + indirect_ref, direct_ref);
+        assert!(exact.direct < 1e-6 && exact.indirect < 1e-6, "{exact:?}");
+        // The direct light exact, no indirect light: the indirect term is all of the error.
+        let no_indirect = errors(direct_ref, direct_ref);
+        assert!(no_indirect.direct < 1e-6, "{no_indirect:?}");
+        assert!((no_indirect.indirect - f64::from(indirect_ref.length()) / norm).abs() < 1e-6);
+        // The indirect light exact, the shadow missing: the direct term is all of it.
+        let no_shadow = errors(indirect_ref, Vec3::ZERO);
+        assert!((no_shadow.direct - f64::from(direct_ref.length()) / norm).abs() < 1e-6);
+        assert!(no_shadow.indirect < 1e-6, "{no_shadow:?}");
+        // Clipped as a composite is: a term that only overshoots 1 costs nothing.
+        let bright_ref = vec![Vec3::splat(1.2); 4];
+        let clipped = term_errors(
+            &[Vec3::splat(3.0); 4],
+            &[Vec3::splat(2.0); 4],
+            &bright_ref,
+            &bright_ref,
+            &mask,
+            true,
+        )
+        .unwrap();
+        assert_eq!((clipped.direct, clipped.indirect), (0.0, 0.0));
+        assert_eq!(
+            term_errors(&[], &[], &full_ref, &direct_refs, &mask, false),
+            None
+        );
     }
 
     #[test]

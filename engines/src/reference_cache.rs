@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 
 use glam::Vec3;
 
-use crate::offline::Sampling;
+use crate::offline::{Sampling, Transport};
 use crate::reference::{REVISION, ReferenceImages};
 
 const MAGIC: &[u8; 8] = b"RLREF\x00\x00\x01";
@@ -45,8 +45,15 @@ impl ReferenceCache {
     }
 
     /// The key of the offline reference ([`crate::offline::reference_renderer`]) of the scene
-    /// in `scene_dir` at `width × height`, sampling pixels as `sampling` says.
-    pub fn key(scene_dir: &Path, width: u32, height: u32, sampling: Sampling) -> io::Result<u64> {
+    /// in `scene_dir` at `width × height`, sampling pixels as `sampling` says and carrying
+    /// `transport`.
+    pub fn key(
+        scene_dir: &Path,
+        width: u32,
+        height: u32,
+        sampling: Sampling,
+        transport: Transport,
+    ) -> io::Result<u64> {
         let mut files: Vec<PathBuf> = std::fs::read_dir(scene_dir)?
             .filter_map(|e| e.ok().map(|e| e.path()))
             .filter(|p| p.is_file())
@@ -58,7 +65,7 @@ impl ReferenceCache {
         hash.write(
             format!(
                 "{:?}",
-                crate::offline::reference_settings(width, height, 0, sampling)
+                crate::offline::reference_settings(width, height, 0, sampling, transport)
             )
             .as_bytes(),
         );
@@ -187,14 +194,20 @@ mod tests {
     }
 
     #[test]
-    fn the_key_follows_the_scene_files_the_size_and_the_sampling() {
+    fn the_key_follows_the_scene_files_the_size_the_sampling_and_the_transport() {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("scene.toml"), "gltf = \"a.gltf\"\n").unwrap();
-        let key_of = |w, h, sampling| ReferenceCache::key(dir.path(), w, h, sampling).unwrap();
+        let key_of = |w, h, sampling| {
+            ReferenceCache::key(dir.path(), w, h, sampling, Transport::Full).unwrap()
+        };
         let key = key_of(16, 12, Sampling::Centre);
         assert_eq!(key, key_of(16, 12, Sampling::Centre));
         assert_ne!(key, key_of(16, 13, Sampling::Centre));
         assert_ne!(key, key_of(16, 12, Sampling::Area));
+        assert_ne!(
+            key,
+            ReferenceCache::key(dir.path(), 16, 12, Sampling::Centre, Transport::Direct).unwrap()
+        );
         std::fs::write(dir.path().join("scene.toml"), "gltf = \"b.gltf\"\n").unwrap();
         assert_ne!(key, key_of(16, 12, Sampling::Centre));
     }

@@ -40,6 +40,7 @@ impl Differential {
             ),
             crate::deferred::env_lights_param(8),
             crate::deferred::accumulate_param(),
+            crate::deferred::indirect_param(),
         ])
     }
 
@@ -83,6 +84,8 @@ impl Engine for Differential {
             .set_environment_light_count(schema.int(params, "env_lights") as u32);
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
+        self.deferred
+            .set_indirect_term(schema.choice(params, "indirect") == "on");
     }
 }
 

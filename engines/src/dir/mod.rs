@@ -266,6 +266,7 @@ impl Dir {
                 d.gather_stride,
             ),
             crate::deferred::accumulate_param(),
+            crate::deferred::indirect_param(),
         ])
     }
 
@@ -678,5 +679,7 @@ impl Engine for Dir {
         };
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
+        self.deferred
+            .set_indirect_term(schema.choice(params, "indirect") == "on");
     }
 }

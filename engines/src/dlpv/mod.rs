@@ -212,6 +212,7 @@ impl Dlpv {
             crate::volume::far_field_param(),
             crate::deferred::env_lights_param(ENV_LIGHTS_DEFAULT),
             crate::deferred::accumulate_param(),
+            crate::deferred::indirect_param(),
         ])
     }
 
@@ -488,6 +489,8 @@ impl Engine for Dlpv {
             .set_environment_light_count(schema.int(params, "env_lights") as u32);
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
+        self.deferred
+            .set_indirect_term(schema.choice(params, "indirect") == "on");
     }
 }
 

@@ -257,6 +257,7 @@ impl Dvct {
             ),
             crate::deferred::env_lights_param(ENV_LIGHTS_DEFAULT),
             crate::deferred::accumulate_param(),
+            crate::deferred::indirect_param(),
         ])
     }
 
@@ -714,6 +715,8 @@ impl Engine for Dvct {
             .set_environment_light_count(schema.int(params, "env_lights") as u32);
         self.deferred
             .set_accumulate(schema.int(params, "accumulate") as u32);
+        self.deferred
+            .set_indirect_term(schema.choice(params, "indirect") == "on");
     }
 }
 

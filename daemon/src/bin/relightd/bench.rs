@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use relight_daemon::bench::{self, BenchSettings};
-use relight_engines::offline::Sampling;
+use relight_engines::offline::{Sampling, Transport};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -38,6 +38,12 @@ pub struct Args {
     /// `accumulate`; 1: score none).
     #[arg(long)]
     accumulate: Option<u32>,
+    /// Also say which term each error comes from: every engine with an `indirect` parameter
+    /// is rendered once more with its direct light alone, and each of its two terms is swapped
+    /// for the reference's (a direct-light reference, rendered and cached beside the full one);
+    /// the error left is the other term's (bench.csv's `direct_term_relative_l2`, ...).
+    #[arg(long)]
+    terms: bool,
     /// Add the papers' parameter sweeps (DLPV volume × steps and RSM sizes, DVCT volume × step, DIR VPL count and ISM size, IBL map size).
     #[arg(long)]
     sweep: bool,
@@ -193,12 +199,15 @@ pub fn run(mut args: Args) -> Result<()> {
         bench::BenchProgress::Reference {
             scene,
             sampling,
+            transport,
             spp,
             cached,
         } => {
-            let which = match sampling {
-                Sampling::Centre => "reference",
-                Sampling::Area => "pixel-area reference",
+            let which = match (sampling, transport) {
+                (Sampling::Centre, Transport::Full) => "reference",
+                (Sampling::Area, Transport::Full) => "pixel-area reference",
+                (Sampling::Centre, Transport::Direct) => "direct-light reference",
+                (Sampling::Area, Transport::Direct) => "pixel-area direct-light reference",
             };
             bar.set_message(format!("{scene}: {which} at {spp} spp"));
             say(if cached {
@@ -224,6 +233,9 @@ pub fn run(mut args: Args) -> Result<()> {
     })?;
     bar.finish_and_clear();
     print!("{}", bench::table(&rows));
+    if args.terms {
+        print!("{}", bench::terms_table(&rows));
+    }
     bench::write_outputs(&rows, &args.out, &adapter)?;
     println!("wrote {}/bench.{{csv,json,svg}}", args.out.display());
     if let Some(rates) = rates {
@@ -250,6 +262,7 @@ fn bench_settings(
         reference_cache: (!args.no_reference_cache).then(|| args.reference_cache.clone()),
         frames: args.frames,
         accumulate: args.accumulate,
+        terms: args.terms,
         cases,
     }
 }

@@ -169,7 +169,13 @@ fn render_engine(
     }
     let mut built = registry.build(engine, &params)?;
     let reference = trace_with_progress(
-        &mut offline::reference_renderer(&scene, w, h, offline::Sampling::Centre)?,
+        &mut offline::reference_renderer(
+            &scene,
+            w,
+            h,
+            offline::Sampling::Centre,
+            offline::Transport::Full,
+        )?,
         spp,
     );
     let frame = offline::scene_frame(scene.clone(), offline::background(&reference));
