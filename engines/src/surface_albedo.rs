@@ -31,6 +31,7 @@ use std::thread::JoinHandle;
 
 use crossbeam_channel::{Receiver, Sender, TryRecvError, bounded};
 use glam::Vec3;
+use rayon::prelude::*;
 use relight_core::camera::{Pinhole, optical_from_gl};
 use relight_core::light::Light;
 use relight_core::scene::Mesh;
@@ -255,9 +256,11 @@ impl SurfaceAlbedo {
         }
         let last = self.last.as_ref();
         let tolerance = self.tolerance;
+        // A projection and a depth test per vertex, tens of thousands on the render thread's
+        // path: spread over the cores.
         let mut albedo: Vec<Option<Vec3>> = mesh
             .positions_in_world
-            .iter()
+            .par_iter()
             .map(|p| last.and_then(|view| view.lookup(*p, tolerance)))
             .collect();
         self.report.measured_vertices = albedo.iter().flatten().count();
