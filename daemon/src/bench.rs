@@ -229,6 +229,10 @@ pub struct BenchRow {
     /// The direct-light reference's noise in the metric of `relative_l2`, and its samples.
     pub direct_reference_noise: Option<f64>,
     pub direct_reference_spp: Option<u32>,
+    /// The split of `converged_relative_l2` alike, against the pixel-area references: what
+    /// is left of each term once the edges have converged.
+    pub converged_direct_term_relative_l2: Option<f64>,
+    pub converged_indirect_term_relative_l2: Option<f64>,
 }
 
 /// What a row is scored from, kept until the scene's references are final.
@@ -240,6 +244,8 @@ struct Rendered {
     /// As `centre`, shaded without the engine's indirect term (`indirect=off`, with
     /// `--terms`).
     direct: Option<Picture>,
+    /// As `converged`, without the indirect term.
+    direct_converged: Option<Picture>,
 }
 
 struct Picture {
@@ -253,6 +259,25 @@ impl Picture {
             delta: delta_pixels(&out.delta),
             composite: out.composite.clone(),
         }
+    }
+
+    /// Which term Δ's error over real pixels comes from, given `alone`, this picture's
+    /// direct term alone, and the full and direct-light references ([`term_errors`]).
+    fn delta_terms(
+        &self,
+        alone: &Picture,
+        full: &ReferenceImages,
+        direct: &ReferenceImages,
+    ) -> Option<TermErrors> {
+        let real: Vec<bool> = full.virtual_mask.iter().map(|v| !v).collect();
+        term_errors(
+            &self.delta,
+            &alone.delta,
+            &full.delta,
+            &direct.delta,
+            &real,
+            false,
+        )
     }
 
     /// Δ's error over real pixels (relative L2, max) and the object's.
@@ -299,23 +324,15 @@ impl BenchRow {
         let Some(alone) = &rendered.direct else {
             return;
         };
-        let centre = &rendered.centre;
-        let real: Vec<bool> = full.virtual_mask.iter().map(|v| !v).collect();
         let split =
             |terms: Option<TermErrors>| (terms.map(|t| t.direct), terms.map(|t| t.indirect));
-        (self.direct_term_relative_l2, self.indirect_term_relative_l2) = split(term_errors(
-            &centre.delta,
-            &alone.delta,
-            &full.delta,
-            &direct.delta,
-            &real,
-            false,
-        ));
+        (self.direct_term_relative_l2, self.indirect_term_relative_l2) =
+            split(rendered.centre.delta_terms(alone, full, direct));
         (
             self.object_direct_term_relative_l2,
             self.object_indirect_term_relative_l2,
         ) = split(term_errors(
-            &composite_pixels(&centre.composite),
+            &composite_pixels(&rendered.centre.composite),
             &composite_pixels(&alone.composite),
             &full.l_rho,
             &direct.l_rho,
@@ -324,6 +341,23 @@ impl BenchRow {
         ));
         self.direct_reference_noise = Some(reference_noise(direct));
         self.direct_reference_spp = Some(direct.spp);
+    }
+
+    /// (Re)score which term the converged picture's Δ error comes from, against the
+    /// pixel-area references.
+    fn score_converged_terms(
+        &mut self,
+        rendered: &Rendered,
+        full: &ReferenceImages,
+        direct: &ReferenceImages,
+    ) {
+        let (Some(converged), Some(alone)) = (&rendered.converged, &rendered.direct_converged)
+        else {
+            return;
+        };
+        let terms = converged.delta_terms(alone, full, direct);
+        self.converged_direct_term_relative_l2 = terms.map(|t| t.direct);
+        self.converged_indirect_term_relative_l2 = terms.map(|t| t.indirect);
     }
 }
 
@@ -580,6 +614,36 @@ pub fn run(
                 score(&mut scene_rows, &area);
             }
             area.store(&scene.name);
+            // And the pixel-area direct-light reference the converged term split swaps in.
+            if scene_rows.iter().any(|(_, r)| r.direct_converged.is_some()) {
+                let mut direct = Truth::new(
+                    settings,
+                    dir,
+                    &scene,
+                    Sampling::Area,
+                    Transport::Direct,
+                    &mut progress,
+                )?;
+                let score = |rows: &mut Vec<(BenchRow, Rendered)>, direct: &Truth| {
+                    for (row, rendered) in rows {
+                        row.score_converged_terms(rendered, &area.images, &direct.images);
+                    }
+                };
+                score(&mut scene_rows, &direct);
+                if direct.refine(
+                    &scene,
+                    best(&scene_rows, |r| {
+                        r.converged_direct_term_relative_l2
+                            .zip(r.converged_indirect_term_relative_l2)
+                            .map(|(d, i)| d.min(i))
+                    }),
+                    settings.max_reference_spp,
+                    &mut progress,
+                )? {
+                    score(&mut scene_rows, &direct);
+                }
+                direct.store(&scene.name);
+            }
         }
         for (row, _) in scene_rows {
             progress(BenchProgress::Row(&row));
@@ -691,8 +755,9 @@ fn measure(
     } else {
         (None, None)
     };
-    // The centre frame once more, shaded without the engine's indirect term.
-    let direct = if settings.terms && spec.schema.has("indirect") {
+    // The centre frame once more, shaded without the engine's indirect term, and the still
+    // frames it converges over.
+    let (direct, direct_converged) = if settings.terms && spec.schema.has("indirect") {
         let mut direct_params = built.params.clone();
         direct_params.insert("indirect".into(), "off".into());
         engine.set_params(&direct_params);
@@ -701,14 +766,26 @@ fn measure(
                 .render(frame, &mut out)
                 .with_context(|| case.label())?;
         }
-        Some(Picture::of(&out))
+        let centre = Picture::of(&out);
+        let converged = if accumulated_frames > 1 {
+            for _ in 1..accumulated_frames {
+                engine
+                    .render(frame, &mut out)
+                    .with_context(|| case.label())?;
+            }
+            Some(Picture::of(&out))
+        } else {
+            None
+        };
+        (Some(centre), converged)
     } else {
-        None
+        (None, None)
     };
     let rendered = Rendered {
         centre,
         converged,
         direct,
+        direct_converged,
     };
     let mut row = BenchRow {
         scene: scene.to_owned(),
@@ -740,6 +817,8 @@ fn measure(
         object_indirect_term_relative_l2: None,
         direct_reference_noise: None,
         direct_reference_spp: None,
+        converged_direct_term_relative_l2: None,
+        converged_indirect_term_relative_l2: None,
     };
     row.score(&rendered, reference);
     Ok((row, rendered))
@@ -805,7 +884,7 @@ pub fn table(rows: &[BenchRow]) -> String {
 /// indirect term's).
 pub fn terms_table(rows: &[BenchRow]) -> String {
     let mut s = format!(
-        "{:<14} {:<48} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>7}\n",
+        "{:<14} {:<48} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>7} {:>9} {:>9} {:>9}\n",
         "scene",
         "engine / setting",
         "rel L2",
@@ -816,12 +895,15 @@ pub fn terms_table(rows: &[BenchRow]) -> String {
         "obj ind",
         "ref noise",
         "dir noise",
-        "dir spp"
+        "dir spp",
+        "conv L2",
+        "conv dir",
+        "conv ind"
     );
     let or_dash = |v: Option<f64>| v.map_or("-".to_owned(), |e| format!("{e:.4}"));
     for r in rows {
         s.push_str(&format!(
-            "{:<14} {:<48} {:>9.4} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9.4} {:>10} {:>7}\n",
+            "{:<14} {:<48} {:>9.4} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9.4} {:>10} {:>7} {:>9} {:>9} {:>9}\n",
             r.scene,
             r.setting,
             r.relative_l2,
@@ -833,7 +915,10 @@ pub fn terms_table(rows: &[BenchRow]) -> String {
             r.reference_noise,
             or_dash(r.direct_reference_noise),
             r.direct_reference_spp
-                .map_or("-".to_owned(), |n| n.to_string())
+                .map_or("-".to_owned(), |n| n.to_string()),
+            or_dash(r.converged_relative_l2),
+            or_dash(r.converged_direct_term_relative_l2),
+            or_dash(r.converged_indirect_term_relative_l2)
         ));
     }
     s
@@ -968,12 +1053,12 @@ pub fn write_roofline(
 pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut csv = String::from(
-        "scene,engine,setting,median_ms,min_ms,static_ms,held_ms,gpu_ms,relative_l2,shadow_relative_l2,bleeding_relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp,accumulated_frames,area_relative_l2,converged_relative_l2,converged_object_relative_l2,area_reference_noise,area_reference_spp,direct_term_relative_l2,indirect_term_relative_l2,object_direct_term_relative_l2,object_indirect_term_relative_l2,direct_reference_noise,direct_reference_spp\n",
+        "scene,engine,setting,median_ms,min_ms,static_ms,held_ms,gpu_ms,relative_l2,shadow_relative_l2,bleeding_relative_l2,max_abs,object_relative_l2,reference_noise,reference_spp,accumulated_frames,area_relative_l2,converged_relative_l2,converged_object_relative_l2,area_reference_noise,area_reference_spp,direct_term_relative_l2,indirect_term_relative_l2,object_direct_term_relative_l2,object_indirect_term_relative_l2,direct_reference_noise,direct_reference_spp,converged_direct_term_relative_l2,converged_indirect_term_relative_l2\n",
     );
     let or_empty = |v: Option<f64>| v.map_or(String::new(), |e| e.to_string());
     for r in rows {
         csv.push_str(&format!(
-            "{},{},\"{}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},\"{}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
             r.scene,
             r.engine,
             r.setting,
@@ -1002,7 +1087,9 @@ pub fn write_outputs(rows: &[BenchRow], dir: &Path, adapter: &str) -> Result<()>
             or_empty(r.object_indirect_term_relative_l2),
             or_empty(r.direct_reference_noise),
             r.direct_reference_spp
-                .map_or(String::new(), |n| n.to_string())
+                .map_or(String::new(), |n| n.to_string()),
+            or_empty(r.converged_direct_term_relative_l2),
+            or_empty(r.converged_indirect_term_relative_l2)
         ));
     }
     std::fs::write(dir.join("bench.csv"), csv)?;

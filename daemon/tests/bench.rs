@@ -234,7 +234,7 @@ fn terms_say_which_term_an_error_comes_from() {
         max_reference_spp: 64,
         reference_cache: None,
         frames: 1,
-        accumulate: Some(1),
+        accumulate: Some(4),
         terms: true,
         cases: ["differential", "dvct", "ibl"]
             .map(|e| BenchCase::new(e, serde_json::json!({})))
@@ -274,6 +274,21 @@ fn terms_say_which_term_an_error_comes_from() {
         differential.object_direct_term_relative_l2,
         dvct.object_direct_term_relative_l2
     );
+    // The same of the converged pictures against the pixel-area references.
+    let converged = |row: &relight_daemon::bench::BenchRow| {
+        (
+            row.converged_direct_term_relative_l2.unwrap(),
+            row.converged_indirect_term_relative_l2.unwrap(),
+        )
+    };
+    let (differential_converged, _) = converged(differential);
+    let (dvct_converged, dvct_converged_indirect) = converged(dvct);
+    assert!(
+        (differential_converged - dvct_converged).abs() < 1e-9,
+        "{differential_converged} {dvct_converged}"
+    );
+    assert!(dvct_converged_indirect.is_finite());
+    assert_eq!(ibl.converged_direct_term_relative_l2, None);
     // spot_bleed's object bleeds onto the floor: without indirect light that is most of the
     // error, and dvct's bleeding brings it down.
     assert!(
