@@ -541,25 +541,17 @@ pub fn run(
                 Err(e) => tracing::warn!("{}: skipped: {e:#}", scene.name),
             }
         }
-        let best = |rows: &[(BenchRow, Rendered)], error: fn(&BenchRow) -> Option<f64>| {
-            rows.iter()
-                .filter_map(|(row, _)| error(row))
-                .filter(|e| e.is_finite())
-                .fold(f64::INFINITY, f64::min)
-        };
-        if centre.refine(
+        let max_spp = settings.max_reference_spp;
+        settle(
+            &mut centre,
             &scene,
-            best(&scene_rows, |r| Some(r.relative_l2)),
-            settings.max_reference_spp,
+            &mut scene_rows,
+            max_spp,
+            |row, rendered, truth| row.score(rendered, truth),
+            |row| Some(row.relative_l2),
             &mut progress,
-        )? {
-            for (row, rendered) in &mut scene_rows {
-                row.score(rendered, &centre.images);
-            }
-        }
-        centre.store(&scene.name);
-        // The direct-light reference the term split swaps in, refined as the full one is
-        // against the least term error (its noise enters both terms).
+        )?;
+        // The direct-light reference the term split swaps in (its noise enters both terms).
         if scene_rows.iter().any(|(_, r)| r.direct.is_some()) {
             let mut direct = Truth::new(
                 settings,
@@ -569,25 +561,15 @@ pub fn run(
                 Transport::Direct,
                 &mut progress,
             )?;
-            let score = |rows: &mut Vec<(BenchRow, Rendered)>, direct: &Truth| {
-                for (row, rendered) in rows {
-                    row.score_terms(rendered, &centre.images, &direct.images);
-                }
-            };
-            score(&mut scene_rows, &direct);
-            if direct.refine(
+            settle(
+                &mut direct,
                 &scene,
-                best(&scene_rows, |r| {
-                    r.direct_term_relative_l2
-                        .zip(r.indirect_term_relative_l2)
-                        .map(|(d, i)| d.min(i))
-                }),
-                settings.max_reference_spp,
+                &mut scene_rows,
+                max_spp,
+                |row, rendered, truth| row.score_terms(rendered, &centre.images, truth),
+                |row| least(row.direct_term_relative_l2, row.indirect_term_relative_l2),
                 &mut progress,
-            )? {
-                score(&mut scene_rows, &direct);
-            }
-            direct.store(&scene.name);
+            )?;
         }
         // The pixel-area truth the accumulated frames converge to, where any row has them.
         if scene_rows.iter().any(|(_, r)| r.converged.is_some()) {
@@ -599,21 +581,15 @@ pub fn run(
                 Transport::Full,
                 &mut progress,
             )?;
-            let score = |rows: &mut Vec<(BenchRow, Rendered)>, area: &Truth| {
-                for (row, rendered) in rows {
-                    row.score_area(rendered, &area.images);
-                }
-            };
-            score(&mut scene_rows, &area);
-            if area.refine(
+            settle(
+                &mut area,
                 &scene,
-                best(&scene_rows, |r| r.converged_relative_l2),
-                settings.max_reference_spp,
+                &mut scene_rows,
+                max_spp,
+                |row, rendered, truth| row.score_area(rendered, truth),
+                |row| row.converged_relative_l2,
                 &mut progress,
-            )? {
-                score(&mut scene_rows, &area);
-            }
-            area.store(&scene.name);
+            )?;
             // And the pixel-area direct-light reference the converged term split swaps in.
             if scene_rows.iter().any(|(_, r)| r.direct_converged.is_some()) {
                 let mut direct = Truth::new(
@@ -624,25 +600,20 @@ pub fn run(
                     Transport::Direct,
                     &mut progress,
                 )?;
-                let score = |rows: &mut Vec<(BenchRow, Rendered)>, direct: &Truth| {
-                    for (row, rendered) in rows {
-                        row.score_converged_terms(rendered, &area.images, &direct.images);
-                    }
-                };
-                score(&mut scene_rows, &direct);
-                if direct.refine(
+                settle(
+                    &mut direct,
                     &scene,
-                    best(&scene_rows, |r| {
-                        r.converged_direct_term_relative_l2
-                            .zip(r.converged_indirect_term_relative_l2)
-                            .map(|(d, i)| d.min(i))
-                    }),
-                    settings.max_reference_spp,
+                    &mut scene_rows,
+                    max_spp,
+                    |row, rendered, truth| row.score_converged_terms(rendered, &area.images, truth),
+                    |row| {
+                        least(
+                            row.converged_direct_term_relative_l2,
+                            row.converged_indirect_term_relative_l2,
+                        )
+                    },
                     &mut progress,
-                )? {
-                    score(&mut scene_rows, &direct);
-                }
-                direct.store(&scene.name);
+                )?;
             }
         }
         for (row, _) in scene_rows {
@@ -651,6 +622,41 @@ pub fn run(
         }
     }
     Ok(rows)
+}
+
+/// Score every row against `truth`, refine it while its noise is above a third of the least
+/// of the rows' `error`s (within `max_spp`), score them again if it was, and keep it in the
+/// cache.
+fn settle(
+    truth: &mut Truth,
+    scene: &Scene,
+    rows: &mut [(BenchRow, Rendered)],
+    max_spp: u32,
+    score: impl Fn(&mut BenchRow, &Rendered, &ReferenceImages),
+    error: impl Fn(&BenchRow) -> Option<f64>,
+    progress: &mut impl FnMut(BenchProgress<'_>),
+) -> Result<()> {
+    let score_all = |rows: &mut [(BenchRow, Rendered)], truth: &Truth| {
+        for (row, rendered) in rows {
+            score(row, rendered, &truth.images);
+        }
+    };
+    score_all(rows, truth);
+    let best = rows
+        .iter()
+        .filter_map(|(row, _)| error(row))
+        .filter(|e| e.is_finite())
+        .fold(f64::INFINITY, f64::min);
+    if truth.refine(scene, best, max_spp, progress)? {
+        score_all(rows, truth);
+    }
+    truth.store(&scene.name);
+    Ok(())
+}
+
+/// The lesser of a row's two term errors, where it has both.
+fn least(a: Option<f64>, b: Option<f64>) -> Option<f64> {
+    a.zip(b).map(|(a, b)| a.min(b))
 }
 
 /// `scene` with its first real vertex moved by 10 µm: the same picture to the shadow maps'
