@@ -12,6 +12,7 @@ use glam::{Mat4, Vec2, Vec3, Vec4};
 use relight_core::light::Light;
 use relight_core::scene::{Scene, SceneCamera};
 use relight_core::{Image, PixelFormat, PixelRect};
+use serde_json::{Map, Value};
 use wgpu::util::DeviceExt;
 
 use crate::change::{self, camera_still};
@@ -21,7 +22,7 @@ use crate::gpu::GpuContext;
 use crate::gpu_scene::{
     GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, is_shadowed, light_faces,
 };
-use crate::params::ParamSpec;
+use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::shadow_reach;
@@ -164,11 +165,6 @@ impl Accumulation {
 
     fn set_frames(&mut self, frames: u32) {
         self.frames = frames.max(1);
-        self.restart();
-    }
-
-    /// The next frame starts a new mean, whatever its inputs.
-    fn restart(&mut self) {
         self.key = None;
     }
 
@@ -527,13 +523,12 @@ impl Deferred {
         self.accumulation.set_frames(frames);
     }
 
-    /// Add the engine's indirect term in the shading, or shade its direct light alone
-    /// ([`indirect_param`]). Starts the mean afresh.
-    pub fn set_indirect_term(&mut self, on: bool) {
-        if on != self.indirect_term {
-            self.indirect_term = on;
-            self.accumulation.restart();
-        }
+    /// The parameters every engine on `Deferred` takes, from its validated `params`:
+    /// [`accumulate_param`], and [`indirect_param`] where the engine's `schema` has it (without
+    /// it the indirect term is always added). Starts the mean afresh.
+    pub fn set_shared_params(&mut self, schema: &ParamsSchema, params: &Map<String, Value>) {
+        self.set_accumulate(schema.int(params, "accumulate") as u32);
+        self.indirect_term = !schema.has("indirect") || schema.choice(params, "indirect") == "on";
     }
 
     pub fn ctx(&self) -> &Arc<GpuContext> {

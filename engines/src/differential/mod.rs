@@ -82,10 +82,7 @@ impl Engine for Differential {
         self.shadow_bias_texels = schema.float(params, "shadow_bias") as f32;
         self.deferred
             .set_environment_light_count(schema.int(params, "env_lights") as u32);
-        self.deferred
-            .set_accumulate(schema.int(params, "accumulate") as u32);
-        self.deferred
-            .set_indirect_term(schema.choice(params, "indirect") == "on");
+        self.deferred.set_shared_params(&schema, params);
     }
 }
 

@@ -677,9 +677,6 @@ impl Engine for Dir {
             gather_stride: int("gather_stride"),
             vpls_per_frame: schema.choice(params, "vpl_placement") == "per_frame",
         };
-        self.deferred
-            .set_accumulate(schema.int(params, "accumulate") as u32);
-        self.deferred
-            .set_indirect_term(schema.choice(params, "indirect") == "on");
+        self.deferred.set_shared_params(&schema, params);
     }
 }

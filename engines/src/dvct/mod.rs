@@ -713,10 +713,7 @@ impl Engine for Dvct {
         };
         self.deferred
             .set_environment_light_count(schema.int(params, "env_lights") as u32);
-        self.deferred
-            .set_accumulate(schema.int(params, "accumulate") as u32);
-        self.deferred
-            .set_indirect_term(schema.choice(params, "indirect") == "on");
+        self.deferred.set_shared_params(&schema, params);
     }
 }
 

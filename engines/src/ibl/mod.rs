@@ -538,8 +538,7 @@ impl Engine for Ibl {
             update_threshold: float("update_threshold"),
             local_probe: schema.choice(params, "environment") == "local",
         };
-        self.deferred
-            .set_accumulate(schema.int(params, "accumulate") as u32);
+        self.deferred.set_shared_params(&schema, params);
     }
 }
 
