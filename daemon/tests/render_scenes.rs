@@ -118,6 +118,18 @@ fn relighting_engines_render_offline_scenes_and_bad_requests_are_refused() {
     for file in ["delta.exr", "delta_reference.exr", "composite.png"] {
         assert!(out.path().join(file).exists(), "{file}");
     }
+    // `differential` is direct light alone, so against the reference at `--bounces 0` (pixel
+    // centres, a point light: no noise) it is exact up to its shadow map's edges.
+    let direct = render(&["--engine", "differential", "--bounces", "0"]);
+    assert!(direct.status.success());
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.path().join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["reference_bounces"], 0);
+    let (delta, object) = (
+        summary["delta_relative_l2"].as_f64().unwrap(),
+        summary["object_relative_l2"].as_f64().unwrap(),
+    );
+    assert!(delta < 0.01 && object < 0.02, "Δ {delta}, object {object}");
     let unknown = render(&["--engine", "dlvp"]);
     assert!(!unknown.status.success());
     let stderr = String::from_utf8_lossy(&unknown.stderr);

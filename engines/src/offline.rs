@@ -64,7 +64,9 @@ pub fn reference_renderer(
     )
 }
 
-pub(crate) fn reference_settings(
+/// The reference's settings for a picture at `width` × `height`, `spp` samples sampled so, with
+/// `transport`'s bounces.
+pub fn reference_settings(
     width: u32,
     height: u32,
     spp: u32,

@@ -48,14 +48,7 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     let size = args.width.zip(args.height);
     if args.engine != "reference" {
-        return render_engine(
-            &args.scene,
-            &args.engine,
-            &args.params,
-            size,
-            args.spp,
-            &args.out,
-        );
+        return render_engine(&args, size);
     }
     let settings = ReferenceSettings {
         spp: args.spp,
@@ -148,36 +141,27 @@ fn trace_with_progress(renderer: &mut ReferenceRenderer, spp: u32) -> ReferenceI
 }
 
 /// Render an offline scene with a relighting engine: Δ as EXR, the composite as PNG, and a
-/// summary with the frame time and the error of Δ against the reference at `spp`.
-fn render_engine(
-    scene_dir: &Path,
-    engine: &str,
-    params: &[String],
-    size: Option<(u32, u32)>,
-    spp: u32,
-    out: &Path,
-) -> Result<()> {
-    let scene = Arc::new(Scene::load(scene_dir)?);
+/// summary with the frame time and the error of Δ against the reference at `--spp`, traced
+/// with `--bounces` and `--seed` (`--bounces 0`: the engine against direct light alone).
+fn render_engine(args: &Args, size: Option<(u32, u32)>) -> Result<()> {
+    let (engine, spp, out) = (args.engine.as_str(), args.spp, args.out.as_path());
+    let scene = Arc::new(Scene::load(&args.scene)?);
     let (w, h) = size.unwrap_or((scene.camera.width, scene.camera.height));
     // One frame as a live, changing frame draws it (pixel centres), scored against the
     // reference sampled so: the warm-up frame before the timed one would otherwise count as
     // a still frame accumulated into it. `bench` measures the accumulation.
     let registry = relight_engines::EngineRegistry::new();
-    let mut params = crate::params::parse_params(params)?;
+    let mut params = crate::params::parse_params(&args.params)?;
     if registry.spec(engine)?.schema.has("accumulate") {
         params.entry("accumulate").or_insert(1.into());
     }
     let mut built = registry.build(engine, &params)?;
-    let reference = trace_with_progress(
-        &mut offline::reference_renderer(
-            &scene,
-            w,
-            h,
-            offline::Sampling::Centre,
-            offline::Transport::Full,
-        )?,
-        spp,
-    );
+    let settings = ReferenceSettings {
+        max_bounces: args.bounces,
+        seed: args.seed,
+        ..offline::reference_settings(w, h, 0, offline::Sampling::Centre, offline::Transport::Full)
+    };
+    let reference = trace_with_progress(&mut ReferenceRenderer::new(&scene, settings)?, spp);
     let frame = offline::scene_frame(scene.clone(), offline::background(&reference));
     let mut relit = relight_engines::RelitFrame::default();
     built.engine.render(&frame, &mut relit)?;
@@ -203,6 +187,7 @@ fn render_engine(
         "frame_ms": ms,
         "passes": relit.timings.iter().map(|t| serde_json::json!({"pass": t.pass, "ms": t.ms})).collect::<Vec<_>>(),
         "reference_spp": spp,
+        "reference_bounces": args.bounces,
         "delta_relative_l2": relative_l2,
         "delta_max_abs": max_abs,
         "object_relative_l2": object_l2,
