@@ -20,7 +20,8 @@ use crate::engine::{EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::{GBufferPass, LayerRedraw, RealWithin, RsmPass, Targets};
 use crate::gpu::GpuContext;
 use crate::gpu_scene::{
-    GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, is_shadowed, light_faces,
+    FACE_ORTHOGRAPHIC, GpuCamera, GpuFace, GpuLight, GpuScene, camera_uniform, is_shadowed,
+    light_faces,
 };
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
@@ -263,14 +264,32 @@ pub struct MapSizes {
     /// The reflective shadow maps a VPL engine samples its VPLs from (position, normal,
     /// albedo); `None` for an engine that uses the maps for visibility alone.
     pub rsm: Option<u32>,
+    /// Whether `rsm` is the edge for up to [`RSM_BUDGET_FACES`] directional faces, shrunk
+    /// for more ([`MapSizes::for_faces`]): an engine that injects every texel as a VPL.
+    pub rsm_budget: bool,
 }
 
+/// A volume engine's VPL maps for directional lights alone hold at most as many texels in
+/// all as this many faces at its `rsm_size`.
+pub const RSM_BUDGET_FACES: u32 = 6;
+
 impl MapSizes {
-    /// Shadow maps and a VPL engine's reflective shadow maps.
+    /// Shadow maps and a VPL engine's reflective shadow maps, `rsm`² texels a face.
     pub fn with_rsm(shadow: u32, rsm: u32) -> Self {
         Self {
             shadow,
             rsm: Some(rsm),
+            rsm_budget: false,
+        }
+    }
+
+    /// Shadow maps and the reflective shadow maps of an engine that injects every texel into
+    /// a volume (`dlpv`, `dvct`), `rsm`² a face, or fewer where the faces are many directional
+    /// lights ([`MapSizes::for_faces`]).
+    pub fn with_injected_rsm(shadow: u32, rsm: u32) -> Self {
+        Self {
+            rsm_budget: true,
+            ..Self::with_rsm(shadow, rsm)
         }
     }
 
@@ -279,7 +298,35 @@ impl MapSizes {
         Self {
             shadow: size,
             rsm: None,
+            rsm_budget: false,
         }
+    }
+
+    /// The sizes drawn for `faces`. With [`MapSizes::rsm_budget`], when every face is a
+    /// directional light's and there are more than [`RSM_BUDGET_FACES`] of them (an
+    /// environment cut into 24 lights), the VPL maps' edge is scaled by √(6 / faces), down to
+    /// a multiple of 8, so their texels together stay those of six faces.
+    ///
+    /// Why: a point light's six faces split the scene between them, so a surface takes the
+    /// VPLs of one face; each of n directional lights' orthographic maps spans the whole
+    /// scene, so a surface takes the VPLs of all n, each with a 1/n share of the light.
+    /// Injection costs every texel, while the light and the cells that receive it do not grow
+    /// with n. On window_env (24 faces, 160 × 120), 96² instead of 192² left `dlpv`'s Δ and
+    /// object errors within 0.002 for 43 % of its frame, and 64² instead of 128² `dvct`'s
+    /// (`docs/ALGORITHMS.md`, "Environment lights"). The maps are one texture array, so with a
+    /// point or spot light among the faces, whose VPLs near the object need the full edge
+    /// (desk_box's bleeding at 128² rather than 192²: 0.65 → 0.85), nothing is scaled.
+    pub fn for_faces(self, faces: &[GpuFace]) -> Self {
+        let n = faces.len() as u32;
+        let directional = faces.iter().all(|f| f.light[1] == FACE_ORTHOGRAPHIC);
+        let rsm = match self.rsm {
+            Some(size) if self.rsm_budget && directional && n > RSM_BUDGET_FACES => {
+                let scaled = f64::from(size) * (f64::from(RSM_BUDGET_FACES) / f64::from(n)).sqrt();
+                Some(((scaled as u32) / 8 * 8).clamp(8.min(size), size))
+            }
+            rsm => rsm,
+        };
+        Self { rsm, ..self }
     }
 }
 
@@ -678,6 +725,7 @@ impl Deferred {
                 max: MAX_LAYERS,
             });
         }
+        let sizes = sizes.for_faces(&self.faces_cpu);
         if !self
             .light
             .as_ref()
@@ -945,6 +993,12 @@ impl Deferred {
 
     pub fn faces(&self) -> &[GpuFace] {
         &self.faces_cpu
+    }
+
+    /// The VPL maps' edge in texels as drawn for this frame's faces (after `prepare`;
+    /// [`MapSizes::for_faces`]), `None` without them.
+    pub fn rsm_size(&self) -> Option<u32> {
+        self.light.as_ref().and_then(|l| l.sizes.rsm)
     }
 
     /// The light and face buffers and the R^ρ / R^μ targets (after `prepare` with an RSM
@@ -1316,6 +1370,55 @@ impl LightResources {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use relight_core::light::Light;
+
+    /// The VPL maps are thinned only for an injecting engine, and only where every face is one
+    /// of more than six directional lights; their texels then stay within six faces'.
+    #[test]
+    fn only_many_directional_faces_thin_the_vpl_maps() {
+        let directional = |n: usize| {
+            (0..n)
+                .map(|i| Light::Directional {
+                    direction_in_world: Vec3::new(i as f32 * 0.1, -1.0, 0.2).normalize(),
+                    irradiance: Vec3::ONE,
+                })
+                .collect::<Vec<_>>()
+        };
+        let point = Light::Point {
+            position_in_world: Vec3::new(0.0, 2.0, 0.0),
+            intensity: Vec3::ONE,
+        };
+        let bounds = (Vec3::splat(-1.0), Vec3::splat(1.0));
+        let rsm = |sizes: MapSizes, lights: &[Light]| {
+            let (_, faces) = light_faces(lights, bounds);
+            let drawn = sizes.for_faces(&faces);
+            assert_eq!(
+                drawn.shadow, sizes.shadow,
+                "the shadow maps keep their size"
+            );
+            drawn.rsm.unwrap()
+        };
+        let injected = MapSizes::with_injected_rsm(512, 192);
+        assert_eq!(rsm(injected, &directional(24)), 96);
+        assert_eq!(rsm(injected, &directional(16)), 112);
+        assert_eq!(rsm(injected, &directional(6)), 192);
+        assert_eq!(rsm(injected, &[point]), 192);
+        let mut mixed = directional(24);
+        mixed.push(point);
+        assert_eq!(
+            rsm(injected, &mixed),
+            192,
+            "a point light needs the full edge"
+        );
+        assert_eq!(rsm(MapSizes::with_rsm(512, 192), &directional(24)), 192);
+        for n in 7..64 {
+            let edge = rsm(injected, &directional(n));
+            assert!(
+                edge % 8 == 0 && edge.pow(2) * n as u32 <= 6 * 192 * 192,
+                "{n}: {edge}"
+            );
+        }
+    }
 
     #[test]
     fn non_finite_and_out_of_range_delta_is_counted_and_never_written() {

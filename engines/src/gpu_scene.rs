@@ -62,8 +62,12 @@ pub struct GpuLight {
 pub struct GpuFace {
     pub view_proj: [[f32; 4]; 4],
     pub axis: [f32; 4],
+    /// The light's index, and [`FACE_ORTHOGRAPHIC`] for a directional light's map (else 0).
     pub light: [u32; 4],
 }
+
+/// `GpuFace::light[1]` of a directional light's orthographic map (`face.light.y` in the shaders).
+pub const FACE_ORTHOGRAPHIC: u32 = 1;
 
 const FLAG_VIRTUAL: u32 = 1;
 const FLAG_MEASURED_ALBEDO: u32 = 2;
@@ -457,7 +461,7 @@ pub fn light_faces(lights: &[Light], bounds: (Vec3, Vec3)) -> (Vec<GpuLight>, Ve
                 faces.push(GpuFace {
                     view_proj: (proj * view).to_cols_array_2d(),
                     axis: dir.extend(edge * edge).to_array(),
-                    light: [index, 1, 0, 0],
+                    light: [index, FACE_ORTHOGRAPHIC, 0, 0],
                 });
                 GpuLight {
                     position: Vec3::ZERO.extend(2.0).to_array(),

@@ -78,7 +78,7 @@ fn grown_object(
         return (lo, hi);
     };
     let size = shadow_size.max(1) as f32;
-    let footprint = if face.light[1] == 1 {
+    let footprint = if face.light[1] == crate::gpu_scene::FACE_ORTHOGRAPHIC {
         face.axis[3].sqrt() / size
     } else {
         let at = Vec4::from(light.position).xyz();

@@ -180,6 +180,14 @@ fn more_environment_lights_bring_window_env_closer() {
     support::more_environment_lights_bring_window_env_closer("dlpv");
 }
 
+#[test]
+fn thinner_maps_for_an_environment_keep_the_error() {
+    support::thinner_maps_for_an_environment_keep_the_error(
+        "dlpv",
+        relight_engines::dlpv::DlpvSettings::default().rsm_size,
+    );
+}
+
 /// The volume is 16³ and V^Δ takes 8 steps by default, not the paper's 32³ and 32: each step
 /// carries the object's lit faces' VPLs a cell further, through the object into its own shadow.
 /// On touching_wall, whose shadow is most of its error, Δ and the object's pixels must both

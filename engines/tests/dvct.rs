@@ -213,6 +213,14 @@ fn more_environment_lights_bring_window_env_closer() {
     support::more_environment_lights_bring_window_env_closer("dvct");
 }
 
+#[test]
+fn thinner_maps_for_an_environment_keep_the_error() {
+    support::thinner_maps_for_an_environment_keep_the_error(
+        "dvct",
+        relight_engines::dvct::DvctSettings::default().rsm_size,
+    );
+}
+
 /// The default volume is 32³ marched at a step of one cone diameter, not 64³ at half of one
 /// (the defaults until stop 43): on spot_bleed, whose bleeding is the largest of the five
 /// scenes', both Δ on real pixels and the object's pixels come closer to the full reference

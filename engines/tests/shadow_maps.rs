@@ -324,10 +324,7 @@ fn the_reflective_shadow_maps_do_not_shadow_the_direct_light() {
     };
     let (alone, shadows, rsm) = direct(MapSizes::shadows(512));
     assert_eq!((shadows, rsm), (Some((512, 512)), None));
-    let (beside, shadows, rsm) = direct(MapSizes {
-        shadow: 512,
-        rsm: Some(16),
-    });
+    let (beside, shadows, rsm) = direct(MapSizes::with_rsm(512, 16));
     assert_eq!((shadows, rsm), (Some((512, 512)), Some(16)));
     assert!(
         relight_engines::offline::delta_pixels(&alone)

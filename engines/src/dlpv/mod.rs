@@ -149,7 +149,8 @@ impl Dlpv {
             int(
                 "rsm_size",
                 "reflective-shadow-map edge per light face; every texel is a VPL (the shadows \
-                 have their own map, `shadow_size`)",
+                 have their own map, `shadow_size`). Scaled by √(6/n) where the faces are n > 6 \
+                 directional lights alone, e.g. an environment's",
                 32,
                 2048,
                 192,
@@ -271,16 +272,17 @@ impl Dlpv {
 }
 
 /// What injection (with the resolve: the 48 bytes of counts read, the SH written to both the
-/// start and the accumulation) and propagation must do for `n`³ cells of two volumes. Every
+/// start and the accumulation) and propagation must do for `n`³ cells of two volumes from `faces`
+/// VPL maps of `rsm_size`². Every
 /// propagation step reads each cell's SH and writes it, and adds it into the accumulation
 /// ([`SH_CELL_BYTES`] each way), with about 660 operations per cell (`dlpv_propagate.wgsl`:
 /// six neighbours, five faces, three channels); V^Δ takes `steps` of them, V^ρ `rho_steps`.
-fn propagation_work(n: u32, faces: u32, settings: DlpvSettings) -> [PassWork; 2] {
+fn propagation_work(n: u32, faces: u32, rsm_size: u32, settings: DlpvSettings) -> [PassWork; 2] {
     let volume = f64::from(n).powi(3);
     let cells = 2.0 * volume;
     let sh = SH_CELL_BYTES as f64;
-    let inject = InjectPass::work(settings.rsm_size, faces, cells)
-        + Work::new(48.0 + 2.0 * sh, 12.0).times(cells);
+    let inject =
+        InjectPass::work(rsm_size, faces, cells) + Work::new(48.0 + 2.0 * sh, 12.0).times(cells);
     let step = Work::new(sh + sh + 2.0 * sh, 660.0).times(volume);
     let volume_steps = settings.steps + settings.rho_steps.min(settings.steps);
     [
@@ -315,7 +317,7 @@ impl Engine for Dlpv {
             Self::NAME,
             frame,
             out,
-            MapSizes::with_rsm(settings.shadow_size, settings.rsm_size),
+            MapSizes::with_injected_rsm(settings.shadow_size, settings.rsm_size),
         )?
         else {
             return Ok(());
@@ -327,6 +329,7 @@ impl Engine for Dlpv {
             None => return Err(EngineError::NotPrepared),
         };
         let faces = self.deferred.faces().len() as u32;
+        let rsm_size = self.deferred.rsm_size().ok_or(EngineError::NotPrepared)?;
         if let (Some((lo, hi)), true) = (virtual_bounds, faces > 0) {
             let n = settings.volume_size;
             let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
@@ -334,12 +337,7 @@ impl Engine for Dlpv {
                 fixed_point_scale(self.deferred.lights(), (bounds.1 - bounds.0).length() / 2.0);
             let volume = VolumeUniform {
                 origin: origin.extend(cell).to_array(),
-                dims: [
-                    n,
-                    settings.rsm_size,
-                    faces,
-                    self.deferred.lights().len() as u32,
-                ],
+                dims: [n, rsm_size, faces, self.deferred.lights().len() as u32],
                 scale: [
                     scale,
                     if settings.antiradiance { 1.0 } else { 0.0 },
@@ -410,12 +408,13 @@ impl Engine for Dlpv {
                     label: Some("dlpv"),
                 });
             if repropagate {
-                out.work.extend(propagation_work(n, faces, settings));
+                out.work
+                    .extend(propagation_work(n, faces, rsm_size, settings));
                 encoder.clear_buffer(&v.cells.buffer, 0, None);
                 {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
                     self.inject
-                        .dispatch(&mut pass, &inject_group, settings.rsm_size, faces);
+                        .dispatch(&mut pass, &inject_group, rsm_size, faces);
                     pass.set_pipeline(&self.resolve);
                     pass.set_bind_group(0, &resolve_group, &[]);
                     pass.dispatch_workgroups((2 * n.pow(3) * 3).div_ceil(64), 1, 1);

@@ -175,7 +175,8 @@ impl Dvct {
             int(
                 "rsm_size",
                 "reflective-shadow-map edge per light face; every texel is a VPL (the shadows \
-                 have their own map, `shadow_size`)",
+                 have their own map, `shadow_size`). Scaled by √(6/n) where the faces are n > 6 \
+                 directional lights alone, e.g. an environment's",
                 32,
                 2048,
                 d.rsm_size,
@@ -460,7 +461,7 @@ impl Engine for Dvct {
             Self::NAME,
             frame,
             out,
-            MapSizes::with_rsm(settings.shadow_size, settings.rsm_size),
+            MapSizes::with_injected_rsm(settings.shadow_size, settings.rsm_size),
         )?
         else {
             return Ok(());
@@ -478,6 +479,7 @@ impl Engine for Dvct {
         );
         let triangles = voxelized.len() as u32 / 3;
         let faces = self.deferred.faces().len() as u32;
+        let rsm_size = self.deferred.rsm_size().ok_or(EngineError::NotPrepared)?;
         if let Some((lo, hi)) = virtual_bounds {
             let n = settings.volume_size;
             let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
@@ -487,12 +489,7 @@ impl Engine for Dvct {
             let tan = |deg: f32| deg.to_radians().tan();
             let inject_volume = VolumeUniform {
                 origin: origin.extend(cell).to_array(),
-                dims: [
-                    n,
-                    settings.rsm_size,
-                    faces,
-                    self.deferred.lights().len() as u32,
-                ],
+                dims: [n, rsm_size, faces, self.deferred.lights().len() as u32],
                 scale: [scale, 0.0, 0.0, 0.0],
                 options: [u32::from(settings.far_field), 0, 0, 0],
             };
@@ -618,7 +615,7 @@ impl Engine for Dvct {
                     },
                     PassWork {
                         pass: "inject",
-                        work: InjectPass::work(settings.rsm_size, faces, cells),
+                        work: InjectPass::work(rsm_size, faces, cells),
                     },
                     PassWork {
                         pass: "mip",
@@ -641,7 +638,7 @@ impl Engine for Dvct {
                 {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
                     self.inject
-                        .dispatch(&mut pass, &inject_group, settings.rsm_size, faces);
+                        .dispatch(&mut pass, &inject_group, rsm_size, faces);
                 }
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.mip");
                 for (coarser, m, mip_group) in &v.mip_groups {
