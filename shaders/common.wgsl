@@ -470,6 +470,10 @@ struct Dvct {
     // x: 1 = directional occlusion on real pixels (`CONE_OCCLUDED` in dvct_trace.wgsl); y: 1 =
     // virtual pixels' cones take the far field beyond the volume.
     modes: vec4<u32>,
+    // The gains on V^ρ's SH bands (x: L0, y: L1) along virtual pixels' cones: each VPL read as
+    // a share of the radiance its surface shows over its hemisphere rather than of its cosine
+    // lobe of intensity (`radiance_lobe` in engines/src/dvct/mod.rs).
+    lobe: vec4<f32>,
 }
 
 // Differential Instant Radiosity (engines/src/dir): one VPL, `position.w` its group (0: on a

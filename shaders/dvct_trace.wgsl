@@ -90,7 +90,10 @@ fn trace(kind: u32, apex: vec3<f32>, dir: vec3<f32>, tan_half: f32, max_t: f32) 
     let lo = dvct.origin.xyz - vec3<f32>(s0);
     let hi = dvct.origin.xyz + vec3<f32>(s0 * f32(dvct.dims.x + 1u));
     let top = f32(dvct.dims.y - 1u);
-    let basis = sh_basis(-dir);
+    var basis = sh_basis(-dir);
+    if kind == CONE_RHO {
+        basis *= dvct.lobe.xyyy;
+    }
     var out: Cone;
     // V^μ's light and its opacity through the real surfaces (CONE_OCCLUDED; opaque, so that
     // only `out` decides where the march ends, for the other kinds).

@@ -440,3 +440,78 @@ pub fn virtual_moved_far_away(mut scene: Scene) -> Scene {
     }
     scene
 }
+
+/// desk_box's object alone on (or `gap` × its largest edge above) a white floor 8 m square, lit
+/// from straight above by a directional light: its vertical faces get no direct light, only the
+/// floor's bounce, which near the floor comes through the volume and farther off through the far
+/// field. The mean over those faces' pixels of `engine`'s composite (linear) over the reference's
+/// L^ρ at one bounce (160 × 120, 64 spp, pixel centres).
+pub fn unlit_faces_over_a_floor(engine: &str, params: serde_json::Value, gap: f32) -> f64 {
+    let mut scene = load_scene("desk_box");
+    let (lo, hi) = scene.virtual_bounds().expect("desk_box has an object");
+    let edge = (hi - lo).max_element();
+    let centre = (lo + hi) / 2.0;
+    let floor_y = lo.y - gap * edge;
+    let half = 4.0f32;
+    scene.meshes.retain(|m| m.is_virtual);
+    let corner = |dx: f32, dz: f32| Vec3::new(centre.x + dx, floor_y, centre.z + dz);
+    scene.meshes.push(relight_core::scene::Mesh {
+        name: "floor".into(),
+        positions_in_world: vec![
+            corner(-half, -half),
+            corner(half, -half),
+            corner(half, half),
+            corner(-half, half),
+        ],
+        normals_in_world: vec![Vec3::Y; 4],
+        triangles: vec![[0, 2, 1], [0, 3, 2]],
+        material: 0,
+        is_virtual: false,
+        vertex_albedo: Vec::new(),
+    });
+    scene.lights = vec![relight_core::light::Light::Directional {
+        direction_in_world: Vec3::NEG_Y,
+        irradiance: Vec3::ONE,
+    }];
+    scene.environment = None;
+    let scene = Arc::new(scene);
+    let (w, h) = (160, 120);
+    let reference = render_reference(
+        &scene,
+        ReferenceSettings {
+            spp: 64,
+            max_bounces: 1,
+            pixel_jitter: false,
+            size: Some((w, h)),
+            ..ReferenceSettings::default()
+        },
+    )
+    .unwrap();
+    let direct = reference_direct(&scene, w, h, 1);
+    let mut params = params;
+    params["accumulate"] = 1.into();
+    let (_, out) = delta_of(
+        &mut engine_with(engine, params),
+        &frame(scene.clone(), w, h),
+    );
+    let composite = out.composite.as_u8().expect("an 8-bit composite");
+    let channels = out.composite.format().channels();
+    let linear = |c: u8| {
+        let c = f64::from(c) / 255.0;
+        if c <= 0.04045 {
+            c / 12.92
+        } else {
+            ((c + 0.055) / 1.055).powf(2.4)
+        }
+    };
+    let (mut engine_sum, mut reference_sum, mut pixels) = (0.0, 0.0, 0);
+    for i in 0..(w * h) as usize {
+        if reference.virtual_mask[i] && direct.l_rho[i].y == 0.0 {
+            engine_sum += linear(composite[i * channels + 1]);
+            reference_sum += f64::from(reference.l_rho[i].y);
+            pixels += 1;
+        }
+    }
+    assert!(pixels > 40, "{pixels} unlit pixels");
+    engine_sum / reference_sum
+}
