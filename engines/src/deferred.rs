@@ -312,7 +312,7 @@ impl MapSizes {
     /// scene, so a surface takes the VPLs of all n, each with a 1/n share of the light.
     /// Injection costs every texel, while the light and the cells that receive it do not grow
     /// with n. On window_env (24 faces, 160 × 120), 96² instead of 192² left `dlpv`'s Δ and
-    /// object errors within 0.002 for 43 % of its frame, and 64² instead of 128² `dvct`'s
+    /// object errors within 0.002 for 43 % of its frame, and 16 faces of 72² instead of 128² `dvct`'s
     /// (`docs/ALGORITHMS.md`, "Environment lights"). The maps are one texture array, so with a
     /// point or spot light among the faces, whose VPLs near the object need the full edge
     /// (desk_box's bleeding at 128² rather than 192²: 0.65 → 0.85), nothing is scaled.

@@ -272,11 +272,11 @@ impl Dlpv {
 }
 
 /// What injection (with the resolve: the 48 bytes of counts read, the SH written to both the
-/// start and the accumulation) and propagation must do for `n`³ cells of two volumes from `faces`
-/// VPL maps of `rsm_size`². Every
-/// propagation step reads each cell's SH and writes it, and adds it into the accumulation
-/// ([`SH_CELL_BYTES`] each way), with about 660 operations per cell (`dlpv_propagate.wgsl`:
-/// six neighbours, five faces, three channels); V^Δ takes `steps` of them, V^ρ `rho_steps`.
+/// start and the accumulation) and propagation must do for `n`³ cells of two volumes from
+/// `faces` VPL maps of `rsm_size`². Every propagation step reads each cell's SH and writes it,
+/// and adds it into the accumulation ([`SH_CELL_BYTES`] each way), with about 660 operations
+/// per cell (`dlpv_propagate.wgsl`: six neighbours, five faces, three channels); V^Δ takes
+/// `steps` of them, V^ρ `rho_steps`.
 fn propagation_work(n: u32, faces: u32, rsm_size: u32, settings: DlpvSettings) -> [PassWork; 2] {
     let volume = f64::from(n).powi(3);
     let cells = 2.0 * volume;

@@ -164,11 +164,11 @@ pub fn more_environment_lights_bring_window_env_closer(engine: &str) {
     );
 }
 
-/// window_env's 24 environment lights are all directional, so `engine`'s VPL maps are drawn
-/// at half their edge (`MapSizes::for_faces`). Against the maps at the full edge (`rsm_size`
-/// doubled, which the same rule halves back), at 80 × 60 against 64 spp: Δ and the object's
-/// error within 5 % (the bench at 160 × 120: within 0.002), and the pictures differ (the maps
-/// were thinned).
+/// window_env's environment lights are all directional, so `engine`'s VPL maps are thinned
+/// (`MapSizes::for_faces`: 24 faces at half the edge, 16 at 0.61 of it, rounded down to a
+/// multiple of 8). Against the same engine with `rsm_size` doubled (finer maps than before
+/// the thinning), at 80 × 60 against 64 spp: Δ and the object's error within 5 % (the bench at
+/// 160 × 120: within 0.002 of the unthinned maps), and the pictures differ.
 pub fn thinner_maps_for_an_environment_keep_the_error(engine: &str, rsm_size: u32) {
     let scene = Arc::new(load_scene("window_env"));
     let reference = reference_full(&scene, 80, 60, 64);
@@ -253,23 +253,22 @@ pub fn the_defaults_beat(engine: &str, scene: &'static str, before: serde_json::
     );
 }
 
-/// The far field against an analytic value: desk_box's object alone over a white floor 8 m
-/// square, far enough below that none of it falls in the volume, lit from straight above by a
-/// directional light. Only the floor's bounce light reaches the object's vertical faces, and all
-/// of it through the far field, so `far_field = "probe"` minus `"none"` on the front face (normal
-/// +z) must be the box's albedo/π times the floor's irradiance at the volume's centre,
-/// ∫ L_floor ⟨n, ω⟩₊ cos θ_floor / r² dA (integrated here on a fine grid): the mean over the
-/// face's pixels within 10 % of it.
-pub fn the_far_field_of_a_floor_matches_its_integral(engine: &str) {
+/// Half the edge of [`object_over_a_floor`]'s floor (m).
+pub const FLOOR_HALF_EDGE: f32 = 4.0;
+/// The material of [`object_over_a_floor`]'s floor: desk_box's white.
+pub const FLOOR_MATERIAL: usize = 0;
+
+/// desk_box's object alone, `gap` × its largest edge above a white floor 8 m square centred
+/// under it, lit from straight above by a directional light of unit irradiance, without an
+/// environment: the object's vertical faces get no direct light, only the floor's bounce.
+pub fn object_over_a_floor(gap: f32) -> Scene {
     let mut scene = load_scene("desk_box");
     let (lo, hi) = scene.virtual_bounds().expect("desk_box has an object");
-    let edge = (hi - lo).max_element();
     let centre = (lo + hi) / 2.0;
-    let floor_y = lo.y - 3.0 * edge;
-    let half = 4.0f32;
+    let floor_y = lo.y - gap * (hi - lo).max_element();
+    let half = FLOOR_HALF_EDGE;
     scene.meshes.retain(|m| m.is_virtual);
     let corner = |dx: f32, dz: f32| Vec3::new(centre.x + dx, floor_y, centre.z + dz);
-    let white = 0;
     scene.meshes.push(relight_core::scene::Mesh {
         name: "floor".into(),
         positions_in_world: vec![
@@ -280,16 +279,33 @@ pub fn the_far_field_of_a_floor_matches_its_integral(engine: &str) {
         ],
         normals_in_world: vec![Vec3::Y; 4],
         triangles: vec![[0, 2, 1], [0, 3, 2]],
-        material: white,
+        material: FLOOR_MATERIAL,
         is_virtual: false,
         vertex_albedo: Vec::new(),
     });
-    let irradiance = 1.0f32;
     scene.lights = vec![relight_core::light::Light::Directional {
         direction_in_world: Vec3::NEG_Y,
-        irradiance: Vec3::splat(irradiance),
+        irradiance: Vec3::ONE,
     }];
     scene.environment = None;
+    scene
+}
+
+/// The far field against an analytic value: desk_box's object alone over a white floor 8 m
+/// square, far enough below that none of it falls in the volume, lit from straight above by a
+/// directional light. Only the floor's bounce light reaches the object's vertical faces, and all
+/// of it through the far field, so `far_field = "probe"` minus `"none"` on the front face (normal
+/// +z) must be the box's albedo/π times the floor's irradiance at the volume's centre,
+/// ∫ L_floor ⟨n, ω⟩₊ cos θ_floor / r² dA (integrated here on a fine grid): the mean over the
+/// face's pixels within 10 % of it.
+pub fn the_far_field_of_a_floor_matches_its_integral(engine: &str) {
+    let gap = 3.0;
+    let scene = object_over_a_floor(gap);
+    let (lo, hi) = scene.virtual_bounds().expect("desk_box has an object");
+    let centre = (lo + hi) / 2.0;
+    let floor_y = lo.y - gap * (hi - lo).max_element();
+    let half = FLOOR_HALF_EDGE;
+    let (white, irradiance) = (FLOOR_MATERIAL, 1.0f32);
     let box_albedo = {
         let object = scene.meshes.iter().find(|m| m.is_virtual).expect("the box");
         f64::from(scene.materials[object.material].albedo.x)
@@ -441,40 +457,12 @@ pub fn virtual_moved_far_away(mut scene: Scene) -> Scene {
     scene
 }
 
-/// desk_box's object alone on (or `gap` × its largest edge above) a white floor 8 m square, lit
-/// from straight above by a directional light: its vertical faces get no direct light, only the
-/// floor's bounce, which near the floor comes through the volume and farther off through the far
-/// field. The mean over those faces' pixels of `engine`'s composite (linear) over the reference's
+/// [`object_over_a_floor`] at `gap`: the object's vertical faces take only the floor's bounce,
+/// which near the floor comes through the volume and farther off through the far field. The
+/// mean over those faces' pixels of `engine`'s composite (linear) over the reference's
 /// L^ρ at one bounce (160 × 120, 64 spp, pixel centres).
 pub fn unlit_faces_over_a_floor(engine: &str, params: serde_json::Value, gap: f32) -> f64 {
-    let mut scene = load_scene("desk_box");
-    let (lo, hi) = scene.virtual_bounds().expect("desk_box has an object");
-    let edge = (hi - lo).max_element();
-    let centre = (lo + hi) / 2.0;
-    let floor_y = lo.y - gap * edge;
-    let half = 4.0f32;
-    scene.meshes.retain(|m| m.is_virtual);
-    let corner = |dx: f32, dz: f32| Vec3::new(centre.x + dx, floor_y, centre.z + dz);
-    scene.meshes.push(relight_core::scene::Mesh {
-        name: "floor".into(),
-        positions_in_world: vec![
-            corner(-half, -half),
-            corner(half, -half),
-            corner(half, half),
-            corner(-half, half),
-        ],
-        normals_in_world: vec![Vec3::Y; 4],
-        triangles: vec![[0, 2, 1], [0, 3, 2]],
-        material: 0,
-        is_virtual: false,
-        vertex_albedo: Vec::new(),
-    });
-    scene.lights = vec![relight_core::light::Light::Directional {
-        direction_in_world: Vec3::NEG_Y,
-        irradiance: Vec3::ONE,
-    }];
-    scene.environment = None;
-    let scene = Arc::new(scene);
+    let scene = Arc::new(object_over_a_floor(gap));
     let (w, h) = (160, 120);
     let reference = render_reference(
         &scene,
