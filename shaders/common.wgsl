@@ -591,6 +591,8 @@ struct Ibl {
     // The pixels the shading pass covers, first (xy) to last + 1 (zw): the image, or the
     // pixels the object can change (`Deferred::real_pixels`), which hold its own.
     region: vec4<u32>,
+    // The local picture's second bounce, L2 SH of radiance (rgb; `LocalPicture::bounce`).
+    bounce: array<vec4<f32>, 9>,
 }
 
 // Octahedral map (Engelhardt & Dachsbacher 2008): the unit sphere folded onto [0, 1]², +Z at

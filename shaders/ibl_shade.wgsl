@@ -1,5 +1,6 @@
 // Image-based shading of the virtual object from the convolved maps (Kan et al.):
-//   L_o = k_d E_d(n) · AO + k_s E_s^n(r) · ⟨n, r⟩₊
+//   L_o = k_d (E_d(n) + E_B(n)/π) · AO + k_s E_s^n(r) · ⟨n, r⟩₊
+// with E_B the irradiance of the local picture's second bounce (`ibl.bounce`, L2 SH).
 // written to the indirect buffer, which the shared shading pass adds to virtual pixels' L^ρ.
 // ⟨n, r⟩ is the cosine of the scene format's Phong BRDF (without the paper's division by
 // |n·ω_i|) taken at the lobe's centre, exact as the lobe narrows. The ambient occlusion is the
@@ -85,7 +86,13 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let m = materials[u32(p.w) - 1u];
     let n = normalize(nv.xyz);
     let wo = normalize(camera.position.xyz - p.xyz);
-    var l_o = textureLoad(gb_albedo, xy, 0).rgb * map_lookup(0u, n) * occlusion(p.xyz, n);
+    var bounce: array<vec3<f32>, 9>;
+    for (var k = 0u; k < 9u; k++) {
+        bounce[k] = ibl.bounce[k].rgb;
+    }
+    // The diffuse map holds E/π; the second bounce's irradiance joins it so.
+    let diffuse = map_lookup(0u, n) + far_field_irradiance(bounce, n) / PI;
+    var l_o = textureLoad(gb_albedo, xy, 0).rgb * diffuse * occlusion(p.xyz, n);
     if ibl.dims.y > 0u && m.albedo.w > 0.0 && any(m.specular.rgb > vec3<f32>(0.0)) {
         let r = reflect(-wo, n);
         l_o += m.specular.rgb * map_lookup(1u + level_of(m.albedo.w), r) * max(dot(n, r), 0.0);

@@ -44,6 +44,7 @@ pub struct IblUniform {
     pub params: [f32; 4],
     pub shininess: [f32; MAX_LEVELS],
     pub region: [u32; 4],
+    pub bounce: [[f32; 4]; 9],
 }
 
 /// The unit direction at `uv` ∈ [0, 1]² of an octahedral map (`oct_decode` in the shaders).

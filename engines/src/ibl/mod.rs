@@ -45,6 +45,7 @@ use crate::shaders;
 use crate::volume::{timed_pass, uniform_buffer};
 use local_probe::local_probe;
 use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, log_spaced_shininess, resample};
+use relight_core::sh::Sh9Rgb;
 
 /// The engine's settings (see [`Ibl::schema`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -86,6 +87,9 @@ struct Environment {
     settings: IblSettings,
     /// What the local picture was taken of (`None` for the map alone or a probe's picture).
     picture_of: Option<PictureKey>,
+    /// The local picture's second bounce (`LocalPicture::bounce`; zero without one), added to
+    /// the diffuse map's light at shading.
+    bounce: Sh9Rgb,
 }
 
 /// The width of the local picture of a live depth surface (its held shadow proxy; height
@@ -282,16 +286,19 @@ impl Ibl {
             e.scene = scene.clone();
             return Ok(None);
         }
-        let input = match &picture_of {
+        let (input, bounce) = match &picture_of {
             Some(_) => {
                 let width = if scene.shadow_proxy.is_some() {
                     s.input_width.min(LIVE_PICTURE_WIDTH)
                 } else {
                     s.input_width
                 };
-                local_probe(scene, width).or_else(|| distant.clone())
+                match local_probe(scene, width) {
+                    Some(picture) => (Some(picture.map), picture.bounce),
+                    None => (distant.clone(), Sh9Rgb::ZERO),
+                }
             }
-            None => distant.clone(),
+            None => (distant.clone(), Sh9Rgb::ZERO),
         };
         let shininess = specular_levels(scene, s.levels);
         let unchanged = self.environment.as_ref().is_some_and(|e| {
@@ -307,6 +314,7 @@ impl Ibl {
             if let Some(e) = self.environment.as_mut() {
                 e.scene = scene.clone();
                 e.picture_of = picture_of;
+                e.bounce = bounce;
             }
             return Ok(None);
         }
@@ -341,6 +349,7 @@ impl Ibl {
             shininess,
             settings: s,
             picture_of,
+            bounce,
         });
         Ok(Some((
             PassTiming {
@@ -458,6 +467,12 @@ impl Engine for Ibl {
                     region.x + region.width,
                     region.y + region.height,
                 ],
+                bounce: self
+                    .environment
+                    .as_ref()
+                    .map_or(Sh9Rgb::ZERO, |e| e.bounce)
+                    .coeffs
+                    .map(|c| c.extend(0.0).to_array()),
             };
             uniform.shininess[..self.maps.shininess().len()].copy_from_slice(self.maps.shininess());
             ctx.queue
