@@ -8,22 +8,23 @@
 //! front face came out black) nor, in a room lit by lamps alone, anything at all.
 //!
 //! Here each texel of the map is a ray from the object's centre through the real meshes (the
-//! reference's BVH): where it escapes, the map's radiance; where it meets a surface, the
-//! radiance that surface sends back along the ray under the scene's lights and
-//! [`ENV_LIGHTS`] directional lights cut from the map, each tested with a shadow ray. A probe's
-//! photograph holds every bounce; here a second is estimated from the picture itself: each
-//! surface in it also reflects the irradiance the other surfaces in the picture send towards
-//! its normal, as seen from the centre (L2 SH of their radiance). A room's walls and floor
-//! light each other; with the first bounce alone the object read 0.83–0.87 of the reference's
-//! light on desk_box and touching_wall (object L2 0.137 and 0.180; 0.102 and 0.124 with the
-//! second). That light is smooth, so it leaves as L2 SH ([`LocalPicture::bounce`]) and joins the
-//! object's diffuse light as SH irradiance; in the picture's texels it made the convolution,
-//! which leaves black texels out, cost the live `ibl` 7 % of its frames. A live scene's real surface is its decimated shadow proxy
+//! reference's BVH): where it escapes, the map's radiance; where it meets a surface, the radiance
+//! that surface sends back along the ray under the scene's lights and [`ENV_LIGHTS`] directional
+//! lights cut from the map, each tested with a shadow ray. A probe's photograph holds every bounce;
+//! here a second is estimated from the picture itself: each surface in it also reflects the
+//! irradiance the other surfaces in the picture send towards its normal, as seen from the centre
+//! (L2 SH of their radiance). A room's walls and floor light each other; with the first bounce
+//! alone the object read 0.83–0.87 of the reference's light on desk_box and touching_wall (object
+//! L2 0.137 and 0.180; 0.102 and 0.124 with the second). That light is smooth, so it leaves as L2
+//! SH ([`LocalPicture::bounce`]) and joins the object's diffuse light as SH irradiance; in the
+//! picture's texels it made the convolution, which leaves black texels out, cost the live `ibl` 7 %
+//! of its frames. A live scene's real surface is its decimated shadow proxy
 //! (`Scene::shadow_proxy`), a few thousand triangles where the depth mesh has tens of thousands.
-//! The object itself is not in the picture (a probe where it
-//! stands would not see it), but its shadow is: the shadow rays meet it, so the floor it darkens
-//! sends it nothing (without that, glossy_floor's object read 1.35× the reference's radiance). Scene files have a few hundred triangles, so this runs on the CPU
-//! when the scene changes; the maps are convolved again only when the picture does.
+//! The object itself is not in the picture (a probe where it stands would not see it), but its
+//! shadow is: the shadow rays meet it, so the floor it darkens sends it nothing (without that,
+//! glossy_floor's object read 1.35× the reference's radiance). Scene files have a few hundred
+//! triangles, so this runs on the CPU when the scene changes; the maps are convolved again only
+//! when the picture does.
 
 use glam::Vec3;
 use relight_core::light::Light;
