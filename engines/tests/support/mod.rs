@@ -482,20 +482,12 @@ pub fn unlit_faces_over_a_floor(engine: &str, params: serde_json::Value, gap: f3
         &mut engine_with(engine, params),
         &frame(scene.clone(), w, h),
     );
-    let composite = out.composite.as_u8().expect("an 8-bit composite");
-    let channels = out.composite.format().channels();
-    let linear = |c: u8| {
-        let c = f64::from(c) / 255.0;
-        if c <= 0.04045 {
-            c / 12.92
-        } else {
-            ((c + 0.055) / 1.055).powf(2.4)
-        }
-    };
+    let composite = relight_engines::offline::composite_pixels(&out.composite);
+    assert_eq!(composite.len(), (w * h) as usize, "an 8-bit composite");
     let (mut engine_sum, mut reference_sum, mut pixels) = (0.0, 0.0, 0);
     for i in 0..(w * h) as usize {
         if reference.virtual_mask[i] && direct.l_rho[i].y == 0.0 {
-            engine_sum += linear(composite[i * channels + 1]);
+            engine_sum += f64::from(composite[i].y);
             reference_sum += f64::from(reference.l_rho[i].y);
             pixels += 1;
         }
