@@ -485,10 +485,15 @@ pub fn unlit_faces_over_a_floor(engine: &str, params: serde_json::Value, gap: f3
     let composite = relight_engines::offline::composite_pixels(&out.composite);
     assert_eq!(composite.len(), (w * h) as usize, "an 8-bit composite");
     let (mut engine_sum, mut reference_sum, mut pixels) = (0.0, 0.0, 0);
-    for i in 0..(w * h) as usize {
-        if reference.virtual_mask[i] && direct.l_rho[i].y == 0.0 {
-            engine_sum += f64::from(composite[i].y);
-            reference_sum += f64::from(reference.l_rho[i].y);
+    for (((shown, truth), on_object), direct) in composite
+        .iter()
+        .zip(&reference.l_rho)
+        .zip(&reference.virtual_mask)
+        .zip(&direct.l_rho)
+    {
+        if *on_object && direct.y == 0.0 {
+            engine_sum += f64::from(shown.y);
+            reference_sum += f64::from(truth.y);
             pixels += 1;
         }
     }
