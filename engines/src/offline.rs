@@ -279,7 +279,7 @@ pub fn masked_relative_l2(a: &[Vec3], b: &[Vec3], mask: &[bool]) -> Option<f64> 
 /// light gets wrong). Each is ‖swapped − full_ref‖₂ / ‖full_ref‖₂ over the pixels `mask`
 /// selects, as the engine's own error is; the two parts of that error may cancel or add, so
 /// they need not sum to it in quadrature.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TermErrors {
     pub direct: f64,
     pub indirect: f64,
