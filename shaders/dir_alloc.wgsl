@@ -13,12 +13,14 @@ struct Summary {
     layers: array<vec4<f32>>,
 }
 
-@group(0) @binding(0) var<uniform> dir: Dir;
+@group(0) @binding(0) var<storage, read> dir_buffer: Dir;
+var<private> dir: Dir;
 @group(0) @binding(1) var<storage, read_write> rows: array<f32>;
 @group(0) @binding(2) var<storage, read_write> summary: Summary;
 
 @compute @workgroup_size(1)
 fn main() {
+    dir = dir_buffer;
     let size = dir.dims.y;
     var totals = vec3<f32>(0.0);
     for (var layer = 0u; layer < dir.dims.z; layer++) {

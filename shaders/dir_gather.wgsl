@@ -6,8 +6,10 @@
 // (the indirect part of Δ), virtual pixels L_rv. A group-0 VPL's term is computed once and
 // added to both sums, so where the object changes nothing Δ is exactly 0.
 
-@group(0) @binding(0) var<uniform> dir: Dir;
-@group(0) @binding(1) var<uniform> camera: Camera;
+@group(0) @binding(0) var<storage, read> dir_buffer: Dir;
+var<private> dir: Dir;
+@group(0) @binding(1) var<storage, read> camera_buffer: Camera;
+var<private> camera: Camera;
 @group(0) @binding(2) var<storage, read> materials: array<Material>;
 @group(0) @binding(3) var gb_position: texture_2d<f32>;
 @group(0) @binding(4) var gb_normal: texture_2d<f32>;
@@ -105,6 +107,8 @@ fn gather_stride() -> u32 {
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    dir = dir_buffer;
+    camera = camera_buffer;
     let stride = gather_stride();
     let at = id.xy * stride;
     if at.x >= dir.size.x || at.y >= dir.size.y {
@@ -123,6 +127,8 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(8, 8)
 fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
+    dir = dir_buffer;
+    camera = camera_buffer;
     let size = dir.size.xy;
     let stride = gather_stride();
     if id.x >= size.x || id.y >= size.y || is_gathered(id.xy, stride) {
@@ -162,6 +168,7 @@ fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(8, 8)
 fn resolve(@builtin(global_invocation_id) id: vec3<u32>) {
+    dir = dir_buffer;
     let at = id.xy * gather_stride();
     if at.x >= dir.size.x || at.y >= dir.size.y {
         return;

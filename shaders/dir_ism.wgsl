@@ -5,7 +5,8 @@
 // f32 bit patterns, complemented so that the zero a cleared buffer holds means "nothing" and
 // atomicMax keeps the nearest.
 
-@group(0) @binding(0) var<uniform> dir: Dir;
+@group(0) @binding(0) var<storage, read> dir_buffer: Dir;
+var<private> dir: Dir;
 @group(0) @binding(1) var<storage, read> vpls: array<Vpl>;
 // xyz: position; w: the radius of the disc the point stands for (m), negative on the virtual
 // object.
@@ -14,6 +15,7 @@
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    dir = dir_buffer;
     let k = id.y;
     if id.x >= dir.size.z || k >= dir.size.w {
         return;

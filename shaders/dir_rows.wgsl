@@ -1,7 +1,8 @@
 // DIR VPL sampling, step 1 of 3: per shadow-map layer and row, the summed luminance of the
 // texels' VPL flux in each VPL group (the density VPLs are importance-sampled from).
 
-@group(0) @binding(0) var<uniform> dir: Dir;
+@group(0) @binding(0) var<storage, read> dir_buffer: Dir;
+var<private> dir: Dir;
 @group(0) @binding(1) var<storage, read> lights: array<Light>;
 @group(0) @binding(2) var<storage, read> faces: array<Face>;
 @group(0) @binding(3) var rsm_rho_position: texture_2d_array<f32>;
@@ -15,6 +16,7 @@
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    dir = dir_buffer;
     let size = dir.dims.y;
     let layer = id.y;
     if id.x >= size || layer >= dir.dims.z {

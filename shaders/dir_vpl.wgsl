@@ -13,7 +13,8 @@ struct Summary {
     layers: array<vec4<f32>>,
 }
 
-@group(0) @binding(0) var<uniform> dir: Dir;
+@group(0) @binding(0) var<storage, read> dir_buffer: Dir;
+var<private> dir: Dir;
 @group(0) @binding(1) var<storage, read> lights: array<Light>;
 @group(0) @binding(2) var<storage, read> faces: array<Face>;
 @group(0) @binding(3) var rsm_rho_position: texture_2d_array<f32>;
@@ -28,6 +29,7 @@ struct Summary {
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    dir = dir_buffer;
     let k = id.x;
     if k >= dir.dims.x {
         return;

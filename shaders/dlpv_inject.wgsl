@@ -16,7 +16,8 @@
 // to exactly zero. `volume.scale.x` (counts per unit) is chosen on the CPU from a bound on the
 // total injected magnitude so no cell can overflow.
 
-@group(0) @binding(0) var<uniform> volume: Volume;
+@group(0) @binding(0) var<storage, read> volume_buffer: Volume;
+var<private> volume: Volume;
 @group(0) @binding(1) var<storage, read> lights: array<Light>;
 @group(0) @binding(2) var<storage, read> faces: array<Face>;
 @group(0) @binding(3) var rsm_rho_position: texture_2d_array<f32>;
@@ -155,6 +156,7 @@ const TILE: u32 = 4u;
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>,
         @builtin(local_invocation_index) local: u32) {
+    volume = volume_buffer;
     let size = volume.dims.y;
     let layer = id.z;
     // Every thread reaches the workgroup barrier below, so none returns early.

@@ -11,8 +11,10 @@ struct LookupParams {
     size: vec4<u32>,
 }
 
-@group(0) @binding(0) var<uniform> volume: Volume;
-@group(0) @binding(1) var<uniform> lookup: LookupParams;
+@group(0) @binding(0) var<storage, read> volume_buffer: Volume;
+var<private> volume: Volume;
+@group(0) @binding(1) var<storage, read> lookup_buffer: LookupParams;
+var<private> lookup: LookupParams;
 @group(0) @binding(2) var<storage, read> accumulated: array<vec2<u32>>;
 @group(0) @binding(3) var gb_position: texture_2d<f32>;
 @group(0) @binding(4) var gb_normal: texture_2d<f32>;
@@ -32,6 +34,8 @@ fn cell_sh(which: u32, c: vec3<i32>, ch: u32) -> vec4<f32> {
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    volume = volume_buffer;
+    lookup = lookup_buffer;
     if id.x >= lookup.size.x || id.y >= lookup.size.y {
         return;
     }

@@ -14,7 +14,8 @@
 // keeps shadows from bleeding far beyond the occluder; see the closing notes for how this
 // differs from the paper's derivative-based rule).
 
-@group(0) @binding(0) var<uniform> volume: Volume;
+@group(0) @binding(0) var<storage, read> volume_buffer: Volume;
+var<private> volume: Volume;
 // n³ cells × 3 channels of L1 SH (four f16 per channel), for V^Δ then V^ρ.
 @group(0) @binding(1) var<storage, read> source: array<vec2<u32>>;
 @group(0) @binding(2) var<storage, read_write> next: array<vec2<u32>>;
@@ -90,6 +91,7 @@ fn load(base: u32, c: vec3<i32>, d: vec3<i32>, w: ptr<function, f32>) -> Sh {
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    volume = volume_buffer;
     let n = volume.dims.x;
     let which = id.z / n;
     let z = id.z % n;

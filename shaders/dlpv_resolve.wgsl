@@ -1,7 +1,8 @@
 // Fixed-point injection counts → f16 SH in units of 2^23 counts (`pack_sh`): the start of
 // propagation and of the accumulation.
 
-@group(0) @binding(0) var<uniform> volume: Volume;
+@group(0) @binding(0) var<storage, read> volume_buffer: Volume;
+var<private> volume: Volume;
 // The injection's counts of V^Δ and of V^ρ (`dlpv_inject.wgsl`).
 @group(0) @binding(1) var<storage, read> cells_delta: array<i32>;
 @group(0) @binding(2) var<storage, read> cells_rho: array<i32>;
@@ -10,6 +11,7 @@
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    volume = volume_buffer;
     let n = volume.dims.x;
     let count = 2u * n * n * n * 3u;
     if id.x >= count {

@@ -16,8 +16,10 @@ struct Mip {
     level: vec4<u32>,
 }
 
-@group(0) @binding(0) var<uniform> dvct: Dvct;
-@group(0) @binding(1) var<uniform> mip: Mip;
+@group(0) @binding(0) var<storage, read> dvct_buffer: Dvct;
+var<private> dvct: Dvct;
+@group(0) @binding(1) var<storage, read> mip_buffer: Mip;
+var<private> mip: Mip;
 // The injection's fixed-point counts of this volume: n³ cells × 12 (4 SH × RGB).
 @group(0) @binding(2) var<storage, read> cells: array<i32>;
 @group(0) @binding(3) var<storage, read> occupancy: array<u32>;
@@ -42,6 +44,8 @@ fn store(c: vec3<u32>, sh: array<vec4<f32>, 3>, occ: vec4<f32>) {
 
 @compute @workgroup_size(4, 4, 4)
 fn first(@builtin(global_invocation_id) id: vec3<u32>) {
+    dvct = dvct_buffer;
+    mip = mip_buffer;
     let m = mip.level.y;
     if any(id >= vec3<u32>(m)) {
         return;
@@ -61,6 +65,7 @@ fn first(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(4, 4, 4)
 fn coarser(@builtin(global_invocation_id) id: vec3<u32>) {
+    mip = mip_buffer;
     let m = mip.level.y;
     if any(id >= vec3<u32>(m)) {
         return;

@@ -14,8 +14,10 @@
 // diameter (quadrilinear), accumulating premultiplied radiance and opacity
 // (c += (1 − a) L Δt/d, a += (1 − a) α).
 
-@group(0) @binding(0) var<uniform> dvct: Dvct;
-@group(0) @binding(1) var<uniform> camera: Camera;
+@group(0) @binding(0) var<storage, read> dvct_buffer: Dvct;
+var<private> dvct: Dvct;
+@group(0) @binding(1) var<storage, read> camera_buffer: Camera;
+var<private> camera: Camera;
 @group(0) @binding(2) var<storage, read> lights: array<Light>;
 @group(0) @binding(3) var<storage, read> faces: array<Face>;
 @group(0) @binding(4) var<storage, read> materials: array<Material>;
@@ -275,6 +277,8 @@ fn traced(id: vec3<u32>) -> Traced {
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    dvct = dvct_buffer;
+    camera = camera_buffer;
     let t = traced(id);
     if !t.inside {
         return;
@@ -293,6 +297,8 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(8, 8)
 fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
+    dvct = dvct_buffer;
+    camera = camera_buffer;
     let size = vec2<u32>(camera.size.xy);
     let stride = dvct.modes.z;
     if id.x >= size.x || id.y >= size.y || is_gathered(id.xy, stride) {
@@ -329,6 +335,8 @@ fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @compute @workgroup_size(8, 8)
 fn resolve(@builtin(global_invocation_id) id: vec3<u32>) {
+    dvct = dvct_buffer;
+    camera = camera_buffer;
     let t = traced(id);
     if t.inside && t.s.found {
         indirect[t.i] = vec4<f32>(indirect_from(t.xy, t.s, indirect[t.i].rgb), 0.0);

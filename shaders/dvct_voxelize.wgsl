@@ -9,7 +9,8 @@
 // `Dvct.voxelized.z` threads share a triangle's columns (`voxelize_lanes` in dvct/mod.rs): on a
 // GPU one thread walking a large triangle alone would hold the whole pass up.
 
-@group(0) @binding(0) var<uniform> dvct: Dvct;
+@group(0) @binding(0) var<storage, read> dvct_buffer: Dvct;
+var<private> dvct: Dvct;
 // The scene's vertex buffer (engines/src/gpu_scene.rs `GpuVertex`, 8 words each: position,
 // normal, material, flags) and its triangles, three indices each.
 @group(0) @binding(1) var<storage, read> vertices: array<u32>;
@@ -56,6 +57,7 @@ fn overlaps(centre: vec3<f32>, h: f32, a: vec3<f32>, b: vec3<f32>, c: vec3<f32>)
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    dvct = dvct_buffer;
     // Dispatched as (min(groups, 65535), ⌈groups / 65535⌉) workgroups of 64.
     let thread = id.x + id.y * 65535u * 64u;
     let lanes = max(dvct.voxelized.z, 1u);

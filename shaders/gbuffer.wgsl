@@ -2,7 +2,8 @@
 // camera (w: 1 on the virtual object), diffuse albedo. Drawn twice per frame: every mesh (ρ) and
 // the real meshes only (μ).
 
-@group(0) @binding(0) var<uniform> camera: Camera;
+@group(0) @binding(0) var<storage, read> camera_buffer: Camera;
+var<private> camera: Camera;
 @group(0) @binding(1) var<storage, read> materials: array<Material>;
 
 struct VertexOut {
@@ -22,6 +23,7 @@ struct GBufferOut {
 
 @vertex
 fn vs_main(v: VertexIn) -> VertexOut {
+    camera = camera_buffer;
     var out: VertexOut;
     out.clip = camera.view_proj * vec4<f32>(v.position, 1.0);
     out.world = v.position;
@@ -34,6 +36,7 @@ fn vs_main(v: VertexIn) -> VertexOut {
 
 @fragment
 fn fs_main(in: VertexOut) -> GBufferOut {
+    camera = camera_buffer;
     var n = surface_normal(in.normal, in.world);
     // Shade the side the camera sees, as the reference does.
     if dot(n, camera.position.xyz - in.world) < 0.0 {

@@ -15,7 +15,8 @@ struct InputTexel {
 const TILE: u32 = 64u;
 const MAX_LEVELS: u32 = 8u;
 
-@group(0) @binding(0) var<uniform> ibl: Ibl;
+@group(0) @binding(0) var<storage, read> ibl_buffer: Ibl;
+var<private> ibl: Ibl;
 @group(0) @binding(1) var<storage, read> input: array<InputTexel>;
 @group(0) @binding(2) var<storage, read_write> maps: array<vec4<f32>>;
 
@@ -23,6 +24,7 @@ var<workgroup> tile: array<InputTexel, TILE>;
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>, @builtin(local_invocation_index) local: u32) {
+    ibl = ibl_buffer;
     let size = ibl.dims.x;
     let levels = min(ibl.dims.y, MAX_LEVELS);
     let count = ibl.dims.z;

@@ -8,8 +8,10 @@
 // LIGHT_SHADOW_ONLY) through R^ρ, weighted by the light each brings to the surface. Real
 // pixels get nothing here: their Δ is the shadow those lights' maps give (shade.wgsl).
 
-@group(0) @binding(0) var<uniform> ibl: Ibl;
-@group(0) @binding(1) var<uniform> camera: Camera;
+@group(0) @binding(0) var<storage, read> ibl_buffer: Ibl;
+var<private> ibl: Ibl;
+@group(0) @binding(1) var<storage, read> camera_buffer: Camera;
+var<private> camera: Camera;
 @group(0) @binding(2) var<storage, read> lights: array<Light>;
 @group(0) @binding(3) var<storage, read> faces: array<Face>;
 @group(0) @binding(4) var<storage, read> materials: array<Material>;
@@ -73,6 +75,8 @@ fn occlusion(p: vec3<f32>, n: vec3<f32>) -> f32 {
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    ibl = ibl_buffer;
+    camera = camera_buffer;
     let pixel = id.xy + ibl.region.xy;
     if pixel.x >= ibl.region.z || pixel.y >= ibl.region.w {
         return;

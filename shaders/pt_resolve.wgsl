@@ -16,7 +16,8 @@ struct Accum {
     delta_m2: vec4<f32>,
 }
 
-@group(0) @binding(0) var<uniform> params: ResolveParams;
+@group(0) @binding(0) var<storage, read> params_buffer: ResolveParams;
+var<private> params: ResolveParams;
 @group(0) @binding(1) var<storage, read> accum: array<Accum>;
 @group(0) @binding(2) var<storage, read> background: array<u32>;
 // rgb: Δ; w: the variance of its mean, summed over the channels (−1 below two samples).
@@ -26,6 +27,7 @@ struct Accum {
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    params = params_buffer;
     if id.x >= params.size.x || id.y >= params.size.y {
         return;
     }

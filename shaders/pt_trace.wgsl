@@ -82,8 +82,10 @@ struct Accum {
     delta_m2: vec4<f32>,
 }
 
-@group(0) @binding(0) var<uniform> params: Params;
-@group(0) @binding(1) var<uniform> camera: PtCamera;
+@group(0) @binding(0) var<storage, read> params_buffer: Params;
+var<private> params: Params;
+@group(0) @binding(1) var<storage, read> camera_buffer: PtCamera;
+var<private> camera: PtCamera;
 @group(0) @binding(2) var<storage, read> tris: array<Tri>;
 @group(0) @binding(3) var<storage, read> shades: array<TriShade>;
 @group(0) @binding(4) var<storage, read> nodes: array<Node>;
@@ -609,6 +611,8 @@ fn main(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(local_invocation_id) local: vec3<u32>,
 ) {
+    params = params_buffer;
+    camera = camera_buffer;
     // Workgroup (slot, j) traces the slot-th tile of phase (first + j) mod phases.
     let phases = params.units.x;
     let first = params.size.w;

@@ -8,12 +8,14 @@ struct Roofline {
     size: vec4<u32>,
 }
 
-@group(0) @binding(0) var<uniform> roofline: Roofline;
+@group(0) @binding(0) var<storage, read> roofline_buffer: Roofline;
+var<private> roofline: Roofline;
 @group(0) @binding(1) var<storage, read> source: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read_write> output: array<vec4<f32>>;
 
 @compute @workgroup_size(64)
 fn copy(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    roofline = roofline_buffer;
     let i = id.x + id.y * groups.x * 64u;
     if i < roofline.size.x {
         output[i] = source[i];
@@ -22,6 +24,7 @@ fn copy(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) g
 
 @compute @workgroup_size(64)
 fn fma_rate(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    roofline = roofline_buffer;
     let i = id.x + id.y * groups.x * 64u;
     if i >= roofline.size.x {
         return;

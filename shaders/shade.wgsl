@@ -32,8 +32,10 @@ struct ShadeParams {
     terms: vec4<f32>,
 }
 
-@group(0) @binding(0) var<uniform> params: ShadeParams;
-@group(0) @binding(1) var<uniform> camera: Camera;
+@group(0) @binding(0) var<storage, read> params_buffer: ShadeParams;
+var<private> params: ShadeParams;
+@group(0) @binding(1) var<storage, read> camera_buffer: Camera;
+var<private> camera: Camera;
 @group(0) @binding(2) var<storage, read> lights: array<Light>;
 @group(0) @binding(3) var<storage, read> faces: array<Face>;
 @group(0) @binding(4) var<storage, read> materials: array<Material>;
@@ -203,6 +205,8 @@ fn shade_pixel(xy: vec2<i32>, i: u32) -> Shaded {
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    params = params_buffer;
+    camera = camera_buffer;
     let pixel = id.xy + params.region.xy;
     if pixel.x >= params.region.z || pixel.y >= params.region.w {
         return;

@@ -471,7 +471,7 @@ impl Deferred {
             ctx.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
                 size,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                usage: shaders::PARAMS_USAGE,
                 mapped_at_creation: false,
             })
         };

@@ -19,7 +19,6 @@ use bytemuck::{Pod, Zeroable};
 
 use crate::gpu::{GpuContext, GpuError};
 use crate::shaders;
-use crate::volume::uniform_buffer;
 
 /// What a pass's algorithm must do: bytes moved to or from memory and arithmetic operations.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -157,7 +156,7 @@ pub fn measure(ctx: &GpuContext) -> Result<Rates, GpuError> {
         bytemuck::cast_slice(&vec![0.5f32; COPY_ELEMENTS as usize * 4]),
     );
     let uniform = |size: [u32; 4]| {
-        let buffer = uniform_buffer(device, "roofline", size_of::<Uniform>());
+        let buffer = shaders::params_buffer(device, "roofline", size_of::<Uniform>());
         ctx.queue
             .write_buffer(&buffer, 0, bytemuck::bytes_of(&Uniform { size }));
         buffer

@@ -86,6 +86,33 @@ pub const ALL: &[(&str, &str)] = &[
     ("recon_normals.wgsl", RECON_NORMALS),
 ];
 
+/// How a buffer of a pass's parameters is made: every pass reads them as a read-only storage
+/// buffer (`var<storage, read>`), never as a uniform buffer.
+///
+/// Lavapipe (Mesa 22.3, Debian 12's) specialises a shader on the uniform-buffer values that its
+/// branches and loops read ("inline uniforms") and compiles that variant on its queue thread
+/// when the dispatch or draw runs, while its shader threads wait. The values change every frame
+/// (a pose, a volume's placement), so every such pass paid a compile every frame: `dvct`'s
+/// injection took 19–24 ms of wall time on desk_box for 9 ms of shader work. Storage buffers are
+/// not inlined. Each entry point copies its parameters into a `var<private>` of the same name
+/// first (`volume = volume_buffer;`): read in place, every use after an atomic or a storage
+/// write was a fresh load, and `dlpv`'s injection took 25–32 ms instead of 18. On other drivers
+/// a few hundred bytes read alike by every invocation cost the same either way.
+/// `shaders_validate.rs` fails on a `var<uniform>`.
+pub const PARAMS_USAGE: wgpu::BufferUsages =
+    wgpu::BufferUsages::STORAGE.union(wgpu::BufferUsages::COPY_DST);
+
+/// A buffer of `size` bytes of a pass's parameters, which the CPU rewrites every frame (see
+/// [`PARAMS_USAGE`]).
+pub fn params_buffer(device: &wgpu::Device, label: &str, size: usize) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: size as u64,
+        usage: PARAMS_USAGE,
+        mapped_at_creation: false,
+    })
+}
+
 /// Compile a pass into a shader module.
 pub fn module(device: &wgpu::Device, name: &str, source: &str) -> wgpu::ShaderModule {
     device.create_shader_module(wgpu::ShaderModuleDescriptor {

@@ -102,16 +102,6 @@ pub(crate) fn timed_pass<'e>(
     })
 }
 
-/// A uniform buffer of `size` bytes that the CPU rewrites every frame.
-pub(crate) fn uniform_buffer(device: &wgpu::Device, label: &str, size: usize) -> wgpu::Buffer {
-    device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some(label),
-        size: size as u64,
-        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    })
-}
-
 /// The injection's fixed-point counts, n³ cells × 12 (4 SH × RGB) i32 each of V^Δ and V^ρ, in
 /// one buffer whose halves are bound apart: each half need only fit the adapter's largest
 /// storage binding (lavapipe's 128 MiB held both only up to 110³). After them, the far field's

@@ -31,3 +31,20 @@ fn every_shader_file_is_a_listed_pass() {
         );
     }
 }
+
+/// Every pass reads its parameters from storage buffers (`shaders::PARAMS_USAGE` says why: on
+/// lavapipe a uniform buffer's values that steer branches compile a shader variant per frame).
+#[test]
+fn no_pass_reads_a_uniform_buffer() {
+    for (name, source) in ALL {
+        let module = naga::front::wgsl::parse_str(source).unwrap();
+        for (_, global) in module.global_variables.iter() {
+            assert_ne!(
+                global.space,
+                naga::AddressSpace::Uniform,
+                "{name}: `{}` is a uniform buffer; declare it `var<storage, read>`",
+                global.name.as_deref().unwrap_or("?")
+            );
+        }
+    }
+}

@@ -50,7 +50,7 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
-use crate::volume::{timed_pass, uniform_buffer};
+use crate::volume::timed_pass;
 
 /// `gather_stride` by default: chosen by measured error (`docs/ALGORITHMS.md`, `dir`).
 const GATHER_STRIDE_DEFAULT: u32 = 2;
@@ -280,7 +280,7 @@ impl Dir {
             gather: ["main", "fill", "resolve"].map(|entry| {
                 shaders::compute_pipeline_at(&ctx.device, "dir gather", shaders::DIR_GATHER, entry)
             }),
-            uniform: uniform_buffer(&ctx.device, "dir", size_of::<DirUniform>()),
+            uniform: shaders::params_buffer(&ctx.device, "dir", size_of::<DirUniform>()),
             deferred: Deferred::sampling_the_environment(ctx),
             settings: DirSettings::default(),
             points: None,

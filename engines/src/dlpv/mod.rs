@@ -60,8 +60,7 @@ use crate::shaders;
 use propagate::{Propagation, PropagationBuffers};
 
 use crate::volume::{
-    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass,
-    uniform_buffer, volume_reach,
+    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, volume_reach,
 };
 
 /// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
@@ -218,7 +217,7 @@ impl Dlpv {
     }
 
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
-        let uniform = |label, size| uniform_buffer(&ctx.device, label, size);
+        let uniform = |label, size| shaders::params_buffer(&ctx.device, label, size);
         Ok(Self {
             inject: InjectPass::new(&ctx.device, "dlpv inject"),
             resolve: shaders::compute_pipeline(&ctx.device, "dlpv resolve", shaders::DLPV_RESOLVE),

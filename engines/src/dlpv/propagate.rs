@@ -72,7 +72,7 @@ mod tests {
 
     use super::*;
     use crate::gpu::GpuContext;
-    use crate::volume::{VolumeUniform, uniform_buffer};
+    use crate::volume::VolumeUniform;
     use glam::DVec3;
     use half::f16;
 
@@ -256,7 +256,7 @@ mod tests {
         };
         use wgpu::BufferUsages as U;
         let buffers = PropagationBuffers {
-            uniform: &uniform_buffer(device, "volume", size_of::<VolumeUniform>()),
+            uniform: &shaders::params_buffer(device, "volume", size_of::<VolumeUniform>()),
             injected: &storage("injected", U::STORAGE),
             ping: &storage("ping", U::STORAGE),
             accumulated: &storage("accumulated", U::STORAGE | U::COPY_SRC),

@@ -44,8 +44,7 @@ use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::volume::{
-    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass,
-    uniform_buffer, volume_reach,
+    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, volume_reach,
 };
 
 /// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
@@ -322,8 +321,12 @@ impl Dvct {
                 mipmap_filter: wgpu::MipmapFilterMode::Linear,
                 ..Default::default()
             }),
-            inject_uniform: uniform_buffer(&ctx.device, "dvct inject", size_of::<VolumeUniform>()),
-            dvct_uniform: uniform_buffer(&ctx.device, "dvct", size_of::<DvctUniform>()),
+            inject_uniform: shaders::params_buffer(
+                &ctx.device,
+                "dvct inject",
+                size_of::<VolumeUniform>(),
+            ),
+            dvct_uniform: shaders::params_buffer(&ctx.device, "dvct", size_of::<DvctUniform>()),
             deferred: Deferred::new(ctx),
             settings: DvctSettings::default(),
             volume: None,
@@ -386,7 +389,7 @@ impl Dvct {
                         bytemuck::bytes_of(&MipUniform {
                             level: [level, m, below, which],
                         }),
-                        U::UNIFORM,
+                        shaders::PARAMS_USAGE,
                     );
                     // This volume's three channels, then occlusion.
                     let chains: Vec<usize> = (0..3)
@@ -903,7 +906,8 @@ mod tests {
                 voxelized: [0, triangles.len() as u32, lanes, 0],
                 ..DvctUniform::zeroed()
             };
-            let uniform = ctx.buffer_with("dvct", bytemuck::bytes_of(&uniform), U::UNIFORM);
+            let uniform =
+                ctx.buffer_with("dvct", bytemuck::bytes_of(&uniform), shaders::PARAMS_USAGE);
             // A new buffer starts zeroed: nothing marked.
             let occupancy = ctx.buffer("occupancy", size, U::STORAGE | U::COPY_SRC);
             let got: Vec<u32> = ctx

@@ -13,7 +13,7 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::roofline::Work;
 use crate::shaders;
 use crate::timer::GpuTimer;
-use crate::volume::{timed_pass, uniform_buffer};
+use crate::volume::timed_pass;
 
 /// Specular levels one pass computes (the shader's `MAX_LEVELS`).
 pub const MAX_LEVELS: usize = 8;
@@ -177,7 +177,7 @@ impl ReflectionMaps {
     pub fn new(ctx: &GpuContext) -> Self {
         Self {
             pipeline: shaders::compute_pipeline(&ctx.device, "ibl convolve", shaders::IBL_CONVOLVE),
-            uniform: uniform_buffer(&ctx.device, "ibl convolve", size_of::<IblUniform>()),
+            uniform: shaders::params_buffer(&ctx.device, "ibl convolve", size_of::<IblUniform>()),
             input: None,
             maps: None,
             size: 0,

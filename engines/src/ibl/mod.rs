@@ -42,7 +42,7 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
-use crate::volume::{timed_pass, uniform_buffer};
+use crate::volume::timed_pass;
 use local_probe::local_probe;
 use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, log_spaced_shininess, resample};
 use relight_core::sh::Sh9Rgb;
@@ -238,7 +238,7 @@ impl Ibl {
         deferred.set_real_indirect(RealIndirect::Nowhere);
         Ok(Self {
             shade: shaders::compute_pipeline(&ctx.device, "ibl shade", shaders::IBL_SHADE),
-            uniform: uniform_buffer(&ctx.device, "ibl shade", size_of::<IblUniform>()),
+            uniform: shaders::params_buffer(&ctx.device, "ibl shade", size_of::<IblUniform>()),
             maps: ReflectionMaps::new(&ctx),
             deferred,
             settings: IblSettings::default(),
