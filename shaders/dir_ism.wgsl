@@ -13,18 +13,29 @@ var<private> dir: Dir;
 @group(0) @binding(2) var<storage, read> points: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read_write> ism: array<atomic<u32>>;
 
+// VPLs one invocation splats its point into: llvmpipe's cost per invocation, not the splats,
+// held most of this pass with one (point, VPL) pair each.
+const VPLS_PER_INVOCATION: u32 = 8u;
+
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     dir = dir_buffer;
-    let k = id.y;
-    if id.x >= dir.size.z || k >= dir.size.w {
+    if id.x >= dir.size.z {
         return;
     }
+    let point = points[id.x];
+    let first = id.y * VPLS_PER_INVOCATION;
+    for (var k = first; k < min(first + VPLS_PER_INVOCATION, dir.size.w); k++) {
+        splat(point, k);
+    }
+}
+
+// The point into VPL k's map of its layer, as a disc of up to 5 × 5 texels.
+fn splat(point: vec4<f32>, k: u32) {
     let vpl = vpls[k];
     if all(vpl.flux.rgb <= vec3<f32>(0.0)) {
         return;
     }
-    let point = points[id.x];
     let d = point.xyz - vpl.position.xyz;
     let dist = length(d);
     if dist <= 0.0 {

@@ -383,6 +383,9 @@ impl Dir {
 /// Bytes of one VPL (`Vpl` in `shaders/common.wgsl`).
 const VPL_BYTES: u64 = size_of::<GpuVpl>() as u64;
 
+/// `VPLS_PER_INVOCATION` in `dir_ism.wgsl`.
+const ISM_VPLS_PER_INVOCATION: u32 = 8;
+
 /// Bytes of `vpls` VPLs' imperfect shadow maps (one f32 depth a texel).
 fn ism_size_bytes(s: &DirSettings, vpls: u32) -> f64 {
     f64::from(vpls) * f64::from(s.ism_size).powi(2) * 4.0
@@ -602,7 +605,11 @@ impl Engine for Dir {
                 if point_count > 0 && self.vpls_made > 0 {
                     pass.set_pipeline(&self.ism);
                     pass.set_bind_group(0, &ism_group, &[]);
-                    pass.dispatch_workgroups(point_count.div_ceil(64), self.vpls_made, 1);
+                    pass.dispatch_workgroups(
+                        point_count.div_ceil(64),
+                        self.vpls_made.div_ceil(ISM_VPLS_PER_INVOCATION),
+                        1,
+                    );
                 }
             }
             out.work.push(PassWork {
