@@ -158,6 +158,11 @@ pub struct BenchSettings {
     /// and a direct-light reference, and score which term each error comes from
     /// ([`TermErrors`]).
     pub terms: bool,
+    /// Time each GPU pass by waiting for it rather than by timestamp queries
+    /// ([`GpuContext::set_wait_per_pass`](relight_engines::gpu::GpuContext::set_wait_per_pass)):
+    /// `gpu_passes` is then each pass's own time on any adapter, lavapipe's included, and the
+    /// frame times are slower by what the passes no longer overlap.
+    pub wait_per_pass: bool,
     pub cases: Vec<BenchCase>,
 }
 
@@ -177,8 +182,8 @@ pub struct BenchRow {
     /// and nothing changed: the frame shows the mean and draws nothing (`Deferred::prepare`),
     /// what a still camera costs after its edges converged. `None` without accumulation.
     pub held_ms: Option<f64>,
-    /// Median GPU time of the frame's passes by timestamp queries (`None` where the adapter
-    /// has none).
+    /// Median GPU time of the frame's passes by timestamp queries, or by waiting for each with
+    /// [`BenchSettings::wait_per_pass`] (`None` where the adapter has no timestamp queries).
     pub gpu_ms: Option<f64>,
     /// GPU time per pass of the last timed frame (its inputs changed, as every timed frame's).
     pub gpu_passes: Vec<(String, f64)>,
@@ -506,6 +511,12 @@ pub fn run(
     mut progress: impl FnMut(BenchProgress<'_>),
 ) -> Result<Vec<BenchRow>> {
     let registry = EngineRegistry::new();
+    if settings.wait_per_pass {
+        registry
+            .gpu()
+            .context("timing passes by waiting needs a GPU adapter")?
+            .set_wait_per_pass(true);
+    }
     let total = settings.scenes.len() * settings.cases.len();
     let mut rows = Vec::new();
     for (scene_index, dir) in settings.scenes.iter().enumerate() {

@@ -22,6 +22,7 @@ fn bench_measures_every_case_and_writes_its_outputs() {
         frames: 1,
         accumulate: Some(4),
         terms: false,
+        wait_per_pass: false,
         cases: default_cases(false),
     };
     let rows = run(&settings, |_| {}).unwrap();
@@ -193,6 +194,7 @@ fn a_cached_reference_is_read_back_on_the_next_run() {
         frames: 1,
         accumulate: Some(2),
         terms: false,
+        wait_per_pass: false,
         cases: vec![BenchCase::new("differential", serde_json::json!({}))],
     };
     let run_once = || {
@@ -236,6 +238,7 @@ fn terms_say_which_term_an_error_comes_from() {
         frames: 1,
         accumulate: Some(4),
         terms: true,
+        wait_per_pass: false,
         cases: ["differential", "dvct", "ibl"]
             .map(|e| BenchCase::new(e, serde_json::json!({})))
             .to_vec(),
@@ -300,4 +303,54 @@ fn terms_say_which_term_an_error_comes_from() {
         "{dvct_indirect} {differential_indirect}"
     );
     assert!(terms_table(&rows).lines().count() == 4);
+}
+
+/// Timed by waiting, every pass of a `dvct` frame has its own time, and together they are
+/// the frame's GPU work: lavapipe's timestamps give the later compute passes of a submission
+/// almost nothing.
+#[test]
+fn passes_timed_by_waiting_add_up_to_the_frame() {
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/spot_bleed");
+    let settings = BenchSettings {
+        scenes: vec![scene],
+        width: 48,
+        height: 36,
+        reference_spp: 16,
+        max_reference_spp: 16,
+        reference_cache: None,
+        frames: 3,
+        accumulate: Some(1),
+        terms: false,
+        wait_per_pass: true,
+        cases: vec![
+            relight_daemon::bench::BenchCase::parse(
+                "dvct volume_size=16",
+                &relight_engines::EngineRegistry::new(),
+            )
+            .unwrap(),
+        ],
+    };
+    let rows = run(&settings, |_| {}).unwrap();
+    let row = &rows[0];
+    let names: Vec<&str> = row.gpu_passes.iter().map(|(n, _)| n.as_str()).collect();
+    for pass in [
+        "gbuffer", "shadow", "rsm", "voxelize", "inject", "mip", "trace", "shade",
+    ] {
+        assert!(names.contains(&pass), "{pass} missing from {names:?}");
+    }
+    // Each pass waits for what came before it, so none is free: an empty dispatch costs
+    // llvmpipe tens of microseconds.
+    for (pass, ms) in &row.gpu_passes {
+        assert!(*ms > 0.0 && ms.is_finite(), "{pass}: {ms} ms");
+    }
+    // Together they are nearly the whole frame: only the CPU's work before the first pass and
+    // after the read-back is left out. (By lavapipe's timestamps this frame's passes add up to
+    // 0.6–0.8 of it.) `gpu_passes` is the last frame's, which lasted at least the fastest
+    // frame's `min_ms`; on a loaded machine it may have lasted far longer.
+    let sum: f64 = row.gpu_passes.iter().map(|(_, ms)| ms).sum();
+    assert!(
+        sum >= 0.9 * row.min_ms,
+        "passes {sum} ms; the fastest frame {} ms",
+        row.min_ms
+    );
 }

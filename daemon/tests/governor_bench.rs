@@ -44,6 +44,7 @@ fn governor_bench_compares_auto_with_what_fits_and_writes_its_outputs() {
             frames: 1,
             accumulate: None,
             terms: false,
+            wait_per_pass: false,
             cases: Vec::new(),
         },
         budgets_ms: vec![33.0, 1000.0],

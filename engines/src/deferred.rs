@@ -1124,9 +1124,13 @@ impl Deferred {
                 label: Some("shade"),
             });
         {
+            let timestamp_writes = self
+                .timer
+                .as_mut()
+                .and_then(|t| t.compute(&mut encoder, "gpu.shade"));
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("shade"),
-                timestamp_writes: self.timer.as_mut().and_then(|t| t.compute("gpu.shade")),
+                timestamp_writes,
             });
             pass.set_pipeline(&self.shade);
             pass.set_bind_group(0, &group, &[]);
@@ -1177,7 +1181,7 @@ impl Deferred {
             pass: "shade+readback",
             ms: started.elapsed().as_secs_f64() * 1e3,
         });
-        if let Some(timer) = &self.timer {
+        if let Some(timer) = &mut self.timer {
             timer.read(&ctx, &mut out.timings)?;
         }
         Ok(())

@@ -384,6 +384,9 @@ impl GBufferPass {
             Some(within) => ((within.indices, 0..within.count), Some(within.rect)),
             None => ((&scene.indices, 0..scene.real_indices), None),
         };
+        let timestamp_writes = timer
+            .as_deref_mut()
+            .and_then(|t| t.render(encoder, "gpu.gbuffer"));
         mu.draw(
             encoder,
             &self.pipeline,
@@ -393,9 +396,10 @@ impl GBufferPass {
             0,
             LayerStart::Clear,
             scissor,
-            timer.as_deref_mut().and_then(|t| t.render("gpu.gbuffer")),
+            timestamp_writes,
         );
         rho.copy_from(encoder, mu);
+        let timestamp_writes = timer.and_then(|t| t.render(encoder, "gpu.gbuffer"));
         rho.draw(
             encoder,
             &self.pipeline,
@@ -405,7 +409,7 @@ impl GBufferPass {
             0,
             LayerStart::Over,
             None,
-            timer.and_then(|t| t.render("gpu.gbuffer")),
+            timestamp_writes,
         );
         let (texels, texel_bytes) = (mu.layer_texels(), mu.texel_bytes());
         // Within a rectangle, the real triangles that can cover it and its texels are the work.
@@ -526,6 +530,7 @@ impl RsmPass {
         let mut work = roofline::copy(texels * texel_bytes).times(redraw.len() as f64);
         for face in redraw.iter().filter(|r| r.mu) {
             work = work + roofline::raster(real, texels, texel_bytes);
+            let timestamp_writes = timer.as_deref_mut().and_then(|t| t.render(encoder, timing));
             mu.draw(
                 encoder,
                 &self.pipeline,
@@ -535,7 +540,7 @@ impl RsmPass {
                 face.layer,
                 LayerStart::Clear,
                 None,
-                timer.as_deref_mut().and_then(|t| t.render(timing)),
+                timestamp_writes,
             );
         }
         for face in redraw {
@@ -544,6 +549,7 @@ impl RsmPass {
         let virtual_indices = scene.real_indices..scene.all_indices;
         if !virtual_indices.is_empty() {
             for face in redraw {
+                let timestamp_writes = timer.as_deref_mut().and_then(|t| t.render(encoder, timing));
                 rho.draw(
                     encoder,
                     &self.pipeline,
@@ -553,7 +559,7 @@ impl RsmPass {
                     face.layer,
                     LayerStart::Over,
                     None,
-                    timer.as_deref_mut().and_then(|t| t.render(timing)),
+                    timestamp_writes,
                 );
             }
         }

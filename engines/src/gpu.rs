@@ -76,6 +76,8 @@ pub struct GpuContext {
     pub limits: wgpu::Limits,
     /// Whether passes can be timed with timestamp queries.
     pub timestamps: bool,
+    /// Whether pass timers time each pass by waiting for it instead ([`Self::set_wait_per_pass`]).
+    wait_per_pass: AtomicBool,
     lost: Arc<Mutex<Option<String>>>,
     errored: Arc<Mutex<Option<String>>>,
 }
@@ -285,9 +287,25 @@ impl GpuContext {
             info,
             limits,
             timestamps,
+            wait_per_pass: AtomicBool::new(false),
             lost,
             errored,
         })
+    }
+
+    /// Time every pass by submitting what comes before it and waiting for the queue, instead of
+    /// by timestamp queries (`relightd bench --pass-times wait`). A frame then overlaps nothing,
+    /// so its total is slower, but each pass's time is its own: lavapipe writes a compute pass's
+    /// timestamps before its shader threads have finished, so on it the later passes of a
+    /// submission read almost nothing and the earlier ones their time. Read by each
+    /// [`GpuTimer`](crate::timer::GpuTimer) when its frame starts.
+    pub fn set_wait_per_pass(&self, wait: bool) {
+        self.wait_per_pass.store(wait, Ordering::Relaxed);
+    }
+
+    /// See [`Self::set_wait_per_pass`].
+    pub fn waits_per_pass(&self) -> bool {
+        self.wait_per_pass.load(Ordering::Relaxed)
     }
 
     /// Whether the adapter is a software rasteriser (lavapipe, llvmpipe): its "GPU" passes run

@@ -424,7 +424,7 @@ impl DepthPass {
             pass: "recon gpu and read-back",
             ms: (read - uploaded).as_secs_f64() * 1e3,
         });
-        if let Some(timer) = &self.timer {
+        if let Some(timer) = &mut self.timer {
             timer.read(&self.ctx, &mut out.timings)?;
         }
         Ok(())

@@ -96,9 +96,10 @@ pub(crate) fn timed_pass<'e>(
     timer: &mut Option<GpuTimer>,
     label: &'static str,
 ) -> wgpu::ComputePass<'e> {
+    let timestamp_writes = timer.as_mut().and_then(|t| t.compute(encoder, label));
     encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
         label: Some(label),
-        timestamp_writes: timer.as_mut().and_then(|t| t.compute(label)),
+        timestamp_writes,
     })
 }
 

@@ -504,9 +504,13 @@ impl Engine for Pt {
                     label: Some("pt trace"),
                 });
             {
+                let timestamp_writes = self
+                    .timer
+                    .as_mut()
+                    .and_then(|t| t.compute(&mut encoder, "gpu.trace"));
                 let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("pt trace"),
-                    timestamp_writes: self.timer.as_mut().and_then(|t| t.compute("gpu.trace")),
+                    timestamp_writes,
                 });
                 pass.set_pipeline(&self.pipeline);
                 pass.set_bind_group(0, &trace_group, &[]);
@@ -553,9 +557,13 @@ impl Engine for Pt {
                 label: Some("pt resolve"),
             });
         {
+            let timestamp_writes = self
+                .timer
+                .as_mut()
+                .and_then(|t| t.compute(&mut encoder, "gpu.resolve"));
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("pt resolve"),
-                timestamp_writes: self.timer.as_mut().and_then(|t| t.compute("gpu.resolve")),
+                timestamp_writes,
             });
             pass.set_pipeline(&self.resolve);
             pass.set_bind_group(0, &resolve_group, &[]);
@@ -606,7 +614,7 @@ impl Engine for Pt {
             pass: "trace",
             ms: trace_ms,
         });
-        if let Some(timer) = &self.timer {
+        if let Some(timer) = &mut self.timer {
             timer.read(&ctx, &mut out.timings)?;
         }
         let total_ms = started.elapsed().as_secs_f64() * 1e3;

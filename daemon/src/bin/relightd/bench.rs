@@ -62,6 +62,12 @@ pub struct Args {
     /// each pass's achieved fraction of them (roofline.csv, roofline.json).
     #[arg(long)]
     roofline: bool,
+    /// How each GPU pass is timed: `timestamps` (timestamp queries) or `wait` (each pass
+    /// submitted and waited for, so its time is its own: lavapipe's timestamps give a
+    /// submission's later compute passes almost nothing; the frames are slower by what no
+    /// longer overlaps).
+    #[arg(long, value_enum, default_value_t = PassTimes::Timestamps)]
+    pass_times: PassTimes,
     /// Instead of the engine table: the `auto` engine against every fixed engine that fits
     /// each budget (`--budget`), on the scenes (a still camera) and on `--recording` (a moving
     /// one), and `pt`'s error against time beside the CPU reference's (governor.csv,
@@ -170,6 +176,11 @@ pub fn run(mut args: Args) -> Result<()> {
         .as_ref()
         .map(|c| format!("{} ({:?})", c.info.name, c.info.backend))
         .unwrap_or_else(|e| format!("no GPU: {e}"));
+    // bench.json and roofline.json say how their pass times were taken.
+    let adapter = match args.pass_times {
+        PassTimes::Timestamps => adapter,
+        PassTimes::Wait => format!("{adapter}; each pass timed by waiting for it"),
+    };
     eprintln!("bench on {adapter}");
     let rates = if args.roofline {
         let context = context.map_err(|e| anyhow::anyhow!("--roofline needs a GPU: {e}"))?;
@@ -263,8 +274,15 @@ fn bench_settings(
         frames: args.frames,
         accumulate: args.accumulate,
         terms: args.terms,
+        wait_per_pass: args.pass_times == PassTimes::Wait,
         cases,
     }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum PassTimes {
+    Timestamps,
+    Wait,
 }
 
 fn governor(args: Args, scenes: Vec<PathBuf>) -> Result<()> {
