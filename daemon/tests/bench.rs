@@ -4,16 +4,16 @@
 use std::path::Path;
 
 use relight_daemon::bench::{
-    BenchSettings, default_cases, roofline_rows, roofline_table, run, table, write_outputs,
-    write_roofline,
+    BenchCase, BenchSettings, default_cases, roofline_rows, roofline_table, run, table,
+    write_outputs, write_roofline,
 };
 use relight_engines::roofline::Rates;
 
-#[test]
-fn bench_measures_every_case_and_writes_its_outputs() {
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/spot_bleed");
-    let settings = BenchSettings {
-        scenes: vec![scene],
+/// `cases` on spot_bleed at 48 × 36 against a reference of 16 to 64 spp, one timed frame and
+/// four accumulated; each test changes what it is about.
+fn on_spot_bleed(cases: Vec<BenchCase>) -> BenchSettings {
+    BenchSettings {
+        scenes: vec![Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/spot_bleed")],
         width: 48,
         height: 36,
         reference_spp: 16,
@@ -23,8 +23,13 @@ fn bench_measures_every_case_and_writes_its_outputs() {
         accumulate: Some(4),
         terms: false,
         wait_per_pass: false,
-        cases: default_cases(false),
-    };
+        cases,
+    }
+}
+
+#[test]
+fn bench_measures_every_case_and_writes_its_outputs() {
+    let settings = on_spot_bleed(default_cases(false));
     let rows = run(&settings, |_| {}).unwrap();
     assert_eq!(rows.len(), default_cases(false).len());
     for row in &rows {
@@ -181,21 +186,16 @@ fn a_bad_case_is_refused_with_its_reason() {
 /// A reference rendered once is read from the cache on the next run, and scores the same.
 #[test]
 fn a_cached_reference_is_read_back_on_the_next_run() {
-    use relight_daemon::bench::{BenchCase, BenchProgress};
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/spot_bleed");
+    use relight_daemon::bench::BenchProgress;
     let cache = tempfile::tempdir().unwrap();
     let settings = BenchSettings {
-        scenes: vec![scene],
         width: 32,
         height: 24,
         reference_spp: 8,
         max_reference_spp: 8,
         reference_cache: Some(cache.path().to_owned()),
-        frames: 1,
         accumulate: Some(2),
-        terms: false,
-        wait_per_pass: false,
-        cases: vec![BenchCase::new("differential", serde_json::json!({}))],
+        ..on_spot_bleed(vec![BenchCase::new("differential", serde_json::json!({}))])
     };
     let run_once = || {
         let mut cached = Vec::new();
@@ -226,22 +226,16 @@ fn a_cached_reference_is_read_back_on_the_next_run() {
 /// share.
 #[test]
 fn terms_say_which_term_an_error_comes_from() {
-    use relight_daemon::bench::{BenchCase, terms_table};
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/spot_bleed");
+    use relight_daemon::bench::terms_table;
     let settings = BenchSettings {
-        scenes: vec![scene],
         width: 64,
         height: 48,
-        reference_spp: 16,
-        max_reference_spp: 64,
-        reference_cache: None,
-        frames: 1,
-        accumulate: Some(4),
         terms: true,
-        wait_per_pass: false,
-        cases: ["differential", "dvct", "ibl"]
-            .map(|e| BenchCase::new(e, serde_json::json!({})))
-            .to_vec(),
+        ..on_spot_bleed(
+            ["differential", "dvct", "ibl"]
+                .map(|e| BenchCase::new(e, serde_json::json!({})))
+                .to_vec(),
+        )
     };
     let rows = run(&settings, |_| {}).unwrap();
     let [differential, dvct, ibl] = [&rows[0], &rows[1], &rows[2]];
@@ -310,25 +304,16 @@ fn terms_say_which_term_an_error_comes_from() {
 /// almost nothing.
 #[test]
 fn passes_timed_by_waiting_add_up_to_the_frame() {
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/spot_bleed");
+    let case = BenchCase::parse(
+        "dvct volume_size=16",
+        &relight_engines::EngineRegistry::new(),
+    );
     let settings = BenchSettings {
-        scenes: vec![scene],
-        width: 48,
-        height: 36,
-        reference_spp: 16,
         max_reference_spp: 16,
-        reference_cache: None,
         frames: 3,
         accumulate: Some(1),
-        terms: false,
         wait_per_pass: true,
-        cases: vec![
-            relight_daemon::bench::BenchCase::parse(
-                "dvct volume_size=16",
-                &relight_engines::EngineRegistry::new(),
-            )
-            .unwrap(),
-        ],
+        ..on_spot_bleed(vec![case.unwrap()])
     };
     let rows = run(&settings, |_| {}).unwrap();
     let row = &rows[0];
