@@ -97,7 +97,10 @@ pub const ALL: &[(&str, &str)] = &[
 /// not inlined. Each entry point copies its parameters into a `var<private>` of the same name
 /// first (`volume = volume_buffer;`): read in place, every use after an atomic or a storage
 /// write was a fresh load, and `dlpv`'s injection took 25–32 ms instead of 18. On other drivers
-/// a few hundred bytes read alike by every invocation cost the same either way.
+/// a few hundred bytes read alike by every invocation cost the same either way. A pass now
+/// binds up to 10 storage buffers (`pt_trace.wgsl`; `shade.wgsl` 9): over WebGPU's floor of 8
+/// per stage, within what the Vulkan drivers we have met allow (lavapipe's and NVIDIA's are far
+/// higher), and the device is opened with the adapter's own limits.
 /// `shaders_validate.rs` fails on a `var<uniform>`.
 pub const PARAMS_USAGE: wgpu::BufferUsages =
     wgpu::BufferUsages::STORAGE.union(wgpu::BufferUsages::COPY_DST);
