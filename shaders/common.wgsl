@@ -1,5 +1,8 @@
 // Shared by every pass: the scene's GPU layout and the light, shadow and colour helpers.
 // Concatenated in front of each pass file (WGSL has no includes); see engines/src/shaders.rs.
+// Every pass binds its per-frame parameters as `var<storage, read> X_buffer` and copies them
+// into `var<private> X` first thing in each entry point, never as a uniform buffer
+// (`shaders::PARAMS_USAGE` says why).
 
 const PI: f32 = 3.14159265358979;
 const KIND_POINT: u32 = 0u;

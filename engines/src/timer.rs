@@ -30,6 +30,8 @@ pub struct GpuTimer {
     /// While waiting: the pass running since its boundary, and the passes finished.
     running: Option<(&'static str, Instant)>,
     waited: Vec<(&'static str, f64)>,
+    /// A wait that failed (a lost device), for [`read`](Self::read) to return.
+    failed: Option<GpuError>,
 }
 
 impl GpuTimer {
@@ -67,6 +69,7 @@ impl GpuTimer {
             waiting: false,
             running: None,
             waited: Vec::new(),
+            failed: None,
         })
     }
 
@@ -76,6 +79,7 @@ impl GpuTimer {
         self.waiting = self.ctx.waits_per_pass();
         self.running = None;
         self.waited.clear();
+        self.failed = None;
     }
 
     /// While waiting: submit what `encoder` holds, wait for the queue, end the running pass and
@@ -91,9 +95,9 @@ impl GpuTimer {
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor::default()),
         );
         self.ctx.queue.submit([before.finish()]);
-        // A lost device or a validation error also fails the engine's own check after its
-        // submission, which reports it; the timing only needs the queue to be idle.
-        let _ = self.ctx.wait();
+        if let Err(error) = self.ctx.wait() {
+            self.failed.get_or_insert(error);
+        }
         self.end_running();
         self.running = Some((label, Instant::now()));
         true
@@ -162,12 +166,16 @@ impl GpuTimer {
 
     /// Read the resolved times (after the submission holding [`resolve`](Self::resolve)) and
     /// append `gpu.<label>` timings, summed per label, in first-use order. While waiting, call
-    /// it once the frame's read-back has arrived: that ends the last pass.
+    /// it once the frame's read-back has arrived: that ends the last pass; a wait that failed
+    /// is returned here.
     pub fn read(
         &mut self,
         ctx: &GpuContext,
         timings: &mut Vec<PassTiming>,
     ) -> Result<(), GpuError> {
+        if let Some(error) = self.failed.take() {
+            return Err(error);
+        }
         let times: Vec<(&'static str, f64)> = if self.waiting {
             self.end_running();
             std::mem::take(&mut self.waited)
