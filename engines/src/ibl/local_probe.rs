@@ -16,7 +16,7 @@
 //! (L2 SH of their radiance), and every later bounce the same way from the one before. A room's
 //! walls and floor light each other; with the first bounce alone the object read 0.83–0.87 of
 //! the reference's light on desk_box and touching_wall (object L2 0.137 and 0.180; 0.102 and
-//! 0.124 with the second, 0.088 and 0.103 with all of them, their light then 0.93 and 0.94 of
+//! 0.124 with the second, 0.088 and 0.102 with all of them, their light then 0.93 and 0.94 of
 //! the reference's). That light is smooth, so it leaves as L2
 //! SH ([`LocalPicture::bounce`]) and joins the object's diffuse light as SH irradiance; in the
 //! picture's texels it made the convolution, which leaves black texels out, cost the live `ibl` 7 %
