@@ -27,7 +27,7 @@ use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::shadow_reach;
-use crate::timer::GpuTimer;
+use crate::timer::{GpuTimer, timed_pass};
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -1124,14 +1124,7 @@ impl Deferred {
                 label: Some("shade"),
             });
         {
-            let timestamp_writes = self
-                .timer
-                .as_mut()
-                .and_then(|t| t.compute(&mut encoder, "gpu.shade"));
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("shade"),
-                timestamp_writes,
-            });
+            let mut pass = timed_pass(&mut encoder, &mut self.timer, "gpu.shade");
             pass.set_pipeline(&self.shade);
             pass.set_bind_group(0, &group, &[]);
             pass.dispatch_workgroups(region.width.div_ceil(8), region.height.div_ceil(8), 1);

@@ -56,7 +56,7 @@ use crate::engine::PassTiming;
 use crate::gpu::{GpuContext, GpuError};
 use crate::shaders;
 use crate::timer::GpuTimer;
-use crate::volume::timed_pass;
+use crate::timer::timed_pass;
 
 /// Why a frame could not be reconstructed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

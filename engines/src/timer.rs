@@ -211,3 +211,16 @@ impl GpuTimer {
         Ok(())
     }
 }
+
+/// A compute pass labelled `label`, timed under it when there is a timer (see the module docs).
+pub(crate) fn timed_pass<'e>(
+    encoder: &'e mut wgpu::CommandEncoder,
+    timer: &mut Option<GpuTimer>,
+    label: &'static str,
+) -> wgpu::ComputePass<'e> {
+    let timestamp_writes = timer.as_mut().and_then(|t| t.compute(encoder, label));
+    encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+        label: Some(label),
+        timestamp_writes,
+    })
+}

@@ -13,7 +13,6 @@ use crate::gpu_scene::GpuLight;
 use crate::params::ParamSpec;
 use crate::roofline::Work;
 use crate::shaders;
-use crate::timer::GpuTimer;
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -88,19 +87,6 @@ pub(crate) fn far_field_param() -> ParamSpec {
         "`probe`: the object also takes the light of real surfaces outside the volume, gathered at its centre as L2 SH (a volume reaches only `volume_scale` × the object); `none`: the volume's light alone, as in the paper",
         vec!["probe", "none"],
     )
-}
-
-/// A compute pass with start/end timestamps under `label` when the adapter has them.
-pub(crate) fn timed_pass<'e>(
-    encoder: &'e mut wgpu::CommandEncoder,
-    timer: &mut Option<GpuTimer>,
-    label: &'static str,
-) -> wgpu::ComputePass<'e> {
-    let timestamp_writes = timer.as_mut().and_then(|t| t.compute(encoder, label));
-    encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-        label: Some(label),
-        timestamp_writes,
-    })
 }
 
 /// The injection's fixed-point counts, n³ cells × 12 (4 SH × RGB) i32 each of V^Δ and V^ρ, in

@@ -50,7 +50,7 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
-use crate::volume::timed_pass;
+use crate::timer::timed_pass;
 
 /// `gather_stride` by default: chosen by measured error (`docs/ALGORITHMS.md`, `dir`).
 const GATHER_STRIDE_DEFAULT: u32 = 2;

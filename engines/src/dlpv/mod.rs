@@ -57,10 +57,11 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
+use crate::timer::timed_pass;
 use propagate::{Propagation, PropagationBuffers};
 
 use crate::volume::{
-    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, timed_pass, volume_reach,
+    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, volume_reach,
 };
 
 /// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,

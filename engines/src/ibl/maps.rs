@@ -13,7 +13,7 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::roofline::Work;
 use crate::shaders;
 use crate::timer::GpuTimer;
-use crate::volume::timed_pass;
+use crate::timer::timed_pass;
 
 /// Specular levels one pass computes (the shader's `MAX_LEVELS`).
 pub const MAX_LEVELS: usize = 8;

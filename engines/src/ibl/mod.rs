@@ -42,7 +42,7 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
-use crate::volume::timed_pass;
+use crate::timer::timed_pass;
 use local_probe::local_probe;
 use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, log_spaced_shininess, resample};
 use relight_core::sh::Sh9Rgb;

@@ -48,7 +48,7 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
-use crate::timer::GpuTimer;
+use crate::timer::{GpuTimer, timed_pass};
 
 /// Samples per pixel in one dispatch at most (a frame may submit several).
 const DISPATCH_SPP: u32 = 64;
@@ -504,14 +504,7 @@ impl Engine for Pt {
                     label: Some("pt trace"),
                 });
             {
-                let timestamp_writes = self
-                    .timer
-                    .as_mut()
-                    .and_then(|t| t.compute(&mut encoder, "gpu.trace"));
-                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("pt trace"),
-                    timestamp_writes,
-                });
+                let mut pass = timed_pass(&mut encoder, &mut self.timer, "gpu.trace");
                 pass.set_pipeline(&self.pipeline);
                 pass.set_bind_group(0, &trace_group, &[]);
                 pass.dispatch_workgroups(slots, batch.min(TILE_PHASES), 1);
@@ -557,14 +550,7 @@ impl Engine for Pt {
                 label: Some("pt resolve"),
             });
         {
-            let timestamp_writes = self
-                .timer
-                .as_mut()
-                .and_then(|t| t.compute(&mut encoder, "gpu.resolve"));
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("pt resolve"),
-                timestamp_writes,
-            });
+            let mut pass = timed_pass(&mut encoder, &mut self.timer, "gpu.resolve");
             pass.set_pipeline(&self.resolve);
             pass.set_bind_group(0, &resolve_group, &[]);
             pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
