@@ -138,23 +138,33 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
     // The later bounces: each surface in the picture also reflects the light of the others,
     // as the centre sees them (L2 SH of the surfaces' radiance alone: the sky's light on them
     // is already in `reflected`, through the directional lights cut from the map).
-    let texels = || (0..h).flat_map(move |y| (0..w).map(move |x| (x, y)));
-    let mut surfaces = Sh9Rgb::default();
-    for (x, y) in texels() {
-        if let (l, Some(_)) = first[(y * w + x) as usize] {
+    // The texels that meet a surface: their direction and solid angle, the surface's radiance,
+    // reflectance and normal, gathered once for every bounce.
+    let hits: Vec<(Vec3, f32, Vec3, Vec3, Vec3)> = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .zip(&first)
+        .filter_map(|((x, y), &(radiance, hit))| {
+            let (reflectance, normal) = hit?;
             let solid_angle = texel_solid_angle(w, h, y) as f32;
-            surfaces.add_sample(texel_direction(w, h, x, y), l, solid_angle);
-        }
+            Some((
+                texel_direction(w, h, x, y),
+                solid_angle,
+                radiance,
+                reflectance,
+                normal,
+            ))
+        })
+        .collect();
+    let mut surfaces = Sh9Rgb::default();
+    for &(direction, solid_angle, radiance, _, _) in &hits {
+        surfaces.add_sample(direction, radiance, solid_angle);
     }
     // Bounce k + 1 reflects bounce k's light as bounce 2 reflects the first's.
     let reflect = |light: &Sh9Rgb| {
         let mut next = Sh9Rgb::default();
-        for (x, y) in texels() {
-            if let (_, Some((reflectance, normal))) = first[(y * w + x) as usize] {
-                let solid_angle = texel_solid_angle(w, h, y) as f32;
-                let reflected = reflectance * light.irradiance(normal).max(Vec3::ZERO);
-                next.add_sample(texel_direction(w, h, x, y), reflected, solid_angle);
-            }
+        for &(direction, solid_angle, _, reflectance, normal) in &hits {
+            let reflected = reflectance * light.irradiance(normal).max(Vec3::ZERO);
+            next.add_sample(direction, reflected, solid_angle);
         }
         next
     };

@@ -87,7 +87,7 @@ struct Environment {
     settings: IblSettings,
     /// What the local picture was taken of (`None` for the map alone or a probe's picture).
     picture_of: Option<PictureKey>,
-    /// The local picture's second bounce (`LocalPicture::bounce`; zero without one), added to
+    /// The local picture's later bounces (`LocalPicture::bounce`; zero without one), added to
     /// the diffuse map's light at shading.
     bounce: Sh9Rgb,
 }
