@@ -4,6 +4,7 @@
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
+use relight_core::scene::Scene;
 
 use crate::deferred::RealIndirect;
 use crate::engine::SceneFrame;
@@ -23,25 +24,56 @@ pub(crate) struct VolumeUniform {
     pub options: [u32; 4],
 }
 
-/// A cube of `n`³ cells centred on the virtual object's bounds `(lo, hi)`, `scale` × their
-/// largest edge on a side: (minimum corner, cell edge).
-pub(crate) fn placement(lo: Vec3, hi: Vec3, n: u32, scale: f32) -> (Vec3, f32) {
+
+/// The volume of `n`³ cells around `scene`'s virtual object, `None` without one: (minimum
+/// corner, cell edge). A cube `scale` × the object's largest edge on a side, centred on the
+/// object, then, `in_scene`, moved along each axis out of what lies beyond the scene's bounds,
+/// as far as it still holds the whole object (`volume_placement`, [`volume_placement_param`]).
+///
+/// Why moved: an object on a floor or against a wall left the half of a centred cube below
+/// the floor or behind the wall empty, cells that no surface, VPL or pixel can occupy, while
+/// the room's light that the object blocks was cut off at the cube's other faces. Moved, the
+/// cube covers at least as much of the scene's bounds as the centred one, and on touching_wall
+/// (a box in the corner of a floor and a wall) 2.3 times as much.
+pub(crate) fn placement(
+    scene: &Scene,
+    n: u32,
+    scale: f32,
+    in_scene: bool,
+) -> Option<(Vec3, f32)> {
+    let (lo, hi) = scene.virtual_bounds()?;
+    let (scene_lo, scene_hi) = scene.bounds()?;
     let edge = (hi - lo).max_element().max(1e-3) * scale;
-    ((lo + hi) / 2.0 - Vec3::splat(edge / 2.0), edge / n as f32)
+    let corner = Vec3::from_array(std::array::from_fn(|axis| {
+        let centred = (lo[axis] + hi[axis] - edge) / 2.0;
+        if !in_scene || edge < hi[axis] - lo[axis] {
+            return centred;
+        }
+        let within = if scene_hi[axis] - scene_lo[axis] >= edge {
+            centred.clamp(scene_lo[axis], scene_hi[axis] - edge)
+        } else {
+            (scene_lo[axis] + scene_hi[axis] - edge) / 2.0
+        };
+        within.clamp(hi[axis] - edge, lo[axis])
+    }));
+    Some((corner, edge / n as f32))
 }
 
 /// Where a volume engine's indirect term can be nonzero on real pixels of `frame`: within its
-/// volume ([`placement`] of `n`³ cells, `scale` × the object) grown by `grow_cells` cells, and
-/// `margin_px` pixels around where that is seen; anywhere without an object.
+/// volume ([`placement`] of `n`³ cells, `scale` × the object, `in_scene`) grown by
+/// `grow_cells` cells, and `margin_px` pixels around where that is seen; anywhere without an
+/// object.
 pub(crate) fn volume_reach(
     frame: &SceneFrame,
-    (n, scale): (u32, f32),
+    (n, scale, in_scene): (u32, f32, bool),
     grow_cells: f32,
     margin_px: u32,
 ) -> RealIndirect {
-    let object = frame.scene.as_ref().and_then(|s| s.virtual_bounds());
-    object.map_or(RealIndirect::Anywhere, |(lo, hi)| {
-        let (origin, cell) = placement(lo, hi, n, scale);
+    let volume = frame
+        .scene
+        .as_ref()
+        .and_then(|s| placement(s, n, scale, in_scene));
+    volume.map_or(RealIndirect::Anywhere, |(origin, cell)| {
         let grow = Vec3::splat(grow_cells * cell);
         let far = origin + Vec3::splat(n as f32 * cell);
         RealIndirect::Within {
@@ -86,6 +118,17 @@ pub(crate) fn far_field_param() -> ParamSpec {
         "far_field",
         "`probe`: the object also takes the light of real surfaces outside the volume, gathered at its centre as L2 SH (a volume reaches only `volume_scale` × the object); `none`: the volume's light alone, as in the paper",
         vec!["probe", "none"],
+    )
+}
+
+/// The `volume_placement` setting both volume engines have: `scene` (default) moves the cube
+/// out of what lies beyond the scene's bounds ([`placement`]), `centred` centres it on the
+/// object (the papers).
+pub(crate) fn volume_placement_param() -> ParamSpec {
+    ParamSpec::choice(
+        "volume_placement",
+        "`scene`: the volume, centred on the object, is moved out of what lies beyond the scene's bounds (below a floor, behind a wall) as far as it still holds the object; `centred`: centred on the object, as in the paper",
+        vec!["scene", "centred"],
     )
 }
 
@@ -206,5 +249,108 @@ impl InjectPass {
         // Each thread injects a 4 × 4 tile (`TILE` in the shader), 8 × 8 threads a group.
         let s = rsm_size.div_ceil(4 * 8);
         pass.dispatch_workgroups(s, s, layers);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    fn scene(name: &str) -> Scene {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../tests/scenes")
+            .join(name);
+        Scene::load(&dir).expect("the scene loads")
+    }
+
+    /// The part of box `a` inside box `b`, as a volume (m³).
+    fn overlap(a: (Vec3, Vec3), b: (Vec3, Vec3)) -> f32 {
+        (a.1.min(b.1) - a.0.max(b.0)).max(Vec3::ZERO).element_product()
+    }
+
+    /// On touching_wall (a box standing on the floor against the back wall) the cube moves up
+    /// out of the floor and forward out of the wall. On every scene it still holds the whole
+    /// object, keeps its size, and covers at least as much of the scene's bounds as the cube
+    /// centred on the object.
+    #[test]
+    fn the_volume_moves_out_of_empty_space_and_keeps_the_object() {
+        let (n, scale) = (32, 3.0);
+        for name in [
+            "desk_box",
+            "glossy_floor",
+            "spot_bleed",
+            "touching_wall",
+            "window_env",
+        ] {
+            let scene = scene(name);
+            let (lo, hi) = scene.virtual_bounds().unwrap();
+            let bounds = scene.bounds().unwrap();
+            let edge = (hi - lo).max_element() * scale;
+            let (origin, cell) = placement(&scene, n, scale, true).unwrap();
+            let placed = (origin, origin + Vec3::splat(n as f32 * cell));
+            let centred = ((lo + hi - Vec3::splat(edge)) / 2.0, (lo + hi + Vec3::splat(edge)) / 2.0);
+            assert!((cell * n as f32 - edge).abs() < 1e-5, "{name}: size");
+            assert!(
+                placed.0.cmple(lo + 1e-5).all() && placed.1.cmpge(hi - 1e-5).all(),
+                "{name}: the object is inside {placed:?}"
+            );
+            assert!(
+                overlap(placed, bounds) >= overlap(centred, bounds) - 1e-6,
+                "{name}: covers less of the scene than the centred cube"
+            );
+            if name == "touching_wall" {
+                let eps = 1e-5;
+                assert!((placed.0.y - bounds.0.y).abs() < eps, "on the floor: {placed:?}");
+                assert!((placed.0.z - bounds.0.z).abs() < eps, "at the wall: {placed:?}");
+                assert!(
+                    overlap(placed, bounds) > 2.0 * overlap(centred, bounds),
+                    "the wall's corner is where the centred cube lost most"
+                );
+            }
+        }
+    }
+
+    /// An object floating in the middle of a large scene keeps the centred cube; on a floor
+    /// it sits on the floor; where the scene is lower than the cube, it is centred on the
+    /// scene's height.
+    #[test]
+    fn the_volume_is_centred_where_nothing_bounds_it() {
+        let mut scene = scene("desk_box");
+        let (lo, hi) = scene.virtual_bounds().unwrap();
+        let centre = (lo + hi) / 2.0;
+        let big = 100.0 * (hi - lo).max_element();
+        let edge = (hi - lo).max_element() * 3.0;
+        let set_real = |scene: &mut Scene, a: Vec3, b: Vec3| {
+            for mesh in scene.meshes.iter_mut().filter(|m| !m.is_virtual) {
+                mesh.positions_in_world = vec![a, b];
+                mesh.triangles.clear();
+            }
+        };
+        set_real(&mut scene, centre - Vec3::splat(big), centre + Vec3::splat(big));
+        let (origin, _) = placement(&scene, 16, 3.0, true).unwrap();
+        assert!((origin + Vec3::splat(edge / 2.0) - centre).length() < 1e-4 * edge);
+
+        // A floor under the object and the room's walls far off: the cube sits on the floor,
+        // centred on the object in x and z.
+        let floor = lo.y - 1e-3;
+        set_real(
+            &mut scene,
+            Vec3::new(centre.x - big, floor, centre.z - big),
+            Vec3::new(centre.x + big, floor + big, centre.z + big),
+        );
+        let (origin, _) = placement(&scene, 16, 3.0, true).unwrap();
+        assert!((origin.y - floor).abs() < 1e-5, "{origin}");
+        assert!((origin.x + edge / 2.0 - centre.x).abs() < 1e-5, "{origin}");
+        // A scene lower than the cube (a floor as wide as the room, nothing above the object):
+        // centred on the scene's height.
+        set_real(
+            &mut scene,
+            Vec3::new(centre.x - big, floor, centre.z - big),
+            Vec3::new(centre.x + big, floor, centre.z + big),
+        );
+        let (origin, _) = placement(&scene, 16, 3.0, true).unwrap();
+        assert!((origin.y + edge / 2.0 - (floor + hi.y) / 2.0).abs() < 1e-5, "{origin}");
+        assert!((origin.z + edge / 2.0 - centre.z).abs() < 1e-5, "{origin}");
     }
 }

@@ -165,6 +165,11 @@ impl Scene {
         }
     }
 
+    /// World-space bounding box (min, max) of every mesh, real and virtual, `None` without any.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        bounds(self.meshes.iter())
+    }
+
     /// World-space bounding box (min, max) of the real meshes, `None` without any.
     pub fn real_bounds(&self) -> Option<(Vec3, Vec3)> {
         bounds(self.meshes.iter().filter(|m| !m.is_virtual))

@@ -92,6 +92,8 @@ pub struct DvctSettings {
     /// Virtual pixels' cones that leave the volume take the far field
     /// (`CellCounts::far_field`) beyond it.
     pub far_field: bool,
+    /// The volume moved out of what lies beyond the scene's bounds (`volume::placement`).
+    pub volume_in_scene: bool,
     /// Diffuse cones at every `trace_stride`-th pixel per axis; the pixels between share their
     /// irradiance where their surfaces are alike (`dvct_trace.wgsl`, `fill`).
     pub trace_stride: u32,
@@ -117,6 +119,7 @@ impl Default for DvctSettings {
             shadow_bias: 1.5,
             directional_occlusion: true,
             far_field: true,
+            volume_in_scene: true,
             trace_stride: 2,
             radiance_lobe: 0.5,
         }
@@ -280,6 +283,7 @@ impl Dvct {
                 vec!["directional", "none"],
             ),
             crate::volume::far_field_param(),
+            crate::volume::volume_placement_param(),
             float(
                 "radiance_lobe",
                 "along the object's cones, the share of each VPL seen as the radiance its surface shows over its hemisphere rather than the paper's cosine lobe of intensity (0: the paper)",
@@ -495,7 +499,11 @@ impl Engine for Dvct {
         // farther than the stride from one that gathers something.
         self.deferred.set_real_indirect(volume_reach(
             frame,
-            (settings.volume_size, settings.volume_scale),
+            (
+                settings.volume_size,
+                settings.volume_scale,
+                settings.volume_in_scene,
+            ),
             2.01 + settings.cone_offset.abs(),
             2 * settings.trace_stride + 2,
         ));
@@ -513,18 +521,20 @@ impl Engine for Dvct {
         let Some(scene) = self.deferred.scene() else {
             return Err(EngineError::NotPrepared);
         };
-        let (bounds, virtual_bounds, voxelized, scene_geometry) = (
+        let (bounds, voxelized, scene_geometry) = (
             scene.bounds,
-            scene.virtual_bounds,
             scene.light_space_indices(),
             scene.light_space_fingerprint(),
         );
         let triangles = voxelized.len() as u32 / 3;
         let faces = self.deferred.faces().len() as u32;
         let rsm_size = self.deferred.rsm_size().ok_or(EngineError::NotPrepared)?;
-        if let Some((lo, hi)) = virtual_bounds {
-            let n = settings.volume_size;
-            let (origin, cell) = placement(lo, hi, n, settings.volume_scale);
+        let n = settings.volume_size;
+        let volume = frame
+            .scene
+            .as_ref()
+            .and_then(|s| placement(s, n, settings.volume_scale, settings.volume_in_scene));
+        if let Some((origin, cell)) = volume {
             let scale =
                 fixed_point_scale(self.deferred.lights(), (bounds.1 - bounds.0).length() / 2.0);
             let (levels, mip_cells) = mip_chain(n);
@@ -750,6 +760,7 @@ impl Engine for Dvct {
             directional_occlusion: schema.choice(params, "occlusion") == "directional",
             radiance_lobe: float("radiance_lobe"),
             far_field: schema.choice(params, "far_field") == "probe",
+            volume_in_scene: schema.choice(params, "volume_placement") == "scene",
             trace_stride: int("trace_stride"),
         };
         self.deferred

@@ -88,6 +88,39 @@ pub fn errors_against(
     (f64::from(delta_l2), object, delta)
 }
 
+/// `engine` on touching_wall (a box in the corner of a floor and a wall), at 80 × 60 against
+/// 256 spp, with its volume moved into the scene (`volume_placement = scene`, the default)
+/// and centred on the object: moved, both Δ on real pixels and the object come closer to the
+/// reference, the object by at least `object_gain` (error ratio). Returns (Δ, object) moved,
+/// then centred.
+pub fn the_volume_in_the_scene_beats_the_centred_one(
+    engine: &str,
+    object_gain: f64,
+) -> ((f64, f64), (f64, f64)) {
+    let scene = Arc::new(load_scene("touching_wall"));
+    let reference = reference_full(&scene, 80, 60, 256);
+    let errors = |placement: &str| {
+        let (delta, object, _) = errors_against(
+            engine,
+            serde_json::json!({ "volume_placement": placement }),
+            &scene,
+            &reference,
+        );
+        (delta, object)
+    };
+    let (moved, centred) = (errors("scene"), errors("centred"));
+    eprintln!(
+        "{engine} on touching_wall, Δ / object: {:.4} / {:.4} moved, {:.4} / {:.4} centred",
+        moved.0, moved.1, centred.0, centred.1
+    );
+    assert!(moved.0 < centred.0, "Δ {moved:?} against {centred:?}");
+    assert!(
+        moved.1 < object_gain * centred.1,
+        "object {moved:?} against {centred:?}"
+    );
+    (moved, centred)
+}
+
 /// A setting that lights the object with the room's bounce light (`far_field` of the volume
 /// engines, `environment` of `ibl`): on `scenes`, whose object sees much of it (desk_box's walls
 /// and floor, touching_wall's wall, window_env's floor), `engine` with `setting = on` must draw
