@@ -165,9 +165,16 @@ impl Scene {
         }
     }
 
-    /// World-space bounding box (min, max) of every mesh, real and virtual, `None` without any.
-    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
-        bounds(self.meshes.iter())
+    /// World-space bounding box (min, max) of the meshes the light-space passes draw: the
+    /// virtual ones, and the real scene's [`Scene::shadow_proxy`] where it has one (held while
+    /// the live surface holds, so these bounds do not move with the sensor's noise), else the
+    /// real meshes. `None` without any.
+    pub fn light_space_bounds(&self) -> Option<(Vec3, Vec3)> {
+        let virtual_meshes = self.meshes.iter().filter(|m| m.is_virtual);
+        match &self.shadow_proxy {
+            Some(proxy) => bounds(std::iter::once(&**proxy).chain(virtual_meshes)),
+            None => bounds(self.meshes.iter()),
+        }
     }
 
     /// World-space bounding box (min, max) of the real meshes, `None` without any.
