@@ -178,18 +178,18 @@ fn a_128_cube_volume_renders() {
 }
 
 /// The far field (`CellCounts::far_field`): cones that leave the volume (3 × the object) take
-/// the room's bounce light from beyond it, and nothing else changes. And the object's cones are
-/// not stopped by its own voxels: while they were, touching_wall's object read 0.375 without
-/// the far field at this size (0.337 now).
+/// the room's bounce light from beyond it, and nothing else changes. On touching_wall the
+/// volume, moved into the corner (`volume_placement`), now holds most of what lay beyond it,
+/// so the far field adds less there (0.148 → 0.142 at this size; desk_box 0.132 → 0.090). And
+/// the object's cones are not stopped by its own voxels: while they were, touching_wall's
+/// object read 0.375 without the far field at this size (0.337 with the centred volume).
 #[test]
 fn the_far_field_brings_the_object_closer_to_the_reference() {
-    let errors = support::setting_brings_the_object_closer(
-        "dvct",
-        ("far_field", "probe", "none"),
-        &["desk_box", "touching_wall"],
-        0.95,
-    );
-    let (_, _, without) = errors[1];
+    let far_field = ("far_field", "probe", "none");
+    support::setting_brings_the_object_closer("dvct", far_field, &["desk_box"], 0.95);
+    let errors =
+        support::setting_brings_the_object_closer("dvct", far_field, &["touching_wall"], 0.99);
+    let (_, _, without) = errors[0];
     assert!(
         without < 0.35,
         "touching_wall without the far field: {without}"
