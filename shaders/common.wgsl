@@ -583,11 +583,12 @@ const LIGHT_SHADOW_ONLY: u32 = 1u;
 
 // The reflection-map engine's settings (engines/src/ibl).
 struct Ibl {
-    // x: map edge (texels); y: shininess levels; z: input texels; w: unused.
+    // x: map edge (texels); y: shininess levels; z: input texels; w: the local picture's
+    // surface patches (`ibl_shade.wgsl`, `near`; 0 without them).
     dims: vec4<u32>,
     // x, y: frame size; z: light count; w: shadow-map size.
     frame: vec4<u32>,
-    // x: shadow bias in texels.
+    // x: shadow bias in texels; y: the near surfaces' gather stride (`ibl_shade.wgsl`).
     params: vec4<f32>,
     // Phong exponents of the specular levels (8 at most), in order.
     shininess: array<vec4<f32>, 2>,

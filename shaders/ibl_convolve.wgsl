@@ -8,7 +8,7 @@
 struct InputTexel {
     // xyz: unit direction; w: solid angle (sr).
     direction: vec4<f32>,
-    // rgb: radiance.
+    // rgb: radiance; w: 1 = left out of the diffuse map.
     radiance: vec4<f32>,
 }
 
@@ -46,7 +46,9 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>, @builtin(local_invocation_
             let c = dot(d, tile[k].direction.xyz);
             if c > 0.0 {
                 let e = tile[k].radiance.rgb * tile[k].direction.w;
-                diffuse += e * c;
+                // w = 1: a local picture's surface, whose diffuse light the shading takes from
+                // its patch where the pixel stands (`ibl_shade.wgsl`, `near`).
+                diffuse += e * c * (1.0 - tile[k].radiance.w);
                 for (var l = 0u; l < levels; l++) {
                     specular[l] += e * pow(c, ibl_shininess(ibl, l));
                 }

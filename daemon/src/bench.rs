@@ -1238,7 +1238,7 @@ pub fn ibl_map_timings(sizes: &[u32], levels: u32, repeats: u32) -> Result<Vec<M
     let mut rows = Vec::new();
     for &size in sizes {
         let width = (f64::from(size) * std::f64::consts::SQRT_2).round() as u32;
-        let texels = input_texels(&sky(width.max(2), (width / 2).max(1)));
+        let texels = input_texels(&sky(width.max(2), (width / 2).max(1)), None);
         let mut maps = ReflectionMaps::new(&ctx);
         let mut times = Vec::new();
         for run in 0..=repeats.max(1) {

@@ -108,8 +108,10 @@ pub fn resample(env: &EnvironmentMap, width: u32) -> EnvironmentMap {
 }
 
 /// The map's texels as convolution input: centre direction, exact solid angle, radiance; black,
-/// negative and non-finite texels are left out (they add nothing).
-pub fn input_texels(env: &EnvironmentMap) -> Vec<InputTexel> {
+/// negative and non-finite texels are left out (they add nothing). The texels `specular_only`
+/// flags (row-major, the local picture's surfaces, whose diffuse light the shading takes from
+/// their patches instead: `LocalPicture::near`) are left out of the diffuse map alone.
+pub fn input_texels(env: &EnvironmentMap, specular_only: Option<&[bool]>) -> Vec<InputTexel> {
     let (w, h) = (env.width as usize, env.height as usize);
     if env.radiance.len() != w * h {
         return Vec::new();
@@ -118,15 +120,20 @@ pub fn input_texels(env: &EnvironmentMap) -> Vec<InputTexel> {
     for y in 0..env.height {
         let omega = texel_solid_angle(env.width, env.height, y) as f32;
         for x in 0..env.width {
-            let l = env.radiance[y as usize * w + x as usize];
+            let index = y as usize * w + x as usize;
+            let l = env.radiance[index];
             if !l.is_finite() || l.max_element() <= 0.0 {
                 continue;
             }
+            let diffuse = !specular_only.is_some_and(|flags| flags.get(index) == Some(&true));
             texels.push(InputTexel {
                 direction: texel_direction(env.width, env.height, x, y)
                     .extend(omega)
                     .to_array(),
-                radiance: l.max(Vec3::ZERO).extend(0.0).to_array(),
+                radiance: l
+                    .max(Vec3::ZERO)
+                    .extend(if diffuse { 0.0 } else { 1.0 })
+                    .to_array(),
             });
         }
     }
@@ -151,7 +158,10 @@ pub fn convolve_f64(texels: &[InputTexel], d: Vec3, shininess: Option<f32>) -> D
                 f64::from(t.radiance[1]),
                 f64::from(t.radiance[2]),
             );
-            let lobe = shininess.map_or(c, |n| c.powf(f64::from(n)));
+            // A texel flagged specular-only (w = 1) is left out of the diffuse map.
+            let lobe = shininess.map_or(c * (1.0 - f64::from(t.radiance[3])), |n| {
+                c.powf(f64::from(n))
+            });
             sum += l * f64::from(t.direction[3]) * lobe;
         }
     }
@@ -334,7 +344,7 @@ mod tests {
             radiance,
         };
         let energy = |e: &EnvironmentMap| -> DVec3 {
-            input_texels(e)
+            input_texels(e, None)
                 .iter()
                 .map(|t| {
                     DVec3::new(
@@ -361,7 +371,7 @@ mod tests {
             height: 32,
             radiance: vec![Vec3::splat(2.0); 64 * 32],
         };
-        let texels = input_texels(&env);
+        let texels = input_texels(&env, None);
         for d in [Vec3::Y, Vec3::X, Vec3::new(0.3, -0.8, 0.5).normalize()] {
             let e = convolve_f64(&texels, d, None);
             assert!((e.x - 2.0).abs() < 1e-2, "diffuse {e}");

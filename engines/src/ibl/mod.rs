@@ -43,7 +43,7 @@ use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::timer::timed_pass;
-use local_probe::local_probe;
+use local_probe::{LocalPicture, local_probe};
 use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, log_spaced_shininess, resample};
 use relight_core::sh::Sh9Rgb;
 
@@ -60,6 +60,12 @@ pub struct IblSettings {
     /// Where no probe picture lights the object (a scene file, a live rig without a probe), it
     /// is lit by the picture from its centre ([`local_probe()`]).
     pub local_probe: bool,
+    /// The local picture's surfaces light each point of the object from where they are
+    /// (`LocalPicture::near`), not only as the centre sees them.
+    pub near_field: bool,
+    /// The near patches' light is gathered at every `near_stride`-th pixel per axis and shared
+    /// between alike pixels (`ibl_shade.wgsl`).
+    pub near_stride: u32,
 }
 
 impl Default for IblSettings {
@@ -73,6 +79,8 @@ impl Default for IblSettings {
             shadow_bias: 1.5,
             update_threshold: 0.02,
             local_probe: true,
+            near_field: true,
+            near_stride: 2,
         }
     }
 }
@@ -90,6 +98,43 @@ struct Environment {
     /// The local picture's later bounces (`LocalPicture::bounce`; zero without one), added to
     /// the diffuse map's light at shading.
     bounce: Sh9Rgb,
+    /// The local picture's surface patches on the GPU and their count (`LocalPicture::near`;
+    /// `None` without a picture or with `near_field` off).
+    near: Option<(wgpu::Buffer, u32)>,
+}
+
+/// `NearPatch` in `shaders/ibl_shade.wgsl`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct GpuNearPatch {
+    position_area: [f32; 4],
+    normal: [f32; 4],
+    radiance: [f32; 4],
+}
+
+/// `picture`'s surface patches in a storage buffer, and their count; `None` without any.
+fn near_patches(ctx: &GpuContext, picture: &LocalPicture) -> Option<(wgpu::Buffer, u32)> {
+    use wgpu::util::DeviceExt;
+    if picture.near.is_empty() {
+        return None;
+    }
+    let patches: Vec<GpuNearPatch> = picture
+        .near
+        .iter()
+        .map(|p| GpuNearPatch {
+            position_area: p.position.extend(p.area).to_array(),
+            normal: p.normal.extend(0.0).to_array(),
+            radiance: p.radiance.extend(0.0).to_array(),
+        })
+        .collect();
+    let buffer = ctx
+        .device
+        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("ibl near patches"),
+            contents: bytemuck::cast_slice(&patches),
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+    Some((buffer, patches.len() as u32))
 }
 
 /// The width of the local picture of a live depth surface (its held shadow proxy; height
@@ -157,11 +202,14 @@ impl PictureKey {
 pub struct Ibl {
     deferred: Deferred,
     settings: IblSettings,
-    shade: wgpu::ComputePipeline,
+    /// `ibl_shade.wgsl`'s `main`, `fill` and `resolve` (see its strided gather).
+    shade: [wgpu::ComputePipeline; 3],
     uniform: wgpu::Buffer,
     maps: ReflectionMaps,
     environment: Option<Environment>,
     convolutions: u64,
+    /// Bound in place of the near patches where there are none.
+    no_patches: wgpu::Buffer,
 }
 
 impl Ibl {
@@ -222,6 +270,18 @@ impl Ibl {
                 1.0,
                 d.update_threshold,
             ),
+            int(
+                "near_stride",
+                "the near surfaces' light is gathered at every Nth pixel per axis, each pixel between taking its alike neighbours' (1: every pixel)",
+                1,
+                8,
+                d.near_stride,
+            ),
+            ParamSpec::choice(
+                "near_field",
+                "`patches`: the local picture's surfaces light each point of the object from where they are, as small area lights (a lit floor lights the object's foot more than its top); `none`: as the object's centre sees them (the paper's distant light)",
+                vec!["patches", "none"],
+            ),
             ParamSpec::choice(
                 "environment",
                 "what lights the object where no probe picture does (a scene file, a live rig without a probe): `local`, the picture a probe at the object's centre would take (the real meshes under the scene's lights, the map where rays escape); `map`, the scene's map alone (the paper's input)",
@@ -237,13 +297,21 @@ impl Ibl {
         let mut deferred = Deferred::sampling_the_environment(ctx.clone());
         deferred.set_real_indirect(RealIndirect::Nowhere);
         Ok(Self {
-            shade: shaders::compute_pipeline(&ctx.device, "ibl shade", shaders::IBL_SHADE),
+            shade: ["main", "fill", "resolve"].map(|entry| {
+                shaders::compute_pipeline_at(&ctx.device, "ibl shade", shaders::IBL_SHADE, entry)
+            }),
             uniform: shaders::params_buffer(&ctx.device, "ibl shade", size_of::<IblUniform>()),
             maps: ReflectionMaps::new(&ctx),
             deferred,
             settings: IblSettings::default(),
             environment: None,
             convolutions: 0,
+            no_patches: ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("ibl no near patches"),
+                size: size_of::<GpuNearPatch>() as u64,
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            }),
         })
     }
 
@@ -286,7 +354,9 @@ impl Ibl {
             e.scene = scene.clone();
             return Ok(None);
         }
-        let (input, bounce) = match &picture_of {
+        let ctx = self.deferred.ctx().clone();
+        // With near patches, the texels they stand for are left out of the diffuse map.
+        let (input, bounce, near, specular_only) = match &picture_of {
             Some(_) => {
                 let width = if scene.shadow_proxy.is_some() {
                     s.input_width.min(LIVE_PICTURE_WIDTH)
@@ -294,11 +364,15 @@ impl Ibl {
                     s.input_width
                 };
                 match local_probe(scene, width) {
-                    Some(picture) => (Some(picture.map), picture.bounce),
-                    None => (distant.clone(), Sh9Rgb::ZERO),
+                    Some(picture) => {
+                        let near = s.near_field.then(|| near_patches(&ctx, &picture)).flatten();
+                        let specular_only = near.is_some().then_some(picture.surfaces);
+                        (Some(picture.map), picture.bounce, near, specular_only)
+                    }
+                    None => (distant.clone(), Sh9Rgb::ZERO, None, None),
                 }
             }
-            None => (distant.clone(), Sh9Rgb::ZERO),
+            None => (distant.clone(), Sh9Rgb::ZERO, None, None),
         };
         let shininess = specular_levels(scene, s.levels);
         let unchanged = self.environment.as_ref().is_some_and(|e| {
@@ -315,18 +389,18 @@ impl Ibl {
                 e.scene = scene.clone();
                 e.picture_of = picture_of;
                 e.bounce = bounce;
+                e.near = near;
             }
             return Ok(None);
         }
         let started = Instant::now();
-        let ctx = self.deferred.ctx().clone();
         let mut work = Work::default();
         let lights = match &input {
             Some(input) => {
                 let mut timer = self.deferred.lend_timer();
                 work = self.maps.convolve(
                     &ctx,
-                    &input_texels(input),
+                    &input_texels(input, specular_only.as_deref()),
                     s.map_size,
                     &shininess,
                     &mut timer,
@@ -350,6 +424,7 @@ impl Ibl {
             settings: s,
             picture_of,
             bounce,
+            near,
         });
         Ok(Some((
             PassTiming {
@@ -451,15 +526,22 @@ impl Engine for Ibl {
                 .deferred
                 .real_pixels()
                 .unwrap_or(PixelRect::full(width, height));
+            let near = self.environment.as_ref().and_then(|e| e.near.as_ref());
+            let patches = near.map_or(0, |(_, n)| *n);
             let mut uniform = IblUniform {
-                dims: [self.maps.size(), self.maps.shininess().len() as u32, 0, 0],
+                dims: [
+                    self.maps.size(),
+                    self.maps.shininess().len() as u32,
+                    0,
+                    patches,
+                ],
                 frame: [
                     width,
                     height,
                     self.deferred.lights().len() as u32,
                     s.rsm_size,
                 ],
-                params: [s.shadow_bias, 0.0, 0.0, 0.0],
+                params: [s.shadow_bias, s.near_stride as f32, 0.0, 0.0],
                 shininess: [0.0; MAX_LEVELS],
                 region: [
                     region.x,
@@ -500,9 +582,21 @@ impl Engine for Ibl {
                 gpu_scene.materials.as_entire_binding(),
             ];
             resources.extend(views.iter().map(wgpu::BindingResource::TextureView));
-            resources.extend([maps, indirect].map(|b| b.as_entire_binding()));
-            let group =
-                shaders::pipeline_bind_group(&ctx.device, &self.shade, "ibl shade", &resources);
+            let near_buffer = near.map_or(&self.no_patches, |(b, _)| b);
+            resources.extend([maps, indirect, near_buffer].map(|b| b.as_entire_binding()));
+            let [main, fill, resolve] = &self.shade;
+            let groups = [
+                shaders::pipeline_bind_group(&ctx.device, main, "ibl shade", &resources),
+                shaders::pipeline_bind_group(&ctx.device, fill, "ibl shade fill", &resources),
+                // `resolve` gathers nothing: every binding but the patches.
+                shaders::pipeline_bind_group_of(
+                    &ctx.device,
+                    resolve,
+                    "ibl shade resolve",
+                    &resources,
+                    &[0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10],
+                ),
+            ];
             let mut encoder = ctx
                 .device
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -511,14 +605,39 @@ impl Engine for Ibl {
             out.work.push(PassWork {
                 pass: "ibl_shade",
                 // Per pixel the G-buffer read and the result written, the diffuse and one
-                // specular map read bilinearly (8 texels of 16 bytes), about 300 operations.
-                work: Work::new(32.0 + 16.0 + 8.0 * 16.0, 300.0).times(region.area() as f64),
+                // specular map read bilinearly (8 texels of 16 bytes), about 300 operations;
+                // per gathered pixel (every `near_stride`-th per axis) and near patch about 25
+                // operations; the patches (48 bytes) read once.
+                work: Work::new(32.0 + 16.0 + 8.0 * 16.0, 300.0).times(region.area() as f64)
+                    + Work::new(0.0, 25.0 * f64::from(patches)).times(
+                        f64::from(region.width.div_ceil(s.near_stride))
+                            * f64::from(region.height.div_ceil(s.near_stride)),
+                    )
+                    + Work::new(48.0 * f64::from(patches), 0.0),
             });
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.ibl_shade");
-                pass.set_pipeline(&self.shade);
-                pass.set_bind_group(0, &group, &[]);
-                pass.dispatch_workgroups(region.width.div_ceil(8), region.height.div_ceil(8), 1);
+                // The strided pixels from the one at or before the region's first.
+                let stride = s.near_stride;
+                let strided =
+                    |first: u32, end: u32| (end - first / stride * stride).div_ceil(stride);
+                let gathered = (
+                    strided(region.x, region.x + region.width),
+                    strided(region.y, region.y + region.height),
+                );
+                let passes = if stride > 1 { 3 } else { 1 };
+                for (k, (pipeline, group)) in
+                    self.shade.iter().zip(&groups).take(passes).enumerate()
+                {
+                    pass.set_pipeline(pipeline);
+                    pass.set_bind_group(0, group, &[]);
+                    let (x, y) = if k == 1 {
+                        (region.width, region.height)
+                    } else {
+                        gathered
+                    };
+                    pass.dispatch_workgroups(x.div_ceil(8), y.div_ceil(8), 1);
+                }
             }
             ctx.queue.submit([encoder.finish()]);
             ctx.check()?;
@@ -552,6 +671,8 @@ impl Engine for Ibl {
             shadow_bias: float("shadow_bias"),
             update_threshold: float("update_threshold"),
             local_probe: schema.choice(params, "environment") == "local",
+            near_field: schema.choice(params, "near_field") == "patches",
+            near_stride: int("near_stride"),
         };
         self.deferred.set_shared_params(&schema, params);
     }
