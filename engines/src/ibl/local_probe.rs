@@ -99,11 +99,15 @@ const NEAR_PATCH_SPAN: f32 = 0.25;
 fn near_patches(
     centre: Vec3,
     (w, h): (u32, u32),
-    first: &[(Vec3, Option<(Vec3, Vec3, f32)>)],
+    first: &[(Vec3, Option<SurfaceHit>)],
 ) -> Vec<NearPatch> {
     let texel_patch = |x: u32, y: u32| -> Option<(NearPatch, f32)> {
         let (radiance, hit) = first[(y * w + x) as usize];
-        let (_, normal, t) = hit?;
+        let SurfaceHit {
+            normal,
+            distance: t,
+            ..
+        } = hit?;
         let direction = texel_direction(w, h, x, y);
         let facing = (-direction.dot(normal)).max(MIN_PATCH_COSINE);
         let solid_angle = texel_solid_angle(w, h, y) as f32;
@@ -182,6 +186,15 @@ fn merge(texels: &[(NearPatch, f32)]) -> Option<NearPatch> {
 /// patch.
 const MERGE_COSINE: f32 = 0.9;
 
+/// Where a texel of the picture meets a surface: its diffuse reflectance (albedo/π), its normal
+/// (facing the centre) and its distance from the centre (m).
+#[derive(Debug, Clone, Copy)]
+struct SurfaceHit {
+    reflectance: Vec3,
+    normal: Vec3,
+    distance: f32,
+}
+
 /// The steepest a patch may be seen from the centre, as ⟨n, −ω⟩: its area stays finite.
 const MIN_PATCH_COSINE: f32 = 0.05;
 
@@ -211,7 +224,7 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
     let (w, h) = (width.max(2), (width / 2).max(1));
     // Per texel: the radiance along it and, where it meets a surface, the diffuse reflectance
     // (albedo/π), normal and distance there, for the later bounces and the patches below.
-    let first: Vec<(Vec3, Option<(Vec3, Vec3, f32)>)> = (0..h)
+    let first: Vec<(Vec3, Option<SurfaceHit>)> = (0..h)
         .flat_map(|y| (0..w).map(move |x| texel_direction(w, h, x, y)))
         .map(
             |dir| match real.intersect(centre, dir, 0.0, f32::INFINITY) {
@@ -242,7 +255,11 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
                         .sum();
                     (
                         material.emission + reflected,
-                        Some((albedo / std::f32::consts::PI, normal, hit.t)),
+                        Some(SurfaceHit {
+                            reflectance: albedo / std::f32::consts::PI,
+                            normal,
+                            distance: hit.t,
+                        }),
                     )
                 }
             },
@@ -267,7 +284,11 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
         .flat_map(|y| (0..w).map(move |x| (x, y)))
         .zip(&first)
         .filter_map(|((x, y), &(radiance, hit))| {
-            let (reflectance, normal, _) = hit?;
+            let SurfaceHit {
+                reflectance,
+                normal,
+                ..
+            } = hit?;
             let solid_angle = texel_solid_angle(w, h, y) as f32;
             Some((
                 texel_direction(w, h, x, y),

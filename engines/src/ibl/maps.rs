@@ -125,7 +125,7 @@ pub fn input_texels(env: &EnvironmentMap, specular_only: Option<&[bool]>) -> Vec
             if !l.is_finite() || l.max_element() <= 0.0 {
                 continue;
             }
-            let diffuse = !specular_only.is_some_and(|flags| flags.get(index) == Some(&true));
+            let diffuse = specular_only.is_none_or(|flags| flags.get(index) != Some(&true));
             texels.push(InputTexel {
                 direction: texel_direction(env.width, env.height, x, y)
                     .extend(omega)
