@@ -24,7 +24,11 @@
 //! (`Scene::shadow_proxy`), a few thousand triangles where the depth mesh has tens of thousands.
 //! The object itself is not in the picture (a probe where it stands would not see it), but its
 //! shadow is: the shadow rays meet it, so the floor it darkens sends it nothing (without that,
-//! glossy_floor's object read 1.35× the reference's radiance). Scene files have a few hundred
+//! glossy_floor's object read 1.35× the reference's radiance). The picture's surfaces also
+//! leave as patches ([`NearPatch`]), so that each point of the object takes their diffuse light
+//! from where it stands: a picture is light from afar, and the floor under an object is not
+//! (on spot_bleed the spot's pool at the object's foot left its lower faces at 0.56–0.83 of the
+//! reference's light). Scene files have a few hundred
 //! triangles, so this runs on the CPU when the scene changes; the maps are convolved again only
 //! when the picture does.
 
@@ -433,10 +437,6 @@ mod tests {
         assert!(local_probe(&empty, 64).is_none());
     }
 
-    /// Inside a closed room whose every surface glows with radiance 1 and reflects half its
-    /// irradiance, the light of the bounces after the first is the series 1/2 + 1/4 + … = 1 from
-    /// every direction: irradiance π towards every normal. No light source, so it tests the
-    /// bounces alone, and that they are summed to convergence.
     /// Seen from the centre, the near patches bring what the picture's surface texels did:
     /// towards six normals their irradiance, Σ L A ⟨n_j, −ω⟩ ⟨n, ω⟩₊ / d², is within 2 % of
     /// Σ L Ω ⟨n, ω⟩₊ over the texels that meet a surface; and the far floor's texels merged,
@@ -483,6 +483,10 @@ mod tests {
         }
     }
 
+    /// Inside a closed room whose every surface glows with radiance 1 and reflects half its
+    /// irradiance, the light of the bounces after the first is the series 1/2 + 1/4 + … = 1 from
+    /// every direction: irradiance π towards every normal. No light source, so it tests the
+    /// bounces alone, and that they are summed to convergence.
     #[test]
     fn a_closed_rooms_bounces_sum_to_the_series() {
         let mut scene = floating_box(0.0);

@@ -16,7 +16,9 @@
 //!   they were made from by more than `update_threshold` (relative L1 over the resampled map),
 //!   or the exponents change. Comparing with the map they were made from, not the previous
 //!   frame, lets slow drift add up and trigger an update.
-//! - **Shading** (`shaders/ibl_shade.wgsl`): virtual pixels L_o = k_d E_d(n)·AO + k_s E_s^n(r);
+//! - **Shading** (`shaders/ibl_shade.wgsl`): virtual pixels L_o = k_d E_d(n)·AO + k_s E_s^n(r),
+//!   where a local picture's surfaces give their diffuse light from where they are instead
+//!   (`near_field`, [`local_probe::NearPatch`], gathered at every `near_stride`-th pixel);
 //!   the scene's point, spot and directional lights add their shadow-mapped direct light as in
 //!   `differential`.
 //! - **Occlusion**: `env_lights` lights importance-sampled from the map each get a shadow
