@@ -46,12 +46,16 @@ pub(crate) fn placement(scene: &Scene, n: u32, scale: f32, in_scene: bool) -> Op
     let edge = (hi - lo).max_element().max(1e-3) * scale;
     let corner = Vec3::from_array(std::array::from_fn(|axis| {
         let centred = (lo[axis] + hi[axis] - edge) / 2.0;
-        if !in_scene || edge < hi[axis] - lo[axis] {
+        let (a, b) = (scene_lo[axis], scene_hi[axis] - edge);
+        // (`clamp` panics on a NaN bound: a non-finite box keeps the centred cube.)
+        let finite = [a, b, lo[axis], hi[axis], edge]
+            .iter()
+            .all(|v| v.is_finite());
+        if !in_scene || !finite || edge < hi[axis] - lo[axis] {
             return centred;
         }
         // The corners that cover the most of the scene's extent: within it where the cube is
         // the shorter, around it where the scene is.
-        let (a, b) = (scene_lo[axis], scene_hi[axis] - edge);
         let covering = centred.clamp(a.min(b), a.max(b));
         covering.clamp(hi[axis] - edge, lo[axis])
     }));
@@ -358,7 +362,7 @@ mod tests {
 
     /// An object floating in the middle of a large scene keeps the centred cube; on a floor
     /// under a high room it sits on the floor; where the centred cube spans the scene's
-    /// height, it stays.
+    /// height, it stays; unbounded geometry leaves it centred.
     #[test]
     fn the_volume_is_centred_where_nothing_bounds_it() {
         let mut scene = scene("desk_box");
@@ -400,6 +404,14 @@ mod tests {
         );
         let (origin, _) = placement(&scene, 16, 3.0, true).unwrap();
         assert!((origin.y + edge / 2.0 - centre.y).abs() < 1e-5, "{origin}");
+        // Unbounded real geometry keeps the centred cube rather than failing.
+        set_real(
+            &mut scene,
+            Vec3::splat(f32::NEG_INFINITY),
+            Vec3::splat(f32::INFINITY),
+        );
+        let (origin, _) = placement(&scene, 16, 3.0, true).unwrap();
+        assert!((origin + Vec3::splat(edge / 2.0) - centre).length() < 1e-4 * edge);
         assert!((origin.z + edge / 2.0 - centre.z).abs() < 1e-5, "{origin}");
     }
 }
