@@ -116,7 +116,6 @@ struct GpuNearPatch {
 
 /// `picture`'s surface patches in a storage buffer, and their count; `None` without any.
 fn near_patches(ctx: &GpuContext, picture: &LocalPicture) -> Option<(wgpu::Buffer, u32)> {
-    use wgpu::util::DeviceExt;
     if picture.near.is_empty() {
         return None;
     }
@@ -129,13 +128,11 @@ fn near_patches(ctx: &GpuContext, picture: &LocalPicture) -> Option<(wgpu::Buffe
             radiance: p.radiance.extend(0.0).to_array(),
         })
         .collect();
-    let buffer = ctx
-        .device
-        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("ibl near patches"),
-            contents: bytemuck::cast_slice(&patches),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
+    let buffer = ctx.buffer_with(
+        "ibl near patches",
+        bytemuck::cast_slice(&patches),
+        wgpu::BufferUsages::STORAGE,
+    );
     Some((buffer, patches.len() as u32))
 }
 
@@ -308,12 +305,11 @@ impl Ibl {
             settings: IblSettings::default(),
             environment: None,
             convolutions: 0,
-            no_patches: ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("ibl no near patches"),
-                size: size_of::<GpuNearPatch>() as u64,
-                usage: wgpu::BufferUsages::STORAGE,
-                mapped_at_creation: false,
-            }),
+            no_patches: ctx.buffer(
+                "ibl no near patches",
+                size_of::<GpuNearPatch>() as u64,
+                wgpu::BufferUsages::STORAGE,
+            ),
         })
     }
 
