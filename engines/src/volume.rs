@@ -62,20 +62,28 @@ pub(crate) fn placement(scene: &Scene, n: u32, scale: f32, in_scene: bool) -> Op
     Some((corner, edge / n as f32))
 }
 
-/// Where a volume engine's indirect term can be nonzero on real pixels of `frame`: within its
-/// volume ([`placement`] of `n`³ cells, `scale` × the object, `in_scene`) grown by
-/// `grow_cells` cells, and `margin_px` pixels around where that is seen; anywhere without an
-/// object.
-pub(crate) fn volume_reach(
+/// [`placement`] of `frame`'s scene: `None` without a scene or an object.
+pub(crate) fn frame_placement(
     frame: &SceneFrame,
-    (n, scale, in_scene): (u32, f32, bool),
+    n: u32,
+    scale: f32,
+    in_scene: bool,
+) -> Option<(Vec3, f32)> {
+    frame
+        .scene
+        .as_ref()
+        .and_then(|s| placement(s, n, scale, in_scene))
+}
+
+/// Where a volume engine's indirect term can be nonzero on real pixels: within its volume of
+/// `n`³ cells (`volume`, [`frame_placement`]) grown by `grow_cells` cells, and `margin_px`
+/// pixels around where that is seen; anywhere without one.
+pub(crate) fn volume_reach(
+    volume: Option<(Vec3, f32)>,
+    n: u32,
     grow_cells: f32,
     margin_px: u32,
 ) -> RealIndirect {
-    let volume = frame
-        .scene
-        .as_ref()
-        .and_then(|s| placement(s, n, scale, in_scene));
     volume.map_or(RealIndirect::Anywhere, |(origin, cell)| {
         let grow = Vec3::splat(grow_cells * cell);
         let far = origin + Vec3::splat(n as f32 * cell);

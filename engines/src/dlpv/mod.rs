@@ -62,7 +62,7 @@ use crate::timer::timed_pass;
 use propagate::{Propagation, PropagationBuffers};
 
 use crate::volume::{
-    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, volume_reach,
+    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, frame_placement, volume_reach,
 };
 
 /// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
@@ -312,13 +312,11 @@ impl Engine for Dlpv {
         // The lookup reads no cell beyond the volume (a trilinear tap reaches half a cell past
         // its faces, from `lookup_offset` cells off the surface), so a real pixel farther out
         // takes its direct Δ alone.
+        let n = settings.volume_size;
+        let volume = frame_placement(frame, n, settings.volume_scale, settings.volume_in_scene);
         self.deferred.set_real_indirect(volume_reach(
-            frame,
-            (
-                settings.volume_size,
-                settings.volume_scale,
-                settings.volume_in_scene,
-            ),
+            volume,
+            n,
             0.51 + settings.lookup_offset.abs(),
             0,
         ));
@@ -337,11 +335,6 @@ impl Engine for Dlpv {
             Some(scene) => scene.bounds,
             None => return Err(EngineError::NotPrepared),
         };
-        let n = settings.volume_size;
-        let volume = frame
-            .scene
-            .as_ref()
-            .and_then(|s| placement(s, n, settings.volume_scale, settings.volume_in_scene));
         let faces = self.deferred.faces().len() as u32;
         let rsm_size = self.deferred.rsm_size().ok_or(EngineError::NotPrepared)?;
         if let (Some((origin, cell)), true) = (volume, faces > 0) {

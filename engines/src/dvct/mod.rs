@@ -45,7 +45,7 @@ use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::timer::timed_pass;
 use crate::volume::{
-    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, placement, volume_reach,
+    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, frame_placement, volume_reach,
 };
 
 /// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
@@ -497,13 +497,11 @@ impl Engine for Dvct {
         // and its march ends at the first sample beyond the volume grown by a cell: a real
         // pixel farther out gathers nothing, and takes its direct Δ alone, as does every pixel
         // farther than the stride from one that gathers something.
+        let n = settings.volume_size;
+        let volume = frame_placement(frame, n, settings.volume_scale, settings.volume_in_scene);
         self.deferred.set_real_indirect(volume_reach(
-            frame,
-            (
-                settings.volume_size,
-                settings.volume_scale,
-                settings.volume_in_scene,
-            ),
+            volume,
+            n,
             2.01 + settings.cone_offset.abs(),
             2 * settings.trace_stride + 2,
         ));
@@ -529,11 +527,6 @@ impl Engine for Dvct {
         let triangles = voxelized.len() as u32 / 3;
         let faces = self.deferred.faces().len() as u32;
         let rsm_size = self.deferred.rsm_size().ok_or(EngineError::NotPrepared)?;
-        let n = settings.volume_size;
-        let volume = frame
-            .scene
-            .as_ref()
-            .and_then(|s| placement(s, n, settings.volume_scale, settings.volume_in_scene));
         if let Some((origin, cell)) = volume {
             let scale =
                 fixed_point_scale(self.deferred.lights(), (bounds.1 - bounds.0).length() / 2.0);
