@@ -1175,7 +1175,7 @@ impl Deferred {
             ms: started.elapsed().as_secs_f64() * 1e3,
         });
         if let Some(timer) = &mut self.timer {
-            timer.read(&ctx, &mut out.timings)?;
+            timer.read(&mut out.timings)?;
         }
         Ok(())
     }

@@ -425,7 +425,7 @@ impl DepthPass {
             ms: (read - uploaded).as_secs_f64() * 1e3,
         });
         if let Some(timer) = &mut self.timer {
-            timer.read(&self.ctx, &mut out.timings)?;
+            timer.read(&mut out.timings)?;
         }
         Ok(())
     }

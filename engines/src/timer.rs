@@ -168,11 +168,7 @@ impl GpuTimer {
     /// append `gpu.<label>` timings, summed per label, in first-use order. While waiting, call
     /// it once the frame's read-back has arrived: that ends the last pass; a wait that failed
     /// is returned here.
-    pub fn read(
-        &mut self,
-        ctx: &GpuContext,
-        timings: &mut Vec<PassTiming>,
-    ) -> Result<(), GpuError> {
+    pub fn read(&mut self, timings: &mut Vec<PassTiming>) -> Result<(), GpuError> {
         if let Some(error) = self.failed.take() {
             return Err(error);
         }
@@ -185,12 +181,13 @@ impl GpuTimer {
                 return Ok(());
             }
             let ticks: Vec<u64> =
-                ctx.read_back(&self.resolve, &self.staging, 16 * n as u64, |bytes| {
-                    bytes
-                        .chunks_exact(8)
-                        .map(|b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])))
-                        .collect()
-                })?;
+                self.ctx
+                    .read_back(&self.resolve, &self.staging, 16 * n as u64, |bytes| {
+                        bytes
+                            .chunks_exact(8)
+                            .map(|b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])))
+                            .collect()
+                    })?;
             self.labels
                 .iter()
                 .zip(ticks.chunks_exact(2))

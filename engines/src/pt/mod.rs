@@ -601,7 +601,7 @@ impl Engine for Pt {
             ms: trace_ms,
         });
         if let Some(timer) = &mut self.timer {
-            timer.read(&ctx, &mut out.timings)?;
+            timer.read(&mut out.timings)?;
         }
         let total_ms = started.elapsed().as_secs_f64() * 1e3;
         if units > 0 {
