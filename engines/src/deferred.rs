@@ -467,21 +467,14 @@ const LIGHT_SHADOW_ONLY: u32 = 1;
 impl Deferred {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
         let shade = shaders::compute_pipeline(&ctx.device, "shade", shaders::SHADE);
-        let uniform = |label, size| {
-            ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage: shaders::PARAMS_USAGE,
-                mapped_at_creation: false,
-            })
-        };
+        let uniform = |label, size| shaders::params_buffer(&ctx.device, label, size);
         Self {
             gbuffer: GBufferPass::new(&ctx),
             shadow: RsmPass::depth_only(&ctx),
             rsm: RsmPass::new(&ctx),
             shade,
-            camera: uniform("camera", size_of::<GpuCamera>() as u64),
-            params: uniform("shade params", size_of::<ShadeParams>() as u64),
+            camera: uniform("camera", size_of::<GpuCamera>()),
+            params: uniform("shade params", size_of::<ShadeParams>()),
             scene: None,
             scene_key: 0,
             held_camera: None,

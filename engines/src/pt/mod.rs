@@ -208,20 +208,13 @@ impl Pt {
     pub fn new(ctx: Arc<GpuContext>) -> Result<Self, GpuError> {
         let pipeline = shaders::compute_pipeline(&ctx.device, "pt trace", shaders::PT_TRACE);
         let resolve = shaders::compute_pipeline(&ctx.device, "pt resolve", shaders::PT_RESOLVE);
-        let uniform = |label, size| {
-            ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage: shaders::PARAMS_USAGE,
-                mapped_at_creation: false,
-            })
-        };
+        let uniform = |label, size| shaders::params_buffer(&ctx.device, label, size);
         ctx.check()?;
         Ok(Self {
             pipeline,
             resolve,
-            params: uniform("pt params", size_of::<Params>() as u64),
-            camera: uniform("pt camera", size_of::<PtCamera>() as u64),
+            params: uniform("pt params", size_of::<Params>()),
+            camera: uniform("pt camera", size_of::<PtCamera>()),
             settings: Settings::default(),
             scene: None,
             frame: None,
