@@ -373,6 +373,18 @@ fn unpack_sh(p: vec2<u32>) -> vec4<f32> {
     return vec4<f32>(f16_value(p.x), f16_value(p.x >> 16u), f16_value(p.y), f16_value(p.y >> 16u));
 }
 
+// The virtual object as the real surfaces around it see it (`ObjectBox` in
+// engines/src/volume.rs; `blocked_irradiance`).
+struct ObjectBox {
+    // xyz: its bounding box's centre; w: its surface's area over the box's, at most 1 (the
+    // box's mean projected area times w is the object's, if convex: Cauchy); 0 without one.
+    centre: vec4<f32>,
+    // xyz: the box's half extents.
+    half: vec4<f32>,
+    // rgb: the object's area-weighted diffuse albedo.
+    albedo: vec4<f32>,
+}
+
 // The DLPV volume: n³ cells of L1 SH per colour channel, twice (V^Δ, then V^ρ).
 struct Volume {
     // xyz: minimum corner; w: cell edge (m).
@@ -382,8 +394,10 @@ struct Volume {
     // x: fixed-point counts per unit; y: 1 = direct injection; z: dampening of negative light;
     // w: lookup offset along the normal, in cells.
     scale: vec4<f32>,
-    // x: 1 = gather the far field (`dlpv_inject.wgsl`) and light the object with it.
+    // x: 1 = gather the far field (`dlpv_inject.wgsl`) and light the object with it; y: 1 =
+    // gather the probe of the real scene's first bounce at the object (`gather_probe`).
     options: vec4<u32>,
+    object: ObjectBox,
 }
 
 // L1 SH basis (Y00, Y1−1, Y10, Y11 = 0.2821, 0.4886 · (y, z, x)) at unit `d`: a function's
@@ -454,6 +468,99 @@ fn far_field_radiance(sh: array<vec3<f32>, 9>, d: vec3<f32>) -> vec3<f32> {
     return max(l, vec3<f32>(0.0));
 }
 
+// The far emitters of a volume (`FarEmitters` in engines/src/volume.rs): V^Δ's injected light
+// summed over blocks of cells (`FAR_EMITTER_BLOCKS` per axis), each a point that real surfaces
+// outside the volume, which no cone or lookup reaches, take their Δ bounce from. `position`:
+// xyz the block's cells' centre weighted by their |L0|, w the block's half edge (the nearest a
+// receiver's 1/d² counts it; 0: the block is empty); r, g, b: its L1 SH of intensity (W/sr),
+// the sum of its VPLs' Φ/π cosine lobes (`dlpv_inject.wgsl`), ρ's less μ's.
+const FAR_EMITTER_BLOCKS: u32 = 8u;
+const FAR_EMITTERS: u32 = 512u;
+
+struct FarEmitter {
+    position: vec4<f32>,
+    r: vec4<f32>,
+    g: vec4<f32>,
+    b: vec4<f32>,
+}
+
+// x: how many of `emitters` are listed (the non-empty blocks, in block order).
+struct FarEmitters {
+    count: vec4<u32>,
+    emitters: array<FarEmitter, FAR_EMITTERS>,
+}
+
+// Irradiance one far emitter gives a surface at `p` of unit normal `n`: its intensity towards
+// p, ⟨sh, Y(ω)⟩ with ω from the emitter to p, times ⟨n, −ω⟩₊ / d², d no nearer than the
+// block's half edge. The point light of instant radiosity (Keller 1997), without visibility:
+// what lies between a receiver and the object is not in the volume.
+fn far_emitter_irradiance(e: FarEmitter, p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    let to_emitter = e.position.xyz - p;
+    let d2 = dot(to_emitter, to_emitter);
+    let w = to_emitter * inverseSqrt(max(d2, 1e-12));
+    let cos_p = dot(n, w);
+    if cos_p <= 0.0 {
+        return vec3<f32>(0.0);
+    }
+    // The lobes' summed L1 read back as one clamped cosine lobe about their mean normal: the
+    // L1 projection itself is positive down to 120° off its normal, which lit the floor in
+    // front of a box from the box's top.
+    let l0 = vec3<f32>(e.r.x, e.g.x, e.b.x);
+    let l1 = LUMINANCE.r * e.r.wyz + LUMINANCE.g * e.g.wyz + LUMINANCE.b * e.b.wyz;
+    let net = dot(LUMINANCE, l0);
+    if dot(l1, l1) <= 0.0 || net == 0.0 {
+        return vec3<f32>(0.0);
+    }
+    let normal = normalize(l1 * sign(net));
+    let intensity = l0 / 0.886226925 * max(dot(normal, -w), 0.0);
+    return intensity * cos_p / max(d2, e.position.w * e.position.w);
+}
+
+// Whether `p` lies outside a volume of `n`³ cells of edge `cell` from `origin`.
+fn outside_volume(p: vec3<f32>, origin: vec3<f32>, cell: f32, n: u32) -> bool {
+    return any(p < origin) || any(p > origin + vec3<f32>(cell * f32(n)));
+}
+
+// The probe (`CellCounts::probe` in engines/src/volume.rs): the real scene's first bounce
+// arriving at the object's centre, as if the object were not there: every VPL of R^μ, its
+// intensity towards the centre over the squared distance (no nearer than the object's half
+// diagonal r), as L2 SH of incident radiance (`gather_towards` in dlpv_inject.wgsl), in units of
+// the fixed-point scale × r².
+fn probe_sh(counts: array<i32, 27>, object: ObjectBox, scale: f32) -> array<vec3<f32>, 9> {
+    return far_field_sh(counts, scale * dot(object.half.xyz, object.half.xyz));
+}
+
+// The Δ irradiance at a real surface (`p`, unit `n`) from the real scene's bounce light that
+// the object now blocks on its way there, and from its own indirectly lit surfaces that p sees
+// instead (`occlusion = "probe"` of the volume engines, and `dvct`'s far receivers). Both come
+// from the probe's light `light` where the object stands: what arrives there from behind the
+// object is the radiance p no longer sees; its cosine convolution on each box face that faces
+// p, times the object's albedo / π, the radiance p sees instead. The object is a point
+// occluder of its box's projected area (times its surface's share) at its centre, over d² no
+// less than the box's half diagonal squared: a disc model that took the distance to the box's
+// surface blocked more near it and read worse on every scene of the bench (`dvct`).
+fn blocked_irradiance(object: ObjectBox, light: array<vec3<f32>, 9>, p: vec3<f32>,
+                      n: vec3<f32>) -> vec3<f32> {
+    let to_object = object.centre.xyz - p;
+    let d2 = dot(to_object, to_object);
+    let w = to_object * inverseSqrt(max(d2, 1e-12));
+    let cos_p = dot(n, w);
+    if cos_p <= 0.0 || object.centre.w <= 0.0 {
+        return vec3<f32>(0.0);
+    }
+    let h = object.half.xyz;
+    // Each axis's face that p sees, by its projected area.
+    let faces = abs(w) * vec3<f32>(h.y * h.z, h.z * h.x, h.x * h.y);
+    let area = 4.0 * (faces.x + faces.y + faces.z) * object.centre.w;
+    let solid_angle = min(area / max(d2, dot(h, h)), 2.0 * PI);
+    let facing = -sign(w);
+    let lit = faces.x * far_field_irradiance(light, vec3<f32>(facing.x, 0.0, 0.0))
+        + faces.y * far_field_irradiance(light, vec3<f32>(0.0, facing.y, 0.0))
+        + faces.z * far_field_irradiance(light, vec3<f32>(0.0, 0.0, facing.z));
+    let shown = object.albedo.rgb / PI * lit / max(faces.x + faces.y + faces.z, 1e-12);
+    return (shown - far_field_radiance(light, w)) * solid_angle * cos_p;
+}
+
 // The DVCT volumes (engines/src/dvct): occlusion (x: any surface, y: the virtual object, z: the
 // real scene) and L1 SH radiance mip chains over n³ cells.
 struct Dvct {
@@ -470,13 +577,17 @@ struct Dvct {
     // x: first vertex of the triangles voxelised, y: how many triangles (the light-space
     // geometry: the virtual object and the real scene's shadow proxy, or every mesh).
     voxelized: vec4<u32>,
-    // x: 1 = directional occlusion on real pixels (`CONE_OCCLUDED` in dvct_trace.wgsl); y: 1 =
-    // virtual pixels' cones take the far field beyond the volume.
+    // x: how real pixels take the light the object blocks: 0 not at all (the paper), 1
+    // directional occlusion (`CONE_OCCLUDED` in dvct_trace.wgsl), 2 the probe's light blocked
+    // over the object's solid angle (`blocked_irradiance`); y: 1 =
+    // virtual pixels' cones take the far field beyond the volume; z: the diffuse cones' pixel
+    // stride; w: 1 = real pixels outside the volume take the far emitters' light.
     modes: vec4<u32>,
     // The gains on V^ρ's SH bands (x: L0, y: L1) along virtual pixels' cones: each VPL read as
     // a share of the radiance its surface shows over its hemisphere rather than of its cosine
     // lobe of intensity (`radiance_lobe` in engines/src/dvct/mod.rs).
     lobe: vec4<f32>,
+    object: ObjectBox,
 }
 
 // Differential Instant Radiosity (engines/src/dir): one VPL, `position.w` its group (0: on a

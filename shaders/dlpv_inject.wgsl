@@ -11,6 +11,11 @@
 // from, to the far field (`far_field`, see common.wgsl), summed per thread, then per workgroup,
 // then once per workgroup into the buffer.
 //
+// With the probe on (`volume.options.y`), every VPL of R^μ (the real scene's first bounce, as
+// if the object were not there) likewise adds its intensity towards the object's centre to the
+// probe (`probe_sh` in common.wgsl): the light the object blocks from the real surfaces around
+// it (`blocked_irradiance`).
+//
 // Accumulation is fixed point: WGSL has no float atomics, and integer addition commutes, so the
 // result does not depend on the order threads run in and identical VPLs of R^ρ and R^μ cancel
 // to exactly zero. `volume.scale.x` (counts per unit) is chosen on the CPU from a bound on the
@@ -31,8 +36,10 @@ var<private> volume: Volume;
 @group(0) @binding(9) var<storage, read_write> cells_delta: array<atomic<i32>>;
 @group(0) @binding(10) var<storage, read_write> cells_rho: array<atomic<i32>>;
 @group(0) @binding(11) var<storage, read_write> far_field: array<atomic<i32>, FAR_FIELD_VALUES>;
+@group(0) @binding(12) var<storage, read_write> probe: array<atomic<i32>, FAR_FIELD_VALUES>;
 
 var<workgroup> far_group: array<atomic<i32>, FAR_FIELD_VALUES>;
+var<workgroup> probe_group: array<atomic<i32>, FAR_FIELD_VALUES>;
 
 fn cell_of(p: vec3<f32>) -> i32 {
     let n = i32(volume.dims.x);
@@ -115,24 +122,35 @@ fn inject_reflected(which: u32, p: ptr<function, Pending>, t: Texel, face: Face,
     return true;
 }
 
-// An R^ρ VPL outside the volume into the thread's far-field sums (in units of the fixed-point
-// scale × h², so that a VPL's share is at most its intensity, as in the volume): I_p(t) / d² along
-// its direction t to the centre, as arriving from −t.
-fn gather_far(far: ptr<function, array<vec3<f32>, 9>>, t: Texel, face: Face, l: Light) {
-    let half_edge = 0.5 * f32(volume.dims.x) * volume.origin.w;
-    let to_centre = volume.origin.xyz + vec3<f32>(half_edge) - t.position.xyz;
-    let d2 = max(dot(to_centre, to_centre), half_edge * half_edge);
+// A VPL into a thread's sums of the light arriving at `centre` (in units of the fixed-point
+// scale × r², so that a VPL's share is at most its intensity, as in the volume): I_p(t) / d²
+// along its direction t to the centre, d no less than `r`, as arriving from −t. The far field
+// takes the R^ρ VPLs outside the volume towards its centre (r: half its edge); the probe every
+// VPL of R^μ towards the object's centre (r: its half diagonal).
+fn gather_towards(sums: ptr<function, array<vec3<f32>, 9>>, t: Texel, face: Face, l: Light,
+                  centre: vec3<f32>, r: f32) {
+    let to_centre = centre - t.position.xyz;
+    let d2 = max(dot(to_centre, to_centre), r * r);
     let travel = to_centre * inverseSqrt(max(dot(to_centre, to_centre), 1e-12));
     let cos_out = dot(normalize(t.normal.xyz), travel);
     if cos_out <= 0.0 {
         return;
     }
     let flux = vpl_flux(l, face, t.position.xyz, t.albedo.rgb, volume.dims.y);
-    let value = flux * (cos_out / PI * half_edge * half_edge / d2 * volume.scale.x);
+    let value = flux * (cos_out / PI * r * r / d2 * volume.scale.x);
     let y = sh9_basis(-travel);
     for (var k = 0u; k < 9u; k++) {
-        (*far)[k] += value * y[k];
+        (*sums)[k] += value * y[k];
     }
+}
+
+fn gather_far(far: ptr<function, array<vec3<f32>, 9>>, t: Texel, face: Face, l: Light) {
+    let half_edge = 0.5 * f32(volume.dims.x) * volume.origin.w;
+    gather_towards(far, t, face, l, volume.origin.xyz + vec3<f32>(half_edge), half_edge);
+}
+
+fn gather_probe(sums: ptr<function, array<vec3<f32>, 9>>, t: Texel, face: Face, l: Light) {
+    gather_towards(sums, t, face, l, volume.object.centre.xyz, length(volume.object.half.xyz));
 }
 
 // Direct injection: the light's incident flux at the texel along its direction of travel,
@@ -162,14 +180,19 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>,
     // Every thread reaches the workgroup barrier below, so none returns early.
     let tiles = id.x * TILE < size && id.y * TILE < size && layer < volume.dims.z;
     var far: array<vec3<f32>, 9>;
+    var probed: array<vec3<f32>, 9>;
     if tiles {
-        inject_tile(id, &far);
+        inject_tile(id, &far, &probed);
     }
     for (var k = 0u; k < 9u; k++) {
         let counts = vec3<i32>(round(far[k]));
+        let probe_counts = vec3<i32>(round(probed[k]));
         for (var c = 0u; c < 3u; c++) {
             if counts[c] != 0 {
                 atomicAdd(&far_group[3u * k + c], counts[c]);
+            }
+            if probe_counts[c] != 0 {
+                atomicAdd(&probe_group[3u * k + c], probe_counts[c]);
             }
         }
     }
@@ -179,10 +202,15 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>,
         if sum != 0 {
             atomicAdd(&far_field[local], sum);
         }
+        let probe_sum = atomicLoad(&probe_group[local]);
+        if probe_sum != 0 {
+            atomicAdd(&probe[local], probe_sum);
+        }
     }
 }
 
-fn inject_tile(id: vec3<u32>, far: ptr<function, array<vec3<f32>, 9>>) {
+fn inject_tile(id: vec3<u32>, far: ptr<function, array<vec3<f32>, 9>>,
+               probed: ptr<function, array<vec3<f32>, 9>>) {
     let size = volume.dims.y;
     let layer = id.z;
     let face = faces[layer];
@@ -192,6 +220,7 @@ fn inject_tile(id: vec3<u32>, far: ptr<function, array<vec3<f32>, 9>>) {
     var rho_only = pending();
     var direct = pending();
     let direct_on = volume.scale.y > 0.5;
+    let probe_on = volume.options.y == 1u;
     for (var j = 0u; j < TILE; j++) {
         for (var i = 0u; i < TILE; i++) {
             let column = select(i, TILE - 1u - i, (j & 1u) == 1u);
@@ -213,6 +242,10 @@ fn inject_tile(id: vec3<u32>, far: ptr<function, array<vec3<f32>, 9>>) {
                 }
             }
             if rho.normal.w < 0.5 {
+                // R^μ's VPL is R^ρ's.
+                if probe_on && rho.albedo.w >= 0.5 {
+                    gather_probe(probed, rho, face, l);
+                }
                 continue;
             }
             _ = inject_reflected(0u, &delta, rho, face, l, 1.0);
@@ -225,6 +258,9 @@ fn inject_tile(id: vec3<u32>, far: ptr<function, array<vec3<f32>, 9>>) {
                 textureLoad(rsm_mu_albedo, texel, i32(layer), 0),
             );
             if mu.albedo.w >= 0.5 {
+                if probe_on {
+                    gather_probe(probed, mu, face, l);
+                }
                 _ = inject_reflected(0u, &delta, mu, face, l, -1.0);
                 if direct_on {
                     inject_direct(&direct, mu, face, l, -1.0);

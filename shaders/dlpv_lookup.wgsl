@@ -5,6 +5,8 @@
 // albedo/π · E into the engine's indirect buffer, which the shading pass adds to Δ or L^ρ.
 // Virtual pixels add the far field's irradiance (the light of real surfaces outside the volume,
 // `volume.options.x`).
+// Real pixels, with the probe on (`volume.options.y`), add the Δ of the real light the object
+// blocks on its way to them (`blocked_irradiance`).
 
 struct LookupParams {
     // width, height
@@ -21,6 +23,7 @@ var<private> lookup: LookupParams;
 @group(0) @binding(5) var gb_albedo: texture_2d<f32>;
 @group(0) @binding(6) var<storage, read_write> indirect: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read> far_field: array<i32, FAR_FIELD_VALUES>;
+@group(0) @binding(8) var<storage, read> probe: array<i32, FAR_FIELD_VALUES>;
 
 fn cell_sh(which: u32, c: vec3<i32>, ch: u32) -> vec4<f32> {
     let n = i32(volume.dims.x);
@@ -71,6 +74,10 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     // The volume's units (`pack_sh`) back to intensity: counts, then the injection's scale.
     let units = 1.0 / (SH_UNITS_PER_COUNT * volume.scale.x);
     e *= units / (cell * cell);
+    if which == 0u && volume.options.y == 1u {
+        e += blocked_irradiance(volume.object, probe_sh(probe, volume.object, volume.scale.x),
+                                p.xyz, n);
+    }
     if which == 1u && volume.options.x == 1u {
         let half_edge = 0.5 * f32(volume.dims.x) * cell;
         e += far_field_irradiance(far_field_sh(far_field, volume.scale.x * half_edge * half_edge), n);

@@ -19,6 +19,7 @@ pub const DLPV_INJECT: &str = pass!("dlpv_inject.wgsl");
 pub const DLPV_RESOLVE: &str = pass!("dlpv_resolve.wgsl");
 pub const DLPV_PROPAGATE: &str = pass!("dlpv_propagate.wgsl");
 pub const DLPV_LOOKUP: &str = pass!("dlpv_lookup.wgsl");
+pub const FAR_EMITTERS: &str = pass!("far_emitters.wgsl");
 pub const DVCT_VOXELIZE: &str = pass!("dvct_voxelize.wgsl");
 pub const DVCT_MIP: &str = pass!("dvct_mip.wgsl");
 pub const DVCT_TRACE: &str = pass!("dvct_trace.wgsl");
@@ -62,6 +63,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("dlpv_resolve.wgsl", DLPV_RESOLVE),
     ("dlpv_propagate.wgsl", DLPV_PROPAGATE),
     ("dlpv_lookup.wgsl", DLPV_LOOKUP),
+    ("far_emitters.wgsl", FAR_EMITTERS),
     ("dvct_voxelize.wgsl", DVCT_VOXELIZE),
     ("dvct_mip.wgsl", DVCT_MIP),
     ("dvct_trace.wgsl", DVCT_TRACE),

@@ -272,14 +272,15 @@ pub(crate) mod tests {
     }
 
     /// Δ, the composite, and the pixels the real meshes were drawn in, after `frames` frames
-    /// of a still camera averaged over `accumulate`.
+    /// of a still camera averaged over `accumulate`, with the engine's `params`.
     fn render(
         engine: &mut dyn WithDeferred,
         scene: &Arc<Scene>,
         cull: bool,
         (frames, accumulate): (u32, u32),
+        params: &Map<String, serde_json::Value>,
     ) -> (Vec<Vec3>, Vec<u8>, Option<PixelRect>) {
-        let mut params = Map::new();
+        let mut params = params.clone();
         params.insert("accumulate".into(), accumulate.into());
         engine.set_params(&params);
         if !cull {
@@ -350,12 +351,25 @@ pub(crate) mod tests {
             ("dvct", "desk_box", &desk, (1, 32)),
             ("dvct", "low light", &low, (1, 32)),
         ];
+        // By default the volume engines' light that the object blocks (and `dvct`'s far
+        // receivers) reach every real pixel; without them, their volume alone.
+        let params = |engine_name: &str| {
+            let params = match engine_name {
+                "dlpv" => serde_json::json!({ "occlusion": "none" }),
+                "dvct" => {
+                    serde_json::json!({ "occlusion": "directional", "far_receivers": "none" })
+                }
+                _ => serde_json::json!({}),
+            };
+            params.as_object().cloned().unwrap_or_default()
+        };
         for (engine_name, case, scene, frames) in cases {
             let name = format!("{engine_name}, {case}");
+            let params = params(engine_name);
             let (culled, culled_composite, reach) =
-                render(&mut *engine(engine_name), scene, true, frames);
+                render(&mut *engine(engine_name), scene, true, frames, &params);
             let (full, full_composite, everywhere) =
-                render(&mut *engine(engine_name), scene, false, frames);
+                render(&mut *engine(engine_name), scene, false, frames, &params);
             assert_eq!(
                 everywhere, None,
                 "{name}: without the cull every pixel is drawn"

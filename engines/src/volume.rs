@@ -22,6 +22,70 @@ pub(crate) struct VolumeUniform {
     pub dims: [u32; 4],
     pub scale: [f32; 4],
     pub options: [u32; 4],
+    pub object: [[f32; 4]; 3],
+}
+
+/// The virtual object as the real surfaces around it see it (`ObjectBox` in
+/// `shaders/common.wgsl`, `blocked_irradiance`): its bounding box, its surface's area over the
+/// box's, at most 1 (by Cauchy's formula a convex body's mean projected area is a quarter of its
+/// surface's, so the box's projected area times that share is, on average over directions, the
+/// object's), and its area-weighted diffuse albedo. Zeros without an object: then nothing is
+/// blocked.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub(crate) struct ObjectBox {
+    pub centre: Vec3,
+    pub half: Vec3,
+    pub area_share: f32,
+    pub albedo: Vec3,
+}
+
+impl ObjectBox {
+    pub fn of(scene: &Scene) -> Self {
+        let Some((lo, hi)) = scene.virtual_bounds() else {
+            return Self::default();
+        };
+        let (mut area, mut albedo) = (0.0, Vec3::ZERO);
+        for m in scene.meshes.iter().filter(|m| m.is_virtual) {
+            let material = scene
+                .materials
+                .get(m.material)
+                .map_or(Vec3::ZERO, |m| m.albedo);
+            for t in &m.triangles {
+                let [a, b, c] = t.map(|i| m.positions_in_world[i as usize]);
+                let triangle = 0.5 * (b - a).cross(c - a).length();
+                area += triangle;
+                albedo += triangle * material;
+            }
+        }
+        let e = hi - lo;
+        let box_area = 2.0 * (e.x * e.y + e.y * e.z + e.z * e.x);
+        if box_area <= 0.0 || area <= 0.0 || !area.is_finite() {
+            return Self::default();
+        }
+        Self {
+            centre: 0.5 * (lo + hi),
+            half: 0.5 * e,
+            area_share: (area / box_area).min(1.0),
+            albedo: albedo / area,
+        }
+    }
+
+    /// `frame`'s object, zeros without a scene.
+    pub fn of_frame(frame: &SceneFrame) -> Self {
+        frame
+            .scene
+            .as_ref()
+            .map_or_else(Self::default, |scene| Self::of(scene))
+    }
+
+    /// As the shaders' `ObjectBox`.
+    pub fn uniform(&self) -> [[f32; 4]; 3] {
+        [
+            self.centre.extend(self.area_share).to_array(),
+            self.half.extend(0.0).to_array(),
+            self.albedo.extend(0.0).to_array(),
+        ]
+    }
 }
 
 /// The volume of `n`³ cells around `scene`'s virtual object, `None` without one: (minimum
@@ -146,7 +210,7 @@ pub(crate) fn volume_placement_param() -> ParamSpec {
 /// The injection's fixed-point counts, n³ cells × 12 (4 SH × RGB) i32 each of V^Δ and V^ρ, in
 /// one buffer whose halves are bound apart: each half need only fit the adapter's largest
 /// storage binding (lavapipe's 128 MiB held both only up to 110³). After them, the far field's
-/// 27 sums ([`CellCounts::far_field`]).
+/// 27 sums ([`CellCounts::far_field`]), then the probe's ([`CellCounts::probe`]).
 #[derive(Debug)]
 pub(crate) struct CellCounts {
     pub buffer: wgpu::Buffer,
@@ -154,6 +218,8 @@ pub(crate) struct CellCounts {
     bytes: u64,
     /// Bytes from V^Δ's start to V^ρ's: one volume's, rounded up to the binding alignment.
     half: u64,
+    /// Bytes from the far field's start to the probe's: the far field's, likewise rounded up.
+    far: u64,
 }
 
 /// The far field's bytes: 9 L2 SH coefficients × RGB, i32 (`FAR_FIELD_VALUES` in common.wgsl).
@@ -162,18 +228,23 @@ const FAR_FIELD_BYTES: u64 = 27 * 4;
 impl CellCounts {
     pub fn new(ctx: &GpuContext, label: &str, n: u32, setting: &str) -> Result<Self, GpuError> {
         let bytes = u64::from(n).pow(3) * 48;
-        let half =
-            bytes.next_multiple_of(u64::from(ctx.limits.min_storage_buffer_offset_alignment));
+        let alignment = u64::from(ctx.limits.min_storage_buffer_offset_alignment);
+        let (half, far) = (
+            bytes.next_multiple_of(alignment),
+            FAR_FIELD_BYTES.next_multiple_of(alignment),
+        );
+        let size = 2 * half + far + FAR_FIELD_BYTES;
         ctx.require("max_storage_buffer_binding_size", bytes, setting)?;
-        ctx.require("max_buffer_size", 2 * half + FAR_FIELD_BYTES, setting)?;
+        ctx.require("max_buffer_size", size, setting)?;
         Ok(Self {
             buffer: ctx.buffer(
                 label,
-                2 * half + FAR_FIELD_BYTES,
+                size,
                 wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             ),
             bytes,
             half,
+            far,
         })
     }
 
@@ -195,6 +266,18 @@ impl CellCounts {
         wgpu::BindingResource::Buffer(wgpu::BufferBinding {
             buffer: &self.buffer,
             offset: 2 * self.half,
+            size: wgpu::BufferSize::new(FAR_FIELD_BYTES),
+        })
+    }
+
+    /// The probe: the real scene's first bounce (every VPL of R^μ) arriving at the object's
+    /// centre, as if the object were not there, as L2 SH of incident radiance (27 sums, as the
+    /// far field's; `dlpv_inject.wgsl`, gathered with `options.y`). What the object blocks from
+    /// the real surfaces around it (`blocked_irradiance` in `shaders/common.wgsl`).
+    pub fn probe(&self) -> wgpu::BindingResource<'_> {
+        wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: &self.buffer,
+            offset: 2 * self.half + self.far,
             size: wgpu::BufferSize::new(FAR_FIELD_BYTES),
         })
     }
@@ -230,7 +313,12 @@ impl InjectPass {
             faces.as_entire_binding(),
         ];
         resources.extend(rsm_views.iter().map(wgpu::BindingResource::TextureView));
-        resources.extend([cells.binding(0), cells.binding(1), cells.far_field()]);
+        resources.extend([
+            cells.binding(0),
+            cells.binding(1),
+            cells.far_field(),
+            cells.probe(),
+        ]);
         shaders::pipeline_bind_group(device, &self.pipeline, "inject", &resources)
     }
 
@@ -262,6 +350,101 @@ impl InjectPass {
         pass.dispatch_workgroups(s, s, layers);
     }
 }
+
+/// `dvct`'s `far_receivers` setting: `emitters` (default) lights the real surfaces outside the
+/// volume with [`FarEmitters`] (and the light the object blocks), `none` leaves them their
+/// direct Δ alone (the paper). (`dlpv`'s lookup could read them too; not measured.)
+pub(crate) fn far_receivers_param() -> ParamSpec {
+    ParamSpec::choice(
+        "far_receivers",
+        "`emitters`: real surfaces outside the volume take the Δ bounce of what the volume holds (the object's light and the light it takes from the real surfaces), summed into 8³ point emitters, and lose the light the object blocks; `none`: only surfaces within the volume get a bounce, as in the paper",
+        vec!["emitters", "none"],
+    )
+}
+
+/// Blocks per axis and their count (`FAR_EMITTER_BLOCKS`, `FAR_EMITTERS` in common.wgsl).
+const FAR_EMITTER_BLOCKS: u32 = 8;
+const FAR_EMITTERS: u64 = 512;
+
+/// V^Δ's injected light as point emitters for the real surfaces outside the volume
+/// (`shaders/far_emitters.wgsl`): its counts summed over 8³ blocks of cells, each an L1 SH lobe
+/// of intensity at its cells' centre, the non-empty ones listed first (`dvct`'s far receivers).
+///
+/// Why: a volume spans `volume_scale` × the object, so a real pixel beyond it had no bounce
+/// term, yet what the object changes in the room's first bounce reaches every surface that sees
+/// it. On desk_box (a box under a lamp in a three-walled room) 92 % of the real pixels lie
+/// outside `dvct`'s volume, and the reference's one-bounce Δ there sums to −37 (in luminance,
+/// against −8 inside), and held 61 % of stop 48's `dvct`'s squared error. Part of it is these
+/// emitters' light (the floor the box shadows no longer lights the back wall, more than the
+/// box's own top makes up for), more of it the lit floor the box now hides from the wall, which
+/// `blocked_irradiance` (`shaders/common.wgsl`) adds beside them. Seen from outside, the volume's
+/// contents are far enough away that a block of cells is one point (a cluster of lights seen
+/// from afar as one, as in Walter et al.'s Lightcuts); its SH lobe is the sum of its VPLs'
+/// cosine lobes, in which V^ρ's and V^μ's VPLs of one surface cancel as they do in the cells,
+/// read back as one clamped cosine lobe (`far_emitter_irradiance`). No visibility: the light
+/// between a receiver and the object is not in the volume.
+#[derive(Debug)]
+pub(crate) struct FarEmitters {
+    pub buffer: wgpu::Buffer,
+    sum: wgpu::ComputePipeline,
+    list: wgpu::ComputePipeline,
+}
+
+impl FarEmitters {
+    pub fn new(ctx: &GpuContext) -> Self {
+        let source = shaders::FAR_EMITTERS;
+        Self {
+            // The count (16 bytes), the blocked light's 9 SH (rgb, 16 bytes each), then 512
+            // emitters of four vec4s.
+            buffer: ctx.buffer(
+                "far emitters",
+                16 + 9 * 16 + FAR_EMITTERS * 64,
+                wgpu::BufferUsages::STORAGE,
+            ),
+            sum: shaders::compute_pipeline(&ctx.device, "far emitters", source),
+            list: shaders::compute_pipeline_at(&ctx.device, "far emitters list", source, "list"),
+        }
+    }
+
+    /// Sum `cells`' V^Δ into the emitters, the volume's placement and fixed-point scale read
+    /// from `uniform` (`VolumeUniform`).
+    pub fn dispatch(
+        &self,
+        device: &wgpu::Device,
+        pass: &mut wgpu::ComputePass,
+        uniform: &wgpu::Buffer,
+        cells: &CellCounts,
+    ) {
+        let resources = [
+            uniform.as_entire_binding(),
+            cells.binding(0),
+            self.buffer.as_entire_binding(),
+        ];
+        let sum = shaders::pipeline_bind_group(device, &self.sum, "far emitters", &resources);
+        let list = shaders::pipeline_bind_group_of(
+            device,
+            &self.list,
+            "far emitters list",
+            &resources,
+            &[2],
+        );
+        pass.set_pipeline(&self.sum);
+        pass.set_bind_group(0, &sum, &[]);
+        pass.dispatch_workgroups((FAR_EMITTERS as u32).div_ceil(64), 1, 1);
+        pass.set_pipeline(&self.list);
+        pass.set_bind_group(0, &list, &[]);
+        pass.dispatch_workgroups(1, 1, 1);
+    }
+
+    /// What summing `n`³ cells and listing the blocks must do: every cell's 12 counts read once
+    /// (about 20 operations each), each emitter written and moved once.
+    pub fn work(n: u32) -> Work {
+        Work::new(48.0, 20.0).times(f64::from(n).powi(3))
+            + Work::new(3.0 * 64.0, 8.0).times(FAR_EMITTERS as f64)
+    }
+}
+
+const _: () = assert!(FAR_EMITTERS == (FAR_EMITTER_BLOCKS as u64).pow(3));
 
 #[cfg(test)]
 mod tests {

@@ -95,7 +95,16 @@ fn every_engine_states_the_work_of_the_passes_it_ran() {
         stated("dvct", serde_json::json!({ "volume_size": 16 }), "desk_box"),
         [
             set(&[
-                "gbuffer", "shadow", "rsm", "voxelize", "inject", "mip", "trace", "shade"
+                "gbuffer",
+                "shadow",
+                "rsm",
+                "voxelize",
+                "inject",
+                "far_emitters",
+                "mip",
+                "probe",
+                "trace",
+                "shade"
             ]),
             set(&["gbuffer", "trace", "shade"])
         ]

@@ -61,8 +61,10 @@ use crate::shaders;
 use crate::timer::timed_pass;
 use propagate::{Propagation, PropagationBuffers};
 
+use crate::deferred::RealIndirect;
 use crate::volume::{
-    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, frame_placement, volume_reach,
+    CellCounts, InjectPass, ObjectBox, VolumeUniform, fixed_point_scale, frame_placement,
+    volume_reach,
 };
 
 /// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
@@ -92,6 +94,10 @@ pub struct DlpvSettings {
     pub far_field: bool,
     /// The volume moved out of what lies beyond the scene's bounds (`volume::placement`).
     pub volume_in_scene: bool,
+    /// Real pixels also lose the real scene's first bounce that the object blocks on its way
+    /// to them (`CellCounts::probe`, `blocked_irradiance` in `shaders/common.wgsl`); else
+    /// they take V^Δ alone (the paper).
+    pub probe_occlusion: bool,
 }
 
 impl Default for DlpvSettings {
@@ -109,6 +115,7 @@ impl Default for DlpvSettings {
             lookup_offset: 0.0,
             far_field: true,
             volume_in_scene: true,
+            probe_occlusion: true,
         }
     }
 }
@@ -216,6 +223,11 @@ impl Dlpv {
             ),
             crate::volume::far_field_param(),
             crate::volume::volume_placement_param(),
+            ParamSpec::choice(
+                "occlusion",
+                "`probe`: real pixels also lose the real scene's first bounce that the object blocks on its way to them (every real VPL's light gathered at the object's centre, over the solid angle the object covers from them); `none`: V^Δ alone, as in the paper",
+                vec!["probe", "none"],
+            ),
             crate::deferred::env_lights_param(ENV_LIGHTS_DEFAULT),
             crate::deferred::accumulate_param(),
             crate::deferred::indirect_param(),
@@ -314,12 +326,13 @@ impl Engine for Dlpv {
         // takes its direct Δ alone.
         let n = settings.volume_size;
         let volume = frame_placement(frame, n, settings.volume_scale, settings.volume_in_scene);
-        self.deferred.set_real_indirect(volume_reach(
-            volume,
-            n,
-            0.51 + settings.lookup_offset.abs(),
-            0,
-        ));
+        // The light the object blocks reaches real surfaces anywhere.
+        self.deferred
+            .set_real_indirect(if settings.probe_occlusion {
+                RealIndirect::Anywhere
+            } else {
+                volume_reach(volume, n, 0.51 + settings.lookup_offset.abs(), 0)
+            });
         let Some((width, height)) = self.deferred.prepare(
             Self::NAME,
             frame,
@@ -349,7 +362,13 @@ impl Engine for Dlpv {
                     settings.dampening,
                     settings.lookup_offset,
                 ],
-                options: [u32::from(settings.far_field), 0, 0, 0],
+                options: [
+                    u32::from(settings.far_field),
+                    u32::from(settings.probe_occlusion),
+                    0,
+                    0,
+                ],
+                object: ObjectBox::of_frame(frame).uniform(),
             };
             ctx.queue
                 .write_buffer(&self.volume_uniform, 0, bytemuck::bytes_of(&volume));
@@ -404,7 +423,11 @@ impl Engine for Dlpv {
                 v.accumulated.as_entire_binding(),
             ];
             lookup_resources.extend(gb_views.iter().map(wgpu::BindingResource::TextureView));
-            lookup_resources.extend([indirect.as_entire_binding(), v.cells.far_field()]);
+            lookup_resources.extend([
+                indirect.as_entire_binding(),
+                v.cells.far_field(),
+                v.cells.probe(),
+            ]);
             let lookup_group = group(&self.lookup, "dlpv lookup", &lookup_resources);
 
             let mut encoder = ctx
@@ -489,6 +512,7 @@ impl Engine for Dlpv {
             lookup_offset: float("lookup_offset"),
             far_field: schema.choice(params, "far_field") == "probe",
             volume_in_scene: schema.choice(params, "volume_placement") == "scene",
+            probe_occlusion: schema.choice(params, "occlusion") == "probe",
         };
         self.deferred
             .set_environment_light_count(schema.int(params, "env_lights") as u32);

@@ -266,6 +266,7 @@ mod tests {
             dims: [n as u32, 0, 0, 0],
             scale: [1.0, 0.0, dampening as f32, 0.0],
             options: [0; 4],
+            object: [[0.0; 4]; 3],
         };
         ctx.queue
             .write_buffer(buffers.uniform, 0, bytemuck::bytes_of(&volume));

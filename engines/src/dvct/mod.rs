@@ -36,7 +36,7 @@ use std::time::Instant;
 use bytemuck::{Pod, Zeroable};
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, KeptInputs, MapSizes, ShadeOptions};
+use crate::deferred::{Deferred, KeptInputs, MapSizes, RealIndirect, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -45,7 +45,8 @@ use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::timer::timed_pass;
 use crate::volume::{
-    CellCounts, InjectPass, VolumeUniform, fixed_point_scale, frame_placement, volume_reach,
+    CellCounts, FarEmitters, InjectPass, ObjectBox, VolumeUniform, fixed_point_scale,
+    frame_placement, volume_reach,
 };
 
 /// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
@@ -63,6 +64,7 @@ struct DvctUniform {
     voxelized: [u32; 4],
     modes: [u32; 4],
     lobe: [f32; 4],
+    object: [[f32; 4]; 3],
 }
 
 #[repr(C)]
@@ -85,15 +87,16 @@ pub struct DvctSettings {
     pub cone_offset: f32,
     pub shadow_cones: bool,
     pub shadow_bias: f32,
-    /// Real pixels' cones take the real indirect light the object blocks as well as its own:
-    /// through V^ρ with every surface occluding, minus through V^μ = V^ρ − V^Δ with the real
-    /// ones (directional occlusion); else through V^Δ alone (the paper).
-    pub directional_occlusion: bool,
+    /// How real pixels take the real indirect light the object blocks.
+    pub occlusion: Occlusion,
     /// Virtual pixels' cones that leave the volume take the far field
     /// (`CellCounts::far_field`) beyond it.
     pub far_field: bool,
     /// The volume moved out of what lies beyond the scene's bounds (`volume::placement`).
     pub volume_in_scene: bool,
+    /// Real pixels outside the volume take V^Δ's light as point emitters
+    /// (`volume::FarEmitters`) instead of nothing.
+    pub far_receivers: bool,
     /// Diffuse cones at every `trace_stride`-th pixel per axis; the pixels between share their
     /// irradiance where their surfaces are alike (`dvct_trace.wgsl`, `fill`).
     pub trace_stride: u32,
@@ -101,6 +104,23 @@ pub struct DvctSettings {
     /// over its hemisphere rather than as the paper's cosine lobe of intensity
     /// ([`radiance_lobe_gains`]).
     pub radiance_lobe: f32,
+}
+
+/// How real pixels take the real scene's indirect light that the object blocks (`occlusion`;
+/// `Dvct.modes.x` in `shaders/common.wgsl`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Occlusion {
+    /// Not at all: the cones through V^Δ alone, which holds only what the object changes in
+    /// the maps (the paper).
+    None = 0,
+    /// Directional occlusion: the cones through V^ρ with every surface occluding, minus through
+    /// V^μ = V^ρ − V^Δ with the real ones.
+    Directional = 1,
+    /// The cones through V^Δ, plus the light the probe finds where the object stands (the
+    /// real scene's bounce, as if the object were not there), blocked over the solid angle the
+    /// object covers from the pixel, less the object's own indirectly lit faces that the pixel
+    /// sees instead (`blocked_irradiance` in `dvct_trace.wgsl`).
+    Probe = 2,
 }
 
 impl Default for DvctSettings {
@@ -117,9 +137,10 @@ impl Default for DvctSettings {
             cone_offset: 1.0,
             shadow_cones: false,
             shadow_bias: 1.5,
-            directional_occlusion: true,
+            occlusion: Occlusion::Probe,
             far_field: true,
             volume_in_scene: true,
+            far_receivers: true,
             trace_stride: 2,
             radiance_lobe: 0.5,
         }
@@ -183,11 +204,16 @@ pub struct Dvct {
     settings: DvctSettings,
     voxelize: wgpu::ComputePipeline,
     inject: InjectPass,
+    far_emitters: FarEmitters,
     /// Level 0 of the mip chains, from the injected cells, and the coarser levels.
     mip: [wgpu::ComputePipeline; 2],
     /// The cone tracer's entries (`dvct_trace.wgsl`): `main`, and with a `trace_stride` above
     /// 1 `fill` and `resolve` after it.
     trace: [wgpu::ComputePipeline; 3],
+    /// The real scene's first bounce where the object stands (`dvct_trace.wgsl`, `probe`),
+    /// into `probe_sh`: what the object blocks (`occlusion` "probe", the far receivers).
+    probe: wgpu::ComputePipeline,
+    probe_sh: wgpu::Buffer,
     sampler: wgpu::Sampler,
     inject_uniform: wgpu::Buffer,
     dvct_uniform: wgpu::Buffer,
@@ -279,11 +305,12 @@ impl Dvct {
             ),
             ParamSpec::choice(
                 "occlusion",
-                "`directional`: real pixels' cones also take away the real indirect light the object blocks (through V^ρ minus V^μ, each with its occluders); `none`: the paper's cones through V^Δ",
-                vec!["directional", "none"],
+                "`probe`: real pixels also lose the real bounce light crossing the object's place (a probe of 64 cones there), over the solid angle the object covers from them; `directional`: their cones take it away (through V^ρ minus V^μ, each with its occluders); `none`: the paper's cones through V^Δ",
+                vec!["probe", "directional", "none"],
             ),
             crate::volume::far_field_param(),
             crate::volume::volume_placement_param(),
+            crate::volume::far_receivers_param(),
             float(
                 "radiance_lobe",
                 "along the object's cones, the share of each VPL seen as the radiance its surface shows over its hemisphere rather than the paper's cosine lobe of intensity (0: the paper)",
@@ -309,12 +336,20 @@ impl Dvct {
         Ok(Self {
             voxelize: pipeline("dvct voxelize", shaders::DVCT_VOXELIZE),
             inject: InjectPass::new(&ctx.device, "dvct inject"),
+            far_emitters: FarEmitters::new(&ctx),
             mip: ["first", "coarser"].map(|entry| {
                 shaders::compute_pipeline_at(&ctx.device, "dvct mip", shaders::DVCT_MIP, entry)
             }),
             trace: ["main", "fill", "resolve"].map(|entry| {
                 shaders::compute_pipeline_at(&ctx.device, "dvct trace", shaders::DVCT_TRACE, entry)
             }),
+            probe: shaders::compute_pipeline_at(
+                &ctx.device,
+                "dvct probe",
+                shaders::DVCT_TRACE,
+                "probe",
+            ),
+            probe_sh: ctx.buffer("dvct probe", 9 * 16, wgpu::BufferUsages::STORAGE),
             sampler: ctx.device.create_sampler(&wgpu::SamplerDescriptor {
                 label: Some("dvct volume"),
                 address_mode_u: wgpu::AddressMode::ClampToBorder,
@@ -459,7 +494,7 @@ fn trace_work(settings: &DvctSettings, n: u32, pixels: u32, lights: u32, mip_cel
         let growth = 1.0 + 2.0 * f64::from(aperture_deg.to_radians().tan() * settings.step);
         ((1.7 * f64::from(n)).ln() / growth.ln()).max(1.0)
     };
-    let values = if settings.directional_occlusion {
+    let values = if settings.occlusion == Occlusion::Directional {
         26.0
     } else {
         14.0
@@ -470,8 +505,27 @@ fn trace_work(settings: &DvctSettings, n: u32, pixels: u32, lights: u32, mip_cel
         } else {
             0.0
         };
-    Work::new(32.0 + 16.0, cones * 16.0 * 2.0).times(f64::from(pixels))
+    // The light the object blocks (`blocked_irradiance`): 9 SH coefficients read, about 200
+    // operations to evaluate them for the pixel and three box faces.
+    let blocked = if settings.occlusion == Occlusion::Probe || settings.far_receivers {
+        200.0
+    } else {
+        0.0
+    };
+    Work::new(32.0 + 16.0, cones * 16.0 * 2.0 + blocked).times(f64::from(pixels))
         + Work::new(96.0 + 16.0, 0.0).times(mip_cells)
+}
+
+/// What the probe (`dvct_trace.wgsl`, `probe`) must do: 64 cones of half angle 14.4° from the
+/// object's centre, each sample a quadrilinear lookup of both volumes' SH and the occlusion
+/// (26 values of 16 cells), then the projection onto L2 SH.
+fn probe_work(settings: &DvctSettings, n: u32) -> Work {
+    let growth = 1.0 + 2.0 * 0.2567 * f64::from(settings.step);
+    let samples = ((1.7 * f64::from(n)).ln() / growth.ln()).max(1.0);
+    Work::new(
+        64.0 * 16.0,
+        64.0 * samples * 26.0 * 16.0 * 2.0 + 64.0 * 9.0 * 30.0,
+    )
 }
 
 /// Threads that share one triangle's cells in the voxelisation (`dvct_voxelize.wgsl`) of an
@@ -499,12 +553,21 @@ impl Engine for Dvct {
         // farther than the stride from one that gathers something.
         let n = settings.volume_size;
         let volume = frame_placement(frame, n, settings.volume_scale, settings.volume_in_scene);
-        self.deferred.set_real_indirect(volume_reach(
-            volume,
-            n,
-            2.01 + settings.cone_offset.abs(),
-            2 * settings.trace_stride + 2,
-        ));
+        let object = ObjectBox::of_frame(frame);
+        let probe = settings.far_receivers || settings.occlusion == Occlusion::Probe;
+        // The far emitters and the light the object blocks reach real surfaces anywhere.
+        self.deferred.set_real_indirect(
+            if settings.far_receivers || settings.occlusion == Occlusion::Probe {
+                RealIndirect::Anywhere
+            } else {
+                volume_reach(
+                    volume,
+                    n,
+                    2.01 + settings.cone_offset.abs(),
+                    2 * settings.trace_stride + 2,
+                )
+            },
+        );
         let Some((width, height)) = self.deferred.prepare(
             Self::NAME,
             frame,
@@ -537,6 +600,7 @@ impl Engine for Dvct {
                 dims: [n, rsm_size, faces, self.deferred.lights().len() as u32],
                 scale: [scale, 0.0, 0.0, 0.0],
                 options: [u32::from(settings.far_field), 0, 0, 0],
+                object: object.uniform(),
             };
             ctx.queue
                 .write_buffer(&self.inject_uniform, 0, bytemuck::bytes_of(&inject_volume));
@@ -565,12 +629,13 @@ impl Engine for Dvct {
                     ],
                     voxelized: [voxelized.start, triangles, voxelize_lanes(&ctx, n), 0],
                     modes: [
-                        u32::from(settings.directional_occlusion),
+                        settings.occlusion as u32,
                         u32::from(settings.far_field),
                         settings.trace_stride,
-                        0,
+                        u32::from(settings.far_receivers),
                     ],
                     lobe: radiance_lobe_gains(settings.radiance_lobe),
+                    object: object.uniform(),
                 }),
             );
             self.volume_buffers()?;
@@ -580,6 +645,7 @@ impl Engine for Dvct {
                 bytemuck::bytes_of(&inject_volume),
                 &scene_geometry.to_le_bytes(),
                 &self.deferred.light_inputs().to_le_bytes(),
+                &[u8::from(settings.far_receivers), settings.occlusion as u8],
             ]);
             let revoxelize = !self.voxelized.holds(inputs);
             let mut timer = self.deferred.lend_timer();
@@ -637,11 +703,23 @@ impl Engine for Dvct {
                 wgpu::BindingResource::Sampler(&self.sampler),
                 indirect.as_entire_binding(),
                 v.cells.far_field(),
+                self.far_emitters.buffer.as_entire_binding(),
+                self.probe_sh.as_entire_binding(),
             ]);
-            let trace_groups = self
-                .trace
-                .each_ref()
-                .map(|pipeline| group(pipeline, "dvct trace", &trace_resources));
+            // `resolve` reads the traced irradiance, not the far emitters or the probe it came
+            // from.
+            let [main, fill, resolve] = self.trace.each_ref();
+            let trace_groups = [
+                group(main, "dvct trace", &trace_resources),
+                group(fill, "dvct trace", &trace_resources),
+                shaders::pipeline_bind_group_of(
+                    &ctx.device,
+                    resolve,
+                    "dvct trace",
+                    &trace_resources,
+                    &(0..trace_resources.len() as u32 - 2).collect::<Vec<_>>(),
+                ),
+            ];
 
             let mut encoder = ctx
                 .device
@@ -686,12 +764,45 @@ impl Engine for Dvct {
                     self.inject
                         .dispatch(&mut pass, &inject_group, rsm_size, faces);
                 }
-                let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.mip");
-                for (coarser, m, mip_group) in &v.mip_groups {
-                    let m = m.div_ceil(4);
-                    pass.set_pipeline(&self.mip[usize::from(*coarser)]);
-                    pass.set_bind_group(0, mip_group, &[]);
-                    pass.dispatch_workgroups(m, m, m);
+                if settings.far_receivers {
+                    out.work.push(PassWork {
+                        pass: "far_emitters",
+                        work: FarEmitters::work(n),
+                    });
+                    let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.far_emitters");
+                    self.far_emitters.dispatch(
+                        &ctx.device,
+                        &mut pass,
+                        &self.inject_uniform,
+                        &v.cells,
+                    );
+                }
+                {
+                    let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.mip");
+                    for (coarser, m, mip_group) in &v.mip_groups {
+                        let m = m.div_ceil(4);
+                        pass.set_pipeline(&self.mip[usize::from(*coarser)]);
+                        pass.set_bind_group(0, mip_group, &[]);
+                        pass.dispatch_workgroups(m, m, m);
+                    }
+                }
+                if probe {
+                    out.work.push(PassWork {
+                        pass: "probe",
+                        work: probe_work(&settings, n),
+                    });
+                    let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.probe");
+                    let bindings: Vec<u32> = (0..1).chain(9..17).chain([18, 20]).collect();
+                    let probe_group = shaders::pipeline_bind_group_of(
+                        &ctx.device,
+                        &self.probe,
+                        "dvct probe",
+                        &trace_resources,
+                        &bindings,
+                    );
+                    pass.set_pipeline(&self.probe);
+                    pass.set_bind_group(0, &probe_group, &[]);
+                    pass.dispatch_workgroups(1, 1, 1);
                 }
             }
             out.work.push(PassWork {
@@ -750,10 +861,15 @@ impl Engine for Dvct {
             cone_offset: float("cone_offset"),
             shadow_cones: schema.choice(params, "shadows") == "cones",
             shadow_bias: float("shadow_bias"),
-            directional_occlusion: schema.choice(params, "occlusion") == "directional",
+            occlusion: match schema.choice(params, "occlusion") {
+                "directional" => Occlusion::Directional,
+                "none" => Occlusion::None,
+                _ => Occlusion::Probe,
+            },
             radiance_lobe: float("radiance_lobe"),
             far_field: schema.choice(params, "far_field") == "probe",
             volume_in_scene: schema.choice(params, "volume_placement") == "scene",
+            far_receivers: schema.choice(params, "far_receivers") == "emitters",
             trace_stride: int("trace_stride"),
         };
         self.deferred

@@ -91,18 +91,21 @@ pub fn errors_against(
 /// `engine` on touching_wall (a box in the corner of a floor and a wall), at 80 × 60 against
 /// 256 spp, with its volume moved into the scene (`volume_placement = scene`, the default)
 /// and centred on the object: moved, both Δ on real pixels and the object come closer to the
-/// reference, the object by at least `object_gain` (error ratio). Returns (Δ, object) moved,
-/// then centred.
+/// reference, the object by at least `object_gain` (error ratio). `base`: the engine's other
+/// parameters. Returns (Δ, object) moved, then centred.
 pub fn the_volume_in_the_scene_beats_the_centred_one(
     engine: &str,
+    base: serde_json::Value,
     object_gain: f64,
 ) -> ((f64, f64), (f64, f64)) {
     let scene = Arc::new(load_scene("touching_wall"));
     let reference = reference_full(&scene, 80, 60, 256);
     let errors = |placement: &str| {
+        let mut params = base.as_object().cloned().unwrap_or_default();
+        params.insert("volume_placement".into(), placement.into());
         let (delta, object, _) = errors_against(
             engine,
-            serde_json::json!({ "volume_placement": placement }),
+            serde_json::Value::Object(params),
             &scene,
             &reference,
         );
@@ -129,6 +132,17 @@ pub fn the_volume_in_the_scene_beats_the_centred_one(
 /// Returns (scene, with, without) per scene.
 pub fn setting_brings_the_object_closer(
     engine: &str,
+    setting: (&str, &str, &str),
+    scenes: &[&'static str],
+    gain: f64,
+) -> Vec<(&'static str, f64, f64)> {
+    setting_brings_the_object_closer_with(engine, &[], setting, scenes, gain)
+}
+
+/// [`setting_brings_the_object_closer`] with `base` parameters set in both renders.
+pub fn setting_brings_the_object_closer_with(
+    engine: &str,
+    base: &[(&str, &str)],
     (setting, on, off): (&str, &str, &str),
     scenes: &[&'static str],
     gain: f64,
@@ -139,9 +153,14 @@ pub fn setting_brings_the_object_closer(
         let (w, h) = (80, 60);
         let reference = reference_full(&scene, w, h, 64);
         let render = |value: &str| {
+            let mut params: serde_json::Map<String, serde_json::Value> = base
+                .iter()
+                .map(|(k, v)| (k.to_string(), serde_json::json!(v)))
+                .collect();
+            params.insert(setting.into(), serde_json::json!(value));
             object_and_delta(
                 engine,
-                serde_json::json!({ setting: value }),
+                serde_json::Value::Object(params),
                 &frame(scene.clone(), w, h),
                 &reference,
             )
