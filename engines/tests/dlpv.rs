@@ -213,22 +213,13 @@ fn the_default_volume_leaks_less_into_the_shadow_than_the_papers() {
 /// touching_wall must come 20 % closer and desk_box closer.
 #[test]
 fn the_object_probe_brings_delta_closer_to_the_reference() {
-    for (name, gain) in [("touching_wall", 0.8), ("desk_box", 1.0)] {
-        let scene = Arc::new(load_scene(name));
-        let (w, h) = (80, 60);
-        let reference = reference_full(&scene, w, h, 128);
-        let error = |occlusion: &str| {
-            let params = serde_json::json!({ "occlusion": occlusion });
-            let (delta, _) = delta_of(
-                &mut engine_with("dlpv", params),
-                &frame(scene.clone(), w, h),
-            );
-            relative_l2(&delta, &reference.delta, &reference.virtual_mask).0
-        };
-        let (probe, none) = (error("probe"), error("none"));
-        eprintln!("{name}: probe {probe:.4}, none {none:.4}");
-        assert!(probe < gain * none, "{name}: probe {probe}, none {none}");
-    }
+    support::setting_brings_delta_closer(
+        "dlpv",
+        serde_json::json!({}),
+        ("occlusion", "probe", "none"),
+        &[("touching_wall", 0.8), ("desk_box", 1.0)],
+        128,
+    );
 }
 
 /// The volume moved into the scene (`volume_placement`, see the helper). At the bench's

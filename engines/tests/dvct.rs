@@ -142,25 +142,13 @@ fn diffuse_bleeding_no_worse_than_dlpv() {
 /// touching_wall a little better too, window_env 0.197 / 0.195).
 #[test]
 fn directional_occlusion_brings_delta_closer_to_the_reference() {
-    for name in ["desk_box", "spot_bleed"] {
-        let scene = Arc::new(load_scene(name));
-        let (w, h) = (80, 60);
-        let reference = reference_full(&scene, w, h, 64);
-        let error = |occlusion: &str| {
-            let params = serde_json::json!({ "occlusion": occlusion, "volume_size": 32 });
-            let (delta, _) = delta_of(
-                &mut engine_with("dvct", params),
-                &frame(scene.clone(), w, h),
-            );
-            relative_l2(&delta, &reference.delta, &reference.virtual_mask).0
-        };
-        let (directional, none) = (error("directional"), error("none"));
-        eprintln!("{name}: directional {directional:.4}, none {none:.4}");
-        assert!(
-            directional < none,
-            "{name}: directional {directional}, none {none}"
-        );
-    }
+    support::setting_brings_delta_closer(
+        "dvct",
+        serde_json::json!({ "volume_size": 32 }),
+        ("occlusion", "directional", "none"),
+        &[("desk_box", 1.0), ("spot_bleed", 1.0)],
+        64,
+    );
 }
 
 /// 128³: both volumes' injection counts (192 MiB) exceed lavapipe's largest storage binding
@@ -242,25 +230,13 @@ fn far_receivers_take_the_bounce_the_object_changes_beyond_the_volume() {
 /// touching_wall must come 20 % closer and desk_box closer.
 #[test]
 fn the_object_probe_brings_delta_closer_than_directional_occlusion() {
-    for (name, gain) in [("touching_wall", 0.8), ("desk_box", 1.0)] {
-        let scene = Arc::new(load_scene(name));
-        let (w, h) = (80, 60);
-        let reference = reference_full(&scene, w, h, 128);
-        let error = |occlusion: &str| {
-            let params = serde_json::json!({ "occlusion": occlusion });
-            let (delta, _) = delta_of(
-                &mut engine_with("dvct", params),
-                &frame(scene.clone(), w, h),
-            );
-            relative_l2(&delta, &reference.delta, &reference.virtual_mask).0
-        };
-        let (probe, directional) = (error("probe"), error("directional"));
-        eprintln!("{name}: probe {probe:.4}, directional {directional:.4}");
-        assert!(
-            probe < gain * directional,
-            "{name}: probe {probe}, directional {directional}"
-        );
-    }
+    support::setting_brings_delta_closer(
+        "dvct",
+        serde_json::json!({}),
+        ("occlusion", "probe", "directional"),
+        &[("touching_wall", 0.8), ("desk_box", 1.0)],
+        128,
+    );
 }
 
 /// The far field (`CellCounts::far_field`): cones that leave the volume (3 × the object) take

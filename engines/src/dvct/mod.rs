@@ -211,9 +211,9 @@ pub struct Dvct {
     /// 1 `fill` and `resolve` after it.
     trace: [wgpu::ComputePipeline; 3],
     /// The real scene's first bounce where the object stands (`dvct_trace.wgsl`, `probe`),
-    /// into `probe_sh`: what the object blocks (`occlusion` "probe", the far receivers).
+    /// into `object_probe`: what the object blocks (`occlusion` "probe", the far receivers).
     probe: wgpu::ComputePipeline,
-    probe_sh: wgpu::Buffer,
+    object_probe: wgpu::Buffer,
     sampler: wgpu::Sampler,
     inject_uniform: wgpu::Buffer,
     dvct_uniform: wgpu::Buffer,
@@ -349,7 +349,7 @@ impl Dvct {
                 shaders::DVCT_TRACE,
                 "probe",
             ),
-            probe_sh: ctx.buffer("dvct probe", 9 * 16, wgpu::BufferUsages::STORAGE),
+            object_probe: ctx.buffer("dvct probe", 9 * 16, wgpu::BufferUsages::STORAGE),
             sampler: ctx.device.create_sampler(&wgpu::SamplerDescriptor {
                 label: Some("dvct volume"),
                 address_mode_u: wgpu::AddressMode::ClampToBorder,
@@ -704,7 +704,7 @@ impl Engine for Dvct {
                 indirect.as_entire_binding(),
                 v.cells.far_field(),
                 self.far_emitters.buffer.as_entire_binding(),
-                self.probe_sh.as_entire_binding(),
+                self.object_probe.as_entire_binding(),
             ]);
             // `resolve` reads the traced irradiance, not the far emitters or the probe it came
             // from.

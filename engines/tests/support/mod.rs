@@ -88,6 +88,41 @@ pub fn errors_against(
     (f64::from(delta_l2), object, delta)
 }
 
+/// `engine` with `setting = better` against `setting = worse` (each over `base`), on each of
+/// `cases`' scenes at 80 × 60 against a `spp` reference: Δ L2 on real pixels with `better`
+/// must be under `gain` × that with `worse`.
+pub fn setting_brings_delta_closer(
+    engine: &str,
+    base: serde_json::Value,
+    (setting, better, worse): (&str, &str, &str),
+    cases: &[(&str, f64)],
+    spp: u32,
+) {
+    for &(name, gain) in cases {
+        let scene = Arc::new(load_scene(name));
+        let reference = reference_full(&scene, 80, 60, spp);
+        let error = |value: &str| {
+            let mut params = base.as_object().cloned().unwrap_or_default();
+            params.insert(setting.into(), value.into());
+            errors_against(
+                engine,
+                serde_json::Value::Object(params),
+                &scene,
+                &reference,
+            )
+            .0
+        };
+        let (with, without) = (error(better), error(worse));
+        eprintln!(
+            "{engine} on {name}: Δ {with:.4} with {setting} = {better}, {without:.4} with {worse}"
+        );
+        assert!(
+            with < gain * without,
+            "{engine} on {name}: Δ {with} with {setting} = {better}, {without} with {worse}"
+        );
+    }
+}
+
 /// `engine` on touching_wall (a box in the corner of a floor and a wall), at 80 × 60 against
 /// 256 spp, with its volume moved into the scene (`volume_placement = scene`, the default)
 /// and centred on the object: moved, both Δ on real pixels and the object come closer to the
