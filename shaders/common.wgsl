@@ -579,9 +579,9 @@ struct Dvct {
     voxelized: vec4<u32>,
     // x: how real pixels take the light the object blocks: 0 not at all (the paper), 1
     // directional occlusion (`CONE_OCCLUDED` in dvct_trace.wgsl), 2 the probe's light blocked
-    // over the object's solid angle (`blocked_irradiance`); y: 1 =
-    // virtual pixels' cones take the far field beyond the volume; z: the diffuse cones' pixel
-    // stride; w: 1 = real pixels outside the volume take the far emitters' light.
+    // over the object's solid angle (`blocked_irradiance`); y: 1 = virtual pixels' cones take
+    // the far field beyond the volume; z: the diffuse cones' pixel stride; w: 1 = real pixels
+    // outside the volume take the far emitters' light (`far_receivers`).
     modes: vec4<u32>,
     // The gains on V^ρ's SH bands (x: L0, y: L1) along virtual pixels' cones: each VPL read as
     // a share of the radiance its surface shows over its hemisphere rather than of its cosine

@@ -459,6 +459,35 @@ mod tests {
         Scene::load(&dir).expect("the scene loads")
     }
 
+    /// desk_box's object is a box: its bounding box is itself, so its surface is all of the
+    /// box's (share 1), and its albedo its material's. A scene without one blocks nothing.
+    #[test]
+    fn a_box_object_is_its_own_box() {
+        let desk = scene("desk_box");
+        let object = ObjectBox::of(&desk);
+        let (lo, hi) = desk.virtual_bounds().unwrap();
+        assert!((object.centre - 0.5 * (lo + hi)).length() < 1e-6);
+        assert!((object.half - 0.5 * (hi - lo)).length() < 1e-6);
+        assert!(
+            (object.area_share - 1.0).abs() < 1e-5,
+            "{}",
+            object.area_share
+        );
+        let material = desk
+            .meshes
+            .iter()
+            .find(|m| m.is_virtual)
+            .map(|m| desk.materials[m.material].albedo)
+            .unwrap();
+        assert!((object.albedo - material).length() < 1e-5);
+        assert_eq!(ObjectBox::of(&desk.without_virtual()), ObjectBox::default());
+        assert_eq!(
+            ObjectBox::default().uniform()[0][3],
+            0.0,
+            "no share, nothing blocked"
+        );
+    }
+
     /// The part of box `a` inside box `b`, as a volume (m³).
     fn overlap(a: (Vec3, Vec3), b: (Vec3, Vec3)) -> f32 {
         (a.1.min(b.1) - a.0.max(b.0))

@@ -51,7 +51,7 @@ use std::time::Instant;
 use bytemuck::{Pod, Zeroable};
 use serde_json::{Map, Value};
 
-use crate::deferred::{Deferred, KeptInputs, MapSizes, ShadeOptions};
+use crate::deferred::{Deferred, KeptInputs, MapSizes, RealIndirect, ShadeOptions};
 use crate::engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
 use crate::gbuffer::Targets;
 use crate::gpu::{GpuContext, GpuError};
@@ -61,7 +61,6 @@ use crate::shaders;
 use crate::timer::timed_pass;
 use propagate::{Propagation, PropagationBuffers};
 
-use crate::deferred::RealIndirect;
 use crate::volume::{
     CellCounts, InjectPass, ObjectBox, VolumeUniform, fixed_point_scale, frame_placement,
     volume_reach,

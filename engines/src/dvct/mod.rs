@@ -95,7 +95,7 @@ pub struct DvctSettings {
     /// The volume moved out of what lies beyond the scene's bounds (`volume::placement`).
     pub volume_in_scene: bool,
     /// Real pixels outside the volume take V^Δ's light as point emitters
-    /// (`volume::FarEmitters`) instead of nothing.
+    /// (`volume::FarEmitters`), and lose the light the object blocks, instead of nothing.
     pub far_receivers: bool,
     /// Diffuse cones at every `trace_stride`-th pixel per axis; the pixels between share their
     /// irradiance where their surfaces are alike (`dvct_trace.wgsl`, `fill`).
@@ -119,7 +119,7 @@ pub enum Occlusion {
     /// The cones through V^Δ, plus the light the probe finds where the object stands (the
     /// real scene's bounce, as if the object were not there), blocked over the solid angle the
     /// object covers from the pixel, less the object's own indirectly lit faces that the pixel
-    /// sees instead (`blocked_irradiance` in `dvct_trace.wgsl`).
+    /// sees instead (`blocked_irradiance` in `shaders/common.wgsl`).
     Probe = 2,
 }
 
@@ -556,18 +556,16 @@ impl Engine for Dvct {
         let object = ObjectBox::of_frame(frame);
         let probe = settings.far_receivers || settings.occlusion == Occlusion::Probe;
         // The far emitters and the light the object blocks reach real surfaces anywhere.
-        self.deferred.set_real_indirect(
-            if settings.far_receivers || settings.occlusion == Occlusion::Probe {
-                RealIndirect::Anywhere
-            } else {
-                volume_reach(
-                    volume,
-                    n,
-                    2.01 + settings.cone_offset.abs(),
-                    2 * settings.trace_stride + 2,
-                )
-            },
-        );
+        self.deferred.set_real_indirect(if probe {
+            RealIndirect::Anywhere
+        } else {
+            volume_reach(
+                volume,
+                n,
+                2.01 + settings.cone_offset.abs(),
+                2 * settings.trace_stride + 2,
+            )
+        });
         let Some((width, height)) = self.deferred.prepare(
             Self::NAME,
             frame,
