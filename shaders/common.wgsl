@@ -531,16 +531,17 @@ fn probe_sh(counts: array<i32, 27>, object: ObjectBox, scale: f32) -> array<vec3
 }
 
 // The Δ irradiance at a real surface (`p`, unit `n`) from the real scene's bounce light that
-// the object now blocks on its way there, and from its own indirectly lit surfaces that p sees
-// instead (`occlusion = "probe"` of the volume engines, and `dvct`'s far receivers). Both come
+// the object now blocks on its way there, and from its own surfaces that p sees instead: their
+// indirect light, and `faces`' radiance (±x, ±y, ±z: the direct light on each face, for an
+// engine whose real pixels do not already take the object's own bounce; zeros otherwise) (`occlusion = "probe"` of the volume engines, and `dvct`'s far receivers). Both come
 // from the probe's light `light` where the object stands: what arrives there from behind the
 // object is the radiance p no longer sees; its cosine convolution on each box face that faces
 // p, times the object's albedo / π, the radiance p sees instead. The object is a point
 // occluder of its box's projected area (times its surface's share) at its centre, over d² no
 // less than the box's half diagonal squared: a disc model that took the distance to the box's
 // surface blocked more near it and read worse on every scene of the bench (`dvct`).
-fn blocked_irradiance(object: ObjectBox, light: array<vec3<f32>, 9>, p: vec3<f32>,
-                      n: vec3<f32>) -> vec3<f32> {
+fn blocked_irradiance(object: ObjectBox, light: array<vec3<f32>, 9>,
+                      faces_lit: array<vec4<f32>, 6>, p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     let to_object = object.centre.xyz - p;
     let d2 = dot(to_object, to_object);
     let w = to_object * inverseSqrt(max(d2, 1e-12));
@@ -557,7 +558,10 @@ fn blocked_irradiance(object: ObjectBox, light: array<vec3<f32>, 9>, p: vec3<f32
     let lit = faces.x * far_field_irradiance(light, vec3<f32>(facing.x, 0.0, 0.0))
         + faces.y * far_field_irradiance(light, vec3<f32>(0.0, facing.y, 0.0))
         + faces.z * far_field_irradiance(light, vec3<f32>(0.0, 0.0, facing.z));
-    let shown = object.albedo.rgb / PI * lit / max(faces.x + faces.y + faces.z, 1e-12);
+    let direct = faces.x * faces_lit[select(1u, 0u, facing.x > 0.0)].rgb
+        + faces.y * faces_lit[select(3u, 2u, facing.y > 0.0)].rgb
+        + faces.z * faces_lit[select(5u, 4u, facing.z > 0.0)].rgb;
+    let shown = (object.albedo.rgb / PI * lit + direct) / max(faces.x + faces.y + faces.z, 1e-12);
     return (shown - far_field_radiance(light, w)) * solid_angle * cos_p;
 }
 
@@ -708,6 +712,14 @@ struct Ibl {
     region: vec4<u32>,
     // The local picture's second bounce, L2 SH of radiance (rgb; `LocalPicture::bounce`).
     bounce: array<vec4<f32>, 9>,
+    // The local picture's real surfaces, every bounce, L2 SH of radiance (rgb;
+    // `LocalPicture::probe`): what the object blocks from real pixels (`occlusion`; zero: off).
+    probe: array<vec4<f32>, 9>,
+    object: ObjectBox,
+    // The direct light on each face of the object's box (±x, ±y, ±z), radiance (rgb;
+    // `LocalPicture::object_faces`): the object's own bounce, which `ibl`'s real pixels take
+    // nowhere else.
+    object_faces: array<vec4<f32>, 6>,
 }
 
 // Octahedral map (Engelhardt & Dachsbacher 2008): the unit sphere folded onto [0, 1]², +Z at

@@ -75,8 +75,9 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let units = 1.0 / (SH_UNITS_PER_COUNT * volume.scale.x);
     e *= units / (cell * cell);
     if which == 0u && volume.options.y == 1u {
+        // The object's directly lit faces are V^Δ's VPLs already.
         e += blocked_irradiance(volume.object, probe_sh(probe, volume.object, volume.scale.x),
-                                p.xyz, n);
+                                array<vec4<f32>, 6>(), p.xyz, n);
     }
     if which == 1u && volume.options.x == 1u {
         let half_edge = 0.5 * f32(volume.dims.x) * cell;

@@ -234,7 +234,7 @@ fn irradiance_at(s: PixelSurface) -> vec3<f32> {
         for (var k = 0u; k < 9u; k++) {
             light[k] = object_probe[k].rgb;
         }
-        e += blocked_irradiance(dvct.object, light, p, s.n);
+        e += blocked_irradiance(dvct.object, light, array<vec4<f32>, 6>(), p, s.n);
     }
     return e;
 }

@@ -7,7 +7,8 @@
 // |n·ω_i|) taken at the lobe's centre, exact as the lobe narrows. The ambient occlusion is the
 // visibility of the environment's shadow lights (importance-sampled from the map, flagged
 // LIGHT_SHADOW_ONLY) through R^ρ, weighted by the light each brings to the surface. Real
-// pixels get nothing here: their Δ is the shadow those lights' maps give (shade.wgsl).
+// pixels get nothing here but, with `occlusion` on, the light the object blocks (`real`); the
+// rest of their Δ is the shadow those lights' maps give (shade.wgsl).
 
 @group(0) @binding(0) var<storage, read> ibl_buffer: Ibl;
 var<private> ibl: Ibl;
@@ -224,4 +225,30 @@ fn resolve(@builtin(global_invocation_id) id: vec3<u32>) {
     if traced.w > 0.5 && on_object(s) {
         indirect[i] = vec4<f32>(shaded(pixel, s, traced.rgb), 0.0);
     }
+}
+
+// With `occlusion` on (a nonzero `ibl.probe`), after the others over the region: each real
+// pixel's Δ irradiance from the local picture's light that the object blocks on its way there
+// (`blocked_irradiance`), as its indirect term; the object's pixels keep theirs.
+@compute @workgroup_size(8, 8)
+fn real(@builtin(global_invocation_id) id: vec3<u32>) {
+    ibl = ibl_buffer;
+    let pixel = ibl.region.xy + id.xy;
+    if any(pixel >= ibl.region.zw) {
+        return;
+    }
+    let s = surface_at(pixel);
+    if on_object(s) {
+        return;
+    }
+    var e = vec3<f32>(0.0);
+    if s.found {
+        var light: array<vec3<f32>, 9>;
+        for (var k = 0u; k < 9u; k++) {
+            light[k] = ibl.probe[k].rgb;
+        }
+        let albedo = textureLoad(gb_albedo, vec2<i32>(pixel), 0).rgb;
+        e = albedo / PI * blocked_irradiance(ibl.object, light, ibl.object_faces, s.p.xyz, s.n);
+    }
+    indirect[pixel.y * ibl.frame.x + pixel.x] = vec4<f32>(e, 0.0);
 }

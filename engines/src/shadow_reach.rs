@@ -351,11 +351,11 @@ pub(crate) mod tests {
             ("dvct", "desk_box", &desk, (1, 32)),
             ("dvct", "low light", &low, (1, 32)),
         ];
-        // By default the volume engines' light that the object blocks (and `dvct`'s far
-        // receivers) reach every real pixel; without them, their volume alone.
+        // By default the light that the object blocks (and `dvct`'s far receivers) reaches
+        // every real pixel; without it, the volume engines' volume and the shadows alone.
         let params = |engine_name: &str| {
             let params = match engine_name {
-                "dlpv" => serde_json::json!({ "occlusion": "none" }),
+                "dlpv" | "ibl" => serde_json::json!({ "occlusion": "none" }),
                 "dvct" => {
                     serde_json::json!({ "occlusion": "directional", "far_receivers": "none" })
                 }

@@ -64,6 +64,18 @@ pub struct LocalPicture {
     /// is carried to the object's diffuse light as SH irradiance rather than convolved with
     /// the map, whose convolution leaves black texels out (the surfaces the lights miss).
     pub bounce: Sh9Rgb,
+    /// The picture's real surfaces alone, every bounce, as L2 SH of radiance by the direction
+    /// it comes from: the real light crossing the object's place, which it blocks from the real
+    /// surfaces around it (`blocked_irradiance` in `shaders/common.wgsl`). Its first bounce is
+    /// taken without the object's shadow (as if the object were not there: with it, the
+    /// shadowed floor under a box lent the box's faces more light than it hid, and desk_box's Δ
+    /// went 0.228 → 0.341); the later bounces are `bounce`'s.
+    pub probe: Sh9Rgb,
+    /// The direct light on each face of the object's bounding box (±x, ±y, ±z), as the
+    /// radiance it leaves with (the object's area-weighted albedo / π), each face's centre
+    /// tested for the real scene's shadow: the object's own bounce onto the real surfaces that
+    /// see it, which `ibl`'s real pixels take with the probe (`blocked_irradiance`).
+    pub object_faces: [Vec3; 6],
     /// The surfaces in the picture as small patches, so that each point of the object can
     /// take their diffuse light from where it stands rather than from the centre
     /// ([`NearPatch`]).
@@ -227,12 +239,16 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
     let lights: Vec<&Light> = scene.lights.iter().chain(&env_lights).collect();
     let (w, h) = (width.max(2), (width / 2).max(1));
     // Per texel: the radiance along it and, where it meets a surface, the diffuse reflectance
-    // (albedo/π), normal and distance there, for the later bounces and the patches below.
-    let first: Vec<(Vec3, Option<SurfaceHit>)> = (0..h)
+    // (albedo/π), normal and distance there, for the later bounces and the patches below; and
+    // the radiance there without the object's shadow, for the probe.
+    let first: Vec<(Vec3, Option<SurfaceHit>, Vec3)> = (0..h)
         .flat_map(|y| (0..w).map(move |x| texel_direction(w, h, x, y)))
         .map(
             |dir| match real.intersect(centre, dir, 0.0, f32::INFINITY) {
-                None => (env.map_or(Vec3::ZERO, |e| env_radiance(e, dir)), None),
+                None => {
+                    let sky = env.map_or(Vec3::ZERO, |e| env_radiance(e, dir));
+                    (sky, None, Vec3::ZERO)
+                }
                 Some(hit) => {
                     let triangle = &real.triangles()[hit.triangle];
                     let material = &scene.materials[triangle.material];
@@ -242,21 +258,23 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
                     let normal = triangle.normal_against(dir);
                     let at = centre + dir * hit.t + normal * SURFACE_EPSILON;
                     let bsdf = Bsdf::new(material, albedo, normal, -dir);
-                    let reflected: Vec3 = lights
-                        .iter()
-                        .filter_map(|light| light.incident(at))
-                        .filter(|inc| {
-                            inc.direction_to_light.dot(normal) > 0.0
-                                && with_object
-                                    .occluder(at, inc.direction_to_light, 0.0, inc.distance_m)
-                                    .is_none()
-                        })
-                        .map(|inc| {
-                            bsdf.eval(inc.direction_to_light)
-                                * inc.irradiance
-                                * inc.direction_to_light.dot(normal)
-                        })
-                        .sum();
+                    let (mut reflected, mut reflected_real) = (Vec3::ZERO, Vec3::ZERO);
+                    for inc in lights.iter().filter_map(|light| light.incident(at)) {
+                        let cos = inc.direction_to_light.dot(normal);
+                        let unshadowed = |geometry: &Geometry| {
+                            geometry
+                                .occluder(at, inc.direction_to_light, 0.0, inc.distance_m)
+                                .is_none()
+                        };
+                        if cos <= 0.0 || !unshadowed(&real) {
+                            continue;
+                        }
+                        let light = bsdf.eval(inc.direction_to_light) * inc.irradiance * cos;
+                        reflected_real += light;
+                        if unshadowed(&with_object) {
+                            reflected += light;
+                        }
+                    }
                     (
                         material.emission + reflected,
                         Some(SurfaceHit {
@@ -264,19 +282,20 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
                             normal,
                             distance: hit.t,
                         }),
+                        material.emission + reflected_real,
                     )
                 }
             },
         )
-        .map(|(l, hit)| {
-            (
+        .map(|(l, hit, l_real)| {
+            let valid = |l: Vec3| {
                 if l.is_finite() {
                     l.max(Vec3::ZERO)
                 } else {
                     Vec3::ZERO
-                },
-                hit,
-            )
+                }
+            };
+            (valid(l), hit, valid(l_real))
         })
         .collect();
     // The later bounces: each surface in the picture also reflects the light of the others,
@@ -287,7 +306,7 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
     let hits: Vec<(Vec3, f32, Vec3, Vec3, Vec3)> = (0..h)
         .flat_map(|y| (0..w).map(move |x| (x, y)))
         .zip(&first)
-        .filter_map(|((x, y), &(radiance, hit))| {
+        .filter_map(|((x, y), &(radiance, hit, _))| {
             let SurfaceHit {
                 reflectance,
                 normal,
@@ -326,15 +345,48 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
             break;
         }
     }
-    let near = near_patches(centre, (w, h), &first);
-    let surfaces = first.iter().map(|(_, hit)| hit.is_some()).collect();
+    // The probe: the surfaces' first bounce without the object's shadow, and the later
+    // bounces as the picture has them (which the shadow moves far less).
+    let mut probe = bounce;
+    for ((x, y), &(_, hit, radiance_real)) in
+        (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).zip(&first)
+    {
+        if hit.is_some() {
+            let solid_angle = texel_solid_angle(w, h, y) as f32;
+            probe.add_sample(texel_direction(w, h, x, y), radiance_real, solid_angle);
+        }
+    }
+    let object = crate::volume::ObjectBox::of(scene);
+    let object_faces = std::array::from_fn(|k| {
+        let mut normal = Vec3::ZERO;
+        normal[k / 2] = if k % 2 == 0 { 1.0 } else { -1.0 };
+        let at = object.centre + normal * (object.half + Vec3::splat(SURFACE_EPSILON));
+        let irradiance: Vec3 = lights
+            .iter()
+            .filter_map(|light| light.incident(at))
+            .filter(|inc| {
+                inc.direction_to_light.dot(normal) > 0.0
+                    && real
+                        .occluder(at, inc.direction_to_light, 0.0, inc.distance_m)
+                        .is_none()
+            })
+            .map(|inc| inc.irradiance * inc.direction_to_light.dot(normal))
+            .sum();
+        object.albedo / std::f32::consts::PI * irradiance
+    });
+    let picture: Vec<(Vec3, Option<SurfaceHit>)> =
+        first.iter().map(|&(l, hit, _)| (l, hit)).collect();
+    let near = near_patches(centre, (w, h), &picture);
+    let surfaces = first.iter().map(|(_, hit, _)| hit.is_some()).collect();
     Some(LocalPicture {
         map: EnvironmentMap {
             width: w,
             height: h,
-            radiance: first.into_iter().map(|(l, _)| l).collect(),
+            radiance: first.into_iter().map(|(l, _, _)| l).collect(),
         },
         bounce,
+        probe,
+        object_faces,
         near,
         surfaces,
     })
@@ -435,6 +487,28 @@ mod tests {
         let mut empty = floating_box(0.0);
         empty.meshes.retain(|m| !m.is_virtual);
         assert!(local_probe(&empty, 64).is_none());
+    }
+
+    /// The probe is the picture's surfaces as if the object cast no shadow: the floor below
+    /// the floating box, lit everywhere under it, sends the whole floor's irradiance
+    /// 0.6 · 2 = 1.2 up to the box's centre (the floor 20 m across, 0.6 m below, nearly fills
+    /// the lower hemisphere), where the picture has the box's shadow straight below. The box's
+    /// top face is lit by the light straight above (radiance 0.5 · 2 / π), its other faces not.
+    #[test]
+    fn the_probe_is_the_picture_without_the_objects_shadow() {
+        let picture = local_probe(&floating_box(0.0), 64).expect("the scene has an object");
+        let up = picture.probe.irradiance(Vec3::NEG_Y).x;
+        assert!((up / 1.2 - 1.0).abs() < 0.05, "{up}");
+        assert_eq!(
+            texel(&picture.map, Vec3::NEG_Y),
+            Vec3::ZERO,
+            "the picture's shadow"
+        );
+        let top = 0.5 * 2.0 / std::f32::consts::PI;
+        for (k, face) in picture.object_faces.iter().enumerate() {
+            let expected = if k == 2 { top } else { 0.0 };
+            assert!((face.x - expected).abs() < 1e-5, "face {k}: {face}");
+        }
     }
 
     /// Seen from the centre, the near patches bring what the picture's surface texels did:

@@ -45,6 +45,9 @@ pub struct IblUniform {
     pub shininess: [f32; MAX_LEVELS],
     pub region: [u32; 4],
     pub bounce: [[f32; 4]; 9],
+    pub probe: [[f32; 4]; 9],
+    pub object: [[f32; 4]; 3],
+    pub object_faces: [[f32; 4]; 6],
 }
 
 /// The unit direction at `uv` ∈ [0, 1]² of an octahedral map (`oct_decode` in the shaders).

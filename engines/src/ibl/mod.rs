@@ -30,6 +30,8 @@ pub mod local_probe;
 pub mod maps;
 
 use std::sync::Arc;
+
+use glam::Vec3;
 use std::time::Instant;
 
 use relight_core::PixelRect;
@@ -45,6 +47,7 @@ use crate::params::{ParamSpec, ParamsSchema};
 use crate::roofline::{PassWork, Work};
 use crate::shaders;
 use crate::timer::timed_pass;
+use crate::volume::ObjectBox;
 use local_probe::{LocalPicture, local_probe};
 use maps::{IblUniform, MAX_LEVELS, ReflectionMaps, input_texels, log_spaced_shininess, resample};
 use relight_core::sh::Sh9Rgb;
@@ -68,6 +71,10 @@ pub struct IblSettings {
     /// The near patches' light is gathered at every `near_stride`-th pixel per axis and shared
     /// between alike pixels (`ibl_shade.wgsl`).
     pub near_stride: u32,
+    /// Real pixels also lose the light of the local picture's surfaces that the object blocks
+    /// on its way to them (`LocalPicture::probe`, `blocked_irradiance`); else their Δ is the
+    /// shadows alone (the paper).
+    pub probe_occlusion: bool,
 }
 
 impl Default for IblSettings {
@@ -83,6 +90,7 @@ impl Default for IblSettings {
             local_probe: true,
             near_field: true,
             near_stride: 2,
+            probe_occlusion: true,
         }
     }
 }
@@ -100,6 +108,10 @@ struct Environment {
     /// The local picture's later bounces (`LocalPicture::bounce`; zero without one), added to
     /// the diffuse map's light at shading.
     bounce: Sh9Rgb,
+    /// The local picture's real surfaces (`LocalPicture::probe`; zero without one).
+    probe: Sh9Rgb,
+    /// The direct light on the object's faces (`LocalPicture::object_faces`).
+    object_faces: [Vec3; 6],
     /// The local picture's surface patches on the GPU and their count (`LocalPicture::near`;
     /// `None` without a picture or with `near_field` off).
     near: Option<(wgpu::Buffer, u32)>,
@@ -151,7 +163,7 @@ struct PictureKey {
     /// The real geometry and the distant map, hashed.
     real: u64,
     lights: Vec<Light>,
-    object: Option<(glam::Vec3, glam::Vec3)>,
+    object: Option<(Vec3, Vec3)>,
 }
 
 /// How far (a share of its largest edge) the object may move before its picture is taken again.
@@ -201,8 +213,8 @@ impl PictureKey {
 pub struct Ibl {
     deferred: Deferred,
     settings: IblSettings,
-    /// `ibl_shade.wgsl`'s `main`, `fill` and `resolve` (see its strided gather).
-    shade: [wgpu::ComputePipeline; 3],
+    /// `ibl_shade.wgsl`'s `main`, `fill` and `resolve` (see its strided gather), and `real`.
+    shade: [wgpu::ComputePipeline; 4],
     uniform: wgpu::Buffer,
     maps: ReflectionMaps,
     environment: Option<Environment>,
@@ -282,6 +294,11 @@ impl Ibl {
                 vec!["patches", "none"],
             ),
             ParamSpec::choice(
+                "occlusion",
+                "`probe`: real pixels also lose the light of the local picture's surfaces that the object blocks on its way to them, over the solid angle it covers from them (a scene file, or a rig without a probe picture); `none`: their Δ is the shadows alone, as in the paper",
+                vec!["probe", "none"],
+            ),
+            ParamSpec::choice(
                 "environment",
                 "what lights the object where no probe picture does (a scene file, a live rig without a probe): `local`, the picture a probe at the object's centre would take (the real meshes under the scene's lights, the map where rays escape); `map`, the scene's map alone (the paper's input)",
                 vec!["local", "map"],
@@ -296,7 +313,7 @@ impl Ibl {
         let mut deferred = Deferred::sampling_the_environment(ctx.clone());
         deferred.set_real_indirect(RealIndirect::Nowhere);
         Ok(Self {
-            shade: ["main", "fill", "resolve"].map(|entry| {
+            shade: ["main", "fill", "resolve", "real"].map(|entry| {
                 shaders::compute_pipeline_at(&ctx.device, "ibl shade", shaders::IBL_SHADE, entry)
             }),
             uniform: shaders::params_buffer(&ctx.device, "ibl shade", size_of::<IblUniform>()),
@@ -354,7 +371,7 @@ impl Ibl {
         }
         let ctx = self.deferred.ctx().clone();
         // With near patches, the texels they stand for are left out of the diffuse map.
-        let (input, bounce, near, specular_only) = match &picture_of {
+        let (input, (bounce, probe, object_faces), near, specular_only) = match &picture_of {
             Some(_) => {
                 let width = if scene.shadow_proxy.is_some() {
                     s.input_width.min(LIVE_PICTURE_WIDTH)
@@ -365,12 +382,23 @@ impl Ibl {
                     Some(picture) => {
                         let near = s.near_field.then(|| near_patches(&ctx, &picture)).flatten();
                         let specular_only = near.is_some().then_some(picture.surfaces);
-                        (Some(picture.map), picture.bounce, near, specular_only)
+                        let light = (picture.bounce, picture.probe, picture.object_faces);
+                        (Some(picture.map), light, near, specular_only)
                     }
-                    None => (distant.clone(), Sh9Rgb::ZERO, None, None),
+                    None => (
+                        distant.clone(),
+                        (Sh9Rgb::ZERO, Sh9Rgb::ZERO, [Vec3::ZERO; 6]),
+                        None,
+                        None,
+                    ),
                 }
             }
-            None => (distant.clone(), Sh9Rgb::ZERO, None, None),
+            None => (
+                distant.clone(),
+                (Sh9Rgb::ZERO, Sh9Rgb::ZERO, [Vec3::ZERO; 6]),
+                None,
+                None,
+            ),
         };
         let shininess = specular_levels(scene, s.levels);
         let unchanged = self.environment.as_ref().is_some_and(|e| {
@@ -387,6 +415,8 @@ impl Ibl {
                 e.scene = scene.clone();
                 e.picture_of = picture_of;
                 e.bounce = bounce;
+                e.probe = probe;
+                e.object_faces = object_faces;
                 e.near = near;
             }
             return Ok(None);
@@ -422,6 +452,8 @@ impl Ibl {
             settings: s,
             picture_of,
             bounce,
+            probe,
+            object_faces,
             near,
         });
         Ok(Some((
@@ -502,6 +534,17 @@ impl Engine for Ibl {
             None => None,
         };
         let s = self.settings;
+        // The light the object blocks reaches real surfaces anywhere.
+        let probe = self
+            .environment
+            .as_ref()
+            .map(|e| e.probe)
+            .filter(|p| s.probe_occlusion && *p != Sh9Rgb::ZERO);
+        self.deferred.set_real_indirect(if probe.is_some() {
+            RealIndirect::Anywhere
+        } else {
+            RealIndirect::Nowhere
+        });
         let Some((width, height)) =
             self.deferred
                 .prepare(Self::NAME, frame, out, MapSizes::shadows(s.rsm_size))?
@@ -553,6 +596,16 @@ impl Engine for Ibl {
                     .map_or(Sh9Rgb::ZERO, |e| e.bounce)
                     .coeffs
                     .map(|c| c.extend(0.0).to_array()),
+                probe: probe
+                    .unwrap_or(Sh9Rgb::ZERO)
+                    .coeffs
+                    .map(|c| c.extend(0.0).to_array()),
+                object: ObjectBox::of_frame(frame).uniform(),
+                object_faces: self
+                    .environment
+                    .as_ref()
+                    .map_or([Vec3::ZERO; 6], |e| e.object_faces)
+                    .map(|f| f.extend(0.0).to_array()),
             };
             uniform.shininess[..self.maps.shininess().len()].copy_from_slice(self.maps.shininess());
             ctx.queue
@@ -582,7 +635,7 @@ impl Engine for Ibl {
             resources.extend(views.iter().map(wgpu::BindingResource::TextureView));
             let near_buffer = near.map_or(&self.no_patches, |(b, _)| b);
             resources.extend([maps, indirect, near_buffer].map(|b| b.as_entire_binding()));
-            let [main, fill, resolve] = &self.shade;
+            let [main, fill, resolve, real] = &self.shade;
             let groups = [
                 shaders::pipeline_bind_group(&ctx.device, main, "ibl shade", &resources),
                 shaders::pipeline_bind_group(&ctx.device, fill, "ibl shade fill", &resources),
@@ -593,6 +646,14 @@ impl Engine for Ibl {
                     "ibl shade resolve",
                     &resources,
                     &[0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10],
+                ),
+                // `real` reads the uniform, the G-buffer and the light.
+                shaders::pipeline_bind_group_of(
+                    &ctx.device,
+                    real,
+                    "ibl shade real",
+                    &resources,
+                    &[0, 5, 6, 7, 10],
                 ),
             ];
             let mut encoder = ctx
@@ -611,7 +672,10 @@ impl Engine for Ibl {
                         f64::from(region.width.div_ceil(s.near_stride))
                             * f64::from(region.height.div_ceil(s.near_stride)),
                     )
-                    + Work::new(48.0 * f64::from(patches), 0.0),
+                    + Work::new(48.0 * f64::from(patches), 0.0)
+                    // With the light the object blocks, about 200 operations a real pixel.
+                    + Work::new(0.0, if probe.is_some() { 200.0 } else { 0.0 })
+                        .times(region.area() as f64),
             });
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.ibl_shade");
@@ -635,6 +699,15 @@ impl Engine for Ibl {
                         gathered
                     };
                     pass.dispatch_workgroups(x.div_ceil(8), y.div_ceil(8), 1);
+                }
+                if probe.is_some() {
+                    pass.set_pipeline(&self.shade[3]);
+                    pass.set_bind_group(0, &groups[3], &[]);
+                    pass.dispatch_workgroups(
+                        region.width.div_ceil(8),
+                        region.height.div_ceil(8),
+                        1,
+                    );
                 }
             }
             ctx.queue.submit([encoder.finish()]);
@@ -671,6 +744,7 @@ impl Engine for Ibl {
             local_probe: schema.choice(params, "environment") == "local",
             near_field: schema.choice(params, "near_field") == "patches",
             near_stride: int("near_stride"),
+            probe_occlusion: schema.choice(params, "occlusion") == "probe",
         };
         self.deferred.set_shared_params(&schema, params);
     }
