@@ -226,7 +226,8 @@ fn gathering_the_near_field_at_every_second_pixel_keeps_the_error() {
     support::a_stride_of_two_keeps_the_error("ibl", "near_stride");
 }
 
-/// `occlusion = "probe"` (the default where the local picture lights the object): real pixels
+/// `occlusion = "probe"` (off by default, for the frame rate; where the local picture lights the
+/// object): real pixels
 /// also lose the light of the picture's surfaces that the object blocks on its way to them, and
 /// see the object's faces instead, lit by the picture and, directly, by the lights
 /// (`LocalPicture::probe`, `LocalPicture::object_faces`, `blocked_irradiance`). Without it their
