@@ -30,10 +30,9 @@ pub mod local_probe;
 pub mod maps;
 
 use std::sync::Arc;
-
-use glam::Vec3;
 use std::time::Instant;
 
+use glam::Vec3;
 use relight_core::PixelRect;
 use relight_core::light::Light;
 use relight_core::scene::{EnvironmentMap, Scene};
