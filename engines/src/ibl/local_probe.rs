@@ -69,12 +69,13 @@ pub struct LocalPicture {
     /// surfaces around it (`blocked_irradiance` in `shaders/common.wgsl`). Its first bounce is
     /// taken without the object's shadow (as if the object were not there: with it, the
     /// shadowed floor under a box lent the box's faces more light than it hid, and desk_box's Δ
-    /// went 0.228 → 0.341); the later bounces are `bounce`'s.
+    /// went 0.228 → 0.341); the later bounces are `bounce`'s. Zero unless asked for.
     pub probe: Sh9Rgb,
     /// The direct light on each face of the object's bounding box (±x, ±y, ±z), as the
     /// radiance it leaves with (the object's area-weighted albedo / π), each face's centre
     /// tested for the real scene's shadow: the object's own bounce onto the real surfaces that
-    /// see it, which `ibl`'s real pixels take with the probe (`blocked_irradiance`).
+    /// see it, which `ibl`'s real pixels take with the probe (`blocked_irradiance`). Zero
+    /// unless asked for.
     pub object_faces: [Vec3; 6],
     /// The surfaces in the picture as small patches, so that each point of the object can
     /// take their diffuse light from where it stands rather than from the centre
@@ -215,8 +216,10 @@ struct SurfaceHit {
 const MIN_PATCH_COSINE: f32 = 0.05;
 
 /// The `width` × `width/2` equirectangular picture from the centre of `scene`'s virtual
-/// object's bounds; `None` without a virtual object.
-pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
+/// object's bounds; `None` without a virtual object. With `probe`, also what the object blocks
+/// from the real surfaces around it ([`LocalPicture::probe`], [`LocalPicture::object_faces`],
+/// a second shadow ray per light); else those are zero.
+pub fn local_probe(scene: &Scene, width: u32, probe: bool) -> Option<LocalPicture> {
     let (lo, hi) = scene.virtual_bounds()?;
     let centre = (lo + hi) / 2.0;
     // A live scene's proxy stands in for its real meshes; a scene file's are used as they are.
@@ -266,7 +269,7 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
                                 .occluder(at, inc.direction_to_light, 0.0, inc.distance_m)
                                 .is_none()
                         };
-                        if cos <= 0.0 || !unshadowed(&real) {
+                        if cos <= 0.0 || (probe && !unshadowed(&real)) {
                             continue;
                         }
                         let light = bsdf.eval(inc.direction_to_light) * inc.irradiance * cos;
@@ -347,33 +350,14 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
     }
     // The probe: the surfaces' first bounce without the object's shadow, and the later
     // bounces as the picture has them (which the shadow moves far less).
-    let mut probe = bounce;
-    for ((x, y), &(_, hit, radiance_real)) in
-        (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).zip(&first)
-    {
-        if hit.is_some() {
-            let solid_angle = texel_solid_angle(w, h, y) as f32;
-            probe.add_sample(texel_direction(w, h, x, y), radiance_real, solid_angle);
-        }
-    }
-    let object = crate::volume::ObjectBox::of(scene);
-    let object_faces = std::array::from_fn(|k| {
-        let mut normal = Vec3::ZERO;
-        normal[k / 2] = if k % 2 == 0 { 1.0 } else { -1.0 };
-        let at = object.centre + normal * (object.half + Vec3::splat(SURFACE_EPSILON));
-        let irradiance: Vec3 = lights
-            .iter()
-            .filter_map(|light| light.incident(at))
-            .filter(|inc| {
-                inc.direction_to_light.dot(normal) > 0.0
-                    && real
-                        .occluder(at, inc.direction_to_light, 0.0, inc.distance_m)
-                        .is_none()
-            })
-            .map(|inc| inc.irradiance * inc.direction_to_light.dot(normal))
-            .sum();
-        object.albedo / std::f32::consts::PI * irradiance
-    });
+    let (probe, object_faces) = if probe {
+        (
+            probe_of(&first, (w, h), bounce),
+            object_faces(scene, &lights, &real),
+        )
+    } else {
+        (Sh9Rgb::ZERO, [Vec3::ZERO; 6])
+    };
     let picture: Vec<(Vec3, Option<SurfaceHit>)> =
         first.iter().map(|&(l, hit, _)| (l, hit)).collect();
     let near = near_patches(centre, (w, h), &picture);
@@ -389,6 +373,49 @@ pub fn local_probe(scene: &Scene, width: u32) -> Option<LocalPicture> {
         object_faces,
         near,
         surfaces,
+    })
+}
+
+/// [`LocalPicture::probe`]: the picture's surface texels' radiance without the object's
+/// shadow (`first`'s third member), over a `w` × `h` picture, plus the later bounces `bounce`.
+fn probe_of(
+    first: &[(Vec3, Option<SurfaceHit>, Vec3)],
+    (w, h): (u32, u32),
+    bounce: Sh9Rgb,
+) -> Sh9Rgb {
+    let mut probe = bounce;
+    for ((x, y), &(_, hit, radiance_real)) in
+        (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).zip(first)
+    {
+        if hit.is_some() {
+            let solid_angle = texel_solid_angle(w, h, y) as f32;
+            probe.add_sample(texel_direction(w, h, x, y), radiance_real, solid_angle);
+        }
+    }
+    probe
+}
+
+/// [`LocalPicture::object_faces`]: the direct light of `lights` on the centre of each face of
+/// `scene`'s object's box (±x, ±y, ±z), tested for shadow against the `real` geometry, as the
+/// radiance the object's albedo reflects.
+fn object_faces(scene: &Scene, lights: &[&Light], real: &Geometry) -> [Vec3; 6] {
+    let object = crate::volume::ObjectBox::of(scene);
+    std::array::from_fn(|k| {
+        let mut normal = Vec3::ZERO;
+        normal[k / 2] = if k % 2 == 0 { 1.0 } else { -1.0 };
+        let at = object.centre + normal * (object.half + Vec3::splat(SURFACE_EPSILON));
+        let irradiance: Vec3 = lights
+            .iter()
+            .filter_map(|light| light.incident(at))
+            .filter(|inc| {
+                inc.direction_to_light.dot(normal) > 0.0
+                    && real
+                        .occluder(at, inc.direction_to_light, 0.0, inc.distance_m)
+                        .is_none()
+            })
+            .map(|inc| inc.irradiance * inc.direction_to_light.dot(normal))
+            .sum();
+        object.albedo / std::f32::consts::PI * irradiance
     })
 }
 
@@ -461,7 +488,7 @@ mod tests {
     fn the_picture_holds_the_lit_floor_the_objects_shadow_and_the_sky() {
         // Without a sky: the floor away from the shadow is Lambertian under irradiance 2,
         // 0.6 · 2 / π; straight down it lies in the box's shadow; up there is nothing.
-        let picture = local_probe(&floating_box(0.0), 64).expect("the scene has an object");
+        let picture = local_probe(&floating_box(0.0), 64, false).expect("the scene has an object");
         // No surface in it lights another (the floor is below its own horizon everywhere).
         assert!(picture.bounce.irradiance(Vec3::NEG_Y).max_element() < 1e-6);
         let probe = picture.map;
@@ -473,7 +500,7 @@ mod tests {
         assert_eq!(texel(&probe, Vec3::Y), Vec3::ZERO);
         // With a sky of radiance 0.1 (as 16 directional lights on the floor, a Monte Carlo
         // estimate of its irradiance π · 0.1): the sky where the rays escape, the floor brighter.
-        let probe = local_probe(&floating_box(0.1), 64)
+        let probe = local_probe(&floating_box(0.1), 64, false)
             .expect("the scene has an object")
             .map;
         assert!((texel(&probe, Vec3::Y).x - 0.1).abs() < 1e-6);
@@ -486,7 +513,7 @@ mod tests {
         // No object, no picture.
         let mut empty = floating_box(0.0);
         empty.meshes.retain(|m| !m.is_virtual);
-        assert!(local_probe(&empty, 64).is_none());
+        assert!(local_probe(&empty, 64, false).is_none());
     }
 
     /// The probe is the picture's surfaces as if the object cast no shadow: the floor below
@@ -496,7 +523,7 @@ mod tests {
     /// top face is lit by the light straight above (radiance 0.5 · 2 / π), its other faces not.
     #[test]
     fn the_probe_is_the_picture_without_the_objects_shadow() {
-        let picture = local_probe(&floating_box(0.0), 64).expect("the scene has an object");
+        let picture = local_probe(&floating_box(0.0), 64, true).expect("the scene has an object");
         let up = picture.probe.irradiance(Vec3::NEG_Y).x;
         assert!((up / 1.2 - 1.0).abs() < 0.05, "{up}");
         assert_eq!(
@@ -518,7 +545,7 @@ mod tests {
     #[test]
     fn the_near_patches_light_the_centre_as_the_picture_does() {
         let scene = floating_box(0.5);
-        let picture = local_probe(&scene, 128).unwrap();
+        let picture = local_probe(&scene, 128, false).unwrap();
         let (lo, hi) = scene.virtual_bounds().unwrap();
         let centre = (lo + hi) / 2.0;
         let (w, h) = (picture.map.width, picture.map.height);
@@ -588,7 +615,7 @@ mod tests {
             emission: Vec3::ONE,
             ..Material::default()
         };
-        let picture = local_probe(&scene, 64).expect("the scene has an object");
+        let picture = local_probe(&scene, 64, false).expect("the scene has an object");
         assert!((texel(&picture.map, Vec3::X).x - 1.0).abs() < 1e-6);
         for normal in [Vec3::X, Vec3::NEG_Y, Vec3::new(1.0, 1.0, -1.0).normalize()] {
             let irradiance = picture.bounce.irradiance(normal).x;
@@ -623,7 +650,7 @@ mod tests {
             albedo: Vec3::splat(0.8),
             ..Material::default()
         });
-        let picture = local_probe(&scene, 64).expect("the scene has an object");
+        let picture = local_probe(&scene, 64, false).expect("the scene has an object");
         assert_eq!(texel(&picture.map, Vec3::NEG_X), Vec3::ZERO);
         let pi = std::f64::consts::PI;
         let floor = 0.6 * 2.0 / pi;

@@ -379,7 +379,7 @@ impl Ibl {
                 } else {
                     s.input_width
                 };
-                match local_probe(scene, width) {
+                match local_probe(scene, width, s.probe_occlusion) {
                     Some(picture) => {
                         let near = s.near_field.then(|| near_patches(&ctx, &picture)).flatten();
                         let specular_only = near.is_some().then_some(picture.surfaces);
