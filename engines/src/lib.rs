@@ -37,6 +37,15 @@ mod depth_preview;
 mod passthrough;
 
 pub use engine::{Engine, EngineError, PassTiming, RelitFrame, SceneFrame};
+
+/// One of the repository's scenes (`tests/scenes/<name>`), for the unit tests.
+#[cfg(test)]
+pub(crate) fn test_scene(name: &str) -> relight_core::scene::Scene {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../tests/scenes")
+        .join(name);
+    relight_core::scene::Scene::load(&dir).expect("the scene loads")
+}
 pub use params::{ParamError, ParamKind, ParamSpec, ParamsSchema};
 pub use registry::{BuiltEngine, EngineRegistry, EngineSpec};
 /// The CPU path tracer every engine is scored against (its own crate so that the simulator can

@@ -248,7 +248,6 @@ pub fn triangles_within(
 
 #[cfg(test)]
 pub(crate) mod tests {
-    use std::path::Path;
     use std::sync::Arc;
 
     use relight_core::light::Light;
@@ -265,6 +264,7 @@ pub(crate) mod tests {
     use crate::gpu::GpuContext;
     use crate::ibl::Ibl;
     use crate::offline::delta_pixels;
+    use crate::test_scene as scene;
 
     /// An engine whose shared passes a test can reach.
     pub(crate) trait WithDeferred: Engine {
@@ -308,13 +308,6 @@ pub(crate) mod tests {
             out.composite.as_u8().unwrap().to_vec(),
             engine.deferred_mut().real_pixels(),
         )
-    }
-
-    fn scene(name: &str) -> Scene {
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../tests/scenes")
-            .join(name);
-        Scene::load(&dir).expect("the scene loads")
     }
 
     /// Skipping the shadow-map lookups of pixels the object cannot shadow (`may_shadow`), and

@@ -450,14 +450,8 @@ const _: () = assert!(FAR_EMITTERS == (FAR_EMITTER_BLOCKS as u64).pow(3));
 mod tests {
     use super::*;
     use relight_core::scene::Mesh;
-    use std::path::Path;
 
-    fn scene(name: &str) -> Scene {
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../tests/scenes")
-            .join(name);
-        Scene::load(&dir).expect("the scene loads")
-    }
+    use crate::test_scene as scene;
 
     /// desk_box's object is a box: its bounding box is itself, so its surface is all of the
     /// box's (share 1), and its albedo its material's. A scene without one blocks nothing.
