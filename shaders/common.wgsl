@@ -468,14 +468,13 @@ fn far_field_radiance(sh: array<vec3<f32>, 9>, d: vec3<f32>) -> vec3<f32> {
     return max(l, vec3<f32>(0.0));
 }
 
-// The far emitters of a volume (`FarEmitters` in engines/src/volume.rs): V^Δ's injected light
-// summed over blocks of cells (`FAR_EMITTER_BLOCKS` per axis), each a point that real surfaces
-// outside the volume, which no cone or lookup reaches, take their Δ bounce from. `position`:
-// xyz the block's cells' centre weighted by their |L0|, w the block's half edge (the nearest a
-// receiver's 1/d² counts it; 0: the block is empty); r, g, b: its L1 SH of intensity (W/sr),
-// the sum of its VPLs' Φ/π cosine lobes (`dlpv_inject.wgsl`), ρ's less μ's.
-const FAR_EMITTER_BLOCKS: u32 = 8u;
-const FAR_EMITTERS: u32 = 512u;
+// The far emitters of a volume (`FarEmitters` in engines/src/volume.rs): a volume's injected
+// light summed over blocks of cells (`count.y` per axis), each a point that surfaces the
+// volume's own lookup does not serve take their bounce from. `position`: xyz the block's cells'
+// centre weighted by their |L0|, w the block's half edge (the nearest a receiver's 1/d² counts
+// it; 0: the block is empty); r, g, b: its L1 SH of intensity (W/sr), the sum of its VPLs' Φ/π
+// cosine lobes (`dlpv_inject.wgsl`) (for V^Δ, ρ's less μ's).
+const FAR_EMITTERS_MAX: u32 = 4096u;
 
 struct FarEmitter {
     position: vec4<f32>,
@@ -484,16 +483,36 @@ struct FarEmitter {
     b: vec4<f32>,
 }
 
-// x: how many of `emitters` are listed (the non-empty blocks, in block order).
+// x: how many of `emitters` are listed (the non-empty blocks, in block order); y: blocks per
+// axis (set when the buffer is made).
 struct FarEmitters {
     count: vec4<u32>,
-    emitters: array<FarEmitter, FAR_EMITTERS>,
+    emitters: array<FarEmitter, FAR_EMITTERS_MAX>,
+}
+
+// An emitter's summed lobes as one clamped cosine lobe about their mean normal: its unit
+// normal and its intensity along it (W/sr, rgb); a zero intensity for an empty or cancelled
+// block. The L1 projection itself is positive down to 120° off its normal, which lit the floor
+// in front of a box from the box's top.
+fn far_emitter_lobe(e: FarEmitter) -> FarEmitterLobe {
+    let l0 = vec3<f32>(e.r.x, e.g.x, e.b.x);
+    let l1 = LUMINANCE.r * e.r.wyz + LUMINANCE.g * e.g.wyz + LUMINANCE.b * e.b.wyz;
+    let net = dot(LUMINANCE, l0);
+    if dot(l1, l1) <= 0.0 || net == 0.0 {
+        return FarEmitterLobe(vec3<f32>(0.0, 0.0, 1.0), vec3<f32>(0.0));
+    }
+    return FarEmitterLobe(normalize(l1 * sign(net)), l0 / 0.886226925);
+}
+
+struct FarEmitterLobe {
+    normal: vec3<f32>,
+    intensity: vec3<f32>,
 }
 
 // Irradiance one far emitter gives a surface at `p` of unit normal `n`: its intensity towards
-// p, ⟨sh, Y(ω)⟩ with ω from the emitter to p, times ⟨n, −ω⟩₊ / d², d no nearer than the
-// block's half edge. The point light of instant radiosity (Keller 1997), without visibility:
-// what lies between a receiver and the object is not in the volume.
+// p, ⟨n_e, −ω⟩₊ along its lobe, with ω from the emitter to p, times ⟨n, −ω⟩₊ / d², d no nearer
+// than the block's half edge. The point light of instant radiosity (Keller 1997), without
+// visibility: what lies between a receiver and the object is not in the volume.
 fn far_emitter_irradiance(e: FarEmitter, p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     let to_emitter = e.position.xyz - p;
     let d2 = dot(to_emitter, to_emitter);
@@ -502,18 +521,80 @@ fn far_emitter_irradiance(e: FarEmitter, p: vec3<f32>, n: vec3<f32>) -> vec3<f32
     if cos_p <= 0.0 {
         return vec3<f32>(0.0);
     }
-    // The lobes' summed L1 read back as one clamped cosine lobe about their mean normal: the
-    // L1 projection itself is positive down to 120° off its normal, which lit the floor in
-    // front of a box from the box's top.
-    let l0 = vec3<f32>(e.r.x, e.g.x, e.b.x);
-    let l1 = LUMINANCE.r * e.r.wyz + LUMINANCE.g * e.g.wyz + LUMINANCE.b * e.b.wyz;
-    let net = dot(LUMINANCE, l0);
-    if dot(l1, l1) <= 0.0 || net == 0.0 {
+    let lobe = far_emitter_lobe(e);
+    let intensity = lobe.intensity * max(dot(lobe.normal, -w), 0.0);
+    return intensity * cos_p / max(d2, e.position.w * e.position.w);
+}
+
+// Beyond this many half edges a patch's light is its centre's, as a point's: within 4 % of the
+// irradiance it gives head on at that distance (worst case over directions and normals).
+const PATCH_AS_POINT: f32 = 6.0;
+
+// Irradiance one emitter gives a surface at `p` of unit normal `n` as the patch of surface it
+// stands for: a square of the block's edge about its normal, moved `back` along it (onto the
+// surface its VPLs were lifted off), of uniform radiance (intensity over area, a Lambertian
+// patch's). Lambert's contour integral (E = L/2 Σ θ_i ⟨n, γ_i⟩, Baum et al. 1989) over the
+// square clipped to p's horizon. Far away it is the point's light (`far_emitter_irradiance`);
+// near, it is what the patch gives, where a point's 1/d² under a grazing cosine gives almost
+// nothing: the floor right beside an object's face lights it most.
+fn patch_irradiance(e: FarEmitter, back: f32, p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    let lobe = far_emitter_lobe(e);
+    let centre = e.position.xyz - back * lobe.normal;
+    let from_centre = p - centre;
+    let d2 = dot(from_centre, from_centre);
+    let cos_e = dot(from_centre, lobe.normal);
+    if cos_e <= 0.0 || all(lobe.intensity == vec3<f32>(0.0)) {
         return vec3<f32>(0.0);
     }
-    let normal = normalize(l1 * sign(net));
-    let intensity = l0 / 0.886226925 * max(dot(normal, -w), 0.0);
-    return intensity * cos_p / max(d2, e.position.w * e.position.w);
+    let half = e.position.w;
+    if d2 > PATCH_AS_POINT * PATCH_AS_POINT * half * half {
+        return lobe.intensity * cos_e * max(-dot(n, from_centre), 0.0) / (d2 * d2);
+    }
+    // An orthonormal basis about the normal (Duff et al. 2017), t × b = normal.
+    let z = lobe.normal;
+    let sz = select(-1.0, 1.0, z.z >= 0.0);
+    let a = -1.0 / (sz + z.z);
+    let c = z.x * z.y * a;
+    let t = vec3<f32>(1.0 + sz * z.x * z.x * a, sz * c, -sz * z.x);
+    let b = vec3<f32>(c, sz + z.y * z.y * a, -z.y);
+    // The square's corners from p, counter-clockwise about the normal, clipped to n · v ≥ 0.
+    let corners = array<vec3<f32>, 4>(
+        centre - p + half * (-t - b),
+        centre - p + half * (t - b),
+        centre - p + half * (t + b),
+        centre - p + half * (-t + b),
+    );
+    var clipped: array<vec3<f32>, 5>;
+    var count = 0u;
+    for (var i = 0u; i < 4u; i++) {
+        let u = corners[i];
+        let v = corners[(i + 1u) % 4u];
+        let hu = dot(n, u);
+        let hv = dot(n, v);
+        if hu >= 0.0 {
+            clipped[count] = u;
+            count++;
+        }
+        if (hu >= 0.0) != (hv >= 0.0) {
+            clipped[count] = u + (v - u) * (hu / (hu - hv));
+            count++;
+        }
+    }
+    if count < 3u {
+        return vec3<f32>(0.0);
+    }
+    var sum = 0.0;
+    for (var i = 0u; i < count; i++) {
+        let u = normalize(clipped[i]);
+        let v = normalize(clipped[(i + 1u) % count]);
+        let g = cross(v, u);
+        let length_g = length(g);
+        if length_g > 1e-7 {
+            sum += acos(clamp(dot(u, v), -1.0, 1.0)) * dot(n, g) / length_g;
+        }
+    }
+    let radiance = lobe.intensity / (4.0 * half * half);
+    return radiance * max(0.5 * sum, 0.0);
 }
 
 // Whether `p` lies outside a volume of `n`³ cells of edge `cell` from `origin`.

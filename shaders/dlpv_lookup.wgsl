@@ -3,13 +3,15 @@
 // convolution of the light arriving against the normal, E = ⟨SH, cosine lobe(−n)⟩ / cell²
 // (each cell's intensity spread over its face, Kaplanyan & Dachsbacher), and diffuse radiance
 // albedo/π · E into the engine's indirect buffer, which the shading pass adds to Δ or L^ρ.
+// With `object_light = "patches"` (`volume.options.z`) virtual pixels take V^ρ's injected light
+// as patches of surface instead (`patches`, then `object_patches_irradiance`).
 // Virtual pixels add the far field's irradiance (the light of real surfaces outside the volume,
 // `volume.options.x`).
 // Real pixels, with the probe on (`volume.options.y`), add the Δ of the real light the object
 // blocks on its way to them (`blocked_irradiance`).
 
 struct LookupParams {
-    // width, height
+    // width, height, the object's patch stride (`patches`), strided pixels per row
     size: vec4<u32>,
 }
 
@@ -24,6 +26,10 @@ var<private> lookup: LookupParams;
 @group(0) @binding(6) var<storage, read_write> indirect: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read> far_field: array<i32, FAR_FIELD_VALUES>;
 @group(0) @binding(8) var<storage, read> probe: array<i32, FAR_FIELD_VALUES>;
+@group(0) @binding(9) var<storage, read> rho_emitters: FarEmitters;
+@group(0) @binding(10) var<storage, read> camera_buffer: Camera;
+// The object's irradiance from the patches at every `size.z`-th pixel per axis (`patches`).
+@group(0) @binding(11) var<storage, read_write> object_irradiance: array<vec4<f32>>;
 
 fn cell_sh(which: u32, c: vec3<i32>, ch: u32) -> vec4<f32> {
     let n = i32(volume.dims.x);
@@ -33,6 +39,87 @@ fn cell_sh(which: u32, c: vec3<i32>, ch: u32) -> vec4<f32> {
     let n3 = u32(n * n * n);
     let index = which * n3 + u32((c.z * n + c.y) * n + c.x);
     return unpack_sh(accumulated[index * 3u + ch]);
+}
+
+// The irradiance V^Δ (`which` 0) or V^ρ (1) gives a surface at `p` (unit normal `n`): the
+// trilinear cells `lookup_offset` cells off it.
+fn volume_irradiance(which: u32, p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    let cell = volume.origin.w;
+    // Cell centres sit at origin + (c + ½) · cell.
+    let g = (p + n * volume.scale.w * cell - volume.origin.xyz) / cell - vec3<f32>(0.5);
+    let c0 = vec3<i32>(floor(g));
+    let f = g - floor(g);
+    let lobe = cosine_lobe(-n);
+    var e = vec3<f32>(0.0);
+    for (var k = 0u; k < 8u; k++) {
+        let o = vec3<i32>(i32(k & 1u), i32((k >> 1u) & 1u), i32((k >> 2u) & 1u));
+        let w = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1)
+            * select(1.0 - f.z, f.z, o.z == 1);
+        if w <= 0.0 {
+            continue;
+        }
+        for (var ch = 0u; ch < 3u; ch++) {
+            e[ch] += w * dot(cell_sh(which, c0 + o, ch), lobe);
+        }
+    }
+    // The volume's units (`pack_sh`) back to intensity: counts, then the injection's scale.
+    let units = 1.0 / (SH_UNITS_PER_COUNT * volume.scale.x);
+    return e * (units / (cell * cell));
+}
+
+fn surface_at(xy: vec2<u32>) -> PixelSurface {
+    let at = vec2<i32>(xy);
+    return pixel_surface(textureLoad(gb_position, at, 0), textureLoad(gb_normal, at, 0));
+}
+
+// The irradiance V^ρ's injected light gives an object's surface at `p` (unit normal `n`), as
+// the patches of surface its blocks of cells stand for.
+fn patches_irradiance(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    var e = vec3<f32>(0.0);
+    for (var k = 0u; k < rho_emitters.count.x; k++) {
+        e += patch_irradiance(rho_emitters.emitters[k], 0.5 * volume.origin.w, p, n);
+    }
+    return e;
+}
+
+// The patches' irradiance at the object's pixels at every `stride`-th pixel per axis (see
+// `stride_corner` in common.wgsl and `engines/src/strided.rs`), dispatched over those pixels.
+@compute @workgroup_size(8, 8)
+fn patches(@builtin(global_invocation_id) id: vec3<u32>) {
+    volume = volume_buffer;
+    lookup = lookup_buffer;
+    let stride = lookup.size.z;
+    let xy = id.xy * stride;
+    if any(xy >= lookup.size.xy) || id.x >= lookup.size.w {
+        return;
+    }
+    let s = surface_at(xy);
+    var e = vec3<f32>(0.0);
+    if s.found && s.is_virtual {
+        e = patches_irradiance(s.p.xyz, s.n);
+    }
+    object_irradiance[id.y * lookup.size.w + id.x] = vec4<f32>(e, 0.0);
+}
+
+// The patches' irradiance at object pixel `xy` (surface `s`): the bilinear blend of its alike
+// strided neighbours' (`patches`), or its own where none is alike.
+fn object_patches_irradiance(xy: vec2<u32>, s: PixelSurface) -> vec3<f32> {
+    let stride = lookup.size.z;
+    var sum = vec3<f32>(0.0);
+    var weight = 0.0;
+    for (var k = 0u; k < 4u; k++) {
+        let at = stride_corner(xy, stride, k);
+        let w = stride_weight(xy, stride, k, lookup.size.xy);
+        if w > 0.0 && alike(s, surface_at(at), camera_buffer.position.xyz) {
+            let j = (at.y / stride) * lookup.size.w + at.x / stride;
+            sum += w * object_irradiance[j].rgb;
+            weight += w;
+        }
+    }
+    if weight > 0.0 {
+        return sum / weight;
+    }
+    return patches_irradiance(s.p.xyz, s.n);
 }
 
 @compute @workgroup_size(8, 8)
@@ -53,27 +140,12 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let n = normalize(normal.xyz);
     let which = select(0u, 1u, normal.w > 0.5);
     let cell = volume.origin.w;
-    // Cell centres sit at origin + (c + ½) · cell.
-    let g = (p.xyz + n * volume.scale.w * cell - volume.origin.xyz) / cell - vec3<f32>(0.5);
-    let c0 = vec3<i32>(floor(g));
-    let f = g - floor(g);
-    let lobe = cosine_lobe(-n);
-    var e = vec3<f32>(0.0);
-    for (var k = 0u; k < 8u; k++) {
-        let o = vec3<i32>(i32(k & 1u), i32((k >> 1u) & 1u), i32((k >> 2u) & 1u));
-        let w = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1)
-            * select(1.0 - f.z, f.z, o.z == 1);
-        if w <= 0.0 {
-            continue;
-        }
-        for (var ch = 0u; ch < 3u; ch++) {
-            e[ch] += w * dot(cell_sh(which, c0 + o, ch), lobe);
-        }
+    var e: vec3<f32>;
+    if which == 1u && volume.options.z == 1u {
+        e = object_patches_irradiance(id.xy, pixel_surface(p, normal));
+    } else {
+        e = volume_irradiance(which, p.xyz, n);
     }
-    let albedo = textureLoad(gb_albedo, xy, 0).rgb;
-    // The volume's units (`pack_sh`) back to intensity: counts, then the injection's scale.
-    let units = 1.0 / (SH_UNITS_PER_COUNT * volume.scale.x);
-    e *= units / (cell * cell);
     if which == 0u && volume.options.y == 1u {
         // The object's directly lit faces are V^Δ's VPLs already.
         e += blocked_irradiance(volume.object, probe_sh(probe, volume.object, volume.scale.x),
@@ -83,5 +155,6 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         let half_edge = 0.5 * f32(volume.dims.x) * cell;
         e += far_field_irradiance(far_field_sh(far_field, volume.scale.x * half_edge * half_edge), n);
     }
+    let albedo = textureLoad(gb_albedo, xy, 0).rgb;
     indirect[i] = vec4<f32>(albedo / PI * e, 0.0);
 }

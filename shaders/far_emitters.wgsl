@@ -1,8 +1,7 @@
-// Far emitters (engines/src/volume.rs, `FarEmitters`): V^Δ's injected counts summed over
-// blocks of cells into point emitters (`FarEmitter`, common.wgsl), which light the real
-// surfaces outside the volume. `main` sums one block per invocation; `list` then moves the
-// non-empty blocks to the front, in block order, so that a receiver loops over those alone and
-// the sums it adds come in the same order on every frame.
+// Far emitters (engines/src/volume.rs, `FarEmitters`): a volume's injected counts summed over
+// blocks of cells into point emitters (`FarEmitter`, common.wgsl). `main` sums one block per
+// invocation; `list` then moves the non-empty blocks to the front, in block order, so that a
+// receiver loops over those alone and the sums it adds come in the same order on every frame.
 
 @group(0) @binding(0) var<storage, read> volume_buffer: Volume;
 var<private> volume: Volume;
@@ -17,13 +16,13 @@ fn counts(base: u32) -> vec4<f32> {
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     volume = volume_buffer;
-    if id.x >= FAR_EMITTERS {
+    let blocks = far.count.y;
+    if id.x >= blocks * blocks * blocks {
         return;
     }
     let n = volume.dims.x;
-    let edge = (n + FAR_EMITTER_BLOCKS - 1u) / FAR_EMITTER_BLOCKS;
-    let block = vec3<u32>(id.x % FAR_EMITTER_BLOCKS, (id.x / FAR_EMITTER_BLOCKS) % FAR_EMITTER_BLOCKS,
-                          id.x / (FAR_EMITTER_BLOCKS * FAR_EMITTER_BLOCKS));
+    let edge = (n + blocks - 1u) / blocks;
+    let block = vec3<u32>(id.x % blocks, (id.x / blocks) % blocks, id.x / (blocks * blocks));
     let lo = block * edge;
     let hi = min(lo + vec3<u32>(edge), vec3<u32>(n));
     var e: FarEmitter;
@@ -60,12 +59,13 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
 @compute @workgroup_size(1)
 fn list() {
     var count = 0u;
-    for (var k = 0u; k < FAR_EMITTERS; k++) {
+    let blocks = far.count.y;
+    for (var k = 0u; k < blocks * blocks * blocks; k++) {
         let e = far.emitters[k];
         if e.position.w > 0.0 {
             far.emitters[count] = e;
             count++;
         }
     }
-    far.count = vec4<u32>(count, 0u, 0u, 0u);
+    far.count = vec4<u32>(count, blocks, 0u, 0u);
 }

@@ -115,7 +115,13 @@ fn relighting_engines_render_offline_scenes_and_bad_requests_are_refused() {
     assert_eq!(summary["engine"], "differential");
     assert_eq!(summary["params"]["rsm_size"], 128);
     assert!(summary["delta_relative_l2"].as_f64().unwrap().is_finite());
-    for file in ["delta.exr", "delta_reference.exr", "composite.png"] {
+    for file in [
+        "delta.exr",
+        "delta_reference.exr",
+        "l_rho_reference.exr",
+        "composite.png",
+        "virtual_mask.png",
+    ] {
         assert!(out.path().join(file).exists(), "{file}");
     }
     // `differential` is direct light alone, so against the reference at `--bounces 0` (pixel

@@ -362,17 +362,17 @@ pub(crate) fn far_receivers_param() -> ParamSpec {
     )
 }
 
-/// Blocks per axis and their count (`FAR_EMITTER_BLOCKS`, `FAR_EMITTERS` in common.wgsl).
-const FAR_EMITTER_BLOCKS: u32 = 8;
-const FAR_EMITTERS: u64 = 512;
+/// The most emitters a buffer holds (`FAR_EMITTERS_MAX` in common.wgsl): 16 blocks per axis.
+const FAR_EMITTERS_MAX: u64 = 4096;
 
-/// V^Δ's injected light as point emitters for the real surfaces outside the volume
-/// (`shaders/far_emitters.wgsl`): its counts summed over 8³ blocks of cells, each an L1 SH lobe
-/// of intensity at its cells' centre, the non-empty ones listed first (`dvct`'s far receivers).
+/// A volume's injected light as emitters (`shaders/far_emitters.wgsl`): its counts summed over
+/// blocks of cells (8³ by default), each an L1 SH lobe of intensity at its cells' centre, the
+/// non-empty ones listed first. `dvct`'s far receivers take V^Δ's as points; `dlpv`'s object
+/// takes V^ρ's as patches of surface (`patch_irradiance` in `shaders/common.wgsl`).
 ///
-/// Why: a volume spans `volume_scale` × the object, so a real pixel beyond it had no bounce
-/// term, yet what the object changes in the room's first bounce reaches every surface that sees
-/// it. On desk_box (a box under a lamp in a three-walled room) 92 % of the real pixels lie
+/// Why, for the far receivers: a volume spans `volume_scale` × the object, so a real pixel
+/// beyond it had no bounce term, yet what the object changes in the room's first bounce reaches
+/// every surface that sees it. On desk_box (a box under a lamp in a three-walled room) 92 % of the real pixels lie
 /// outside `dvct`'s volume, and the reference's one-bounce Δ there sums to −37 (in luminance,
 /// against −8 inside), and held 61 % of stop 48's `dvct`'s squared error. Part of it is these
 /// emitters' light (the floor the box shadows no longer lights the back wall, more than the
@@ -386,38 +386,41 @@ const FAR_EMITTERS: u64 = 512;
 #[derive(Debug)]
 pub(crate) struct FarEmitters {
     pub buffer: wgpu::Buffer,
+    blocks: u32,
     sum: wgpu::ComputePipeline,
     list: wgpu::ComputePipeline,
 }
 
 impl FarEmitters {
-    pub fn new(ctx: &GpuContext) -> Self {
+    /// Emitters of `blocks`³ blocks of a volume's cells (at most 16 per axis).
+    pub fn new(ctx: &GpuContext, blocks: u32) -> Self {
+        assert!(u64::from(blocks).pow(3) <= FAR_EMITTERS_MAX);
         let source = shaders::FAR_EMITTERS;
+        // The header (listed count, blocks per axis; 16 bytes), then the emitters, four vec4s
+        // each.
+        let mut contents = vec![0u8; (16 + FAR_EMITTERS_MAX * 64) as usize];
+        contents[4..8].copy_from_slice(&blocks.to_le_bytes());
         Self {
-            // The count (16 bytes), the blocked light's 9 SH (rgb, 16 bytes each), then 512
-            // emitters of four vec4s.
-            buffer: ctx.buffer(
-                "far emitters",
-                16 + 9 * 16 + FAR_EMITTERS * 64,
-                wgpu::BufferUsages::STORAGE,
-            ),
+            buffer: ctx.buffer_with("far emitters", &contents, wgpu::BufferUsages::STORAGE),
+            blocks,
             sum: shaders::compute_pipeline(&ctx.device, "far emitters", source),
             list: shaders::compute_pipeline_at(&ctx.device, "far emitters list", source, "list"),
         }
     }
 
-    /// Sum `cells`' V^Δ into the emitters, the volume's placement and fixed-point scale read
-    /// from `uniform` (`VolumeUniform`).
+    /// Sum `cells`' V^Δ (`which` 0) or V^ρ (1) into the emitters, the volume's placement and
+    /// fixed-point scale read from `uniform` (`VolumeUniform`).
     pub fn dispatch(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass,
         uniform: &wgpu::Buffer,
         cells: &CellCounts,
+        which: u64,
     ) {
         let resources = [
             uniform.as_entire_binding(),
-            cells.binding(0),
+            cells.binding(which),
             self.buffer.as_entire_binding(),
         ];
         let sum = shaders::pipeline_bind_group(device, &self.sum, "far emitters", &resources);
@@ -430,7 +433,7 @@ impl FarEmitters {
         );
         pass.set_pipeline(&self.sum);
         pass.set_bind_group(0, &sum, &[]);
-        pass.dispatch_workgroups((FAR_EMITTERS as u32).div_ceil(64), 1, 1);
+        pass.dispatch_workgroups(self.blocks.pow(3).div_ceil(64), 1, 1);
         pass.set_pipeline(&self.list);
         pass.set_bind_group(0, &list, &[]);
         pass.dispatch_workgroups(1, 1, 1);
@@ -438,17 +441,16 @@ impl FarEmitters {
 
     /// What summing `n`³ cells and listing the blocks must do: every cell's 12 counts read once
     /// (about 20 operations each), each emitter written and moved once.
-    pub fn work(n: u32) -> Work {
+    pub fn work(&self, n: u32) -> Work {
         Work::new(48.0, 20.0).times(f64::from(n).powi(3))
-            + Work::new(3.0 * 64.0, 8.0).times(FAR_EMITTERS as f64)
+            + Work::new(3.0 * 64.0, 8.0).times(f64::from(self.blocks).powi(3))
     }
 }
-
-const _: () = assert!(FAR_EMITTERS == (FAR_EMITTER_BLOCKS as u64).pow(3));
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use glam::DVec3;
     use relight_core::scene::Mesh;
 
     use crate::test_scene as scene;
@@ -627,5 +629,123 @@ mod tests {
         let (origin, _) = placement(&scene, 16, 3.0, true).unwrap();
         assert!((origin + Vec3::splat(edge / 2.0) - centre).length() < 1e-4 * edge);
         assert!((origin.z + edge / 2.0 - centre.z).abs() < 1e-5, "{origin}");
+    }
+
+    /// `patch_irradiance` (`shaders/common.wgsl`) against the integral it stands for, summed
+    /// over 600² pieces of the square in f64: a Lambertian square of half edge 1 and unit
+    /// intensity along its normal (+y), seen head on, from beside its edge low down (a face
+    /// standing on a lit floor), from a receiver whose horizon cuts it, from behind it, and from
+    /// past `PATCH_AS_POINT` half edges, where it is taken as a point (within 4 % of the
+    /// head-on light at that distance).
+    #[test]
+    fn a_patch_gives_its_contour_integral() {
+        let ctx = GpuContext::new().expect("a GPU adapter (lavapipe in CI)");
+        let device = &ctx.device;
+        let source = concat!(
+            include_str!("../../shaders/common.wgsl"),
+            "
+            @group(0) @binding(0) var<storage, read> emitter: FarEmitter;
+            @group(0) @binding(1) var<storage, read> queries: array<vec4<f32>>;
+            @group(0) @binding(2) var<storage, read_write> result: array<f32>;
+            @compute @workgroup_size(1)
+            fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+                let p = queries[2u * id.x].xyz;
+                let n = queries[2u * id.x + 1u].xyz;
+                result[id.x] = patch_irradiance(emitter, 0.0, p, n).x;
+            }"
+        );
+        let cases: [(DVec3, DVec3, f64); 6] = [
+            (DVec3::new(0.0, 1.0, 0.0), DVec3::NEG_Y, 0.01),
+            (DVec3::new(1.05, 0.1, 0.3), DVec3::NEG_X, 0.01),
+            (DVec3::new(0.5, 0.4, 0.0), DVec3::new(-1.0, -0.3, 0.0), 0.01),
+            (DVec3::new(-0.3, 0.5, 0.2), DVec3::new(0.2, -1.0, 0.4), 0.01),
+            (DVec3::new(0.2, -0.5, 0.0), DVec3::Y, 0.0),
+            (
+                DVec3::new(5.0, 4.0, 2.0),
+                DVec3::new(-1.0, -0.5, -0.2),
+                0.04,
+            ),
+        ];
+        // A cosine lobe of unit intensity about +y: L0 = √π/2, L1 = √(π/3) (y, z, x).
+        let lobe = [0.886_226_9f32, 1.023_326_7, 0.0, 0.0];
+        let emitter: Vec<f32> = [[0.0, 0.0, 0.0, 1.0], lobe, lobe, lobe].concat();
+        let queries: Vec<f32> = cases
+            .iter()
+            .flat_map(|(p, n, _)| {
+                let n = n.normalize();
+                [p.x, p.y, p.z, 0.0, n.x, n.y, n.z, 0.0].map(|v| v as f32)
+            })
+            .collect();
+        use wgpu::util::DeviceExt;
+        let init = |label, contents: &[f32], usage| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytemuck::cast_slice(contents),
+                usage,
+            })
+        };
+        use wgpu::BufferUsages as U;
+        let emitter = init("emitter", &emitter, U::STORAGE);
+        let queries = init("queries", &queries, U::STORAGE);
+        let result = init("result", &vec![0.0; cases.len()], U::STORAGE | U::COPY_SRC);
+        let pipeline = shaders::compute_pipeline(device, "patch irradiance", source);
+        let group = shaders::pipeline_bind_group(
+            device,
+            &pipeline,
+            "patch irradiance",
+            &[
+                emitter.as_entire_binding(),
+                queries.as_entire_binding(),
+                result.as_entire_binding(),
+            ],
+        );
+        let mut encoder = device.create_command_encoder(&Default::default());
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&pipeline);
+            pass.set_bind_group(0, &group, &[]);
+            pass.dispatch_workgroups(cases.len() as u32, 1, 1);
+        }
+        ctx.queue.submit([encoder.finish()]);
+        let size = (cases.len() * 4) as u64;
+        let staging = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("staging"),
+            size,
+            usage: U::MAP_READ | U::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let gpu: Vec<f32> = ctx
+            .read_back(&result, &staging, size, |bytes| {
+                bytemuck::cast_slice(bytes).to_vec()
+            })
+            .unwrap();
+        // Radiance intensity / area = 1/4 over the square x, z ∈ [−1, 1] at y = 0.
+        let pieces = 600;
+        let piece = 2.0 / f64::from(pieces);
+        for ((p, n, tolerance), gpu) in cases.iter().zip(&gpu) {
+            let n = n.normalize();
+            let mut expected = 0.0;
+            for i in 0..pieces {
+                for j in 0..pieces {
+                    let q = DVec3::new(
+                        -1.0 + (f64::from(i) + 0.5) * piece,
+                        0.0,
+                        -1.0 + (f64::from(j) + 0.5) * piece,
+                    );
+                    let d = *p - q;
+                    let r2 = d.length_squared();
+                    let (cos_e, cos_r) = (d.y / r2.sqrt(), -n.dot(d) / r2.sqrt());
+                    if cos_e > 0.0 && cos_r > 0.0 {
+                        expected += 0.25 * cos_e * cos_r / r2 * piece * piece;
+                    }
+                }
+            }
+            let head_on = 0.25 * 4.0 / p.length_squared();
+            eprintln!("at {p} facing {n}: {gpu:.5}, the integral {expected:.5}");
+            assert!(
+                (f64::from(*gpu) - expected).abs() <= tolerance * head_on.max(expected) + 1e-6,
+                "at {p} facing {n}: {gpu} against {expected}"
+            );
+        }
     }
 }

@@ -15,23 +15,33 @@
 //! 2. **resolve** the counts to SH, stored as f16 ([`SH_CELL_BYTES`]); **propagate** N steps
 //!    (gather from the six neighbours over their faces' solid angles, written out per
 //!    direction: `dlpv_propagate.wgsl`, `propagate.rs`), accumulating every step; negative
-//!    light is dampened per step. V^ρ, the light on the object, stops after `rho_steps` (4): nothing
-//!    occludes in the volume, so later steps only carry the floor's light around and through
-//!    the object onto it (object relative L2 0.28–0.80 at 32 steps, 0.13–0.28 at 8; the
-//!    geometry volume of Kaplanyan & Dachsbacher would be the principled fix). The light from
-//!    beyond the volume comes from the far field instead (`far_field`, 0.12–0.21 at 4). V^Δ
-//!    takes `steps`.
+//!    light is dampened per step. V^Δ takes `steps`. V^ρ, the light on the object, is read
+//!    by default as patches (step 3), and does not propagate; with `object_light = "volume"`
+//!    (the paper) it stops after `rho_steps` (4): nothing occludes in the volume, so later
+//!    steps only carry the floor's light around and through the object onto it (object
+//!    relative L2 0.28–0.80 at 32 steps, 0.13–0.28 at 8), and the light from beyond the volume
+//!    comes from the far field instead (`far_field`, 0.10–0.13 at 4).
 //!
 //! The volume is 16³ and V^Δ takes 8 steps by default, against the paper's 32³ and 32: measured
 //! over the five scenes, that is as close to the reference on Δ and the object as the paper's
 //! setting or closer (later steps carry the object's lit faces' VPLs through it into its own
 //! shadow; coarser cells smooth the halo they leave) in a third of the time
 //! (`docs/ALGORITHMS.md`, `dlpv`, "`volume_size` and `steps`").
-//! 3. **look up** (`dlpv_lookup.wgsl`): trilinear V^Δ on real pixels, V^ρ plus the far field's
-//!    irradiance (`CellCounts::far_field`) on virtual ones.
+//! 3. **look up** (`dlpv_lookup.wgsl`): trilinear V^Δ on real pixels (plus the light the
+//!    object blocks, `occlusion`), and on virtual ones the patches' light plus the far field's
+//!    irradiance (`CellCounts::far_field`). **The patches** (`object_light = "patches"`, the
+//!    default; not in the paper): V^ρ's injected light, R^ρ's VPLs within the volume, summed
+//!    over 8³ blocks of cells (`volume::FarEmitters`), each block a square of Lambertian
+//!    surface about its VPLs' mean normal whose light is Lambert's contour integral over it
+//!    (`patch_irradiance` in `shaders/common.wgsl`), gathered at every `patch_stride`-th object
+//!    pixel. Propagated 4 steps, V^ρ carried a face's light from the floor only half the
+//!    object's edge, and a point's light under a grazing cosine gives almost nothing to the
+//!    face standing right beside the floor it lights: object L2 on the bench's five scenes
+//!    0.098–0.134 → 0.027–0.095 (`docs/ALGORITHMS.md`, `dlpv`). No visibility: within the
+//!    volume, a real surface between a patch and the object does not block it.
 //! 4. the shared shading pass composites (Algorithm 1): real pixels B + albedo · V^Δ (+ the
 //!    shadow-mapped direct Δ when `shadows = "shadow_map"`), virtual pixels direct + albedo ·
-//!    (V^ρ + far field).
+//!    (the patches or V^ρ, + far field).
 //!
 //! The volume is `volume_scale` × the virtual object's largest edge on a side (the paper: about
 //! 2×), centred on the object and then moved out of what lies beyond the scene's bounds
@@ -62,9 +72,14 @@ use crate::timer::timed_pass;
 use propagate::{Propagation, PropagationBuffers};
 
 use crate::volume::{
-    CellCounts, InjectPass, ObjectBox, VolumeUniform, fixed_point_scale, frame_placement,
-    volume_reach,
+    CellCounts, FarEmitters, InjectPass, ObjectBox, VolumeUniform, fixed_point_scale,
+    frame_placement, volume_reach,
 };
+
+/// The object's patches per axis of the volume (`FarEmitters`): 2 cells each at 16³. One a cell
+/// (16 per axis) read the bench's object errors within 0.021 of these, closer on two scenes and
+/// farther on three, and its still frames took 2.3–2.7 times as long (`docs/ALGORITHMS.md`).
+const OBJECT_PATCH_BLOCKS: u32 = 8;
 
 /// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
 /// "Environment lights").
@@ -97,6 +112,24 @@ pub struct DlpvSettings {
     /// to them (`CellCounts::probe`, `blocked_irradiance` in `shaders/common.wgsl`); else
     /// they take V^Δ alone (the paper).
     pub probe_occlusion: bool,
+    /// The object's pixels take V^ρ's injected light, summed into blocks of cells, as patches
+    /// of Lambertian surface (`FarEmitters`, `patch_irradiance` in `shaders/common.wgsl`)
+    /// instead of the propagated V^ρ, which then does not propagate.
+    pub object_patches: bool,
+    /// The patches' light is gathered at every `patch_stride`-th object pixel per axis and
+    /// shared with the alike pixels between (`engines/src/strided.rs`).
+    pub patch_stride: u32,
+}
+
+impl DlpvSettings {
+    /// How many steps V^ρ propagates: none when the object takes its light from patches.
+    fn rho_propagation_steps(&self) -> u32 {
+        if self.object_patches {
+            0
+        } else {
+            self.rho_steps.min(self.steps)
+        }
+    }
 }
 
 impl Default for DlpvSettings {
@@ -115,6 +148,8 @@ impl Default for DlpvSettings {
             far_field: true,
             volume_in_scene: true,
             probe_occlusion: true,
+            object_patches: true,
+            patch_stride: 2,
         }
     }
 }
@@ -142,8 +177,13 @@ pub struct Dlpv {
     resolve: wgpu::ComputePipeline,
     propagate: Propagation,
     lookup: wgpu::ComputePipeline,
+    /// `dlpv_lookup.wgsl`'s `patches`: the object's light from V^ρ's patches at strided pixels.
+    patches: wgpu::ComputePipeline,
     volume_uniform: wgpu::Buffer,
     lookup_uniform: wgpu::Buffer,
+    rho_emitters: FarEmitters,
+    /// The patches' irradiance at the strided pixels, and the picture size it was made for.
+    object_irradiance: Option<((u32, u32), wgpu::Buffer)>,
     volume: Option<VolumeBuffers>,
     /// What `volume`'s accumulated V^Δ was propagated from: kept while the shadow maps, the
     /// lights and the volume's placement hold.
@@ -227,6 +267,18 @@ impl Dlpv {
                 "`probe`: real pixels also lose the real scene's first bounce that the object blocks on its way to them (every real VPL's light gathered at the object's centre, over the solid angle the object covers from them); `none`: V^Δ alone, as in the paper",
                 vec!["probe", "none"],
             ),
+            ParamSpec::choice(
+                "object_light",
+                "`patches`: the object's pixels take V^ρ's injected light (R^ρ's VPLs in the volume), summed over 8³ blocks of cells, each a square of Lambertian surface, by Lambert's contour integral; `volume`: V^ρ propagated `rho_steps`, as in the paper",
+                vec!["patches", "volume"],
+            ),
+            int(
+                "patch_stride",
+                "the object's light from the patches at every n-th pixel per axis; the pixels between take their alike neighbours' (1: every pixel)",
+                1,
+                4,
+                2,
+            ),
             crate::deferred::env_lights_param(ENV_LIGHTS_DEFAULT),
             crate::deferred::accumulate_param(),
             crate::deferred::indirect_param(),
@@ -240,8 +292,16 @@ impl Dlpv {
             resolve: shaders::compute_pipeline(&ctx.device, "dlpv resolve", shaders::DLPV_RESOLVE),
             propagate: Propagation::new(&ctx.device),
             lookup: shaders::compute_pipeline(&ctx.device, "dlpv lookup", shaders::DLPV_LOOKUP),
+            patches: shaders::compute_pipeline_at(
+                &ctx.device,
+                "dlpv patches",
+                shaders::DLPV_LOOKUP,
+                "patches",
+            ),
             volume_uniform: uniform("dlpv volume", size_of::<VolumeUniform>()),
             lookup_uniform: uniform("dlpv lookup", size_of::<LookupUniform>()),
+            rho_emitters: FarEmitters::new(&ctx, OBJECT_PATCH_BLOCKS),
+            object_irradiance: None,
             deferred: Deferred::new(ctx),
             settings: DlpvSettings::default(),
             volume: None,
@@ -292,15 +352,23 @@ impl Dlpv {
 /// `faces` VPL maps of `rsm_size`². Every propagation step reads each cell's SH and writes it,
 /// and adds it into the accumulation ([`SH_CELL_BYTES`] each way), with about 660 operations
 /// per cell (`dlpv_propagate.wgsl`: six neighbours, five faces, three channels); V^Δ takes
-/// `steps` of them, V^ρ `rho_steps`.
-fn propagation_work(n: u32, faces: u32, rsm_size: u32, settings: DlpvSettings) -> [PassWork; 2] {
+/// `steps` of them, V^ρ `rho_propagation_steps`. With `patches`, the injection pass also sums
+/// V^ρ into them (`patches`' work).
+fn propagation_work(
+    n: u32,
+    faces: u32,
+    rsm_size: u32,
+    settings: DlpvSettings,
+    patches: Option<Work>,
+) -> [PassWork; 2] {
     let volume = f64::from(n).powi(3);
     let cells = 2.0 * volume;
     let sh = SH_CELL_BYTES as f64;
-    let inject =
-        InjectPass::work(rsm_size, faces, cells) + Work::new(48.0 + 2.0 * sh, 12.0).times(cells);
+    let inject = InjectPass::work(rsm_size, faces, cells)
+        + Work::new(48.0 + 2.0 * sh, 12.0).times(cells)
+        + patches.unwrap_or_default();
     let step = Work::new(sh + sh + 2.0 * sh, 660.0).times(volume);
-    let volume_steps = settings.steps + settings.rho_steps.min(settings.steps);
+    let volume_steps = settings.steps + settings.rho_propagation_steps();
     [
         PassWork {
             pass: "inject",
@@ -364,7 +432,7 @@ impl Engine for Dlpv {
                 options: [
                     u32::from(settings.far_field),
                     u32::from(settings.probe_occlusion),
-                    0,
+                    u32::from(settings.object_patches),
                     0,
                 ],
                 object: ObjectBox::of_frame(frame).uniform(),
@@ -375,23 +443,48 @@ impl Engine for Dlpv {
                 &self.lookup_uniform,
                 0,
                 bytemuck::bytes_of(&LookupUniform {
-                    size: [width, height, 0, 0],
+                    size: [
+                        width,
+                        height,
+                        settings.patch_stride,
+                        width.div_ceil(settings.patch_stride),
+                    ],
                 }),
             );
             self.volume_buffers()?;
+            let strided = (
+                width.div_ceil(settings.patch_stride),
+                height.div_ceil(settings.patch_stride),
+            );
+            if self.object_irradiance.as_ref().map(|(size, _)| *size) != Some(strided) {
+                let bytes = u64::from(strided.0) * u64::from(strided.1) * 16;
+                let buffer = ctx.buffer(
+                    "dlpv object irradiance",
+                    bytes.max(16),
+                    wgpu::BufferUsages::STORAGE,
+                );
+                self.object_irradiance = Some((strided, buffer));
+            }
             let inputs = KeptInputs::hash_of(&[
                 bytemuck::bytes_of(&volume),
                 &settings.steps.to_le_bytes(),
-                &settings.rho_steps.to_le_bytes(),
+                &settings.rho_propagation_steps().to_le_bytes(),
                 &self.deferred.light_inputs().to_le_bytes(),
             ]);
             let repropagate = !self.propagated.holds(inputs);
             let mut timer = self.deferred.lend_timer();
-            let (Some(v), Some(light_buffers), Some((gb_rho, _, indirect))) = (
+            let (
+                Some(v),
+                Some((_, object_irradiance)),
+                Some(light_buffers),
+                Some((gb_rho, _, indirect)),
+            ) = (
                 self.volume.as_ref(),
+                self.object_irradiance.as_ref(),
                 self.deferred.light_buffers(),
                 self.deferred.frame_buffers(),
-            ) else {
+            )
+            else {
                 return Err(EngineError::NotPrepared);
             };
             let inject_group =
@@ -426,8 +519,18 @@ impl Engine for Dlpv {
                 indirect.as_entire_binding(),
                 v.cells.far_field(),
                 v.cells.probe(),
+                self.rho_emitters.buffer.as_entire_binding(),
+                self.deferred.camera_buffer().as_entire_binding(),
+                object_irradiance.as_entire_binding(),
             ]);
             let lookup_group = group(&self.lookup, "dlpv lookup", &lookup_resources);
+            let patches_group = shaders::pipeline_bind_group_of(
+                &ctx.device,
+                &self.patches,
+                "dlpv patches",
+                &lookup_resources,
+                &[0, 1, 3, 4, 9, 11],
+            );
 
             let mut encoder = ctx
                 .device
@@ -435,8 +538,13 @@ impl Engine for Dlpv {
                     label: Some("dlpv"),
                 });
             if repropagate {
-                out.work
-                    .extend(propagation_work(n, faces, rsm_size, settings));
+                out.work.extend(propagation_work(
+                    n,
+                    faces,
+                    rsm_size,
+                    settings,
+                    settings.object_patches.then(|| self.rho_emitters.work(n)),
+                ));
                 encoder.clear_buffer(&v.cells.buffer, 0, None);
                 {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
@@ -445,6 +553,15 @@ impl Engine for Dlpv {
                     pass.set_pipeline(&self.resolve);
                     pass.set_bind_group(0, &resolve_group, &[]);
                     pass.dispatch_workgroups((2 * n.pow(3) * 3).div_ceil(64), 1, 1);
+                    if settings.object_patches {
+                        self.rho_emitters.dispatch(
+                            &ctx.device,
+                            &mut pass,
+                            &self.volume_uniform,
+                            &v.cells,
+                            1,
+                        );
+                    }
                 }
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.propagate");
                 self.propagate.record(
@@ -458,11 +575,16 @@ impl Engine for Dlpv {
                     },
                     n,
                     settings.steps,
-                    settings.rho_steps,
+                    settings.rho_propagation_steps(),
                 );
             }
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.lookup");
+                if settings.object_patches {
+                    pass.set_pipeline(&self.patches);
+                    pass.set_bind_group(0, &patches_group, &[]);
+                    pass.dispatch_workgroups(strided.0.div_ceil(8), strided.1.div_ceil(8), 1);
+                }
                 pass.set_pipeline(&self.lookup);
                 pass.set_bind_group(0, &lookup_group, &[]);
                 pass.dispatch_workgroups(width.div_ceil(8), height.div_ceil(8), 1);
@@ -512,6 +634,8 @@ impl Engine for Dlpv {
             far_field: schema.choice(params, "far_field") == "probe",
             volume_in_scene: schema.choice(params, "volume_placement") == "scene",
             probe_occlusion: schema.choice(params, "occlusion") == "probe",
+            object_patches: schema.choice(params, "object_light") == "patches",
+            patch_stride: int("patch_stride"),
         };
         self.deferred
             .set_environment_light_count(schema.int(params, "env_lights") as u32);

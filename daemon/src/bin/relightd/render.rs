@@ -82,14 +82,7 @@ fn render_with_reference(scene_dir: &Path, settings: ReferenceSettings, out: &Pa
         &out.join("composite.png"),
         &tonemap_reinhard(w, h, &images.l_rho),
     )?;
-    // Which pixels are the object's: to score an image region by region against these.
-    let mut mask = Image::new(w, h, PixelFormat::Mono8);
-    if let Some(pixels) = mask.as_u8_mut() {
-        for (pixel, object) in pixels.iter_mut().zip(&images.virtual_mask) {
-            *pixel = if *object { 255 } else { 0 };
-        }
-    }
-    write_png(&out.join("virtual_mask.png"), &mask)?;
+    write_virtual_mask(out, w, h, &images.virtual_mask)?;
     let real = images.virtual_mask.iter().filter(|v| !**v).count().max(1);
     let mean_std_error = images
         .delta_std_error
@@ -122,6 +115,18 @@ fn render_with_reference(scene_dir: &Path, settings: ReferenceSettings, out: &Pa
     Ok(())
 }
 
+/// Which pixels are the object's, as `virtual_mask.png`: to score an image region by region
+/// against the reference's images.
+fn write_virtual_mask(out: &Path, w: u32, h: u32, virtual_mask: &[bool]) -> Result<()> {
+    let mut mask = Image::new(w, h, PixelFormat::Mono8);
+    if let Some(pixels) = mask.as_u8_mut() {
+        for (pixel, object) in pixels.iter_mut().zip(virtual_mask) {
+            *pixel = if *object { 255 } else { 0 };
+        }
+    }
+    Ok(write_png(&out.join("virtual_mask.png"), &mask)?)
+}
+
 /// Trace `spp` samples per pixel in batches, with a bar on stderr when it is a terminal (a
 /// 256-spp reference takes a minute on a laptop CPU).
 fn trace_with_progress(renderer: &mut ReferenceRenderer, spp: u32) -> ReferenceImages {
@@ -140,9 +145,10 @@ fn trace_with_progress(renderer: &mut ReferenceRenderer, spp: u32) -> ReferenceI
     renderer.images()
 }
 
-/// Render an offline scene with a relighting engine: Δ as EXR, the composite as PNG, and a
-/// summary with the frame time and the error of Δ against the reference at `--spp`, traced
-/// with `--bounces` and `--seed` (`--bounces 0`: the engine against direct light alone).
+/// Render an offline scene with a relighting engine: Δ as EXR beside the reference's Δ and L^ρ,
+/// the composite and the object's mask as PNG, and a summary with the frame time and the error
+/// of Δ against the reference at `--spp`, traced with `--bounces` and `--seed` (`--bounces 0`:
+/// the engine against direct light alone).
 fn render_engine(args: &Args, size: Option<(u32, u32)>) -> Result<()> {
     let (engine, spp, out) = (args.engine.as_str(), args.spp, args.out.as_path());
     let scene = Arc::new(Scene::load(&args.scene)?);
@@ -177,6 +183,9 @@ fn render_engine(args: &Args, size: Option<(u32, u32)>) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     write_exr(&out.join("delta.exr"), w, h, &delta)?;
     write_exr(&out.join("delta_reference.exr"), w, h, &reference.delta)?;
+    // The truth the object's pixels are judged against, sampled as the engine's are.
+    write_exr(&out.join("l_rho_reference.exr"), w, h, &reference.l_rho)?;
+    write_virtual_mask(out, w, h, &reference.virtual_mask)?;
     write_png(&out.join("composite.png"), &relit.composite)?;
     let summary = serde_json::json!({
         "scene": scene.name,
