@@ -470,17 +470,18 @@ fn far_field_radiance(sh: array<vec3<f32>, 9>, d: vec3<f32>) -> vec3<f32> {
 
 // The far emitters of a volume (`FarEmitters` in engines/src/volume.rs): a volume's injected
 // light summed over blocks of cells (`count.y` per axis), each a point that surfaces the
-// volume's own lookup does not serve take their bounce from. `position`: xyz the block's cells'
-// centre weighted by their |L0|, w the block's half edge (the nearest a receiver's 1/d² counts
-// it; 0: the block is empty); r, g, b: its L1 SH of intensity (W/sr), the sum of its VPLs' Φ/π
-// cosine lobes (`dlpv_inject.wgsl`) (for V^Δ, ρ's less μ's).
+// volume's own lookup does not serve take their bounce from. The sum of a block's VPLs' Φ/π
+// cosine lobes (`dlpv_inject.wgsl`; for V^Δ, ρ's less μ's) is read as one clamped cosine lobe
+// about their mean normal (`far_emitters.wgsl`). `position`: xyz the block's cells' centre
+// weighted by their |L0|, w the block's half edge (the nearest a receiver's 1/d² counts it; 0:
+// the block is empty); `normal`: the lobe's unit normal; `intensity`: rgb its intensity along
+// it (W/sr).
 const FAR_EMITTERS_MAX: u32 = 4096u;
 
 struct FarEmitter {
     position: vec4<f32>,
-    r: vec4<f32>,
-    g: vec4<f32>,
-    b: vec4<f32>,
+    normal: vec4<f32>,
+    intensity: vec4<f32>,
 }
 
 // x: how many of `emitters` are listed (the non-empty blocks, in block order); y: blocks per
@@ -488,25 +489,6 @@ struct FarEmitter {
 struct FarEmitters {
     count: vec4<u32>,
     emitters: array<FarEmitter, FAR_EMITTERS_MAX>,
-}
-
-// An emitter's summed lobes as one clamped cosine lobe about their mean normal: its unit
-// normal and its intensity along it (W/sr, rgb); a zero intensity for an empty or cancelled
-// block. The L1 projection itself is positive down to 120° off its normal, which lit the floor
-// in front of a box from the box's top.
-fn far_emitter_lobe(e: FarEmitter) -> FarEmitterLobe {
-    let l0 = vec3<f32>(e.r.x, e.g.x, e.b.x);
-    let l1 = LUMINANCE.r * e.r.wyz + LUMINANCE.g * e.g.wyz + LUMINANCE.b * e.b.wyz;
-    let net = dot(LUMINANCE, l0);
-    if dot(l1, l1) <= 0.0 || net == 0.0 {
-        return FarEmitterLobe(vec3<f32>(0.0, 0.0, 1.0), vec3<f32>(0.0));
-    }
-    return FarEmitterLobe(normalize(l1 * sign(net)), l0 / 0.886226925);
-}
-
-struct FarEmitterLobe {
-    normal: vec3<f32>,
-    intensity: vec3<f32>,
 }
 
 // Irradiance one far emitter gives a surface at `p` of unit normal `n`: its intensity towards
@@ -521,8 +503,7 @@ fn far_emitter_irradiance(e: FarEmitter, p: vec3<f32>, n: vec3<f32>) -> vec3<f32
     if cos_p <= 0.0 {
         return vec3<f32>(0.0);
     }
-    let lobe = far_emitter_lobe(e);
-    let intensity = lobe.intensity * max(dot(lobe.normal, -w), 0.0);
+    let intensity = e.intensity.rgb * max(dot(e.normal.xyz, -w), 0.0);
     return intensity * cos_p / max(d2, e.position.w * e.position.w);
 }
 
@@ -538,20 +519,20 @@ const PATCH_AS_POINT: f32 = 6.0;
 // near, it is what the patch gives, where a point's 1/d² under a grazing cosine gives almost
 // nothing: the floor right beside an object's face lights it most.
 fn patch_irradiance(e: FarEmitter, back: f32, p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
-    let lobe = far_emitter_lobe(e);
-    let centre = e.position.xyz - back * lobe.normal;
+    let normal = e.normal.xyz;
+    let centre = e.position.xyz - back * normal;
     let from_centre = p - centre;
     let d2 = dot(from_centre, from_centre);
-    let cos_e = dot(from_centre, lobe.normal);
-    if cos_e <= 0.0 || all(lobe.intensity == vec3<f32>(0.0)) {
+    let cos_e = dot(from_centre, normal);
+    if cos_e <= 0.0 {
         return vec3<f32>(0.0);
     }
     let half = e.position.w;
     if d2 > PATCH_AS_POINT * PATCH_AS_POINT * half * half {
-        return lobe.intensity * cos_e * max(-dot(n, from_centre), 0.0) / (d2 * d2);
+        return e.intensity.rgb * cos_e * max(-dot(n, from_centre), 0.0) / (d2 * d2);
     }
     // An orthonormal basis about the normal (Duff et al. 2017), t × b = normal.
-    let z = lobe.normal;
+    let z = normal;
     let sz = select(-1.0, 1.0, z.z >= 0.0);
     let a = -1.0 / (sz + z.z);
     let c = z.x * z.y * a;
@@ -593,7 +574,7 @@ fn patch_irradiance(e: FarEmitter, back: f32, p: vec3<f32>, n: vec3<f32>) -> vec
             sum += acos(clamp(dot(u, v), -1.0, 1.0)) * dot(n, g) / length_g;
         }
     }
-    let radiance = lobe.intensity / (4.0 * half * half);
+    let radiance = e.intensity.rgb / (4.0 * half * half);
     return radiance * max(0.5 * sum, 0.0);
 }
 

@@ -25,33 +25,45 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let block = vec3<u32>(id.x % blocks, (id.x / blocks) % blocks, id.x / (blocks * blocks));
     let lo = block * edge;
     let hi = min(lo + vec3<u32>(edge), vec3<u32>(n));
-    var e: FarEmitter;
+    var r = vec4<f32>(0.0);
+    var g = vec4<f32>(0.0);
+    var b = vec4<f32>(0.0);
     var weight = 0.0;
     var centre = vec3<f32>(0.0);
     for (var z = lo.z; z < hi.z; z++) {
         for (var y = lo.y; y < hi.y; y++) {
             for (var x = lo.x; x < hi.x; x++) {
                 let base = ((z * n + y) * n + x) * 12u;
-                let r = counts(base);
-                let g = counts(base + 4u);
-                let b = counts(base + 8u);
-                e.r += r;
-                e.g += g;
-                e.b += b;
-                let w = abs(r.x) + abs(g.x) + abs(b.x);
+                let cr = counts(base);
+                let cg = counts(base + 4u);
+                let cb = counts(base + 8u);
+                r += cr;
+                g += cg;
+                b += cb;
+                let w = abs(cr.x) + abs(cg.x) + abs(cb.x);
                 weight += w;
                 centre += w * (vec3<f32>(f32(x), f32(y), f32(z)) + vec3<f32>(0.5));
             }
         }
     }
+    var e = FarEmitter(vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0));
     let cell = volume.origin.w;
     if weight > 0.0 && all(hi > lo) {
-        e.position = vec4<f32>(volume.origin.xyz + centre / weight * cell, 0.5 * f32(edge) * cell);
-        e.r /= volume.scale.x;
-        e.g /= volume.scale.x;
-        e.b /= volume.scale.x;
-    } else {
-        e = FarEmitter(vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0));
+        r /= volume.scale.x;
+        g /= volume.scale.x;
+        b /= volume.scale.x;
+        // The summed lobes as one clamped cosine lobe about their mean normal: the L1
+        // projection itself is positive down to 120° off its normal, which lit the floor in
+        // front of a box from the box's top. A block whose lobes cancel is left empty.
+        let l0 = vec3<f32>(r.x, g.x, b.x);
+        let l1 = LUMINANCE.r * r.wyz + LUMINANCE.g * g.wyz + LUMINANCE.b * b.wyz;
+        let net = dot(LUMINANCE, l0);
+        if dot(l1, l1) > 0.0 && net != 0.0 {
+            e.position = vec4<f32>(volume.origin.xyz + centre / weight * cell,
+                                   0.5 * f32(edge) * cell);
+            e.normal = vec4<f32>(normalize(l1 * sign(net)), 0.0);
+            e.intensity = vec4<f32>(l0 / 0.886226925, 0.0);
+        }
     }
     far.emitters[id.x] = e;
 }

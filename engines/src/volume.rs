@@ -365,6 +365,9 @@ pub(crate) fn far_receivers_param() -> ParamSpec {
 /// The most emitters a buffer holds (`FAR_EMITTERS_MAX` in common.wgsl): 16 blocks per axis.
 const FAR_EMITTERS_MAX: u64 = 4096;
 
+/// One emitter's bytes (`FarEmitter`: position, normal, intensity).
+const FAR_EMITTER_BYTES: u64 = 48;
+
 /// A volume's injected light as emitters (`shaders/far_emitters.wgsl`): its counts summed over
 /// blocks of cells (8³ by default), each an L1 SH lobe of intensity at its cells' centre, the
 /// non-empty ones listed first. `dvct`'s far receivers take V^Δ's as points; `dlpv`'s object
@@ -396,9 +399,9 @@ impl FarEmitters {
     pub fn new(ctx: &GpuContext, blocks: u32) -> Self {
         assert!(u64::from(blocks).pow(3) <= FAR_EMITTERS_MAX);
         let source = shaders::FAR_EMITTERS;
-        // The header (listed count, blocks per axis; 16 bytes), then the emitters, four vec4s
+        // The header (listed count, blocks per axis; 16 bytes), then the emitters, three vec4s
         // each.
-        let mut contents = vec![0u8; (16 + FAR_EMITTERS_MAX * 64) as usize];
+        let mut contents = vec![0u8; (16 + FAR_EMITTERS_MAX * FAR_EMITTER_BYTES) as usize];
         contents[4..8].copy_from_slice(&blocks.to_le_bytes());
         Self {
             buffer: ctx.buffer_with("far emitters", &contents, wgpu::BufferUsages::STORAGE),
@@ -443,7 +446,7 @@ impl FarEmitters {
     /// (about 20 operations each), each emitter written and moved once.
     pub fn work(&self, n: u32) -> Work {
         Work::new(48.0, 20.0).times(f64::from(n).powi(3))
-            + Work::new(3.0 * 64.0, 8.0).times(f64::from(self.blocks).powi(3))
+            + Work::new(3.0 * FAR_EMITTER_BYTES as f64, 8.0).times(f64::from(self.blocks).powi(3))
     }
 }
 
@@ -666,9 +669,8 @@ mod tests {
                 0.04,
             ),
         ];
-        // A cosine lobe of unit intensity about +y: L0 = √π/2, L1 = √(π/3) (y, z, x).
-        let lobe = [0.886_226_9f32, 1.023_326_7, 0.0, 0.0];
-        let emitter: Vec<f32> = [[0.0, 0.0, 0.0, 1.0], lobe, lobe, lobe].concat();
+        // A cosine lobe of unit intensity about +y.
+        let emitter: Vec<f32> = [[0.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 0.0], [1.0; 4]].concat();
         let queries: Vec<f32> = cases
             .iter()
             .flat_map(|(p, n, _)| {
