@@ -538,13 +538,22 @@ fn patch_irradiance(e: FarEmitter, back: f32, p: vec3<f32>, n: vec3<f32>) -> vec
     let c = z.x * z.y * a;
     let t = vec3<f32>(1.0 + sz * z.x * z.x * a, sz * c, -sz * z.x);
     let b = vec3<f32>(c, sz + z.y * z.y * a, -z.y);
-    // The square's corners from p, counter-clockwise about the normal, clipped to n · v ≥ 0.
+    // The square's corners from p, counter-clockwise about the normal.
     let corners = array<vec3<f32>, 4>(
         centre - p + half * (-t - b),
         centre - p + half * (t - b),
         centre - p + half * (t + b),
         centre - p + half * (-t + b),
     );
+    let radiance = e.intensity.rgb / (4.0 * half * half);
+    return radiance * quad_form_factor(corners, n);
+}
+
+// π × the form factor from a surface of unit normal `n` to a quadrilateral of `corners` (from
+// the surface, counter-clockwise about the quad's normal, the side the surface sees): the
+// irradiance a unit radiance over it gives. Lambert's contour integral, E/L = ½ Σ θ_i ⟨n, γ_i⟩
+// (Baum et al. 1989), over the quad clipped to the surface's horizon.
+fn quad_form_factor(corners: array<vec3<f32>, 4>, n: vec3<f32>) -> f32 {
     var clipped: array<vec3<f32>, 5>;
     var count = 0u;
     for (var i = 0u; i < 4u; i++) {
@@ -562,7 +571,7 @@ fn patch_irradiance(e: FarEmitter, back: f32, p: vec3<f32>, n: vec3<f32>) -> vec
         }
     }
     if count < 3u {
-        return vec3<f32>(0.0);
+        return 0.0;
     }
     var sum = 0.0;
     for (var i = 0u; i < count; i++) {
@@ -574,8 +583,7 @@ fn patch_irradiance(e: FarEmitter, back: f32, p: vec3<f32>, n: vec3<f32>) -> vec
             sum += acos(clamp(dot(u, v), -1.0, 1.0)) * dot(n, g) / length_g;
         }
     }
-    let radiance = e.intensity.rgb / (4.0 * half * half);
-    return radiance * max(0.5 * sum, 0.0);
+    return max(0.5 * sum, 0.0);
 }
 
 // Whether `p` lies outside a volume of `n`³ cells of edge `cell` from `origin`.
