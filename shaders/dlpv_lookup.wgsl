@@ -4,14 +4,14 @@
 // (each cell's intensity spread over its face, Kaplanyan & Dachsbacher), and diffuse radiance
 // albedo/π · E into the engine's indirect buffer, which the shading pass adds to Δ or L^ρ.
 // With `object_light = "patches"` (`volume.options.z`) virtual pixels take V^ρ's injected light
-// as patches of surface instead (`patches`, then `object_patches_irradiance`).
+// as patches of surface instead (`patches` and `fill`, before `main`).
 // Virtual pixels add the far field's irradiance (the light of real surfaces outside the volume,
 // `volume.options.x`).
 // Real pixels, with the probe on (`volume.options.y`), add the Δ of the real light the object
 // blocks on its way to them (`blocked_irradiance`).
 
 struct LookupParams {
-    // width, height, the object's patch stride (`patches`), strided pixels per row
+    // width, height, the object's patch stride (`patches`)
     size: vec4<u32>,
 }
 
@@ -28,7 +28,7 @@ var<private> lookup: LookupParams;
 @group(0) @binding(8) var<storage, read> probe: array<i32, FAR_FIELD_VALUES>;
 @group(0) @binding(9) var<storage, read> rho_emitters: FarEmitters;
 @group(0) @binding(10) var<storage, read> camera_buffer: Camera;
-// The object's irradiance from the patches at every `size.z`-th pixel per axis (`patches`).
+// The object's irradiance from the patches, per pixel (`patches`, then `fill`).
 @group(0) @binding(11) var<storage, read_write> object_irradiance: array<vec4<f32>>;
 
 fn cell_sh(which: u32, c: vec3<i32>, ch: u32) -> vec4<f32> {
@@ -88,9 +88,8 @@ fn patches_irradiance(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
 fn patches(@builtin(global_invocation_id) id: vec3<u32>) {
     volume = volume_buffer;
     lookup = lookup_buffer;
-    let stride = lookup.size.z;
-    let xy = id.xy * stride;
-    if any(xy >= lookup.size.xy) || id.x >= lookup.size.w {
+    let xy = id.xy * lookup.size.z;
+    if any(xy >= lookup.size.xy) {
         return;
     }
     let s = surface_at(xy);
@@ -98,28 +97,42 @@ fn patches(@builtin(global_invocation_id) id: vec3<u32>) {
     if s.found && s.is_virtual {
         e = patches_irradiance(s.p.xyz, s.n);
     }
-    object_irradiance[id.y * lookup.size.w + id.x] = vec4<f32>(e, 0.0);
+    object_irradiance[xy.y * lookup.size.x + xy.x] = vec4<f32>(e, 0.0);
 }
 
-// The patches' irradiance at object pixel `xy` (surface `s`): the bilinear blend of its alike
-// strided neighbours' (`patches`), or its own where none is alike.
-fn object_patches_irradiance(xy: vec2<u32>, s: PixelSurface) -> vec3<f32> {
+// Every other object pixel's patches' irradiance: the bilinear blend of its alike strided
+// neighbours' (`patches`), or its own where none is alike. Dispatched over every pixel, after
+// `patches` and before `main`, which then reads one value per object pixel: the sums stay out
+// of `main`, whose every pixel llvmpipe would otherwise run beside them.
+@compute @workgroup_size(8, 8)
+fn fill(@builtin(global_invocation_id) id: vec3<u32>) {
+    volume = volume_buffer;
+    lookup = lookup_buffer;
     let stride = lookup.size.z;
+    if any(id.xy >= lookup.size.xy) || is_gathered(id.xy, stride) {
+        return;
+    }
+    let s = surface_at(id.xy);
+    if !(s.found && s.is_virtual) {
+        return;
+    }
     var sum = vec3<f32>(0.0);
     var weight = 0.0;
     for (var k = 0u; k < 4u; k++) {
-        let at = stride_corner(xy, stride, k);
-        let w = stride_weight(xy, stride, k, lookup.size.xy);
+        let at = stride_corner(id.xy, stride, k);
+        let w = stride_weight(id.xy, stride, k, lookup.size.xy);
         if w > 0.0 && alike(s, surface_at(at), camera_buffer.position.xyz) {
-            let j = (at.y / stride) * lookup.size.w + at.x / stride;
-            sum += w * object_irradiance[j].rgb;
+            sum += w * object_irradiance[at.y * lookup.size.x + at.x].rgb;
             weight += w;
         }
     }
+    var e: vec3<f32>;
     if weight > 0.0 {
-        return sum / weight;
+        e = sum / weight;
+    } else {
+        e = patches_irradiance(s.p.xyz, s.n);
     }
-    return patches_irradiance(s.p.xyz, s.n);
+    object_irradiance[id.y * lookup.size.x + id.x] = vec4<f32>(e, 0.0);
 }
 
 @compute @workgroup_size(8, 8)
@@ -142,7 +155,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let cell = volume.origin.w;
     var e: vec3<f32>;
     if which == 1u && volume.options.z == 1u {
-        e = object_patches_irradiance(id.xy, pixel_surface(p, normal));
+        e = object_irradiance[i].rgb;
     } else {
         e = volume_irradiance(which, p.xyz, n);
     }

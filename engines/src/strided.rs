@@ -12,17 +12,18 @@
 //! (and at a stride of 1 writes each pixel's light directly), `fill` gives every other pixel
 //! its light, and `resolve` turns the gathered irradiance into light.
 
-/// Run a strided gather's `[main, fill, resolve]` entries with their bind groups, over a
-/// `width` × `height` picture (8 × 8 workgroups): `main` alone at a stride of 1.
+/// Run a strided gather's `[main, fill, resolve]` entries (or `[main, fill]` where the engine's
+/// own pass resolves) with their bind groups, over a `width` × `height` picture (8 × 8
+/// workgroups): `main` alone at a stride of 1.
 pub fn dispatch(
     pass: &mut wgpu::ComputePass,
-    entries: &[wgpu::ComputePipeline; 3],
-    groups: &[wgpu::BindGroup; 3],
+    entries: &[wgpu::ComputePipeline],
+    groups: &[wgpu::BindGroup],
     (width, height): (u32, u32),
     stride: u32,
 ) {
     let gathered = (width.div_ceil(stride), height.div_ceil(stride));
-    let passes = if stride > 1 { 3 } else { 1 };
+    let passes = if stride > 1 { entries.len() } else { 1 };
     for (k, (pipeline, group)) in entries.iter().zip(groups).take(passes).enumerate() {
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, group, &[]);

@@ -177,12 +177,13 @@ pub struct Dlpv {
     resolve: wgpu::ComputePipeline,
     propagate: Propagation,
     lookup: wgpu::ComputePipeline,
-    /// `dlpv_lookup.wgsl`'s `patches`: the object's light from V^ρ's patches at strided pixels.
-    patches: wgpu::ComputePipeline,
+    /// `dlpv_lookup.wgsl`'s `patches` and `fill`: the object's light from V^ρ's patches at
+    /// strided pixels, then at every other object pixel.
+    patches: [wgpu::ComputePipeline; 2],
     volume_uniform: wgpu::Buffer,
     lookup_uniform: wgpu::Buffer,
     rho_emitters: FarEmitters,
-    /// The patches' irradiance at the strided pixels, and the picture size it was made for.
+    /// The patches' irradiance at the object's pixels, and the picture size it was made for.
     object_irradiance: Option<((u32, u32), wgpu::Buffer)>,
     volume: Option<VolumeBuffers>,
     /// What `volume`'s accumulated V^Δ was propagated from: kept while the shadow maps, the
@@ -292,12 +293,14 @@ impl Dlpv {
             resolve: shaders::compute_pipeline(&ctx.device, "dlpv resolve", shaders::DLPV_RESOLVE),
             propagate: Propagation::new(&ctx.device),
             lookup: shaders::compute_pipeline(&ctx.device, "dlpv lookup", shaders::DLPV_LOOKUP),
-            patches: shaders::compute_pipeline_at(
-                &ctx.device,
-                "dlpv patches",
-                shaders::DLPV_LOOKUP,
-                "patches",
-            ),
+            patches: ["patches", "fill"].map(|entry| {
+                shaders::compute_pipeline_at(
+                    &ctx.device,
+                    "dlpv patches",
+                    shaders::DLPV_LOOKUP,
+                    entry,
+                )
+            }),
             volume_uniform: uniform("dlpv volume", size_of::<VolumeUniform>()),
             lookup_uniform: uniform("dlpv lookup", size_of::<LookupUniform>()),
             rho_emitters: FarEmitters::new(&ctx, OBJECT_PATCH_BLOCKS),
@@ -443,27 +446,18 @@ impl Engine for Dlpv {
                 &self.lookup_uniform,
                 0,
                 bytemuck::bytes_of(&LookupUniform {
-                    size: [
-                        width,
-                        height,
-                        settings.patch_stride,
-                        width.div_ceil(settings.patch_stride),
-                    ],
+                    size: [width, height, settings.patch_stride, 0],
                 }),
             );
             self.volume_buffers()?;
-            let strided = (
-                width.div_ceil(settings.patch_stride),
-                height.div_ceil(settings.patch_stride),
-            );
-            if self.object_irradiance.as_ref().map(|(size, _)| *size) != Some(strided) {
-                let bytes = u64::from(strided.0) * u64::from(strided.1) * 16;
+            if self.object_irradiance.as_ref().map(|(size, _)| *size) != Some((width, height)) {
+                let bytes = u64::from(width) * u64::from(height) * 16;
                 let buffer = ctx.buffer(
                     "dlpv object irradiance",
                     bytes.max(16),
                     wgpu::BufferUsages::STORAGE,
                 );
-                self.object_irradiance = Some((strided, buffer));
+                self.object_irradiance = Some(((width, height), buffer));
             }
             let inputs = KeptInputs::hash_of(&[
                 bytemuck::bytes_of(&volume),
@@ -523,14 +517,22 @@ impl Engine for Dlpv {
                 self.deferred.camera_buffer().as_entire_binding(),
                 object_irradiance.as_entire_binding(),
             ]);
-            let lookup_group = group(&self.lookup, "dlpv lookup", &lookup_resources);
-            let patches_group = shaders::pipeline_bind_group_of(
-                &ctx.device,
-                &self.patches,
-                "dlpv patches",
-                &lookup_resources,
-                &[0, 1, 3, 4, 9, 11],
-            );
+            let group_of = |pipeline, bindings: &[u32]| {
+                shaders::pipeline_bind_group_of(
+                    &ctx.device,
+                    pipeline,
+                    "dlpv lookup",
+                    &lookup_resources,
+                    bindings,
+                )
+            };
+            // Each entry's derived layout holds the bindings it reads: `main` one value of the
+            // patches' per object pixel, `patches` the patches, `fill` them and the camera.
+            let lookup_group = group_of(&self.lookup, &[0, 1, 2, 3, 4, 5, 6, 7, 8, 11]);
+            let patches_groups = [
+                group_of(&self.patches[0], &[0, 1, 3, 4, 9, 11]),
+                group_of(&self.patches[1], &[0, 1, 3, 4, 9, 10, 11]),
+            ];
 
             let mut encoder = ctx
                 .device
@@ -581,9 +583,13 @@ impl Engine for Dlpv {
             {
                 let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.lookup");
                 if settings.object_patches {
-                    pass.set_pipeline(&self.patches);
-                    pass.set_bind_group(0, &patches_group, &[]);
-                    pass.dispatch_workgroups(strided.0.div_ceil(8), strided.1.div_ceil(8), 1);
+                    crate::strided::dispatch(
+                        &mut pass,
+                        &self.patches,
+                        &patches_groups,
+                        (width, height),
+                        settings.patch_stride,
+                    );
                 }
                 pass.set_pipeline(&self.lookup);
                 pass.set_bind_group(0, &lookup_group, &[]);
