@@ -539,49 +539,70 @@ fn patch_irradiance(e: FarEmitter, back: f32, p: vec3<f32>, n: vec3<f32>) -> vec
     let t = vec3<f32>(1.0 + sz * z.x * z.x * a, sz * c, -sz * z.x);
     let b = vec3<f32>(c, sz + z.y * z.y * a, -z.y);
     // The square's corners from p, counter-clockwise about the normal.
-    let corners = array<vec3<f32>, 4>(
-        centre - p + half * (-t - b),
-        centre - p + half * (t - b),
-        centre - p + half * (t + b),
-        centre - p + half * (-t + b),
-    );
+    let o = centre - p;
     let radiance = e.intensity.rgb / (4.0 * half * half);
-    return radiance * quad_form_factor(corners, n);
+    return radiance * quad_form_factor(o + half * (-t - b), o + half * (t - b), o + half * (t + b),
+                                       o + half * (-t + b), n);
 }
 
-// π × the form factor from a surface of unit normal `n` to a quadrilateral of `corners` (from
-// the surface, counter-clockwise about the quad's normal, the side the surface sees): the
-// irradiance a unit radiance over it gives. Lambert's contour integral, E/L = ½ Σ θ_i ⟨n, γ_i⟩
-// (Baum et al. 1989), over the quad clipped to the surface's horizon.
-fn quad_form_factor(corners: array<vec3<f32>, 4>, n: vec3<f32>) -> f32 {
-    var clipped: array<vec3<f32>, 5>;
-    var count = 0u;
-    for (var i = 0u; i < 4u; i++) {
-        let u = corners[i];
-        let v = corners[(i + 1u) % 4u];
-        let hu = dot(n, u);
-        let hv = dot(n, v);
-        if hu >= 0.0 {
-            clipped[count] = u;
-            count++;
-        }
-        if (hu >= 0.0) != (hv >= 0.0) {
-            clipped[count] = u + (v - u) * (hu / (hu - hv));
-            count++;
-        }
-    }
-    if count < 3u {
+// One edge's term of Lambert's contour integral: the angle `u` and `v` (from the surface)
+// subtend, times the cosine of their plane's normal with `n`.
+fn contour_edge(u: vec3<f32>, v: vec3<f32>, n: vec3<f32>) -> f32 {
+    let un = normalize(u);
+    let vn = normalize(v);
+    let g = cross(vn, un);
+    let length_g = length(g);
+    if length_g <= 1e-7 {
         return 0.0;
     }
-    var sum = 0.0;
-    for (var i = 0u; i < count; i++) {
-        let u = normalize(clipped[i]);
-        let v = normalize(clipped[(i + 1u) % count]);
-        let g = cross(v, u);
-        let length_g = length(g);
-        if length_g > 1e-7 {
-            sum += acos(clamp(dot(u, v), -1.0, 1.0)) * dot(n, g) / length_g;
-        }
+    return acos(clamp(dot(un, vn), -1.0, 1.0)) * dot(n, g) / length_g;
+}
+
+// A polygon's edge from `u` to `v` clipped to the horizon of a surface of normal `n` (h = ⟨n, ·⟩
+// ≥ 0): its contour term, and where it leaves the horizon or comes back over it.
+struct ClippedEdge {
+    term: f32,
+    exit: vec3<f32>,
+    entry: vec3<f32>,
+    exits: bool,
+}
+
+fn clipped_edge(u: vec3<f32>, v: vec3<f32>, n: vec3<f32>, edge: ClippedEdge) -> ClippedEdge {
+    var out = edge;
+    let hu = dot(n, u);
+    let hv = dot(n, v);
+    if hu >= 0.0 && hv >= 0.0 {
+        out.term += contour_edge(u, v, n);
+    } else if hu >= 0.0 {
+        let x = u + (v - u) * (hu / (hu - hv));
+        out.term += contour_edge(u, x, n);
+        out.exit = x;
+        out.exits = true;
+    } else if hv >= 0.0 {
+        let x = u + (v - u) * (hu / (hu - hv));
+        out.term += contour_edge(x, v, n);
+        out.entry = x;
+    }
+    return out;
+}
+
+// π × the form factor from a surface of unit normal `n` to the quadrilateral `a b c d` (from
+// the surface, counter-clockwise about the quad's normal, the side the surface sees): the
+// irradiance a unit radiance over it gives. Lambert's contour integral, E/L = ½ Σ θ_i ⟨n, γ_i⟩
+// (Baum et al. 1989), over the quad clipped to the surface's horizon, whose part of the
+// clipped contour runs from where the quad leaves the horizon to where it comes back. Written
+// out without arrays: llvmpipe keeps a dynamically indexed array in memory, which slowed every
+// pixel of a pass that held one (`dir`'s gather 2–5 times), whether it took this path or not.
+fn quad_form_factor(a: vec3<f32>, b: vec3<f32>, c: vec3<f32>, d: vec3<f32>,
+                    n: vec3<f32>) -> f32 {
+    var edge = ClippedEdge(0.0, vec3<f32>(0.0), vec3<f32>(0.0), false);
+    edge = clipped_edge(a, b, n, edge);
+    edge = clipped_edge(b, c, n, edge);
+    edge = clipped_edge(c, d, n, edge);
+    edge = clipped_edge(d, a, n, edge);
+    var sum = edge.term;
+    if edge.exits {
+        sum += contour_edge(edge.exit, edge.entry, n);
     }
     return max(0.5 * sum, 0.0);
 }
@@ -685,7 +706,8 @@ struct Dir {
     // share of dims.x (the CPU's; here only so a change relights); w: a first-bounce VPL's clamp
     // as a share of its footprint's radius (0: `x` alone).
     params: vec4<f32>,
-    // x: where in its stratum of the flux each VPL sits, in (0, 1) (`dir::vpl_stratum`).
+    // x: where in its stratum of the flux each VPL sits, in (0, 1) (`dir::vpl_stratum`); y: the
+    // gather's pixel stride; z: 1 = real surfaces take near VPLs as patches (`near_vpls`).
     sampling: vec4<f32>,
 }
 

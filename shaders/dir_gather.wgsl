@@ -74,8 +74,26 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
             f = brdf(m, albedo, n, -w, wo);
         }
         // A second-bounce VPL clamps within its footprint (normal.w, m), wider than the first's.
-        let l_o = f * vpl.flux.rgb / PI * cos_vpl * cos_p
+        var l_o = f * vpl.flux.rgb / PI * cos_vpl * cos_p
             / max(dist2, max(clamp2, vpl.normal.w * vpl.normal.w));
+        // Near a real surface, the VPL is the square of surface its clamp's disc stands for (of
+        // the disc's area, π r²): the floor beside a wall lights the wall's foot as the floor
+        // does, where the clamped point gives it almost nothing (`near_vpls`). The object keeps
+        // the points: its foot stands in its own shadow, into which a large footprint's square
+        // spreads the light of the lit floor around it (window_env's object 0.081 → 0.143).
+        let half = 0.886226925 * vpl.normal.w;
+        if dir.sampling.z == 1.0 && !is_virtual
+            && dist2 < PATCH_AS_POINT * PATCH_AS_POINT * half * half {
+            let z = vpl.normal.xyz;
+            let sz = select(-1.0, 1.0, z.z >= 0.0);
+            let a = -1.0 / (sz + z.z);
+            let c = z.x * z.y * a;
+            let t = half * vec3<f32>(1.0 + sz * z.x * z.x * a, sz * c, -sz * z.x);
+            let b = half * vec3<f32>(c, sz + z.y * z.y * a, -z.y);
+            let o = -d;
+            let ff = quad_form_factor(o - t - b, o + t - b, o + t + b, o - t + b, n);
+            l_o = f * vpl.flux.rgb / (PI * 4.0 * half * half) * ff;
+        }
         let t = vec2<u32>(paraboloid_texel(vpl.normal.xyz, w, s));
         // The depth a texel holds can differ from the receiver's by the texel's footprint.
         let bias = dir.params.y * dist * 4.0 / s;

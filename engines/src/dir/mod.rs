@@ -96,6 +96,10 @@ pub struct DirSettings {
     pub vpls_per_frame: bool,
     /// The gather at every `gather_stride`-th pixel per axis (`crate::strided`).
     pub gather_stride: u32,
+    /// A real surface takes a VPL within 6 half edges of it as the square of surface its clamp
+    /// stands for (`quad_form_factor_unclipped` in `shaders/common.wgsl`), not as a clamped
+    /// point.
+    pub near_patches: bool,
 }
 
 impl DirSettings {
@@ -124,6 +128,7 @@ impl Default for DirSettings {
             env_lights: 16,
             second_bounce: 1.0,
             footprint_clamp: 1.0,
+            near_patches: true,
             gather_stride: GATHER_STRIDE_DEFAULT,
             vpls_per_frame: true,
         }
@@ -252,6 +257,11 @@ impl Dir {
                 0.0,
                 4.0,
                 d.footprint_clamp,
+            ),
+            ParamSpec::choice(
+                "near_vpls",
+                "`patches` (default, the lower Δ error measured): a real surface takes a VPL near it as the square of surface its clamp's disc stands for, by Lambert's contour integral; `points`: as a point whose 1/d² is clamped, as the paper (the object's pixels always do)",
+                vec!["patches", "points"],
             ),
             ParamSpec::choice(
                 "vpl_placement",
@@ -444,7 +454,7 @@ impl Engine for Dir {
                         0
                     }),
                     s.gather_stride as f32,
-                    0.0,
+                    if s.near_patches { 1.0 } else { 0.0 },
                     0.0,
                 ],
             };
@@ -683,6 +693,7 @@ impl Engine for Dir {
             footprint_clamp: float("footprint_clamp"),
             gather_stride: int("gather_stride"),
             vpls_per_frame: schema.choice(params, "vpl_placement") == "per_frame",
+            near_patches: schema.choice(params, "near_vpls") == "patches",
         };
         self.deferred.set_shared_params(&schema, params);
     }
