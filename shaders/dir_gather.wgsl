@@ -76,11 +76,12 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         // A second-bounce VPL clamps within its footprint (normal.w, m), wider than the first's.
         var l_o = f * vpl.flux.rgb / PI * cos_vpl * cos_p
             / max(dist2, max(clamp2, vpl.normal.w * vpl.normal.w));
-        // Near a real surface, the VPL is the square of surface its clamp's disc stands for (of
-        // the disc's area, π r²): the floor beside a wall lights the wall's foot as the floor
-        // does, where the clamped point gives it almost nothing (`near_vpls`). The object keeps
-        // the points: its foot stands in its own shadow, into which a large footprint's square
-        // spreads the light of the lit floor around it (window_env's object 0.081 → 0.143).
+        // With `near_vpls = "patches"`, near a real surface the VPL is the square of surface its
+        // clamp's disc stands for (of the disc's area, π r²): the floor beside a wall lights the
+        // wall's foot as the floor does, where the clamped point gives it almost nothing. The
+        // object keeps the points: its foot stands in its own shadow, into which a large
+        // footprint's square spreads the light of the lit floor around it (window_env's object
+        // 0.081 → 0.143).
         let half = 0.886226925 * vpl.normal.w;
         if dir.sampling.z == 1.0 && !is_virtual
             && dist2 < PATCH_AS_POINT * PATCH_AS_POINT * half * half {

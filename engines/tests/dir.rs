@@ -342,11 +342,12 @@ fn gathering_every_second_pixel_keeps_the_error() {
     support::a_stride_of_two_keeps_the_error("dir", "gather_stride");
 }
 
-/// `near_vpls = "patches"` (the default): a real surface takes a VPL near it as the square of
-/// surface its clamp's disc stands for (Lambert's contour integral, `quad_form_factor` in
+/// `near_vpls = "patches"`: a real surface takes a VPL near it as the square of surface its
+/// clamp's disc stands for (Lambert's contour integral, `quad_form_factor` in
 /// `shaders/common.wgsl`) rather than a point whose 1/d² is clamped, which gives the foot of a
 /// wall next to a lit floor almost nothing. The bench at 160 × 120: Δ L2 0.251 / 0.072 / 0.115
-/// / 0.327 / 0.107 → 0.219 / 0.072 / 0.110 / 0.319 / 0.107. Here, against 128 spp at 80 × 60,
+/// / 0.327 / 0.107 → 0.219 / 0.072 / 0.110 / 0.319 / 0.107 (not the default: live frames on the
+/// sensor's depth mesh spiked, see `docs/ALGORITHMS.md`). Here, against 128 spp at 80 × 60,
 /// desk_box must come 2 % closer (0.321 → 0.308) and touching_wall closer (0.365 → 0.360).
 #[test]
 fn near_vpls_as_patches_bring_delta_closer() {

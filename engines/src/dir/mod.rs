@@ -97,8 +97,7 @@ pub struct DirSettings {
     /// The gather at every `gather_stride`-th pixel per axis (`crate::strided`).
     pub gather_stride: u32,
     /// A real surface takes a VPL within 6 half edges of it as the square of surface its clamp
-    /// stands for (`quad_form_factor_unclipped` in `shaders/common.wgsl`), not as a clamped
-    /// point.
+    /// stands for (`quad_form_factor` in `shaders/common.wgsl`), not as a clamped point.
     pub near_patches: bool,
 }
 
@@ -128,7 +127,7 @@ impl Default for DirSettings {
             env_lights: 16,
             second_bounce: 1.0,
             footprint_clamp: 1.0,
-            near_patches: true,
+            near_patches: false,
             gather_stride: GATHER_STRIDE_DEFAULT,
             vpls_per_frame: true,
         }
@@ -260,8 +259,8 @@ impl Dir {
             ),
             ParamSpec::choice(
                 "near_vpls",
-                "`patches` (default, the lower Δ error measured): a real surface takes a VPL near it as the square of surface its clamp's disc stands for, by Lambert's contour integral; `points`: as a point whose 1/d² is clamped, as the paper (the object's pixels always do)",
-                vec!["patches", "points"],
+                "`points` (default, as the paper; the object's pixels always do): a VPL is a point whose 1/d² is clamped; `patches`: a real surface takes a VPL near it as the square of surface its clamp's disc stands for, by Lambert's contour integral (closer on the bench's scenes, but live frames on a sensor's depth mesh spiked)",
+                vec!["points", "patches"],
             ),
             ParamSpec::choice(
                 "vpl_placement",
