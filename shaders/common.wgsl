@@ -469,14 +469,15 @@ fn far_field_radiance(sh: array<vec3<f32>, 9>, d: vec3<f32>) -> vec3<f32> {
 }
 
 // The far emitters of a volume (`FarEmitters` in engines/src/volume.rs): a volume's injected
-// light summed over blocks of cells (`count.y` per axis), each a point that surfaces the
-// volume's own lookup does not serve take their bounce from. The sum of a block's VPLs' Φ/π
+// light summed over blocks of cells (`FAR_EMITTER_BLOCKS` per axis), each a point (or a patch)
+// that surfaces the volume's own lookup does not serve take their bounce from. The sum of a block's VPLs' Φ/π
 // cosine lobes (`dlpv_inject.wgsl`; for V^Δ, ρ's less μ's) is read as one clamped cosine lobe
 // about their mean normal (`far_emitters.wgsl`). `position`: xyz the block's cells' centre
 // weighted by their |L0|, w the block's half edge (the nearest a receiver's 1/d² counts it; 0:
 // the block is empty); `normal`: the lobe's unit normal; `intensity`: rgb its intensity along
 // it (W/sr).
-const FAR_EMITTERS_MAX: u32 = 4096u;
+const FAR_EMITTER_BLOCKS: u32 = 8u;
+const FAR_EMITTERS: u32 = 512u;
 
 struct FarEmitter {
     position: vec4<f32>,
@@ -484,11 +485,10 @@ struct FarEmitter {
     intensity: vec4<f32>,
 }
 
-// x: how many of `emitters` are listed (the non-empty blocks, in block order); y: blocks per
-// axis (set when the buffer is made).
+// x: how many of `emitters` are listed (the non-empty blocks, in block order).
 struct FarEmitters {
     count: vec4<u32>,
-    emitters: array<FarEmitter, FAR_EMITTERS_MAX>,
+    emitters: array<FarEmitter, FAR_EMITTERS>,
 }
 
 // Irradiance one far emitter gives a surface at `p` of unit normal `n`: its intensity towards

@@ -16,13 +16,13 @@ fn counts(base: u32) -> vec4<f32> {
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     volume = volume_buffer;
-    let blocks = far.count.y;
-    if id.x >= blocks * blocks * blocks {
+    if id.x >= FAR_EMITTERS {
         return;
     }
     let n = volume.dims.x;
-    let edge = (n + blocks - 1u) / blocks;
-    let block = vec3<u32>(id.x % blocks, (id.x / blocks) % blocks, id.x / (blocks * blocks));
+    let edge = (n + FAR_EMITTER_BLOCKS - 1u) / FAR_EMITTER_BLOCKS;
+    let block = vec3<u32>(id.x % FAR_EMITTER_BLOCKS, (id.x / FAR_EMITTER_BLOCKS) % FAR_EMITTER_BLOCKS,
+                          id.x / (FAR_EMITTER_BLOCKS * FAR_EMITTER_BLOCKS));
     let lo = block * edge;
     let hi = min(lo + vec3<u32>(edge), vec3<u32>(n));
     var r = vec4<f32>(0.0);
@@ -71,13 +71,12 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
 @compute @workgroup_size(1)
 fn list() {
     var count = 0u;
-    let blocks = far.count.y;
-    for (var k = 0u; k < blocks * blocks * blocks; k++) {
+    for (var k = 0u; k < FAR_EMITTERS; k++) {
         let e = far.emitters[k];
         if e.position.w > 0.0 {
             far.emitters[count] = e;
             count++;
         }
     }
-    far.count = vec4<u32>(count, blocks, 0u, 0u);
+    far.count = vec4<u32>(count, 0u, 0u, 0u);
 }

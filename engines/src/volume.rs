@@ -362,20 +362,25 @@ pub(crate) fn far_receivers_param() -> ParamSpec {
     )
 }
 
-/// The most emitters a buffer holds (`FAR_EMITTERS_MAX` in common.wgsl): 16 blocks per axis.
-const FAR_EMITTERS_MAX: u64 = 4096;
+/// Blocks per axis and their count (`FAR_EMITTER_BLOCKS`, `FAR_EMITTERS` in common.wgsl): 4
+/// cells each at `dvct`'s 32³, 2 at `dlpv`'s 16³. For `dlpv`'s object, one a cell (16 per
+/// axis) read the bench's object errors within 0.021 of these, closer on two scenes and farther
+/// on three, and its still frames took 2.3–2.7 times as long (`docs/ALGORITHMS.md`, `dlpv`).
+const FAR_EMITTER_BLOCKS: u32 = 8;
+const FAR_EMITTERS: u64 = 512;
 
 /// One emitter's bytes (`FarEmitter`: position, normal, intensity).
 const FAR_EMITTER_BYTES: u64 = 48;
 
 /// A volume's injected light as emitters (`shaders/far_emitters.wgsl`): its counts summed over
-/// blocks of cells (8³ by default), each an L1 SH lobe of intensity at its cells' centre, the
-/// non-empty ones listed first. `dvct`'s far receivers take V^Δ's as points; `dlpv`'s object
+/// 8³ blocks of cells, each block's VPLs' summed lobes read as one clamped cosine lobe at their
+/// cells' centre, the non-empty ones listed first. `dvct`'s far receivers take V^Δ's as points; `dlpv`'s object
 /// takes V^ρ's as patches of surface (`patch_irradiance` in `shaders/common.wgsl`).
 ///
 /// Why, for the far receivers: a volume spans `volume_scale` × the object, so a real pixel
 /// beyond it had no bounce term, yet what the object changes in the room's first bounce reaches
-/// every surface that sees it. On desk_box (a box under a lamp in a three-walled room) 92 % of the real pixels lie
+/// every surface that sees it. On desk_box (a box under a lamp in a three-walled room) 92 % of
+/// the real pixels lie
 /// outside `dvct`'s volume, and the reference's one-bounce Δ there sums to −37 (in luminance,
 /// against −8 inside), and held 61 % of stop 48's `dvct`'s squared error. Part of it is these
 /// emitters' light (the floor the box shadows no longer lights the back wall, more than the
@@ -389,23 +394,20 @@ const FAR_EMITTER_BYTES: u64 = 48;
 #[derive(Debug)]
 pub(crate) struct FarEmitters {
     pub buffer: wgpu::Buffer,
-    blocks: u32,
     sum: wgpu::ComputePipeline,
     list: wgpu::ComputePipeline,
 }
 
 impl FarEmitters {
-    /// Emitters of `blocks`³ blocks of a volume's cells (at most 16 per axis).
-    pub fn new(ctx: &GpuContext, blocks: u32) -> Self {
-        assert!(u64::from(blocks).pow(3) <= FAR_EMITTERS_MAX);
+    pub fn new(ctx: &GpuContext) -> Self {
         let source = shaders::FAR_EMITTERS;
-        // The header (listed count, blocks per axis; 16 bytes), then the emitters, three vec4s
-        // each.
-        let mut contents = vec![0u8; (16 + FAR_EMITTERS_MAX * FAR_EMITTER_BYTES) as usize];
-        contents[4..8].copy_from_slice(&blocks.to_le_bytes());
         Self {
-            buffer: ctx.buffer_with("far emitters", &contents, wgpu::BufferUsages::STORAGE),
-            blocks,
+            // The listed count (16 bytes), then the emitters.
+            buffer: ctx.buffer(
+                "far emitters",
+                16 + FAR_EMITTERS * FAR_EMITTER_BYTES,
+                wgpu::BufferUsages::STORAGE,
+            ),
             sum: shaders::compute_pipeline(&ctx.device, "far emitters", source),
             list: shaders::compute_pipeline_at(&ctx.device, "far emitters list", source, "list"),
         }
@@ -436,7 +438,7 @@ impl FarEmitters {
         );
         pass.set_pipeline(&self.sum);
         pass.set_bind_group(0, &sum, &[]);
-        pass.dispatch_workgroups(self.blocks.pow(3).div_ceil(64), 1, 1);
+        pass.dispatch_workgroups((FAR_EMITTERS as u32).div_ceil(64), 1, 1);
         pass.set_pipeline(&self.list);
         pass.set_bind_group(0, &list, &[]);
         pass.dispatch_workgroups(1, 1, 1);
@@ -444,11 +446,13 @@ impl FarEmitters {
 
     /// What summing `n`³ cells and listing the blocks must do: every cell's 12 counts read once
     /// (about 20 operations each), each emitter written and moved once.
-    pub fn work(&self, n: u32) -> Work {
+    pub fn work(n: u32) -> Work {
         Work::new(48.0, 20.0).times(f64::from(n).powi(3))
-            + Work::new(3.0 * FAR_EMITTER_BYTES as f64, 8.0).times(f64::from(self.blocks).powi(3))
+            + Work::new(3.0 * FAR_EMITTER_BYTES as f64, 8.0).times(FAR_EMITTERS as f64)
     }
 }
+
+const _: () = assert!(FAR_EMITTERS == (FAR_EMITTER_BLOCKS as u64).pow(3));
 
 #[cfg(test)]
 mod tests {

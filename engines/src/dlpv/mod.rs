@@ -76,11 +76,6 @@ use crate::volume::{
     frame_placement, volume_reach,
 };
 
-/// The object's patches per axis of the volume (`FarEmitters`): 2 cells each at 16³. One a cell
-/// (16 per axis) read the bench's object errors within 0.021 of these, closer on two scenes and
-/// farther on three, and its still frames took 2.3–2.7 times as long (`docs/ALGORITHMS.md`).
-const OBJECT_PATCH_BLOCKS: u32 = 8;
-
 /// `env_lights` by default: chosen by measured error on window_env (`docs/ALGORITHMS.md`,
 /// "Environment lights").
 const ENV_LIGHTS_DEFAULT: u32 = 24;
@@ -303,7 +298,7 @@ impl Dlpv {
             }),
             volume_uniform: uniform("dlpv volume", size_of::<VolumeUniform>()),
             lookup_uniform: uniform("dlpv lookup", size_of::<LookupUniform>()),
-            rho_emitters: FarEmitters::new(&ctx, OBJECT_PATCH_BLOCKS),
+            rho_emitters: FarEmitters::new(&ctx),
             object_irradiance: None,
             deferred: Deferred::new(ctx),
             settings: DlpvSettings::default(),
@@ -545,7 +540,7 @@ impl Engine for Dlpv {
                     faces,
                     rsm_size,
                     settings,
-                    settings.object_patches.then(|| self.rho_emitters.work(n)),
+                    settings.object_patches.then(|| FarEmitters::work(n)),
                 ));
                 encoder.clear_buffer(&v.cells.buffer, 0, None);
                 {

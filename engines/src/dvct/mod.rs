@@ -53,9 +53,6 @@ use crate::volume::{
 /// "Environment lights").
 const ENV_LIGHTS_DEFAULT: u32 = 16;
 
-/// Far receivers' emitters per axis of the volume (`volume::FarEmitters`): 4 cells each at 32³.
-const FAR_EMITTER_BLOCKS: u32 = 8;
-
 /// `Dvct` in `shaders/common.wgsl`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -339,7 +336,7 @@ impl Dvct {
         Ok(Self {
             voxelize: pipeline("dvct voxelize", shaders::DVCT_VOXELIZE),
             inject: InjectPass::new(&ctx.device, "dvct inject"),
-            far_emitters: FarEmitters::new(&ctx, FAR_EMITTER_BLOCKS),
+            far_emitters: FarEmitters::new(&ctx),
             mip: ["first", "coarser"].map(|entry| {
                 shaders::compute_pipeline_at(&ctx.device, "dvct mip", shaders::DVCT_MIP, entry)
             }),
@@ -768,7 +765,7 @@ impl Engine for Dvct {
                 if settings.far_receivers {
                     out.work.push(PassWork {
                         pass: "far_emitters",
-                        work: self.far_emitters.work(n),
+                        work: FarEmitters::work(n),
                     });
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.far_emitters");
                     self.far_emitters.dispatch(
