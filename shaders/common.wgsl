@@ -470,9 +470,9 @@ fn far_field_radiance(sh: array<vec3<f32>, 9>, d: vec3<f32>) -> vec3<f32> {
 
 // The far emitters of a volume (`FarEmitters` in engines/src/volume.rs): a volume's injected
 // light summed over blocks of cells (`FAR_EMITTER_BLOCKS` per axis), each a point (or a patch)
-// that surfaces the volume's own lookup does not serve take their bounce from. The sum of a block's VPLs' Φ/π
-// cosine lobes (`dlpv_inject.wgsl`; for V^Δ, ρ's less μ's) is read as one clamped cosine lobe
-// about their mean normal (`far_emitters.wgsl`). `position`: xyz the block's cells' centre
+// that surfaces the volume's own lookup does not serve take their bounce from. The sum of a
+// block's VPLs' Φ/π cosine lobes (`dlpv_inject.wgsl`; for V^Δ, ρ's less μ's) is read as one
+// clamped cosine lobe about their mean normal (`far_emitters.wgsl`). `position`: xyz the block's cells' centre
 // weighted by their |L0|, w the block's half edge (the nearest a receiver's 1/d² counts it; 0:
 // the block is empty); `normal`: the lobe's unit normal; `intensity`: rgb its intensity along
 // it (W/sr).
@@ -531,6 +531,13 @@ fn patch_irradiance(e: FarEmitter, back: f32, p: vec3<f32>, n: vec3<f32>) -> vec
     if d2 > PATCH_AS_POINT * PATCH_AS_POINT * half * half {
         return e.intensity.rgb * cos_e * max(-dot(n, from_centre), 0.0) / (d2 * d2);
     }
+    let radiance = e.intensity.rgb / (4.0 * half * half);
+    return radiance * square_form_factor(centre - p, normal, half, n);
+}
+
+// `quad_form_factor` of a square of half edge `half` about unit `normal`, its centre at
+// `centre` from the surface.
+fn square_form_factor(centre: vec3<f32>, normal: vec3<f32>, half: f32, n: vec3<f32>) -> f32 {
     // An orthonormal basis about the normal (Duff et al. 2017), t × b = normal.
     let z = normal;
     let sz = select(-1.0, 1.0, z.z >= 0.0);
@@ -538,11 +545,9 @@ fn patch_irradiance(e: FarEmitter, back: f32, p: vec3<f32>, n: vec3<f32>) -> vec
     let c = z.x * z.y * a;
     let t = vec3<f32>(1.0 + sz * z.x * z.x * a, sz * c, -sz * z.x);
     let b = vec3<f32>(c, sz + z.y * z.y * a, -z.y);
-    // The square's corners from p, counter-clockwise about the normal.
-    let o = centre - p;
-    let radiance = e.intensity.rgb / (4.0 * half * half);
-    return radiance * quad_form_factor(o + half * (-t - b), o + half * (t - b), o + half * (t + b),
-                                       o + half * (-t + b), n);
+    // The corners, counter-clockwise about the normal.
+    return quad_form_factor(centre + half * (-t - b), centre + half * (t - b),
+                            centre + half * (t + b), centre + half * (-t + b), n);
 }
 
 // One edge's term of Lambert's contour integral: the angle `u` and `v` (from the surface)
@@ -624,8 +629,9 @@ fn probe_sh(counts: array<i32, 27>, object: ObjectBox, scale: f32) -> array<vec3
 // The Δ irradiance at a real surface (`p`, unit `n`) from the real scene's bounce light that
 // the object now blocks on its way there, and from its own surfaces that p sees instead: their
 // indirect light, and `faces`' radiance (±x, ±y, ±z: the direct light on each face, for an
-// engine whose real pixels do not already take the object's own bounce; zeros otherwise) (`occlusion = "probe"` of the volume engines, and `dvct`'s far receivers). Both come
-// from the probe's light `light` where the object stands: what arrives there from behind the
+// engine whose real pixels do not already take the object's own bounce; zeros otherwise)
+// (`occlusion = "probe"` of the volume engines, and `dvct`'s far receivers). Both come from
+// the probe's light `light` where the object stands: what arrives there from behind the
 // object is the radiance p no longer sees; its cosine convolution on each box face that faces
 // p, times the object's albedo / π, the radiance p sees instead. The object is a point
 // occluder of its box's projected area (times its surface's share) at its centre, over d² no

@@ -85,15 +85,8 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         let half = 0.886226925 * vpl.normal.w;
         if dir.sampling.z == 1.0 && !is_virtual
             && dist2 < PATCH_AS_POINT * PATCH_AS_POINT * half * half {
-            let z = vpl.normal.xyz;
-            let sz = select(-1.0, 1.0, z.z >= 0.0);
-            let a = -1.0 / (sz + z.z);
-            let c = z.x * z.y * a;
-            let t = half * vec3<f32>(1.0 + sz * z.x * z.x * a, sz * c, -sz * z.x);
-            let b = half * vec3<f32>(c, sz + z.y * z.y * a, -z.y);
-            let o = -d;
-            let ff = quad_form_factor(o - t - b, o + t - b, o + t + b, o - t + b, n);
-            l_o = f * vpl.flux.rgb / (PI * 4.0 * half * half) * ff;
+            l_o = f * vpl.flux.rgb / (PI * 4.0 * half * half)
+                * square_form_factor(-d, vpl.normal.xyz, half, n);
         }
         let t = vec2<u32>(paraboloid_texel(vpl.normal.xyz, w, s));
         // The depth a texel holds can differ from the receiver's by the texel's footprint.

@@ -353,7 +353,8 @@ impl InjectPass {
 
 /// `dvct`'s `far_receivers` setting: `emitters` (default) lights the real surfaces outside the
 /// volume with [`FarEmitters`] (and the light the object blocks), `none` leaves them their
-/// direct Δ alone (the paper). (`dlpv`'s lookup could read them too; not measured.)
+/// direct Δ alone (the paper). (`dlpv`'s real pixels lit by V^Δ's blocks as patches everywhere
+/// were measured: `docs/ALGORITHMS.md`, `dlpv`.)
 pub(crate) fn far_receivers_param() -> ParamSpec {
     ParamSpec::choice(
         "far_receivers",
