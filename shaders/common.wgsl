@@ -550,6 +550,54 @@ fn square_form_factor(centre: vec3<f32>, normal: vec3<f32>, half: f32, n: vec3<f
                             centre + half * (t + b), centre + half * (-t + b), n);
 }
 
+// The span of edge 2 · `half` about `c`, moved inside `lo`..`hi` and cut to it.
+fn span_within(c: f32, half: f32, lo: f32, hi: f32) -> vec2<f32> {
+    let width = min(2.0 * half, max(hi - lo, 0.0));
+    let start = clamp(c - half, lo, hi - width);
+    return vec2<f32>(start, start + width);
+}
+
+// `quad_form_factor` from `p` (unit normal `n`) over the area of the square of edge 2 · `half`
+// that a point on the surface of the box `lo`..`hi` stands for: in the plane of the box face
+// whose axis its `normal` is nearest, through `position`, moved inside the box's extent on
+// that face and cut to it. A VPL on the virtual object is a piece of one of its faces: a square
+// about its own normal reaches past the object's edges, below the floor it stands on, where a
+// sensor's depth mesh a few millimetres off lets a receiver at its foot see it, and beside it
+// into its own shadow. The square's light per unit of area: its flux is kept where it is cut.
+fn box_square_form_factor(position: vec3<f32>, normal: vec3<f32>, half: f32, lo: vec3<f32>,
+                          hi: vec3<f32>, p: vec3<f32>, n: vec3<f32>) -> f32 {
+    let a = abs(normal);
+    // The face's axis and the other two, t × b = axis.
+    var axis = vec3<f32>(1.0, 0.0, 0.0);
+    var t = vec3<f32>(0.0, 1.0, 0.0);
+    var b = vec3<f32>(0.0, 0.0, 1.0);
+    if a.y >= a.x && a.y >= a.z {
+        axis = vec3<f32>(0.0, 1.0, 0.0);
+        t = vec3<f32>(0.0, 0.0, 1.0);
+        b = vec3<f32>(1.0, 0.0, 0.0);
+    } else if a.z >= a.x && a.z >= a.y {
+        axis = vec3<f32>(0.0, 0.0, 1.0);
+        t = vec3<f32>(1.0, 0.0, 0.0);
+        b = vec3<f32>(0.0, 1.0, 0.0);
+    }
+    let st = span_within(dot(position, t), half, dot(lo, t), dot(hi, t));
+    let sb = span_within(dot(position, b), half, dot(lo, b), dot(hi, b));
+    let area = (st.y - st.x) * (sb.y - sb.x);
+    if area <= 0.0 {
+        return 0.0;
+    }
+    let base = dot(position, axis) * axis - p;
+    let c0 = base + st.x * t + sb.x * b;
+    let c1 = base + st.y * t + sb.x * b;
+    let c2 = base + st.y * t + sb.y * b;
+    let c3 = base + st.x * t + sb.y * b;
+    // Counter-clockwise about the face's outward normal.
+    if dot(normal, axis) >= 0.0 {
+        return quad_form_factor(c0, c1, c2, c3, n) / area;
+    }
+    return quad_form_factor(c0, c3, c2, c1, n) / area;
+}
+
 // One edge's term of Lambert's contour integral: the angle `u` and `v` (from the surface)
 // subtend, times the cosine of their plane's normal with `n`.
 fn contour_edge(u: vec3<f32>, v: vec3<f32>, n: vec3<f32>) -> f32 {
@@ -715,6 +763,9 @@ struct Dir {
     // x: where in its stratum of the flux each VPL sits, in (0, 1) (`dir::vpl_stratum`); y: the
     // gather's pixel stride; z: 1 = real surfaces take near VPLs as patches (`near_vpls`).
     sampling: vec4<f32>,
+    // xyz: the virtual object's bounding box, its minimum and maximum corners (world).
+    object_lo: vec4<f32>,
+    object_hi: vec4<f32>,
 }
 
 const LUMINANCE: vec3<f32> = vec3<f32>(0.2126, 0.7152, 0.0722);

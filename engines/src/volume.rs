@@ -647,21 +647,6 @@ mod tests {
     /// head-on light at that distance).
     #[test]
     fn a_patch_gives_its_contour_integral() {
-        let ctx = GpuContext::new().expect("a GPU adapter (lavapipe in CI)");
-        let device = &ctx.device;
-        let source = concat!(
-            include_str!("../../shaders/common.wgsl"),
-            "
-            @group(0) @binding(0) var<storage, read> emitter: FarEmitter;
-            @group(0) @binding(1) var<storage, read> queries: array<vec4<f32>>;
-            @group(0) @binding(2) var<storage, read_write> result: array<f32>;
-            @compute @workgroup_size(1)
-            fn main(@builtin(global_invocation_id) id: vec3<u32>) {
-                let p = queries[2u * id.x].xyz;
-                let n = queries[2u * id.x + 1u].xyz;
-                result[id.x] = patch_irradiance(emitter, 0.0, p, n).x;
-            }"
-        );
         let cases: [(DVec3, DVec3, f64); 6] = [
             (DVec3::new(0.0, 1.0, 0.0), DVec3::NEG_Y, 0.01),
             (DVec3::new(1.05, 0.1, 0.3), DVec3::NEG_X, 0.01),
@@ -683,49 +668,20 @@ mod tests {
                 [p.x, p.y, p.z, 0.0, n.x, n.y, n.z, 0.0].map(|v| v as f32)
             })
             .collect();
-        use wgpu::util::DeviceExt;
-        let init = |label, contents: &[f32], usage| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytemuck::cast_slice(contents),
-                usage,
-            })
-        };
-        use wgpu::BufferUsages as U;
-        let emitter = init("emitter", &emitter, U::STORAGE);
-        let queries = init("queries", &queries, U::STORAGE);
-        let result = init("result", &vec![0.0; cases.len()], U::STORAGE | U::COPY_SRC);
-        let pipeline = shaders::compute_pipeline(device, "patch irradiance", source);
-        let group = shaders::pipeline_bind_group(
-            device,
-            &pipeline,
-            "patch irradiance",
-            &[
-                emitter.as_entire_binding(),
-                queries.as_entire_binding(),
-                result.as_entire_binding(),
-            ],
+        let gpu = shaders::evaluate(
+            "@group(0) @binding(0) var<storage, read> emitter: FarEmitter;
+            @group(0) @binding(1) var<storage, read> queries: array<vec4<f32>>;
+            @group(0) @binding(2) var<storage, read_write> result: array<f32>;
+            @compute @workgroup_size(1)
+            fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+                let p = queries[2u * id.x].xyz;
+                let n = queries[2u * id.x + 1u].xyz;
+                result[id.x] = patch_irradiance(emitter, 0.0, p, n).x;
+            }",
+            &emitter,
+            &queries,
+            cases.len(),
         );
-        let mut encoder = device.create_command_encoder(&Default::default());
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&pipeline);
-            pass.set_bind_group(0, &group, &[]);
-            pass.dispatch_workgroups(cases.len() as u32, 1, 1);
-        }
-        ctx.queue.submit([encoder.finish()]);
-        let size = (cases.len() * 4) as u64;
-        let staging = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("staging"),
-            size,
-            usage: U::MAP_READ | U::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let gpu: Vec<f32> = ctx
-            .read_back(&result, &staging, size, |bytes| {
-                bytemuck::cast_slice(bytes).to_vec()
-            })
-            .unwrap();
         // Radiance intensity / area = 1/4 over the square x, z ∈ [−1, 1] at y = 0.
         let pieces = 600;
         let piece = 2.0 / f64::from(pieces);
