@@ -100,20 +100,29 @@ impl RenderStage {
 
     /// Take up a change from the control threads; true when a new engine came in (its first
     /// frame compiles its pipelines).
+    ///
+    /// The slot's `pending` stays locked until its name and parameters name the engine taken
+    /// up: `engine.params.set` validates against the pending engine or else the named one, and
+    /// in between it would have checked a switch's parameters against the engine it replaces
+    /// (`relightctl engine set pt` then `params set spp=1` failed now and then).
     pub fn apply_pending(&mut self, slot: &EngineSlot) -> bool {
-        let Some(pending) = lock(&slot.pending).take() else {
+        let mut pending = lock(&slot.pending);
+        let Some(taken) = pending.take() else {
             return false;
         };
-        match pending {
+        match taken {
             Pending::Engine {
                 engine,
                 name,
                 params,
             } => {
-                self.engine = engine;
+                let replaced = std::mem::replace(&mut self.engine, engine);
                 *lock(&slot.params) = params;
                 tracing::info!(engine = %name, "engine switched");
                 *lock(&slot.name) = name;
+                drop(pending);
+                // Its GPU resources are freed with the control threads no longer waiting.
+                drop(replaced);
                 true
             }
             Pending::Params(params) => {
