@@ -159,7 +159,7 @@ impl Targets {
             .map(|t| Self::layer_view(t, layer))
             .collect();
         let load = match start {
-            LayerStart::Clear => wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+            LayerStart::Clear(_) => wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
             LayerStart::Over => wgpu::LoadOp::Load,
         };
         let attachments: Vec<Option<wgpu::RenderPassColorAttachment>> = views
@@ -184,7 +184,7 @@ impl Targets {
                 view: &depth_view,
                 depth_ops: Some(wgpu::Operations {
                     load: match start {
-                        LayerStart::Clear => wgpu::LoadOp::Clear(1.0),
+                        LayerStart::Clear(order) => wgpu::LoadOp::Clear(order.far()),
                         LayerStart::Over => wgpu::LoadOp::Load,
                     },
                     // Kept: a layer's depth is copied (`copy_from`) and drawn over.
@@ -269,10 +269,40 @@ pub struct LayerRedraw {
 #[derive(Debug, Clone, Copy)]
 enum LayerStart {
     /// Cleared: colour to zero (a G-buffer's position w, its material index + 1, to nothing; an
-    /// RSM's albedo w to "nothing drawn"), depth to the far plane.
-    Clear,
+    /// RSM's albedo w to "nothing drawn"), depth to the far plane of its [`DepthOrder`].
+    Clear(DepthOrder),
     /// Drawn over, colour and depth as the layer holds them.
     Over,
+}
+
+/// Which way a target's depth runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum DepthOrder {
+    /// 0 at the near plane, 1 at the far one: the shadow maps, whose depths `lit`
+    /// (`shaders/common.wgsl`) compares with a point's.
+    Forward,
+    /// 1 at the near plane, 0 at infinity (`gpu_scene::camera_uniform`): the camera's
+    /// G-buffers. An f32 depth then steps by about 1e-7 of the distance everywhere; forward,
+    /// with the near plane at 1e-4 of the far one, it stepped by 0.5 mm at 2 m, and a box sunk
+    /// 2 mm into the floor showed through it along its foot (desk_box, `differential`'s Δ
+    /// 0.26 → 0.88 at 160 × 120).
+    Reversed,
+}
+
+impl DepthOrder {
+    fn compare(self) -> wgpu::CompareFunction {
+        match self {
+            Self::Forward => wgpu::CompareFunction::Less,
+            Self::Reversed => wgpu::CompareFunction::Greater,
+        }
+    }
+
+    fn far(self) -> f32 {
+        match self {
+            Self::Forward => 1.0,
+            Self::Reversed => 0.0,
+        }
+    }
 }
 
 /// A raster pipeline whose vertex entry is `vertex` and whose fragment entry `fragment` writes
@@ -283,6 +313,7 @@ fn raster_pipeline(
     source: &str,
     (vertex, fragment): (&str, Option<&str>),
     targets: &[wgpu::TextureFormat],
+    order: DepthOrder,
 ) -> wgpu::RenderPipeline {
     let module = shaders::module(&ctx.device, label, source);
     let targets: Vec<Option<wgpu::ColorTargetState>> = targets
@@ -313,7 +344,7 @@ fn raster_pipeline(
             depth_stencil: Some(wgpu::DepthStencilState {
                 format: DEPTH,
                 depth_write_enabled: Some(true),
-                depth_compare: Some(wgpu::CompareFunction::Less),
+                depth_compare: Some(order.compare()),
                 stencil: Default::default(),
                 bias: Default::default(),
             }),
@@ -344,6 +375,7 @@ impl GBufferPass {
                 shaders::GBUFFER,
                 ("vs_main", Some("fs_main")),
                 &ALL_TARGETS,
+                DepthOrder::Reversed,
             ),
         }
     }
@@ -394,7 +426,7 @@ impl GBufferPass {
             scene,
             real,
             0,
-            LayerStart::Clear,
+            LayerStart::Clear(DepthOrder::Reversed),
             scissor,
             timestamp_writes,
         );
@@ -450,6 +482,7 @@ impl RsmPass {
                 shaders::RSM,
                 ("vs_main", Some("fs_main")),
                 &ALL_TARGETS,
+                DepthOrder::Forward,
             ),
             depth_only: false,
         }
@@ -459,7 +492,14 @@ impl RsmPass {
     /// [`Targets::depth_only`].
     pub fn depth_only(ctx: &GpuContext) -> Self {
         Self {
-            pipeline: raster_pipeline(ctx, "rsm depth", shaders::RSM, ("vs_depth", None), &[]),
+            pipeline: raster_pipeline(
+                ctx,
+                "rsm depth",
+                shaders::RSM,
+                ("vs_depth", None),
+                &[],
+                DepthOrder::Forward,
+            ),
             depth_only: true,
         }
     }
@@ -538,7 +578,7 @@ impl RsmPass {
                 scene,
                 (&scene.indices, scene.shadow_real.clone()),
                 face.layer,
-                LayerStart::Clear,
+                LayerStart::Clear(DepthOrder::Forward),
                 None,
                 timestamp_writes,
             );

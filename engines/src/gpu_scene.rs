@@ -316,7 +316,8 @@ impl GpuScene {
 }
 
 /// The camera uniform for an image of `width` × `height` with the scene camera's vertical field
-/// of view; near and far planes enclose `bounds`.
+/// of view; its depth reversed (1 at the near plane, 0 at infinity, see `gbuffer::DepthOrder`),
+/// the near plane at 1e-4 of the distance to `bounds`' farthest corner.
 pub fn camera_uniform(
     camera: &SceneCamera,
     width: u32,
@@ -332,7 +333,7 @@ pub fn camera_uniform(
         * 1.5;
     let view = Mat4::from_rotation_translation(pose.rotation, pose.translation).inverse();
     let aspect = width as f32 / height.max(1) as f32;
-    let proj = Mat4::perspective_rh(camera.yfov_rad, aspect, far * 1e-4, far);
+    let proj = Mat4::perspective_infinite_reverse_rh(camera.yfov_rad, aspect, far * 1e-4);
     GpuCamera {
         view_proj: (proj * view).to_cols_array_2d(),
         position: eye.extend(1.0).to_array(),

@@ -135,8 +135,14 @@ fn reach_bounds(light: &GpuLight, (lo, hi): (Vec3, Vec3), real: (Vec3, Vec3)) ->
     }
 }
 
+/// How far in front of the camera's near plane a point lies, in clip space: the camera's depth
+/// is reversed (`gpu_scene::camera_uniform`), 1 at the near plane, so the plane is z = w.
+fn before_near(clip: Vec4) -> f32 {
+    clip.w - clip.z
+}
+
 /// The pixels the boxes can cover in the image, one pixel of margin around them: each box's
-/// corners and the points where its edges cross the near plane (clip z = 0), projected.
+/// corners and the points where its edges cross the near plane ([`before_near`] = 0), projected.
 fn screen_rect(view_proj: Mat4, (width, height): (u32, u32), boxes: &[(Vec3, Vec3)]) -> PixelRect {
     let (mut lo, mut hi) = (glam::Vec2::INFINITY, glam::Vec2::NEG_INFINITY);
     let mut include = |clip: Vec4| {
@@ -151,12 +157,14 @@ fn screen_rect(view_proj: Mat4, (width, height): (u32, u32), boxes: &[(Vec3, Vec
     for &b in boxes {
         let clip = box_corners(b).map(|c| view_proj * c.extend(1.0));
         for (i, c) in clip.iter().enumerate() {
-            if c.z >= 0.0 && c.w > 0.0 {
+            let near_c = before_near(*c);
+            if near_c >= 0.0 && c.w > 0.0 {
                 include(*c);
             }
             for d in &clip[i + 1..] {
-                if (c.z >= 0.0) != (d.z >= 0.0) {
-                    let s = c.z / (c.z - d.z);
+                let near_d = before_near(*d);
+                if (near_c >= 0.0) != (near_d >= 0.0) {
+                    let s = near_c / (near_c - near_d);
                     let on_plane = c.lerp(*d, s);
                     if on_plane.w > 0.0 {
                         include(on_plane);
@@ -216,7 +224,7 @@ pub fn triangles_within(
         .iter()
         .map(|p| {
             let clip = view_proj * p.extend(1.0);
-            if !(clip.z >= 0.0 && clip.w > 0.0) {
+            if !(before_near(clip) >= 0.0 && clip.w > 0.0) {
                 // Behind the near plane (or not finite): the triangle is kept.
                 return 0;
             }
@@ -415,7 +423,7 @@ pub(crate) mod tests {
     /// A camera 2 m in front of the origin looking at it, 60° vertical field of view.
     fn camera() -> Mat4 {
         let view = Mat4::look_at_rh(Vec3::new(0.0, 0.5, 2.0), Vec3::ZERO, Vec3::Y);
-        Mat4::perspective_rh(60f32.to_radians(), 4.0 / 3.0, 0.01, 10.0) * view
+        Mat4::perspective_infinite_reverse_rh(60f32.to_radians(), 4.0 / 3.0, 0.01) * view
     }
 
     /// Under a light straight above a small object on a wide floor, the rectangle holds the

@@ -109,3 +109,30 @@ fn an_environment_only_scene_lights_the_object_and_casts_its_shadow() {
     assert!(error < 0.4, "Δ relative L2 {error}");
     assert!(object < 0.35, "object relative L2 {object}");
 }
+
+/// A box sunk 2 mm into the floor (a live pose a little off does that) must not show through
+/// the floor along its foot. With the camera's depth forward and its near plane at 1e-4 of its
+/// far one, an f32 depth stepped by 0.5 mm at desk_box's 2 m and the sunk face won the depth
+/// test over the floor in front of it: 20 floor pixels along its foot read the box's light, Δ
+/// −0.33 where the box on the floor reads 0 (Δ L2 0.26 → 0.88 against the reference).
+/// Reversed, they read as the floor: no pixel goes from no change to dark but where the shadow
+/// moved.
+#[test]
+fn a_box_sunk_into_the_floor_does_not_show_through_it() {
+    let desk = Arc::new(support::load_scene("desk_box"));
+    let mut sunk = (*desk).clone();
+    for mesh in sunk.meshes.iter_mut().filter(|m| m.is_virtual) {
+        for p in &mut mesh.positions_in_world {
+            p.y -= 0.002;
+        }
+    }
+    let mut engine = support::engine("differential");
+    let (on_floor, _) = support::delta_of(&mut engine, &support::frame(desk, 160, 120));
+    let (into_floor, _) = support::delta_of(&mut engine, &support::frame(Arc::new(sunk), 160, 120));
+    let darkened = on_floor
+        .iter()
+        .zip(&into_floor)
+        .filter(|(a, b)| a.abs().max_element() < 0.01 && b.max_element() < -0.1)
+        .count();
+    assert!(darkened <= 4, "{darkened} pixels went dark");
+}
