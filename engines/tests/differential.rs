@@ -119,16 +119,16 @@ fn an_environment_only_scene_lights_the_object_and_casts_its_shadow() {
 /// moved.
 #[test]
 fn a_box_sunk_into_the_floor_does_not_show_through_it() {
-    let desk = Arc::new(support::load_scene("desk_box"));
+    let desk = Arc::new(load_scene("desk_box"));
     let mut sunk = (*desk).clone();
     for mesh in sunk.meshes.iter_mut().filter(|m| m.is_virtual) {
         for p in &mut mesh.positions_in_world {
             p.y -= 0.002;
         }
     }
-    let mut engine = support::engine("differential");
-    let (on_floor, _) = support::delta_of(&mut engine, &support::frame(desk, 160, 120));
-    let (into_floor, _) = support::delta_of(&mut engine, &support::frame(Arc::new(sunk), 160, 120));
+    let mut engine = engine("differential");
+    let (on_floor, _) = delta_of(&mut engine, &frame(desk, 160, 120));
+    let (into_floor, _) = delta_of(&mut engine, &frame(Arc::new(sunk), 160, 120));
     let darkened = on_floor
         .iter()
         .zip(&into_floor)
