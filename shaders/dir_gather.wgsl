@@ -83,11 +83,11 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         // footprint's square spreads the light of the lit floor around it (window_env's object
         // 0.081 → 0.143). A VPL on the object is a piece of one of its faces
         // (`box_square_form_factor`), no smaller than `clamp_distance`'s disc, as the point's
-        // clamp is: a small square of a brightly lit face put a spike into a live frame (Δ 0.74
-        // → 1.78 on the bundled recording), where the point's clamp held. Which VPLs take the
-        // square is still decided by their own footprint: by the floored one, touching_wall's
-        // Δ went 0.309 → 0.423 (its converged Δ held), one VPL set's squares moved inside the
-        // box lighting its contact shadow.
+        // clamp is: unfloored, the small squares of a brightly lit face put one live frame of
+        // the bundled recording at Δ 1.78 (0.74 floored), where the point's clamp held. Which
+        // VPLs take the square is still decided by their own footprint: by the floored one,
+        // touching_wall's Δ went 0.309 → 0.423 (its converged Δ held), one VPL set's squares
+        // moved inside the box lighting its contact shadow.
         let half = 0.886226925 * vpl.normal.w;
         if dir.sampling.z == 1.0 && !is_virtual
             && dist2 < PATCH_AS_POINT * PATCH_AS_POINT * half * half {
