@@ -82,7 +82,7 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         // object keeps the points: its foot stands in its own shadow, into which a large
         // footprint's square spreads the light of the lit floor around it (window_env's object
         // 0.081 → 0.143). A VPL on the object is a piece of one of its faces
-        // (`box_square_form_factor`), no smaller than `clamp_distance`'s disc, as the point's
+        // (`box_square_quad`), no smaller than `clamp_distance`'s disc, as the point's
         // clamp is: unfloored, the small squares of a brightly lit face put one live frame of
         // the bundled recording at Δ 1.78 (0.74 floored), where the point's clamp held. Which
         // VPLs take the square is still decided by their own footprint: by the floored one,
@@ -91,15 +91,16 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         let half = 0.886226925 * vpl.normal.w;
         if dir.sampling.z == 1.0 && !is_virtual
             && dist2 < PATCH_AS_POINT * PATCH_AS_POINT * half * half {
-            var per_area: f32;
+            var q: Quad;
             if group == 1u {
-                per_area = box_square_form_factor(vpl.position.xyz, vpl.normal.xyz,
-                                                  max(half, 0.886226925 * dir.params.x),
-                                                  dir.object_lo.xyz, dir.object_hi.xyz, p.xyz, n);
+                q = box_square_quad(vpl.position.xyz, vpl.normal.xyz,
+                                    max(half, 0.886226925 * dir.params.x), dir.object_lo.xyz,
+                                    dir.object_hi.xyz, p.xyz);
             } else {
-                per_area = square_form_factor(-d, vpl.normal.xyz, half, n) / (4.0 * half * half);
+                q = square_quad(-d, vpl.normal.xyz, half);
             }
-            l_o = f * vpl.flux.rgb / PI * per_area;
+            l_o = f * vpl.flux.rgb / PI * quad_form_factor(q.a, q.b, q.c, q.d, n)
+                / max(q.area, 1e-30);
         }
         let t = vec2<u32>(paraboloid_texel(vpl.normal.xyz, w, s));
         // The depth a texel holds can differ from the receiver's by the texel's footprint.

@@ -100,7 +100,7 @@ pub struct DirSettings {
     pub gather_stride: u32,
     /// A real surface takes a VPL within 6 half edges of it as the square of surface its clamp
     /// stands for (`quad_form_factor` in `shaders/common.wgsl`), a VPL on the object as a square
-    /// of its box's face (`box_square_form_factor`), not as a clamped point.
+    /// of its box's face (`box_square_quad`), not as a clamped point.
     pub near_patches: bool,
 }
 
