@@ -611,16 +611,6 @@ fn box_square_quad(position: vec3<f32>, normal: vec3<f32>, half: f32, lo: vec3<f
     return Quad(c0, c3, c2, c1, area);
 }
 
-// `quad_form_factor` over `box_square_quad`, per unit of its area.
-fn box_square_form_factor(position: vec3<f32>, normal: vec3<f32>, half: f32, lo: vec3<f32>,
-                          hi: vec3<f32>, p: vec3<f32>, n: vec3<f32>) -> f32 {
-    let q = box_square_quad(position, normal, half, lo, hi, p);
-    if q.area <= 0.0 {
-        return 0.0;
-    }
-    return quad_form_factor(q.a, q.b, q.c, q.d, n) / q.area;
-}
-
 // One edge's term of Lambert's contour integral: the angle `u` and `v` (from the surface)
 // subtend, times the cosine of their plane's normal with `n`.
 fn contour_edge(u: vec3<f32>, v: vec3<f32>, n: vec3<f32>) -> f32 {

@@ -94,8 +94,8 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
             var q: Quad;
             if group == 1u {
                 q = box_square_quad(vpl.position.xyz, vpl.normal.xyz,
-                                    max(half, 0.886226925 * dir.params.x), dir.object_lo.xyz,
-                                    dir.object_hi.xyz, p.xyz);
+                                    0.886226925 * max(vpl.normal.w, dir.params.x),
+                                    dir.object_lo.xyz, dir.object_hi.xyz, p.xyz);
             } else {
                 q = square_quad(-d, vpl.normal.xyz, half);
             }

@@ -258,3 +258,32 @@ pub(crate) fn evaluate(main: &str, data: &[f32], queries: &[f32], count: usize) 
     })
     .expect("the results read back")
 }
+
+/// π × the form factor from a surface at `p` (unit normal `n`) to the rectangle `corner` +
+/// u `t` + v `b` (u, v ∈ [0, 1]) emitting along unit `normal`, summed in f64 over `pieces`²
+/// pieces with no horizon clip but the cosines': the integral the tests hold a WGSL contour
+/// integral to.
+#[cfg(test)]
+pub(crate) fn rectangle_form_factor(
+    (p, n): (glam::DVec3, glam::DVec3),
+    (corner, t, b, normal): (glam::DVec3, glam::DVec3, glam::DVec3, glam::DVec3),
+    pieces: u32,
+) -> f64 {
+    let piece = t.length() * b.length() / f64::from(pieces * pieces);
+    let mut sum = 0.0;
+    for i in 0..pieces {
+        for j in 0..pieces {
+            let (u, v) = (
+                (f64::from(i) + 0.5) / f64::from(pieces),
+                (f64::from(j) + 0.5) / f64::from(pieces),
+            );
+            let d = p - (corner + u * t + v * b);
+            let r2 = d.length_squared();
+            let (cos_e, cos_r) = (normal.dot(d), -n.dot(d));
+            if cos_e > 0.0 && cos_r > 0.0 {
+                sum += cos_e * cos_r / (r2 * r2) * piece;
+            }
+        }
+    }
+    sum
+}

@@ -683,26 +683,15 @@ mod tests {
             cases.len(),
         );
         // Radiance intensity / area = 1/4 over the square x, z ∈ [−1, 1] at y = 0.
-        let pieces = 600;
-        let piece = 2.0 / f64::from(pieces);
+        let square = (
+            DVec3::new(-1.0, 0.0, -1.0),
+            DVec3::new(2.0, 0.0, 0.0),
+            DVec3::new(0.0, 0.0, 2.0),
+            DVec3::Y,
+        );
         for ((p, n, tolerance), gpu) in cases.iter().zip(&gpu) {
             let n = n.normalize();
-            let mut expected = 0.0;
-            for i in 0..pieces {
-                for j in 0..pieces {
-                    let q = DVec3::new(
-                        -1.0 + (f64::from(i) + 0.5) * piece,
-                        0.0,
-                        -1.0 + (f64::from(j) + 0.5) * piece,
-                    );
-                    let d = *p - q;
-                    let r2 = d.length_squared();
-                    let (cos_e, cos_r) = (d.y / r2.sqrt(), -n.dot(d) / r2.sqrt());
-                    if cos_e > 0.0 && cos_r > 0.0 {
-                        expected += 0.25 * cos_e * cos_r / r2 * piece * piece;
-                    }
-                }
-            }
+            let expected = 0.25 * shaders::rectangle_form_factor((*p, n), square, 600);
             let head_on = 0.25 * 4.0 / p.length_squared();
             eprintln!("at {p} facing {n}: {gpu:.5}, the integral {expected:.5}");
             assert!(

@@ -712,12 +712,12 @@ mod tests {
 
     use crate::shaders;
 
-    /// `box_square_form_factor` (`shaders/common.wgsl`) against the integral over the rectangle
-    /// it should become, in f64 over 400² pieces: on desk_box's box, a square at the foot of its
-    /// front face moved up onto the face and seen from the floor in front, head on, and from
-    /// inside the box (nothing); one wider than the face cut to it; one on a side face, moved
-    /// in from the back edge, cut by its receiver's horizon; one on the top with a tilted
-    /// normal.
+    /// `box_square_quad`'s contour integral per unit of its area (`shaders/common.wgsl`)
+    /// against the integral over the rectangle it should become, in f64 over 400² pieces: on
+    /// desk_box's box, a square at the foot of its front face moved up onto the face and seen
+    /// from the floor in front, head on, and from inside the box (nothing); one wider than the
+    /// face cut to it; one on a side face, moved in from the back edge, cut by its receiver's
+    /// horizon; one on the top with a tilted normal.
     #[test]
     fn an_object_s_square_stays_on_its_box() {
         let (lo, hi) = (DVec3::new(-0.15, 0.0, -0.25), DVec3::new(0.15, 0.3, 0.05));
@@ -813,36 +813,20 @@ mod tests {
             @compute @workgroup_size(1)
             fn main(@builtin(global_invocation_id) id: vec3<u32>) {
                 let at = queries[4u * id.x];
-                result[id.x] = box_square_form_factor(at.xyz, queries[4u * id.x + 1u].xyz,
-                    at.w, bounds[0].xyz, bounds[1].xyz, queries[4u * id.x + 2u].xyz,
-                    queries[4u * id.x + 3u].xyz);
+                let q = box_square_quad(at.xyz, queries[4u * id.x + 1u].xyz, at.w,
+                    bounds[0].xyz, bounds[1].xyz, queries[4u * id.x + 2u].xyz);
+                result[id.x] = quad_form_factor(q.a, q.b, q.c, q.d, queries[4u * id.x + 3u].xyz)
+                    / q.area;
             }",
             &data,
             &queries,
             cases.len(),
         );
-        let pieces = 400;
         for (c, gpu) in cases.iter().zip(&gpu) {
             let n = c.n.normalize();
-            let (corner, t, b, normal) = c.rectangle;
-            let area = t.length() * b.length();
-            let piece = area / f64::from(pieces * pieces);
-            let mut expected = 0.0;
-            for i in 0..pieces {
-                for j in 0..pieces {
-                    let (u, v) = (
-                        (f64::from(i) + 0.5) / f64::from(pieces),
-                        (f64::from(j) + 0.5) / f64::from(pieces),
-                    );
-                    let d = c.p - (corner + u * t + v * b);
-                    let r2 = d.length_squared();
-                    let (cos_e, cos_r) = (normal.dot(d), -n.dot(d));
-                    if cos_e > 0.0 && cos_r > 0.0 {
-                        expected += cos_e * cos_r / (r2 * r2) * piece;
-                    }
-                }
-            }
-            expected /= area;
+            let (_, t, b, _) = c.rectangle;
+            let expected = shaders::rectangle_form_factor((c.p, n), c.rectangle, 400)
+                / (t.length() * b.length());
             eprintln!(
                 "at {} facing {n}: {gpu:.4}, the integral {expected:.4}",
                 c.p
