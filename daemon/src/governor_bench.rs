@@ -461,6 +461,7 @@ fn recording_rows(
                 engine: engine.to_owned(),
                 params,
                 reference_spp: settings.recording_reference_spp,
+                reference_cache: settings.bench.reference_cache.clone(),
                 out: None,
                 config: default_config(),
                 threads: false,

@@ -30,7 +30,9 @@ use relight_core::scene::{Scene, box_corners};
 use relight_core::sync::{FrameSet, Synchronizer};
 use relight_core::{Image, Pose, StreamKind};
 use relight_engines::live_scene::RealGeometry;
-use relight_engines::offline::{self, delta_pixels, reference, srgb_image};
+use relight_engines::offline::{self, Sampling, Transport, delta_pixels, reference, srgb_image};
+use relight_engines::reference::ReferenceImages;
+use relight_engines::reference_cache::ReferenceCache;
 use relight_engines::{EngineRegistry, RelitFrame, SceneFrame};
 use serde::Serialize;
 use serde_json::{Map, Value};
@@ -51,6 +53,9 @@ pub struct ScoreSettings {
     pub params: Map<String, Value>,
     /// Samples per pixel of the truth's reference renders.
     pub reference_spp: u32,
+    /// Where truth renders are kept between runs (a [`ReferenceCache`] keyed by the scene's
+    /// files, the frame's true pose and lights, and the samples); `None`: always render.
+    pub reference_cache: Option<PathBuf>,
     /// Write each truth frame's live, oracle and true composites here.
     pub out: Option<PathBuf>,
     /// The rest of the live path (`[scene]`, `[tracking]`, `[sync]`); source and engine are
@@ -85,6 +90,12 @@ pub struct FrameScore {
     pub delta_rel_l2_bleeding: Option<f64>,
     pub delta_rel_l2_oracle: f64,
     pub composite_rel_l2_real_oracle: f64,
+    /// The truth's own sampling noise in the metric of `delta_rel_l2`
+    /// ([`offline::reference_noise`]): against a truth of `--reference-spp` samples an engine
+    /// with true error e reads about √(e² + noise²), so an error near this is noise. Path-traced
+    /// noise is heavy-tailed, so at few samples this reads low (desk_box at 80 × 60: 0.51 at 16
+    /// spp, where such a truth differs from a converged one by 0.60; within 5 % from 64 spp).
+    pub delta_truth_noise: f64,
     /// ‖Δ_true‖ / ‖true composite‖ over real pixels: how much of the picture Δ is, which bounds
     /// how far a relative error of Δ can move the composite.
     pub delta_share_real: f64,
@@ -118,7 +129,7 @@ pub struct ScoreReport {
 }
 
 /// The measures in report order (the `--json` keys).
-pub const MEASURES: [&str; 14] = [
+pub const MEASURES: [&str; 15] = [
     "pose_error_mm",
     "pose_error_deg",
     "object_reprojection_px",
@@ -133,6 +144,7 @@ pub const MEASURES: [&str; 14] = [
     "delta_rel_l2_bleeding",
     "delta_rel_l2_oracle",
     "composite_rel_l2_real_oracle",
+    "delta_truth_noise",
 ];
 
 impl FrameScore {
@@ -152,10 +164,52 @@ impl FrameScore {
             "delta_rel_l2_bleeding" => self.delta_rel_l2_bleeding,
             "delta_rel_l2_oracle" => Some(self.delta_rel_l2_oracle),
             "composite_rel_l2_real_oracle" => Some(self.composite_rel_l2_real_oracle),
+            "delta_truth_noise" => Some(self.delta_truth_noise),
             _ => None,
         }
         .filter(|v| v.is_finite())
     }
+}
+
+/// The reference render of `true_scene` (the scene at a frame's true pose under its true lights)
+/// at the scene camera's size, read from the cache where one was kept.
+fn truth_reference(
+    settings: &ScoreSettings,
+    true_scene: &Scene,
+) -> anyhow::Result<ReferenceImages> {
+    let (width, height) = (true_scene.camera.width, true_scene.camera.height);
+    let spp = settings.reference_spp;
+    let cache = settings.reference_cache.as_ref().and_then(|dir| {
+        let view = format!(
+            "score truth: {spp} spp, camera {:?}, lights {:?}",
+            true_scene.camera, true_scene.lights
+        );
+        let key = ReferenceCache::key_of_view(
+            &settings.scene,
+            width,
+            height,
+            Sampling::Centre,
+            Transport::Full,
+            &view,
+        );
+        match key {
+            Ok(key) => Some((ReferenceCache::new(dir), key)),
+            Err(error) => {
+                tracing::warn!(%error, "the truth is not cached: the scene's files do not read");
+                None
+            }
+        }
+    });
+    if let Some(images) = cache.as_ref().and_then(|(cache, key)| cache.load(*key)) {
+        return Ok(images);
+    }
+    let images = reference(true_scene, width, height, spp)?;
+    if let Some((cache, key)) = cache
+        && let Err(error) = cache.store(key, &images)
+    {
+        tracing::warn!(%error, "truth frame not cached");
+    }
+    Ok(images)
 }
 
 /// Nearest-rank quantile of sorted `values`.
@@ -299,12 +353,7 @@ pub fn run(
         true_scene.camera.world_from_camera = state.world_from_camera;
         true_scene.lights.clone_from(&state.lights);
         let start = Instant::now();
-        let truth_images = reference(
-            &true_scene,
-            camera.width,
-            camera.height,
-            settings.reference_spp,
-        )?;
+        let truth_images = truth_reference(settings, &true_scene)?;
         add_ms("truth reference", start.elapsed().as_secs_f64() * 1e3);
         let true_scene = Arc::new(true_scene);
         let oracle_frame = SceneFrame {
@@ -376,6 +425,7 @@ pub fn run(
             delta_rel_l2_bleeding: regions.bleeding_relative_l2,
             delta_rel_l2_oracle: relative_l2(&oracle_delta, &truth_images.delta, &real),
             composite_rel_l2_real_oracle: relative_l2(&oracle_composite, &true_composite, &real),
+            delta_truth_noise: offline::reference_noise(&truth_images),
             delta_share_real: l2(&truth_images.delta, &real) / l2(&true_composite, &real),
         };
         if let Some(dir) = &settings.out {
@@ -468,11 +518,11 @@ impl ScoreReport {
     pub fn table(&self) -> String {
         let cell = |v: Option<f64>| v.map_or_else(|| "-".to_owned(), |v| format!("{v:.3}"));
         let mut out = String::from(
-            "frame  tracking   pose mm  pose °  obj px  depth mm  albedo  light °  comp real  comp virt  Δ rel L2  Δ oracle\n",
+            "frame  tracking   pose mm  pose °  obj px  depth mm  albedo  light °  comp real  comp virt  Δ rel L2  Δ oracle  Δ noise\n",
         );
         for (i, f) in self.per_frame.iter().enumerate() {
             out.push_str(&format!(
-                "{i:>5}  {:<9} {:>8} {:>7} {:>7} {:>9} {:>7} {:>8} {:>10.4} {:>10.4} {:>9.4} {:>9.4}\n",
+                "{i:>5}  {:<9} {:>8} {:>7} {:>7} {:>9} {:>7} {:>8} {:>10.4} {:>10.4} {:>9.4} {:>9.4} {:>8.4}\n",
                 f.tracking,
                 cell(f.pose_error_mm),
                 cell(f.pose_error_deg),
@@ -484,6 +534,7 @@ impl ScoreReport {
                 f.composite_rel_l2_virtual,
                 f.delta_rel_l2,
                 f.delta_rel_l2_oracle,
+                f.delta_truth_noise,
             ));
         }
         out.push_str(&format!(

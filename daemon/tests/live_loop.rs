@@ -9,6 +9,7 @@ use relight_core::recording::{RecordingMeta, RecordingWriter};
 use relight_core::scene::Scene;
 use relight_daemon::config::Config;
 use relight_daemon::score::{self, ScoreReport, ScoreSettings};
+use relight_engines::reference_cache::ReferenceCache;
 use relight_sim::rig::{CameraPath, SimRig, SimSettings, write_recording};
 
 fn desk() -> (PathBuf, Scene) {
@@ -41,6 +42,18 @@ fn score(
     config: Config,
     reference_spp: u32,
 ) -> ScoreReport {
+    score_cached(recording, scene, engine, config, reference_spp, None)
+}
+
+/// [`score`], keeping the truth's renders in `reference_cache`.
+fn score_cached(
+    recording: &Path,
+    scene: &Path,
+    engine: &str,
+    config: Config,
+    reference_spp: u32,
+    reference_cache: Option<PathBuf>,
+) -> ScoreReport {
     score::run(
         &ScoreSettings {
             recording: recording.to_owned(),
@@ -48,6 +61,7 @@ fn score(
             engine: engine.into(),
             params: serde_json::Map::new(),
             reference_spp,
+            reference_cache,
             out: None,
             config,
             threads: false,
@@ -139,6 +153,54 @@ fn a_hidden_board_leaves_the_camera_untracked_and_draws_no_delta() {
             assert!(frame.delta_rel_l2 < 1.0, "{frame:?}");
         }
     }
+}
+
+/// The truth's renders are kept: a second run, of another engine, reads every frame's back (its
+/// noise as stored: here the stored noise is zeroed), and a run at other samples renders its own.
+#[test]
+fn a_second_score_reads_the_truth_from_the_cache() {
+    let (dir, scene) = desk();
+    let tmp = tempfile::tempdir().unwrap();
+    let recording = tmp.path().join("static.mcap");
+    write_recording(&rig(&scene, CameraPath::Orbit, 3), &recording, |_| {}).unwrap();
+    let cache_dir = tmp.path().join("refs");
+    let run = |engine, spp| {
+        let config = score::default_config();
+        score_cached(
+            &recording,
+            &dir,
+            engine,
+            config,
+            spp,
+            Some(cache_dir.clone()),
+        )
+    };
+    let first = run("passthrough", 2);
+    assert!(first.per_frame.iter().all(|f| f.delta_truth_noise > 0.0));
+    let cache = ReferenceCache::new(&cache_dir);
+    let mut keys = Vec::new();
+    for entry in std::fs::read_dir(&cache_dir).unwrap() {
+        let name = entry.unwrap().file_name().into_string().unwrap();
+        let key = u64::from_str_radix(name.strip_suffix(".ref").unwrap(), 16).unwrap();
+        let mut images = cache.load(key).unwrap();
+        images.delta_std_error.fill(glam::Vec3::ZERO);
+        cache.store(key, &images).unwrap();
+        keys.push(key);
+    }
+    assert_eq!(keys.len(), 3, "one truth per frame of the orbit");
+    let second = run("differential", 2);
+    for (a, b) in first.per_frame.iter().zip(&second.per_frame) {
+        assert_eq!(b.delta_truth_noise, 0.0, "read back");
+        assert_eq!(a.pose_error_mm, b.pose_error_mm);
+    }
+    let other_samples = run("passthrough", 3);
+    assert!(
+        other_samples
+            .per_frame
+            .iter()
+            .all(|f| f.delta_truth_noise > 0.0)
+    );
+    assert_eq!(std::fs::read_dir(&cache_dir).unwrap().count(), 6);
 }
 
 fn probe_lit() -> Config {

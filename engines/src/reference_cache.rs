@@ -54,6 +54,20 @@ impl ReferenceCache {
         sampling: Sampling,
         transport: Transport,
     ) -> io::Result<u64> {
+        Self::key_of_view(scene_dir, width, height, sampling, transport, "")
+    }
+
+    /// [`Self::key`] of the scene seen otherwise than its file says: `view` names what differs
+    /// (`relightd score`'s truth frames: the true camera pose, lights and samples). An empty
+    /// `view` is the scene file's own key.
+    pub fn key_of_view(
+        scene_dir: &Path,
+        width: u32,
+        height: u32,
+        sampling: Sampling,
+        transport: Transport,
+        view: &str,
+    ) -> io::Result<u64> {
         let mut files: Vec<PathBuf> = std::fs::read_dir(scene_dir)?
             .filter_map(|e| e.ok().map(|e| e.path()))
             .filter(|p| p.is_file())
@@ -69,6 +83,7 @@ impl ReferenceCache {
             )
             .as_bytes(),
         );
+        hash.write(view.as_bytes());
         for file in files {
             let name = file.file_name().unwrap_or_default().to_string_lossy();
             hash.write(name.as_bytes());
@@ -194,7 +209,7 @@ mod tests {
     }
 
     #[test]
-    fn the_key_follows_the_scene_files_the_size_the_sampling_and_the_transport() {
+    fn the_key_follows_the_scene_files_the_size_the_sampling_the_transport_and_the_view() {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("scene.toml"), "gltf = \"a.gltf\"\n").unwrap();
         let key_of = |w, h, sampling| {
@@ -208,6 +223,13 @@ mod tests {
             key,
             ReferenceCache::key(dir.path(), 16, 12, Sampling::Centre, Transport::Direct).unwrap()
         );
+        let view = |view| {
+            ReferenceCache::key_of_view(dir.path(), 16, 12, Sampling::Centre, Transport::Full, view)
+                .unwrap()
+        };
+        assert_eq!(key, view(""));
+        assert_ne!(key, view("pose a"));
+        assert_ne!(view("pose a"), view("pose b"));
         std::fs::write(dir.path().join("scene.toml"), "gltf = \"b.gltf\"\n").unwrap();
         assert_ne!(key, key_of(16, 12, Sampling::Centre));
     }

@@ -20,9 +20,17 @@ pub struct Args {
     /// Engine parameters (`name=value`, repeatable).
     #[arg(long = "param")]
     params: Vec<String>,
-    /// Samples per pixel of the truth's reference renders.
-    #[arg(long, default_value_t = 32)]
+    /// Samples per pixel of the truth's reference renders (`delta_truth_noise` says how much
+    /// of `delta_rel_l2` is the truth's own noise).
+    #[arg(long, default_value_t = 64)]
     reference_spp: u32,
+    /// Where truth renders are kept between runs, keyed by the scene's files, each frame's true
+    /// pose and lights, and the samples: a second run, of any engine, reads them back.
+    #[arg(long, default_value = "target/bench/references")]
+    reference_cache: PathBuf,
+    /// Render every truth frame afresh (and keep none).
+    #[arg(long)]
+    no_reference_cache: bool,
     /// Write each scored frame's live, oracle and true composites here.
     #[arg(long)]
     out: Option<PathBuf>,
@@ -54,6 +62,7 @@ pub fn run(args: Args) -> Result<()> {
         engine: args.engine,
         params: crate::params::parse_params(&args.params)?,
         reference_spp: args.reference_spp,
+        reference_cache: (!args.no_reference_cache).then_some(args.reference_cache),
         out: args.out,
         config,
         threads: args.threads,
