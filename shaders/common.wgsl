@@ -774,7 +774,8 @@ struct Dir {
     // as a share of its footprint's radius (0: `x` alone).
     params: vec4<f32>,
     // x: where in its stratum of the flux each VPL sits, in (0, 1) (`dir::vpl_stratum`); y: the
-    // gather's pixel stride; z: 1 = real surfaces take near VPLs as patches (`near_vpls`).
+    // gather's pixel stride; z: 1 = real surfaces take near VPLs as patches (`near_vpls`); w:
+    // second-bounce rays into the object's cone as a share of dims.x (the CPU's, as params.z).
     sampling: vec4<f32>,
     // xyz: the virtual object's bounding box, its minimum and maximum corners (world).
     object_lo: vec4<f32>,

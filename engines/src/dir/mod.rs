@@ -25,7 +25,8 @@
 //! - **Second bounce** ([`bounce`]): the first bounce's VPLs are read back and continued on
 //!   the CPU, one ray each (`second_bounce` = 1), to VPLs where their light lands, classed by
 //!   the path flag (where the ray lands with the object and without it); they join the first
-//!   bounce's in the ISM and gather passes.
+//!   bounce's in the ISM and gather passes. The light the object changes is carried by rays
+//!   aimed at it (`object_rays`), the rest by the cosine rays.
 
 mod bounce;
 mod environment;
@@ -90,6 +91,9 @@ pub struct DirSettings {
     pub env_lights: u32,
     /// Second-bounce rays as a share of `vpl_count` ([`bounce`]); 0: one bounce.
     pub second_bounce: f32,
+    /// Second-bounce rays into the object's cone, as a share of `vpl_count`, for the light the
+    /// object changes ([`bounce`]); 0: the cosine rays carry it too.
+    pub object_rays: f32,
     /// A first-bounce VPL's 1/d² clamp as a share of the radius of the surface it stands for;
     /// 0: `clamp_distance` alone.
     pub footprint_clamp: f32,
@@ -110,9 +114,17 @@ impl DirSettings {
         (self.second_bounce * self.vpl_count as f32).round() as u32
     }
 
+    /// Second-bounce rays into the object's cone a frame (none without a second bounce).
+    fn object_rays(&self) -> u32 {
+        if self.bounce_rays() == 0 {
+            return 0;
+        }
+        (self.object_rays * self.vpl_count as f32).round() as u32
+    }
+
     /// Room for every VPL: the first bounce's, and up to two per second-bounce ray.
     fn vpl_capacity(&self) -> u32 {
-        self.vpl_count + 2 * self.bounce_rays()
+        self.vpl_count + 2 * (self.bounce_rays() + self.object_rays())
     }
 }
 
@@ -129,6 +141,7 @@ impl Default for DirSettings {
             shadow_bias: 1.5,
             env_lights: 16,
             second_bounce: 1.0,
+            object_rays: 0.25,
             footprint_clamp: 1.0,
             near_patches: true,
             gather_stride: GATHER_STRIDE_DEFAULT,
@@ -252,6 +265,13 @@ impl Dir {
                 0.0,
                 2.0,
                 d.second_bounce,
+            ),
+            float(
+                "object_rays",
+                "second-bounce rays aimed into the object's bounding cone, as a share of vpl_count, for the light the object changes (the cosine rays then carry only the rest; 0: they carry it all, and which few meet the object is left to chance)",
+                0.0,
+                1.0,
+                d.object_rays,
             ),
             float(
                 "footprint_clamp",
@@ -458,7 +478,7 @@ impl Engine for Dir {
                     }),
                     s.gather_stride as f32,
                     if s.near_patches { 1.0 } else { 0.0 },
-                    0.0,
+                    s.object_rays,
                 ],
                 object_lo: object_lo.extend(0.0).to_array(),
                 object_hi: object_hi.extend(0.0).to_array(),
@@ -597,7 +617,12 @@ impl Engine for Dir {
                         bytemuck::pod_collect_to_vec,
                     )?;
                     let traced = Instant::now();
-                    let second = second_bounce(bounce_geometry, &first, s.bounce_rays() as usize);
+                    let second = second_bounce(
+                        bounce_geometry,
+                        &first,
+                        s.bounce_rays() as usize,
+                        s.object_rays() as usize,
+                    );
                     ctx.queue.write_buffer(
                         &b.vpls,
                         u64::from(s.vpl_count) * VPL_BYTES,
@@ -697,6 +722,7 @@ impl Engine for Dir {
             shadow_bias: float("shadow_bias"),
             env_lights: int("env_lights"),
             second_bounce: float("second_bounce"),
+            object_rays: float("object_rays"),
             footprint_clamp: float("footprint_clamp"),
             gather_stride: int("gather_stride"),
             vpls_per_frame: schema.choice(params, "vpl_placement") == "per_frame",
