@@ -88,7 +88,8 @@ pub fn errors_against(
     (f64::from(delta_l2), object, delta)
 }
 
-/// `engine` with `setting = better` against `setting = worse` (each over `base`), on each of
+/// `engine` with `setting = better` against `setting = worse` (each over `base`; a value that
+/// parses as a number is passed as one), on each of
 /// `cases`' scenes at 80 × 60 against a `spp` reference: Δ L2 on real pixels with `better`
 /// must be under `gain` × that with `worse`.
 pub fn setting_brings_delta_closer(
@@ -103,7 +104,10 @@ pub fn setting_brings_delta_closer(
         let reference = reference_full(&scene, 80, 60, spp);
         let error = |value: &str| {
             let mut params = base.as_object().cloned().unwrap_or_default();
-            params.insert(setting.into(), value.into());
+            let value = value
+                .parse::<f64>()
+                .map_or_else(|_| value.into(), serde_json::Value::from);
+            params.insert(setting.into(), value);
             errors_against(
                 engine,
                 serde_json::Value::Object(params),
