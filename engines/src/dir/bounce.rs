@@ -290,7 +290,7 @@ pub fn second_bounce(
             continue;
         }
         let dir = cosine_direction(n, r2(j as u32));
-        let origin = p + n * (1e-4 * (1.0 + p.abs().max_element()));
+        let origin = ray_origin(p, n);
         let flux = source.flux() * share;
         let rho = || geometry.land(true, origin, dir, flux);
         let mu = || geometry.land(false, origin, dir, flux);
@@ -299,10 +299,7 @@ pub fn second_bounce(
             1 => out.extend(vpl(rho(), 1)),
             2 => out.extend(vpl(mu(), 2)),
             _ => match (rho(), mu()) {
-                // The same real surface: the object plays no part in this path.
-                (Some(a), Some(b)) if !a.on_object && (a.t - b.t).abs() <= 1e-5 * b.t => {
-                    out.push(b.vpl(0, footprint * b.t));
-                }
+                (a, Some(b)) if unchanged(a, b) => out.push(b.vpl(0, footprint * b.t)),
                 // The object rays give these.
                 _ if split(source) => {}
                 (a, b) => out.extend(vpl(a, 1).into_iter().chain(vpl(b, 2))),
@@ -356,14 +353,14 @@ fn object_rays_vpls(geometry: &BounceGeometry, sources: &[&GpuVpl], count: usize
         if share <= 0.0 || n == Vec3::ZERO || !p.is_finite() {
             continue;
         }
-        let origin = p + n * (1e-4 * (1.0 + p.abs().max_element()));
+        let origin = ray_origin(p, n);
         let flux = source.flux() * (share / expected_rays);
         let footprint =
             FOOTPRINT * (aim.solid_angle() / (std::f32::consts::PI * expected_rays)).sqrt();
         let rho = geometry.land(true, origin, dir, flux);
         let mu = geometry.land(false, origin, dir, flux);
         match (rho, mu) {
-            (Some(a), Some(b)) if !a.on_object && (a.t - b.t).abs() <= 1e-5 * b.t => {}
+            (a, Some(b)) if unchanged(a, b) => {}
             (a, b) => out.extend(
                 [(a, 1), (b, 2)]
                     .into_iter()
@@ -372,6 +369,17 @@ fn object_rays_vpls(geometry: &BounceGeometry, sources: &[&GpuVpl], count: usize
         }
     }
     out
+}
+
+/// Where a ray from a VPL at `p` (normal `n`) starts: just off its surface.
+fn ray_origin(p: Vec3, n: Vec3) -> Vec3 {
+    p + n * (1e-4 * (1.0 + p.abs().max_element()))
+}
+
+/// Whether a ray landed on the same real surface with the object (`with`) and without it
+/// (`without`): the object plays no part in its path.
+fn unchanged(with: Option<Landing>, without: Landing) -> bool {
+    with.is_some_and(|a| !a.on_object && (a.t - without.t).abs() <= 1e-5 * without.t)
 }
 
 /// A direction uniform in the cone of half angle acos(`cos_alpha`) about `axis`, from `u` in
