@@ -141,7 +141,7 @@ impl Default for DirSettings {
             shadow_bias: 1.5,
             env_lights: 16,
             second_bounce: 1.0,
-            object_rays: 0.25,
+            object_rays: 0.5,
             footprint_clamp: 1.0,
             near_patches: true,
             gather_stride: GATHER_STRIDE_DEFAULT,
