@@ -161,7 +161,7 @@ fn a_hidden_board_leaves_the_camera_untracked_and_draws_no_delta() {
 fn a_second_score_reads_the_truth_from_the_cache() {
     let (dir, scene) = desk();
     let tmp = tempfile::tempdir().unwrap();
-    let recording = tmp.path().join("static.mcap");
+    let recording = tmp.path().join("orbit.mcap");
     write_recording(&rig(&scene, CameraPath::Orbit, 3), &recording, |_| {}).unwrap();
     let cache_dir = tmp.path().join("refs");
     let run = |engine, spp| {
