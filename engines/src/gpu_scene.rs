@@ -11,7 +11,7 @@ use std::ops::Range;
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec2, Vec3};
 use relight_core::light::Light;
-use relight_core::scene::{Mesh, Scene, SceneCamera, box_corners};
+use relight_core::scene::{Mesh, Scene, SceneCamera, box_corners, point_bounds};
 
 use crate::deferred::KeptInputs;
 use crate::gpu::GpuContext;
@@ -214,12 +214,11 @@ impl GpuScene {
         };
         let corners = |r: Range<u32>| &indices[r.start as usize..r.end as usize];
         let bounds_of = |r: Range<u32>| {
-            corners(r)
-                .iter()
-                .map(|&i| Vec3::from(vertices[i as usize].position))
-                .fold(None, |acc: Option<(Vec3, Vec3)>, p| {
-                    Some(acc.map_or((p, p), |(lo, hi)| (lo.min(p), hi.max(p))))
-                })
+            point_bounds(
+                corners(r)
+                    .iter()
+                    .map(|&i| Vec3::from(vertices[i as usize].position)),
+            )
         };
         let bounds = bounds_of(0..all_indices).unwrap_or((Vec3::ZERO, Vec3::ZERO));
         let light_bounds = [

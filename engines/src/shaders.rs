@@ -213,49 +213,27 @@ pub fn pipeline_bind_group(
 #[cfg(test)]
 pub(crate) fn evaluate(main: &str, data: &[f32], queries: &[f32], count: usize) -> Vec<f32> {
     use wgpu::BufferUsages as U;
-    use wgpu::util::DeviceExt;
     let ctx = crate::gpu::GpuContext::new().expect("a GPU adapter (lavapipe in CI)");
-    let device = &ctx.device;
     let source = format!("{}\n{main}", include_str!("../../shaders/common.wgsl"));
-    let init = |label, contents: &[f32], usage| {
-        device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents: bytemuck::cast_slice(contents),
-            usage,
-        })
+    let buffer = |label, contents: &[f32], usage| {
+        ctx.buffer_with(label, bytemuck::cast_slice(contents), usage)
     };
-    let data = init("data", data, U::STORAGE);
-    let queries = init("queries", queries, U::STORAGE);
-    let result = init("result", &vec![0.0; count], U::STORAGE | U::COPY_SRC);
-    let pipeline = compute_pipeline(device, "evaluate", &source);
-    let group = pipeline_bind_group(
-        device,
+    let data = buffer("data", data, U::STORAGE);
+    let queries = buffer("queries", queries, U::STORAGE);
+    let result = buffer("result", &vec![0.0; count], U::STORAGE | U::COPY_SRC);
+    let pipeline = compute_pipeline(&ctx.device, "evaluate", &source);
+    ctx.run_once(
         &pipeline,
-        "evaluate",
         &[
             data.as_entire_binding(),
             queries.as_entire_binding(),
             result.as_entire_binding(),
         ],
-    );
-    let mut encoder = device.create_command_encoder(&Default::default());
-    {
-        let mut pass = encoder.begin_compute_pass(&Default::default());
-        pass.set_pipeline(&pipeline);
-        pass.set_bind_group(0, &group, &[]);
-        pass.dispatch_workgroups(count as u32, 1, 1);
-    }
-    ctx.queue.submit([encoder.finish()]);
-    let size = (count * 4) as u64;
-    let staging = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("staging"),
-        size,
-        usage: U::MAP_READ | U::COPY_DST,
-        mapped_at_creation: false,
-    });
-    ctx.read_back(&result, &staging, size, |bytes| {
-        bytemuck::cast_slice(bytes).to_vec()
-    })
+        count as u32,
+        &result,
+        (count * 4) as u64,
+        |bytes| bytemuck::cast_slice(bytes).to_vec(),
+    )
     .expect("the results read back")
 }
 

@@ -199,13 +199,18 @@ pub fn box_corners((lo, hi): (Vec3, Vec3)) -> [Vec3; 8] {
     })
 }
 
-fn bounds<'a>(meshes: impl Iterator<Item = &'a Mesh>) -> Option<(Vec3, Vec3)> {
-    meshes
-        .flat_map(|m| m.positions_in_world.iter().copied())
-        .fold(None, |acc, p| match acc {
-            None => Some((p, p)),
-            Some((lo, hi)) => Some((lo.min(p), hi.max(p))),
-        })
+/// The axis-aligned box (lowest and highest corner) around every vertex of `meshes`; `None`
+/// without one.
+pub fn bounds<'a>(meshes: impl Iterator<Item = &'a Mesh>) -> Option<(Vec3, Vec3)> {
+    point_bounds(meshes.flat_map(|m| m.positions_in_world.iter().copied()))
+}
+
+/// The axis-aligned box (lowest and highest corner) around `points`; `None` without one.
+pub fn point_bounds(points: impl IntoIterator<Item = Vec3>) -> Option<(Vec3, Vec3)> {
+    points.into_iter().fold(None, |acc, p| match acc {
+        None => Some((p, p)),
+        Some((lo, hi)) => Some((lo.min(p), hi.max(p))),
+    })
 }
 
 mod load;

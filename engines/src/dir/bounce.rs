@@ -105,12 +105,7 @@ impl BounceGeometry {
             .filter(|m| m.is_virtual)
             .cloned()
             .collect();
-        let corners = object
-            .iter()
-            .flat_map(|m| m.positions_in_world.iter().copied());
-        let bounds = corners.fold(None, |b: Option<(Vec3, Vec3)>, p| {
-            Some(b.map_or((p, p), |(lo, hi)| (lo.min(p), hi.max(p))))
-        });
+        let bounds = relight_core::scene::bounds(object.iter());
         Self {
             real: Geometry::of_meshes(real, false),
             object: Geometry::of_meshes(&object, true),
@@ -259,9 +254,9 @@ impl Landing {
 /// bounce gives the same second, so a static scene does not flicker. A ray makes no VPL where
 /// it leaves the scene, and two where a class-0 ray lands apart in the two scenes.
 ///
-/// With `object_rays` > 0, a class-0 VPL outside the object's bounding sphere splits its light:
-/// its cosine rays keep only the landings the object does not change, and the object rays give
-/// those it does ([`object_rays`]). At most 2 · (`count` + `object_rays`) VPLs.
+/// With `object_rays` > 0 and an object, every class-0 VPL splits its light: its cosine rays
+/// keep only the landings the object does not change, and the object rays give those it does
+/// ([`object_rays_vpls`]). At most 2 · (`count` + `object_rays`) VPLs.
 pub fn second_bounce(
     geometry: &BounceGeometry,
     first: &[GpuVpl],
