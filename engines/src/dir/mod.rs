@@ -32,7 +32,7 @@ mod bounce;
 mod environment;
 mod points;
 
-use bounce::{BounceGeometry, GpuVpl, second_bounce};
+use bounce::{BounceGeometry, GpuVpl, ObjectBounce, second_bounce};
 pub use environment::{EnvironmentLights, environment_lights};
 pub use points::surface_points;
 
@@ -94,6 +94,9 @@ pub struct DirSettings {
     /// Second-bounce rays into the object's cone, as a share of `vpl_count`, for the light the
     /// object changes ([`bounce`]); 0: the cosine rays carry it too.
     pub object_rays: f32,
+    /// With object rays, the light landing on the object from this many cells per edge of
+    /// each face of its box ([`bounce`]); 0: from where the rays land on it.
+    pub object_cells: u32,
     /// A first-bounce VPL's 1/d² clamp as a share of the radius of the surface it stands for;
     /// 0: `clamp_distance` alone.
     pub footprint_clamp: f32,
@@ -122,9 +125,21 @@ impl DirSettings {
         (self.object_rays * self.vpl_count as f32).round() as u32
     }
 
-    /// Room for every VPL: the first bounce's, and up to two per second-bounce ray.
+    /// How the second bounce takes the light the object changes.
+    fn object_bounce(&self) -> ObjectBounce {
+        ObjectBounce {
+            rays: self.object_rays() as usize,
+            cells: self.object_cells,
+            clamp_m: self.clamp_distance,
+        }
+    }
+
+    /// Room for every VPL: the first bounce's, up to two per second-bounce ray, and one per
+    /// cell of the object's faces.
     fn vpl_capacity(&self) -> u32 {
-        self.vpl_count + 2 * (self.bounce_rays() + self.object_rays())
+        self.vpl_count
+            + 2 * (self.bounce_rays() + self.object_rays())
+            + self.object_bounce().face_cells() as u32
     }
 }
 
@@ -142,6 +157,7 @@ impl Default for DirSettings {
             env_lights: 16,
             second_bounce: 1.0,
             object_rays: 0.5,
+            object_cells: 3,
             footprint_clamp: 1.0,
             near_patches: true,
             gather_stride: GATHER_STRIDE_DEFAULT,
@@ -272,6 +288,13 @@ impl Dir {
                 0.0,
                 1.0,
                 d.object_rays,
+            ),
+            int(
+                "object_cells",
+                "with object rays, the second bounce's light on the object from this many points per edge of each face of its bounding box, lit by every first-bounce VPL (0: from where the object rays land on it, left to chance)",
+                0,
+                16,
+                d.object_cells,
             ),
             float(
                 "footprint_clamp",
@@ -492,6 +515,7 @@ impl Engine for Dir {
                 bytemuck::bytes_of(&uniform.object_lo),
                 bytemuck::bytes_of(&uniform.object_hi),
                 &point_count.to_le_bytes(),
+                &s.object_cells.to_le_bytes(),
                 &geometry.to_le_bytes(),
                 &self.deferred.light_inputs().to_le_bytes(),
             ]);
@@ -621,7 +645,7 @@ impl Engine for Dir {
                         bounce_geometry,
                         &first,
                         s.bounce_rays() as usize,
-                        s.object_rays() as usize,
+                        s.object_bounce(),
                     );
                     ctx.queue.write_buffer(
                         &b.vpls,
@@ -723,6 +747,7 @@ impl Engine for Dir {
             env_lights: int("env_lights"),
             second_bounce: float("second_bounce"),
             object_rays: float("object_rays"),
+            object_cells: int("object_cells"),
             footprint_clamp: float("footprint_clamp"),
             gather_stride: int("gather_stride"),
             vpls_per_frame: schema.choice(params, "vpl_placement") == "per_frame",

@@ -104,9 +104,11 @@ pub fn setting_brings_delta_closer(
         let reference = reference_full(&scene, 80, 60, spp);
         let error = |value: &str| {
             let mut params = base.as_object().cloned().unwrap_or_default();
-            let value = value
-                .parse::<f64>()
-                .map_or_else(|_| value.into(), serde_json::Value::from);
+            let value = match (value.parse::<i64>(), value.parse::<f64>()) {
+                (Ok(int), _) => int.into(),
+                (_, Ok(float)) => float.into(),
+                _ => value.into(),
+            };
             params.insert(setting.into(), value);
             errors_against(
                 engine,
