@@ -22,7 +22,10 @@
 //! hemisphere from inside it), sources chosen by the light they send there, give the ones it
 //! does. The two parts partition each source's light (a ray the object changes passes through
 //! its bounding sphere), so the sum is the same in expectation with far fewer rays left to
-//! chance.
+//! chance. The light landing on the object is then not taken from where those rays land but
+//! from a grid of points on its box's faces, each lit by every source ([`object_face_vpls`]):
+//! a real surface beside the object sees its nearest face over up to half its hemisphere, so a
+//! single landing there showed.
 //!
 //! Why on the CPU: a few hundred rays a frame, against the reference's BVH
 //! ([`relight_reference::accel`]), which the rasterising passes have no counterpart of (no ray

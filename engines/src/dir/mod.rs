@@ -26,7 +26,8 @@
 //!   the CPU, one ray each (`second_bounce` = 1), to VPLs where their light lands, classed by
 //!   the path flag (where the ray lands with the object and without it); they join the first
 //!   bounce's in the ISM and gather passes. The light the object changes is carried by rays
-//!   aimed at it (`object_rays`), the rest by the cosine rays.
+//!   aimed at it (`object_rays`), the rest by the cosine rays; the light landing on the object
+//!   itself by a grid of its box's faces lit by every first-bounce VPL (`object_cells`).
 
 mod bounce;
 mod environment;
