@@ -79,9 +79,11 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         // With `near_vpls = "patches"`, near a real surface the VPL is the square of surface its
         // clamp's disc stands for (of the disc's area, π r²): the floor beside a wall lights the
         // wall's foot as the floor does, where the clamped point gives it almost nothing. The
-        // object keeps the points: its foot stands in its own shadow, into which a large
-        // footprint's square spreads the light of the lit floor around it (window_env's object
-        // 0.081 → 0.143). A VPL on the object is a piece of one of its faces
+        // object keeps the points where a real VPL's footprint is wider than the clamp's disc:
+        // its foot stands in its own shadow, into which a large footprint's square spreads the
+        // light of the lit floor around it (window_env's object 0.081 → 0.143). A smaller one
+        // (a spot's concentrated VPLs at its foot) is its square: spot_bleed's object 0.103 →
+        // 0.096, where the 5 cm clamp held their light back. A VPL on the object is a piece of one of its faces
         // (`box_square_quad`), no smaller than `clamp_distance`'s disc, as the point's
         // clamp is: unfloored, the small squares of a brightly lit face put one live frame of
         // the bundled recording at Δ 1.78 (0.74 floored), where the point's clamp held. Which
@@ -89,7 +91,8 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         // touching_wall's Δ went 0.309 → 0.423 (its converged Δ held), one VPL set's squares
         // moved inside the box lighting its contact shadow.
         let half = 0.886226925 * vpl.normal.w;
-        if dir.sampling.z == 1.0 && !is_virtual
+        let small = is_virtual && group != 1u && vpl.normal.w < dir.params.x;
+        if dir.sampling.z == 1.0 && (!is_virtual || small)
             && dist2 < PATCH_AS_POINT * PATCH_AS_POINT * half * half {
             var q: Quad;
             if group == 1u {
