@@ -118,7 +118,7 @@ pub fn default_cases(sweep: bool) -> Vec<BenchCase> {
         for vpls in [64, 128, 512, 1024] {
             cases.push(BenchCase::new("dir", json!({ "vpl_count": vpls })));
         }
-        for ism in [32, 128] {
+        for ism in [64, 128] {
             cases.push(BenchCase::new("dir", json!({ "ism_size": ism })));
         }
         for size in [32, 128] {
