@@ -79,11 +79,14 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         // With `near_vpls = "patches"`, near a real surface the VPL is the square of surface its
         // clamp's disc stands for (of the disc's area, π r²): the floor beside a wall lights the
         // wall's foot as the floor does, where the clamped point gives it almost nothing. The
-        // object keeps the points where a real VPL's footprint is wider than the clamp's disc:
-        // its foot stands in its own shadow, into which a large footprint's square spreads the
-        // light of the lit floor around it (window_env's object 0.081 → 0.143). A smaller one
-        // (a spot's concentrated VPLs at its foot) is its square: spot_bleed's object 0.103 →
-        // 0.096, where the 5 cm clamp held their light back. A VPL on the object is a piece of one of its faces
+        // object takes a real VPL's square too where its footprint is under the clamp's disc or
+        // half the object's thinnest extent, where the 5 cm clamp held their light back: a
+        // spot's concentrated VPLs at its foot (the clamp's rule: spot_bleed's object 0.103 →
+        // 0.096), a desk's or a wall's beside it (the object's rule: desk_box 0.081 → 0.048,
+        // touching_wall 0.142 → 0.132). Wider ones
+        // stay points: the object's foot stands in its own shadow, of the object's size, into
+        // which a wider square spreads the light of the lit floor around it (window_env's sky,
+        // object 0.081 → 0.143). A VPL on the object is a piece of one of its faces
         // (`box_square_quad`), no smaller than `clamp_distance`'s disc, as the point's
         // clamp is: unfloored, the small squares of a brightly lit face put one live frame of
         // the bundled recording at Δ 1.78 (0.74 floored), where the point's clamp held. Which
@@ -91,7 +94,9 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         // touching_wall's Δ went 0.309 → 0.423 (its converged Δ held), one VPL set's squares
         // moved inside the box lighting its contact shadow.
         let half = 0.886226925 * vpl.normal.w;
-        let small = is_virtual && group != 1u && vpl.normal.w < dir.params.x;
+        let edge = dir.object_hi.xyz - dir.object_lo.xyz;
+        let small = is_virtual && group != 1u
+            && vpl.normal.w < max(dir.params.x, 0.5 * min(edge.x, min(edge.y, edge.z)));
         if dir.sampling.z == 1.0 && (!is_virtual || small)
             && dist2 < PATCH_AS_POINT * PATCH_AS_POINT * half * half {
             var q: Quad;
