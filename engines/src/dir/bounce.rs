@@ -631,6 +631,20 @@ mod tests {
         BounceGeometry::of_meshes(&meshes, &meshes, [0.5, 0.8, 0.2].map(Vec3::splat).to_vec())
     }
 
+    /// The room of [`room`] with a virtual plate of half edge 0.1 m (albedo 0.2) at `height`.
+    fn plate_room(height: f32) -> BounceGeometry {
+        let mut plate = square(height, false, 2, true);
+        for p in &mut plate.positions_in_world {
+            *p = Vec3::new(p.x * 0.1, p.y * 0.1, p.z);
+        }
+        let meshes = [
+            square(0.0, true, 0, false),
+            square(1.0, false, 1, false),
+            plate,
+        ];
+        BounceGeometry::of_meshes(&meshes, &meshes, [0.5, 0.8, 0.2].map(Vec3::splat).to_vec())
+    }
+
     fn floor_vpl(class: u32) -> GpuVpl {
         GpuVpl::new(
             Vec3::new(0.0, 0.0, 0.0),
@@ -717,17 +731,7 @@ mod tests {
     #[test]
     fn object_rays_carry_the_light_the_object_changes() {
         for height in [0.5f32, 0.05] {
-            let mut plate = square(height, false, 2, true);
-            for p in &mut plate.positions_in_world {
-                *p = Vec3::new(p.x * 0.1, p.y * 0.1, p.z);
-            }
-            let meshes = [
-                square(0.0, true, 0, false),
-                square(1.0, false, 1, false),
-                plate,
-            ];
-            let albedo = [0.5, 0.8, 0.2].map(Vec3::splat).to_vec();
-            let geometry = BounceGeometry::of_meshes(&meshes, &meshes, albedo);
+            let geometry = plate_room(height);
             let vpls = second_bounce(&geometry, &[floor_vpl(0)], 64, rays(256));
             let flux = |class| -> f64 {
                 vpls.iter()
@@ -777,17 +781,7 @@ mod tests {
     #[test]
     fn the_object_s_faces_take_the_light_that_lands_on_it() {
         for (height, cells) in [(0.5f32, 4), (0.05, 8)] {
-            let mut plate = square(height, false, 2, true);
-            for p in &mut plate.positions_in_world {
-                *p = Vec3::new(p.x * 0.1, p.y * 0.1, p.z);
-            }
-            let meshes = [
-                square(0.0, true, 0, false),
-                square(1.0, false, 1, false),
-                plate,
-            ];
-            let albedo = [0.5, 0.8, 0.2].map(Vec3::splat).to_vec();
-            let geometry = BounceGeometry::of_meshes(&meshes, &meshes, albedo);
+            let geometry = plate_room(height);
             let object = ObjectBounce {
                 rays: 256,
                 cells,
