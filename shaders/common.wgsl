@@ -778,6 +778,8 @@ struct Dir {
     // second-bounce rays into the object's cone as a share of dims.x (the CPU's, as params.z).
     sampling: vec4<f32>,
     // xyz: the virtual object's bounding box, its minimum and maximum corners (world).
+    // object_lo.w: the most the ISM bias grows at the object's pixels, as 1/cos of a VPL's angle
+    // to the receiver (`object_slope_bias`).
     object_lo: vec4<f32>,
     object_hi: vec4<f32>,
 }

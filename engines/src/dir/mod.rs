@@ -87,6 +87,9 @@ pub struct DirSettings {
     pub ism_size: u32,
     pub ism_points: u32,
     pub ism_bias: f32,
+    /// At the object's pixels the ISM bias grows as 1/cos of a VPL's angle to the receiver, up
+    /// to this factor (1: constant, as at real pixels).
+    pub object_slope_bias: f32,
     pub clamp_distance: f32,
     pub shadow_bias: f32,
     pub env_lights: u32,
@@ -153,6 +156,7 @@ impl Default for DirSettings {
             ism_size: 96,
             ism_points: 16384,
             ism_bias: 6.0,
+            object_slope_bias: 4.0,
             clamp_distance: 0.05,
             shadow_bias: 1.5,
             env_lights: 16,
@@ -254,6 +258,13 @@ impl Dir {
                 0.0,
                 8.0,
                 d.ism_bias,
+            ),
+            float(
+                "object_slope_bias",
+                "at the object's pixels the imperfect-shadow-map bias grows as 1/cos of a VPL's angle to the receiver, up to this factor, so its faces seen from a VPL at a grazing angle do not shadow themselves (1: constant, as at real pixels, where a larger bias lets the contact shadows leak)",
+                1.0,
+                16.0,
+                d.object_slope_bias,
             ),
             float(
                 "clamp_distance",
@@ -504,7 +515,7 @@ impl Engine for Dir {
                     if s.near_patches { 1.0 } else { 0.0 },
                     s.object_rays,
                 ],
-                object_lo: object_lo.extend(0.0).to_array(),
+                object_lo: object_lo.extend(s.object_slope_bias).to_array(),
                 object_hi: object_hi.extend(0.0).to_array(),
             };
             ctx.queue
@@ -743,6 +754,7 @@ impl Engine for Dir {
             ism_size: int("ism_size"),
             ism_points: int("ism_points"),
             ism_bias: float("ism_bias"),
+            object_slope_bias: float("object_slope_bias"),
             clamp_distance: float("clamp_distance"),
             shadow_bias: float("shadow_bias"),
             env_lights: int("env_lights"),
