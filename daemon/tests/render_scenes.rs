@@ -154,3 +154,67 @@ fn relighting_engines_render_offline_scenes_and_bad_requests_are_refused() {
     assert!(!missing.status.success());
     assert!(String::from_utf8_lossy(&missing.stderr).contains("/nonexistent-scene/scene.toml"));
 }
+
+/// `--pixel-centres` renders the reference an engine is judged against: the same bits as the
+/// `delta_reference.exr` that `--engine` writes, at the same samples, bounces and seed, where
+/// the default (the pixel's area) differs from it.
+#[test]
+fn pixel_centres_give_the_reference_an_engine_is_judged_against() {
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/scenes/desk_box");
+    let out = tempfile::tempdir().unwrap();
+    let delta = |name: &str, args: &[&str], file: &str| -> Vec<u32> {
+        let dir = out.path().join(name);
+        let status = Command::new(env!("CARGO_BIN_EXE_relightd"))
+            .args(["--config", "/dev/null", "render"])
+            .args([
+                "--spp",
+                "4",
+                "--bounces",
+                "1",
+                "--width",
+                "40",
+                "--height",
+                "30",
+            ])
+            .arg("--scene")
+            .arg(&scene)
+            .arg("--out")
+            .arg(&dir)
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(
+            status.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&status.stderr)
+        );
+        let image = exr::prelude::read_first_rgba_layer_from_file(
+            dir.join(file),
+            |r, _| vec![0f32; 3 * r.width() * r.height()],
+            |b: &mut Vec<f32>, p, (r, g, bl, _a): (f32, f32, f32, f32)| {
+                let i = 3 * (p.y() * 40 + p.x());
+                b[i..i + 3].copy_from_slice(&[r, g, bl]);
+            },
+        )
+        .unwrap();
+        image
+            .layer_data
+            .channel_data
+            .pixels
+            .iter()
+            .map(|v| v.to_bits())
+            .collect()
+    };
+    let judged = delta(
+        "engine",
+        &["--engine", "differential"],
+        "delta_reference.exr",
+    );
+    let centres = delta("centres", &["--pixel-centres"], "delta.exr");
+    let area = delta("area", &[], "delta.exr");
+    assert!(
+        judged == centres,
+        "the centres' reference differs from the engine's"
+    );
+    assert!(area != centres, "the area's reference equals the centres'");
+}

@@ -40,6 +40,11 @@ pub struct Args {
     /// Seeds the reference's random streams (same seed, same image).
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Trace the reference through each pixel's centre instead of over its area: the
+    /// reference an engine is judged against (`--engine`, `relightd bench`), so that a
+    /// truncated one (`--bounces`) compares with an engine without the silhouettes' coverage.
+    #[arg(long)]
+    pixel_centres: bool,
     /// Engine parameters (`name=value`, repeatable), as `relightctl engine params set`.
     #[arg(long = "param")]
     params: Vec<String>,
@@ -55,6 +60,7 @@ pub fn run(args: Args) -> Result<()> {
         max_bounces: args.bounces,
         seed: args.seed,
         size,
+        pixel_jitter: !args.pixel_centres,
         ..ReferenceSettings::default()
     };
     render_with_reference(&args.scene, settings, &args.out)
@@ -99,6 +105,7 @@ fn render_with_reference(scene_dir: &Path, settings: ReferenceSettings, out: &Pa
         "height": h,
         "spp": images.spp,
         "max_bounces": settings.max_bounces,
+        "pixel_centres": !settings.pixel_jitter,
         "seconds": seconds,
         "mean_delta_std_error_real_pixels": mean_std_error,
     });
