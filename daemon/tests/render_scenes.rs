@@ -20,46 +20,12 @@ fn render_writes_every_output_for_every_shipped_scene() {
             .join("../tests/scenes")
             .join(name);
         let out = out_root.path().join(name);
-        let status = Command::new(env!("CARGO_BIN_EXE_relightd"))
-            .args([
-                "render",
-                "--engine",
-                "reference",
-                "--spp",
-                "4",
-                "--bounces",
-                "2",
-                "--width",
-                "40",
-                "--height",
-                "30",
-            ])
-            .arg("--scene")
-            .arg(&scene)
-            .arg("--out")
-            .arg(&out)
-            .output()
-            .unwrap();
-        assert!(
-            status.status.success(),
-            "{name}: {}",
-            String::from_utf8_lossy(&status.stderr)
-        );
+        render_40x30(&scene, &out, &["--engine", "reference", "--bounces", "2"]);
         for file in ["l_rho.exr", "l_mu.exr", "delta.exr", "delta_std_error.exr"] {
-            let image = exr::prelude::read_first_rgba_layer_from_file(
-                out.join(file),
-                |r, _| vec![(0f32, 0f32, 0f32); r.width() * r.height()],
-                |b: &mut Vec<(f32, f32, f32)>, p, (r, g, bl, _a): (f32, f32, f32, f32)| {
-                    b[p.y() * 40 + p.x()] = (r, g, bl)
-                },
-            )
-            .unwrap_or_else(|e| panic!("{name}/{file}: {e}"));
-            let pixels = &image.layer_data.channel_data.pixels;
+            let pixels = read_rgb_40x30(&out.join(file));
             assert_eq!(pixels.len(), 40 * 30);
             assert!(
-                pixels
-                    .iter()
-                    .all(|(r, g, b)| r.is_finite() && g.is_finite() && b.is_finite()),
+                pixels.iter().flatten().all(|v| v.is_finite()),
                 "{name}/{file}"
             );
         }
@@ -164,44 +130,10 @@ fn pixel_centres_give_the_reference_an_engine_is_judged_against() {
     let out = tempfile::tempdir().unwrap();
     let delta = |name: &str, args: &[&str], file: &str| -> Vec<u32> {
         let dir = out.path().join(name);
-        let status = Command::new(env!("CARGO_BIN_EXE_relightd"))
-            .args(["--config", "/dev/null", "render"])
-            .args([
-                "--spp",
-                "4",
-                "--bounces",
-                "1",
-                "--width",
-                "40",
-                "--height",
-                "30",
-            ])
-            .arg("--scene")
-            .arg(&scene)
-            .arg("--out")
-            .arg(&dir)
-            .args(args)
-            .output()
-            .unwrap();
-        assert!(
-            status.status.success(),
-            "{name}: {}",
-            String::from_utf8_lossy(&status.stderr)
-        );
-        let image = exr::prelude::read_first_rgba_layer_from_file(
-            dir.join(file),
-            |r, _| vec![0f32; 3 * r.width() * r.height()],
-            |b: &mut Vec<f32>, p, (r, g, bl, _a): (f32, f32, f32, f32)| {
-                let i = 3 * (p.y() * 40 + p.x());
-                b[i..i + 3].copy_from_slice(&[r, g, bl]);
-            },
-        )
-        .unwrap();
-        image
-            .layer_data
-            .channel_data
-            .pixels
+        render_40x30(&scene, &dir, &[&["--bounces", "1"], args].concat());
+        read_rgb_40x30(&dir.join(file))
             .iter()
+            .flatten()
             .map(|v| v.to_bits())
             .collect()
     };
@@ -217,4 +149,39 @@ fn pixel_centres_give_the_reference_an_engine_is_judged_against() {
         "the centres' reference differs from the engine's"
     );
     assert!(area != centres, "the area's reference equals the centres'");
+}
+
+/// `relightd render` of `scene` into `out` at 40 × 30 and 4 spp, with `args`; the test fails
+/// with its stderr where it does.
+fn render_40x30(scene: &Path, out: &Path, args: &[&str]) {
+    let output = Command::new(env!("CARGO_BIN_EXE_relightd"))
+        .args(["render", "--spp", "4", "--width", "40", "--height", "30"])
+        .arg("--scene")
+        .arg(scene)
+        .arg("--out")
+        .arg(out)
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}: {}",
+        out.display(),
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
+/// A 40 × 30 EXR's RGB pixels, row by row.
+fn read_rgb_40x30(path: &Path) -> Vec<[f32; 3]> {
+    exr::prelude::read_first_rgba_layer_from_file(
+        path,
+        |r, _| vec![[0f32; 3]; r.width() * r.height()],
+        |b: &mut Vec<[f32; 3]>, p, (r, g, bl, _a): (f32, f32, f32, f32)| {
+            b[p.y() * 40 + p.x()] = [r, g, bl]
+        },
+    )
+    .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+    .layer_data
+    .channel_data
+    .pixels
 }
