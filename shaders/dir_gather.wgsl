@@ -49,6 +49,11 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
     let wo = normalize(camera.position.xyz - p.xyz);
     let s = f32(dir.dims.w);
     let clamp2 = dir.params.x * dir.params.x;
+    // The footprint (m) under which a real VPL lights the object as its square, and the least
+    // cosine the object's slope-scaled ISM bias takes (both explained where they are used).
+    let edge = dir.object_hi.xyz - dir.object_lo.xyz;
+    let object_square_under = max(dir.params.x, 0.5 * min(edge.x, min(edge.y, edge.z)));
+    let slope_cos = 1.0 / max(dir.object_lo.w, 1.0);
     var l_rv = vec3<f32>(0.0);
     var l_r = vec3<f32>(0.0);
     for (var k = 0u; k < dir.size.w; k++) {
@@ -94,9 +99,7 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         // touching_wall's Δ went 0.309 → 0.423 (its converged Δ held), one VPL set's squares
         // moved inside the box lighting its contact shadow.
         let half = 0.886226925 * vpl.normal.w;
-        let edge = dir.object_hi.xyz - dir.object_lo.xyz;
-        let small = is_virtual && group != 1u
-            && vpl.normal.w < max(dir.params.x, 0.5 * min(edge.x, min(edge.y, edge.z)));
+        let small = is_virtual && group != 1u && vpl.normal.w < object_square_under;
         if dir.sampling.z == 1.0 && (!is_virtual || small)
             && dist2 < PATCH_AS_POINT * PATCH_AS_POINT * half * half {
             var q: Quad;
@@ -117,7 +120,7 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         // (object L2 desk_box 0.048 → 0.035, touching_wall 0.132 → 0.124). Real pixels keep
         // the constant bias: there a larger one lets the object's contact shadow leak
         // (touching_wall's Δ 0.250 → 0.282, scaled on every pixel).
-        let slope = select(1.0, 1.0 / max(cos_p, 1.0 / max(dir.object_lo.w, 1.0)), is_virtual);
+        let slope = select(1.0, 1.0 / max(cos_p, slope_cos), is_virtual);
         let bias = dir.params.y * dist * 4.0 / s * slope;
         let st_r = visible(k, 0u, t, dist, bias);
         let st_rv = min(st_r, visible(k, 1u, t, dist, bias));
