@@ -269,22 +269,22 @@ pub fn candidates() -> Vec<Candidate> {
         Candidate::new(
             "dlpv",
             serde_json::json!({}),
-            raster(0.08, 0.19, 0.7, 0.9, 1.0, [9.0, 2.3]),
+            raster(0.08, 0.11, 0.41, 0.54, 1.0, [9.0, 2.3]),
         ),
         Candidate::new(
             "dvct",
             serde_json::json!({}),
-            raster(0.08, 0.17, 0.75, 0.75, 0.7, [11.0, 15.0]),
+            raster(0.08, 0.13, 0.1, 0.66, 0.7, [11.0, 15.0]),
         ),
         Candidate::new(
             "dir",
             serde_json::json!({ "vpl_count": 64 }),
-            raster(0.08, 0.10, 0.4, 1.1, 1.0, [24.0, 34.0]),
+            raster(0.08, 0.10, 0.1, 0.56, 1.0, [24.0, 34.0]),
         ),
         Candidate::new(
             "dir",
             serde_json::json!({}),
-            raster(0.08, 0.10, 0.35, 0.95, 1.0, [72.0, 123.0]),
+            raster(0.08, 0.10, 0.1, 0.45, 1.0, [72.0, 123.0]),
         ),
         Candidate::new(
             "pt",
@@ -1147,7 +1147,7 @@ mod tests {
 
     #[test]
     fn a_strong_bleeding_scene_chooses_an_indirect_engine() {
-        let bleeding = features(2.0, 6.0, 0.0);
+        let bleeding = features(2.0, 6.0, 4.0);
         let mut governor = measured(bleeding, 33.0);
         run(&mut governor, Motion::Still, 40);
         assert_eq!(governor.current(), DIR64, "{}", governor.reason());
@@ -1174,7 +1174,7 @@ mod tests {
 
     #[test]
     fn max_error_takes_the_cheapest_that_meets_it() {
-        let mut governor = measured(features(2.0, 6.0, 0.0), 1000.0);
+        let mut governor = measured(features(2.0, 6.0, 4.0), 1000.0);
         let target = governor.predicted_error(DIR64, Motion::Still) * 1.01;
         governor.set_settings(Settings {
             max_error: Some(target),
@@ -1186,7 +1186,7 @@ mod tests {
 
     #[test]
     fn unmeasured_candidates_that_would_win_are_probed_then_chosen_afresh() {
-        let mut governor = fresh(features(2.0, 6.0, 0.0), 50.0);
+        let mut governor = fresh(features(2.0, 6.0, 4.0), 50.0);
         // Nothing measured: pt, the most promising, measures its own cost, so it is probed
         // at once.
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(PT));
@@ -1242,7 +1242,7 @@ mod tests {
             governor.predicted_error(DIR64, Motion::Still),
         );
         assert!(
-            dlpv < dir64 && dlpv * (1.0 + TIE) > dir64,
+            dlpv <= dir64 * (1.0 + TIE) + SLACK && dir64 <= dlpv * (1.0 + TIE) + SLACK,
             "{dlpv} against {dir64}"
         );
         assert_eq!(governor.decide(Motion::Still, false), Action::Probe(DLPV));
@@ -1259,21 +1259,19 @@ mod tests {
         );
     }
 
-    /// At a 1000 ms budget on desk_box `pt` is probed first (its prior wins), measured in
-    /// one steady frame that traced its 16 samples, and then ties the rasterisers on error at
-    /// over ten times their cost: they are estimated from its cost per sample (with none
-    /// measured there was no cost to find them cheaper by, and `pt`'s 0.26 stood against
-    /// `dlpv`'s 0.22), the cheapest that ties is probed first, and chosen, well inside the 4 s
-    /// the scene is judged at.
-    #[test]
-    fn after_pt_alone_is_measured_the_rasterisers_that_tie_it_are() {
+    /// desk_box's features at a 1000 ms budget over the 4 s a scene is judged at, with
+    /// lavapipe's frames at 160 × 120 and `pt` tracing 15 samples per pixel a frame of noise
+    /// `pt_noise` (at its 60 samples by the horizon, `pt_noise` / √60), `unavailable` left
+    /// out: the candidates probed, in order, the one chosen, and when it settled (ms).
+    fn desk_box_at_1000_ms(unavailable: &[usize], pt_noise: f64) -> (Vec<usize>, usize, f64) {
         let mut governor = fresh(features(3.79, 0.75, 0.86), 1000.0);
         governor.set_settings(Settings {
             horizon_ms: 4000.0,
             ..governor.settings()
         });
-        // lavapipe's frames at 160 × 120; pt 15 samples per pixel a frame, noise 1.9 (at its
-        // 60 samples by the horizon, 0.245: within a tie of the rasterisers, not over it).
+        for &c in unavailable {
+            governor.mark_unavailable(c);
+        }
         let frame_ms = [5.0, 5.0, 6.0, 90.0, 18.0, 55.0, 1000.0];
         let (mut elapsed, mut samples) = (0.0, 0.0);
         let (mut frames_on, mut ms_on) = (0, 0.0);
@@ -1287,7 +1285,7 @@ mod tests {
                 PtFrame {
                     path_samples: samples,
                     samples_added: 15.0,
-                    estimated_error: Some(1.9 / f64::sqrt(samples)),
+                    estimated_error: Some(pt_noise / f64::sqrt(samples)),
                 }
             });
             governor.observe(current, Motion::Still, ms, steady, pt);
@@ -1304,9 +1302,32 @@ mod tests {
                 break;
             }
         }
-        // pt, then the scale, then the cheapest that ties, which rules out the dearer.
-        assert_eq!(probed, [PT, DIFFERENTIAL, DLPV], "{}", governor.reason());
-        assert_eq!(governor.current(), DLPV, "{}", governor.reason());
+        (probed, governor.current(), elapsed)
+    }
+
+    /// At a 1000 ms budget on desk_box `pt` is probed first (its prior wins) and measured in
+    /// one steady frame that traced its 16 samples; `dir`, which its shares put clearly ahead
+    /// of `pt`'s 0.245 and of every other rasteriser there (as the bench measures it: 0.126
+    /// against `dlpv`'s 0.157), is probed next and chosen.
+    #[test]
+    fn on_desk_box_with_time_to_spare_dir_is_chosen() {
+        let (probed, current, elapsed) = desk_box_at_1000_ms(&[], 1.9);
+        assert_eq!(probed, [PT, DIR]);
+        assert_eq!(current, DIR);
+        assert!(elapsed < 3000.0, "settled after {elapsed} ms");
+    }
+
+    /// Without `dir`, and with `pt` (noise 1.24: 0.16 by the horizon) tying the rasterisers
+    /// left (`dlpv` 0.155, `dvct` 0.157) on error at over ten times their cost: they are
+    /// estimated from its cost per sample (with none measured there was no cost to find them
+    /// cheaper by, and `pt`'s 0.26 once stood against `dlpv`'s 0.22), the cheapest that ties
+    /// is probed, and chosen, well inside the 4 s the scene is judged at.
+    #[test]
+    fn after_pt_alone_is_measured_the_rasterisers_that_tie_it_are() {
+        let (probed, current, elapsed) = desk_box_at_1000_ms(&[DIR, DIR64], 1.24);
+        // pt, then the cheapest that ties, which rules out the dearer.
+        assert_eq!(probed, [PT, DLPV]);
+        assert_eq!(current, DLPV);
         assert!(elapsed < 3000.0, "settled after {elapsed} ms");
     }
 
@@ -1316,7 +1337,7 @@ mod tests {
     /// budget it fits.
     #[test]
     fn rasterisers_measured_alike_bring_the_others_estimates_down_to_them() {
-        let mut governor = fresh(features(2.0, 6.0, 0.0), 5.0);
+        let mut governor = fresh(features(2.0, 6.0, 4.0), 5.0);
         governor.mark_unavailable(PT);
         measure(&mut governor, DIFFERENTIAL, 3.0);
         // One rasteriser measured: the ratios in full, dir far over the budget.
@@ -1336,7 +1357,7 @@ mod tests {
         assert_eq!(estimate(&governor), 3.0);
         assert_eq!(action, Action::Probe(DIR), "{}", governor.reason());
         // Measured as the ratios have it (lavapipe), the ratios stand.
-        let mut governor = measured(features(2.0, 6.0, 0.0), 33.0);
+        let mut governor = measured(features(2.0, 6.0, 4.0), 33.0);
         governor.costs[DIR][Motion::Still.index()].0.clear();
         assert!(
             (estimate(&governor) - 5.0 * dir_ratio).abs() < 1.0,
@@ -1353,7 +1374,7 @@ mod tests {
         // Under an environment map, where `ibl`'s ratio is its own.
         let environment = SceneFeatures {
             environment: true,
-            ..features(2.0, 6.0, 0.0)
+            ..features(2.0, 6.0, 4.0)
         };
         let mut governor = fresh(environment, 5.0);
         for c in [DLPV, PT] {
@@ -1371,7 +1392,7 @@ mod tests {
     /// checks no ratio and is not measured as a check.
     #[test]
     fn ibl_without_an_environment_map_costs_what_differential_does() {
-        let mut governor = fresh(features(2.0, 6.0, 0.0), 5.0);
+        let mut governor = fresh(features(2.0, 6.0, 4.0), 5.0);
         for c in [DLPV, PT] {
             governor.mark_unavailable(c);
         }
@@ -1420,7 +1441,7 @@ mod tests {
     /// A governor at 33 ms on a bleeding scene with only `differential` and `kept` available:
     /// `differential` measured at 5 ms, and `kept` (which would win) being probed.
     fn probing_beside_differential(kept: usize) -> Governor {
-        let mut governor = fresh(features(2.0, 6.0, 0.0), 33.0);
+        let mut governor = fresh(features(2.0, 6.0, 4.0), 33.0);
         for candidate in (0..candidates().len()).filter(|&c| c != DIFFERENTIAL && c != kept) {
             governor.mark_unavailable(candidate);
         }
@@ -1495,7 +1516,7 @@ mod tests {
     fn it_does_not_flap_when_the_features_wobble_across_a_choice() {
         // A little bleeding ties dlpv with differential (the cheaper is chosen); more makes
         // dlpv the choice. The features alternate between the two every frame.
-        let (little, more) = (features(1.0, 0.05, 0.0), features(1.0, 0.3, 0.0));
+        let (little, more) = (features(1.0, 0.02, 0.0), features(1.0, 0.3, 0.0));
         let mut governor = measured(little, 10.0);
         assert_eq!(governor.choose(Motion::Still).0, DIFFERENTIAL);
         governor.set_features(more);
@@ -1510,7 +1531,7 @@ mod tests {
 
     #[test]
     fn a_better_candidate_waits_for_the_dwell_and_over_budget_does_not() {
-        let mut governor = measured(features(2.0, 6.0, 0.0), 33.0);
+        let mut governor = measured(features(2.0, 6.0, 4.0), 33.0);
         governor.switched(DIFFERENTIAL);
         // dir64 is far better, but a switch happened just now.
         for _ in 1..MIN_DWELL {
