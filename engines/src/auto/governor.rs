@@ -50,9 +50,9 @@ use serde_json::{Map, Value};
 use super::features::SceneFeatures;
 use crate::pt::TILE_PHASES;
 
-/// Errors within 10 % (relative, and 0.002 absolute) of each other count as equal: the error
-/// model's own spread on the five scenes it was fitted to (rms of the log error 0.02–0.15 per
-/// engine, docs/ALGORITHMS.md).
+/// Errors within 10 % (relative, and 0.002 absolute) of each other count as equal: about the
+/// error model's own spread on the five scenes it was fitted to (rms of the log error 0.06–0.16
+/// per engine, 0.25–0.36 for `dir`, whose spot_bleed the model cannot hold; docs/ALGORITHMS.md).
 pub const TIE: f64 = 0.10;
 /// The absolute part of a tie and of a margin.
 const SLACK: f64 = 0.002;
@@ -221,10 +221,11 @@ const ACCUMULATED_FRAMES: f64 = 32.0;
 /// with a quarter of its VPLs, and `pt` (whose budget the runner sets). Without an environment
 /// map `ibl` predicts as `differential`, so it is never probed for accuracy there.
 ///
-/// The shares are fitted (least squares in log error) to the errors `relightd bench --governor`
-/// measured on the project's five scenes (30 still frames against the pixel-area reference),
-/// given their features: `differential` comes out near 1 on bleeding and occlusion, as an
-/// engine that models no indirect light must. Five scenes fit these few numbers only roughly
+/// The shares are fitted (least squares in log error) to the still errors measured on the
+/// project's five scenes (`relightd bench`'s converged Δ: 32 still frames against the
+/// pixel-area reference; the indirect engines' at stop 54, bleeding and occlusion bounded below
+/// at 0.1), given their features: `differential` comes out near 1 on bleeding and occlusion, as
+/// an engine that models no indirect light must. Five scenes fit these few numbers only roughly
 /// (docs/ALGORITHMS.md gives the residuals), so a scene unlike them can mislead the choice
 /// among rasterisers, never the budget. The relative costs are lavapipe's frame times at
 /// 160 × 120, each over `differential`'s on the same scene, medians over the five scenes
