@@ -27,7 +27,8 @@
 //!   the path flag (where the ray lands with the object and without it); they join the first
 //!   bounce's in the ISM and gather passes. The light the object changes is carried by rays
 //!   aimed at it (`object_rays`), the rest by the cosine rays; the light landing on the object
-//!   itself by a grid of its box's faces lit by every first-bounce VPL (`object_cells`).
+//!   itself by a grid of its box's faces lit by every first-bounce VPL (`object_cells`). With
+//!   `third_bounce`, the second bounce's VPLs are continued the same way once more.
 
 mod bounce;
 mod environment;
@@ -95,6 +96,9 @@ pub struct DirSettings {
     pub env_lights: u32,
     /// Second-bounce rays as a share of `vpl_count` ([`bounce`]); 0: one bounce.
     pub second_bounce: f32,
+    /// Third-bounce rays as a share of `vpl_count`, continuing the second bounce's VPLs as the
+    /// second continues the first's ([`bounce`]); 0: two bounces.
+    pub third_bounce: f32,
     /// Second-bounce rays into the object's cone, as a share of `vpl_count`, for the light the
     /// object changes ([`bounce`]); 0: the cosine rays carry it too.
     pub object_rays: f32,
@@ -121,6 +125,14 @@ impl DirSettings {
         (self.second_bounce * self.vpl_count as f32).round() as u32
     }
 
+    /// Third-bounce rays a frame (none without a second bounce).
+    fn third_bounce_rays(&self) -> u32 {
+        if self.bounce_rays() == 0 {
+            return 0;
+        }
+        (self.third_bounce * self.vpl_count as f32).round() as u32
+    }
+
     /// Second-bounce rays into the object's cone a frame (none without a second bounce).
     fn object_rays(&self) -> u32 {
         if self.bounce_rays() == 0 {
@@ -138,12 +150,15 @@ impl DirSettings {
         }
     }
 
-    /// Room for every VPL: the first bounce's, up to two per second-bounce ray, and one per
-    /// cell of the object's faces.
+    /// Room for every VPL: the first bounce's, up to two per second- and third-bounce ray, and
+    /// one per cell of the object's faces for each bounce past the first.
     fn vpl_capacity(&self) -> u32 {
+        let object = 2 * self.object_rays() + self.object_bounce().face_cells() as u32;
+        let third = self.third_bounce_rays();
         self.vpl_count
-            + 2 * (self.bounce_rays() + self.object_rays())
-            + self.object_bounce().face_cells() as u32
+            + 2 * self.bounce_rays()
+            + object
+            + if third > 0 { 2 * third + object } else { 0 }
     }
 }
 
@@ -161,6 +176,7 @@ impl Default for DirSettings {
             shadow_bias: 1.5,
             env_lights: 16,
             second_bounce: 1.0,
+            third_bounce: 0.0,
             object_rays: 0.5,
             object_cells: 3,
             footprint_clamp: 1.0,
@@ -295,6 +311,13 @@ impl Dir {
                 d.second_bounce,
             ),
             float(
+                "third_bounce",
+                "third-bounce rays as a share of vpl_count, continuing the second bounce's VPLs as the second continues the first's, with the same object rays and face cells (0: two bounces)",
+                0.0,
+                2.0,
+                d.third_bounce,
+            ),
+            float(
                 "object_rays",
                 "second-bounce rays aimed into the object's bounding cone, as a share of vpl_count, for the light the object changes (the cosine rays then carry only the rest; 0: they carry it all, and which few meet the object is left to chance)",
                 0.0,
@@ -404,12 +427,12 @@ impl Dir {
         ctx.require(
             "max_storage_buffer_binding_size",
             ism,
-            "vpl_count, second_bounce or ism_size",
+            "vpl_count, second_bounce, third_bounce or ism_size",
         )?;
         ctx.require(
             "max_compute_workgroups_per_dimension",
             u64::from(capacity),
-            "vpl_count or second_bounce",
+            "vpl_count, second_bounce or third_bounce",
         )?;
         if self.buffers.as_ref().is_none_or(|b| b.key != key) {
             let buffer = |label, size: u64, usage| {
@@ -528,6 +551,7 @@ impl Engine for Dir {
                 bytemuck::bytes_of(&uniform.object_hi),
                 &point_count.to_le_bytes(),
                 &s.object_cells.to_le_bytes(),
+                &s.third_bounce.to_le_bytes(),
                 &geometry.to_le_bytes(),
                 &self.deferred.light_inputs().to_le_bytes(),
             ]);
@@ -653,12 +677,21 @@ impl Engine for Dir {
                         bytemuck::pod_collect_to_vec,
                     )?;
                     let traced = Instant::now();
-                    let second = second_bounce(
+                    let mut second = second_bounce(
                         bounce_geometry,
                         &first,
                         s.bounce_rays() as usize,
                         s.object_bounce(),
                     );
+                    if s.third_bounce_rays() > 0 {
+                        let third = second_bounce(
+                            bounce_geometry,
+                            &second,
+                            s.third_bounce_rays() as usize,
+                            s.object_bounce(),
+                        );
+                        second.extend(third);
+                    }
                     ctx.queue.write_buffer(
                         &b.vpls,
                         u64::from(s.vpl_count) * VPL_BYTES,
@@ -759,6 +792,7 @@ impl Engine for Dir {
             shadow_bias: float("shadow_bias"),
             env_lights: int("env_lights"),
             second_bounce: float("second_bounce"),
+            third_bounce: float("third_bounce"),
             object_rays: float("object_rays"),
             object_cells: int("object_cells"),
             footprint_clamp: float("footprint_clamp"),
