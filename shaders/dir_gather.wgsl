@@ -88,16 +88,15 @@ fn gathered(xy: vec2<i32>, r: PixelSurface, irradiance: bool) -> vec3<f32> {
         // half the object's thinnest extent, where the 5 cm clamp held their light back: a
         // spot's concentrated VPLs at its foot (the clamp's rule: spot_bleed's object 0.103 →
         // 0.096), a desk's or a wall's beside it (the object's rule: desk_box 0.081 → 0.048,
-        // touching_wall 0.142 → 0.132). Wider ones
-        // stay points: the object's foot stands in its own shadow, of the object's size, into
-        // which a wider square spreads the light of the lit floor around it (window_env's sky,
-        // object 0.081 → 0.143). A VPL on the object is a piece of one of its faces
-        // (`box_square_quad`), no smaller than `clamp_distance`'s disc, as the point's
-        // clamp is: unfloored, the small squares of a brightly lit face put one live frame of
-        // the bundled recording at Δ 1.78 (0.74 floored), where the point's clamp held. Which
-        // VPLs take the square is still decided by their own footprint: by the floored one,
-        // touching_wall's Δ went 0.309 → 0.423 (its converged Δ held), one VPL set's squares
-        // moved inside the box lighting its contact shadow.
+        // touching_wall 0.142 → 0.132). Wider ones stay points: the object's foot stands in its
+        // own shadow, of the object's size, into which a wider square spreads the light of the
+        // lit floor around it (window_env's sky, object 0.081 → 0.143). A VPL on the object is a
+        // piece of one of its faces (`box_square_quad`), no smaller than `clamp_distance`'s
+        // disc, as the point's clamp is: unfloored, the small squares of a brightly lit face put
+        // one live frame of the bundled recording at Δ 1.78 (0.74 floored), where the point's
+        // clamp held. Which VPLs take the square is still decided by their own footprint: by the
+        // floored one, touching_wall's Δ went 0.309 → 0.423 (its converged Δ held), one VPL
+        // set's squares moved inside the box lighting its contact shadow.
         let half = 0.886226925 * vpl.normal.w;
         let small = is_virtual && group != 1u && vpl.normal.w < object_square_under;
         if dir.sampling.z == 1.0 && (!is_virtual || small)

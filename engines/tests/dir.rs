@@ -10,8 +10,8 @@ use relight_core::scene::{Mesh, Scene};
 use relight_engines::SceneFrame;
 use relight_engines::reference::ReferenceImages;
 use support::{
-    delta_of, engine, engine_with, frame, load_scene, max_abs, reference_direct, reference_full,
-    relative_l2, virtual_moved_far_away,
+    delta_of, engine, engine_with, frame, load_scene, max_abs, object_and_delta, reference_direct,
+    reference_full, relative_l2, virtual_moved_far_away,
 };
 
 #[test]
@@ -226,13 +226,7 @@ fn dir_errors(
     reference: &ReferenceImages,
     params: serde_json::Value,
 ) -> (f32, f64) {
-    let (delta, out) = delta_of(&mut engine_with("dir", params), frame);
-    let object = relight_engines::offline::object_error(
-        &out.composite,
-        &reference.l_rho,
-        &reference.virtual_mask,
-    )
-    .unwrap();
+    let (object, delta) = object_and_delta("dir", params, frame, reference);
     (
         relative_l2(&delta, &reference.delta, &reference.virtual_mask).0,
         object,
