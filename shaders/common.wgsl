@@ -725,6 +725,17 @@ fn blocked_irradiance(object: ObjectBox, light: array<vec3<f32>, 9>,
 
 // The DVCT volumes (engines/src/dvct): occlusion (x: any surface, y: the virtual object, z: the
 // real scene) and L1 SH radiance mip chains over n³ cells.
+// A level-0 cell's real surfaces for `dvct`'s second bounce (`dvct_voxelize.wgsl` writes them,
+// `bounce` in dvct_trace.wgsl reads them): SURFACE_PARTS records, split by the sign of the
+// normal's largest component (so that the two faces of a wall or floor thinner than a cell keep
+// their own normals rather than cancelling), each of SURFACE_VALUES fixed-point sums
+// (SURFACE_SCALE per unit) over the triangles' area within the cell: the area in level-0 cell
+// faces (s²), the area-weighted unit normal, albedo (rgb) and centroid (in cells from the
+// cell's minimum corner).
+const SURFACE_PARTS: u32 = 2u;
+const SURFACE_VALUES: u32 = 10u;
+const SURFACE_SCALE: f32 = 65536.0;
+
 struct Dvct {
     // xyz: minimum corner; w: level-0 cell edge (m).
     origin: vec4<f32>,
@@ -737,7 +748,8 @@ struct Dvct {
     // z: tan of the glossy cone's smallest half angle; w: fixed-point counts per unit.
     options: vec4<f32>,
     // x: first vertex of the triangles voxelised, y: how many triangles (the light-space
-    // geometry: the virtual object and the real scene's shadow proxy, or every mesh).
+    // geometry: the virtual object and the real scene's shadow proxy, or every mesh); z: threads
+    // per triangle; w: 1 = each cell's surfaces are summed too (`surfaces`, the second bounce).
     voxelized: vec4<u32>,
     // x: how real pixels take the light the object blocks: 0 not at all (the paper), 1
     // directional occlusion (`CONE_OCCLUDED` in dvct_trace.wgsl), 2 the probe's light blocked

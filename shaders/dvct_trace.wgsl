@@ -36,11 +36,18 @@ var<private> camera: Camera;
 @group(0) @binding(15) var occlusion: texture_3d<f32>;
 @group(0) @binding(16) var volume_sampler: sampler;
 @group(0) @binding(17) var<storage, read_write> indirect: array<vec4<f32>>;
-@group(0) @binding(18) var<storage, read> far_field: array<i32, FAR_FIELD_VALUES>;
+// Read only, but declared read_write: it shares its buffer with the cells `bounce` writes
+// (`CellCounts`), and one dispatch may not use a buffer both ways.
+@group(0) @binding(18) var<storage, read_write> far_field: array<i32, FAR_FIELD_VALUES>;
 @group(0) @binding(19) var<storage, read> far_emitters: FarEmitters;
 // The real scene's first bounce where the object stands, as L2 SH of incident radiance (rgb):
 // written by `probe`, read by the other entries (`blocked_irradiance`).
 @group(0) @binding(20) var<storage, read_write> object_probe: array<vec4<f32>, 9>;
+// The second bounce (`bounce`): the injection's fixed-point cells of V^Δ and V^ρ it adds to,
+// and the voxelisation's surfaces (SURFACE_VALUES in common.wgsl).
+@group(0) @binding(21) var<storage, read_write> cells_delta: array<atomic<i32>>;
+@group(0) @binding(22) var<storage, read_write> cells_rho: array<atomic<i32>>;
+@group(0) @binding(23) var<storage, read> surfaces: array<i32>;
 
 // The hemisphere split into a central cone (half angle acos(8/9)) and eight around it, each
 // holding an equal solid angle; weights are ∫ cos θ dω over each part (they sum to π), ring
@@ -63,6 +70,8 @@ const CONE_SHADOW: u32 = 3u;
 // V^μ = V^ρ − V^Δ through the real surfaces alone: the real scene's light where the object
 // stands, as if it were not there (`probe`).
 const CONE_MU: u32 = 4u;
+// V^ρ through every surface: a real surface's light with the object there (`bounce`).
+const CONE_RHO_OCCLUDED: u32 = 5u;
 
 // `dvct.modes.x`: how real pixels take the light the object blocks (`occlusion`).
 const OCCLUSION_DIRECTIONAL: u32 = 1u;
@@ -196,11 +205,16 @@ fn far_on(s: PixelSurface) -> bool {
     return s.is_virtual && dvct.modes.y == 1u;
 }
 
+// The far field's light as L2 SH of radiance arriving at the volume.
+fn far_light() -> array<vec3<f32>, 9> {
+    let half_edge = 0.5 * f32(dvct.dims.x) * dvct.origin.w;
+    return far_field_sh(far_field, dvct.options.w * half_edge * half_edge);
+}
+
 fn far_sh_of(s: PixelSurface) -> array<vec3<f32>, 9> {
     var far_sh: array<vec3<f32>, 9>;
     if far_on(s) {
-        let half_edge = 0.5 * f32(dvct.dims.x) * dvct.origin.w;
-        far_sh = far_field_sh(far_field, dvct.options.w * half_edge * half_edge);
+        far_sh = far_light();
     }
     return far_sh;
 }
@@ -408,10 +422,8 @@ fn probe_direction(k: u32) -> vec3<f32> {
 fn probe(@builtin(local_invocation_index) k: u32) {
     dvct = dvct_buffer;
     let d = probe_direction(k);
-    let half_edge = 0.5 * f32(dvct.dims.x) * dvct.origin.w;
-    let far_sh = far_field_sh(far_field, dvct.options.w * half_edge * half_edge);
     probe_light[k] = gathered(CONE_MU, dvct.object.centre.xyz, d, PROBE_TAN_HALF,
-                              dvct.modes.y == 1u, far_sh);
+                              dvct.modes.y == 1u, far_light());
     workgroupBarrier();
     if k < 9u {
         var sum = vec3<f32>(0.0);
@@ -420,5 +432,66 @@ fn probe(@builtin(local_invocation_index) k: u32) {
             sum += probe_light[j] * y[k];
         }
         object_probe[k] = vec4<f32>(sum * (4.0 * PI / f32(PROBE_DIRECTIONS)), 0.0);
+    }
+}
+
+// The second bounce (`bounces` 2; the paper traces one): each level-0 cell's real surfaces
+// (`surfaces`, summed at voxelisation) gather the first bounce as a pixel of theirs would
+// (`irradiance_at`: its Δ irradiance), and through V^ρ with every surface occluding (its
+// irradiance with the object there), and reflect each as a VPL of flux ρ E A, a cosine lobe
+// around their normal, injected half a cell off their centroid as the reflective shadow maps'
+// VPLs are (`inject_reflected` in dlpv_inject.wgsl), into V^Δ and V^ρ's fixed-point cells.
+// V^μ = V^ρ − V^Δ so takes the real scene's second bounce without the object, which the probe
+// then finds where the object stands. The mip chain, the probe and the far emitters are built
+// again from the cells, which now hold both bounces, and the pixels' cones read them as before.
+// The object's surfaces inject nothing: what they reflect of the first bounce reaches real
+// surfaces as `blocked_irradiance`'s light shown in place of what the object blocks, as it
+// does at the pixels (injected as well, it was counted twice: see docs/ALGORITHMS.md).
+// One thread per cell.
+@compute @workgroup_size(64)
+fn bounce(@builtin(global_invocation_id) id: vec3<u32>) {
+    dvct = dvct_buffer;
+    let n = dvct.dims.x;
+    let c = id.x + id.y * 65535u * 64u;
+    if c >= n * n * n {
+        return;
+    }
+    let s0 = dvct.origin.w;
+    let corner = dvct.origin.xyz
+        + vec3<f32>(vec3<u32>(c % n, (c / n) % n, c / (n * n))) * s0;
+    for (var part = 0u; part < SURFACE_PARTS; part++) {
+        let base = (c * SURFACE_PARTS + part) * SURFACE_VALUES;
+        let area = f32(surfaces[base]);
+        let normal = vec3<f32>(f32(surfaces[base + 1u]), f32(surfaces[base + 2u]),
+                               f32(surfaces[base + 3u]));
+        // Faces within one cell that turn away from each other (a box's edge) cancel in part;
+        // where they leave little of a direction, no lobe holds them.
+        if area <= 0.0 || length(normal) < 0.25 * area {
+            continue;
+        }
+        var surface: PixelSurface;
+        surface.found = true;
+        surface.n = normalize(normal);
+        surface.p = vec4<f32>(corner + vec3<f32>(f32(surfaces[base + 7u]),
+            f32(surfaces[base + 8u]), f32(surfaces[base + 9u])) / area * s0, 1.0);
+        let at = surface.p.xyz + surface.n * (0.5 * s0);
+        if outside_volume(at, dvct.origin.xyz, s0, n) {
+            continue;
+        }
+        let albedo = vec3<f32>(f32(surfaces[base + 4u]), f32(surfaces[base + 5u]),
+                               f32(surfaces[base + 6u])) / area;
+        let reflected = albedo * (area / SURFACE_SCALE * s0 * s0);
+        let delta = reflected * irradiance_at(surface);
+        let rho = reflected * diffuse(CONE_RHO_OCCLUDED, cone_apex(surface), surface.n,
+                                      dvct.modes.y == 1u, far_light());
+        let cell = vec3<u32>((at - dvct.origin.xyz) / s0);
+        let first = ((cell.z * n + cell.y) * n + cell.x) * 12u;
+        let lobe = cosine_lobe(surface.n) * dvct.options.w / PI;
+        for (var ch = 0u; ch < 3u; ch++) {
+            for (var k = 0u; k < 4u; k++) {
+                atomicAdd(&cells_delta[first + 4u * ch + k], i32(round(lobe[k] * delta[ch])));
+                atomicAdd(&cells_rho[first + 4u * ch + k], i32(round(lobe[k] * rho[ch])));
+            }
+        }
     }
 }

@@ -8,6 +8,14 @@
 // wall costs its area in cells, not its bounding box's volume (n³ for one across the volume).
 // `Dvct.voxelized.z` threads share a triangle's columns (`voxelize_lanes` in dvct/mod.rs): on a
 // GPU one thread walking a large triangle alone would hold the whole pass up.
+//
+// With the second bounce on (`Dvct.voxelized.w`), each column also sums a real triangle's
+// surface into the cells it marks there (`surfaces`, see SURFACE_VALUES in common.wgsl): its area over
+// the column's square (the square's share its projection covers, from 16 samples, over the
+// normal's cosine to the column's axis), split evenly between those cells, with the normal, the
+// material's albedo and the covered samples' centroid on the plane, clamped into each cell.
+// A large triangle's area is so spread over every cell it crosses, and the sums over a surface
+// keep its area to the samples' precision wherever its triangles' edges fall.
 
 @group(0) @binding(0) var<storage, read> dvct_buffer: Dvct;
 var<private> dvct: Dvct;
@@ -16,11 +24,26 @@ var<private> dvct: Dvct;
 @group(0) @binding(1) var<storage, read> vertices: array<u32>;
 @group(0) @binding(2) var<storage, read_write> occupancy: array<atomic<u32>>;
 @group(0) @binding(3) var<storage, read> indices: array<u32>;
+@group(0) @binding(4) var<storage, read_write> surfaces: array<atomic<i32>>;
+@group(0) @binding(5) var<storage, read> materials: array<Material>;
 
 fn vertex_position(i: u32) -> vec3<f32> {
     let b = i * 8u;
     return vec3<f32>(bitcast<f32>(vertices[b]), bitcast<f32>(vertices[b + 1u]),
                      bitcast<f32>(vertices[b + 2u]));
+}
+
+fn vertex_normal(i: u32) -> vec3<f32> {
+    let b = i * 8u;
+    return vec3<f32>(bitcast<f32>(vertices[b + 3u]), bitcast<f32>(vertices[b + 4u]),
+                     bitcast<f32>(vertices[b + 5u]));
+}
+
+// The albedo the reflective shadow maps give a vertex's surface (rsm.wgsl): the rig's
+// measurement where it has one, else the material's.
+fn vertex_albedo(i: u32) -> vec3<f32> {
+    let material = materials[vertices[8u * i + 6u]].albedo.rgb;
+    return surface_albedo(measured_albedo(vertices[8u * i + 7u]), material);
 }
 
 // Whether the projections of the triangle (v0, v1, v2, relative to the box centre) and of the
@@ -53,6 +76,56 @@ fn overlaps(centre: vec3<f32>, h: f32, a: vec3<f32>, b: vec3<f32>, c: vec3<f32>)
         || separated(vec3<f32>(-e2.y, e2.x, 0.0), v0, v1, v2, h)
         // The box's own axes are covered by the bounding-box walk; the triangle's plane remains.
         || separated(cross(e0, e1), v0, v1, v2, h));
+}
+
+// Whether `q` lies in the triangle (a, b, c) of signed doubled area `d`, as a count (0 or 1).
+fn inside(q: vec2<f32>, a: vec2<f32>, b: vec2<f32>, c: vec2<f32>, d: f32) -> f32 {
+    let cross2 = vec3<f32>(
+        (b.x - a.x) * (q.y - a.y) - (b.y - a.y) * (q.x - a.x),
+        (c.x - b.x) * (q.y - b.y) - (c.y - b.y) * (q.x - b.x),
+        (a.x - c.x) * (q.y - c.y) - (a.y - c.y) * (q.x - c.x),
+    ) * d;
+    return select(0.0, 1.0, all(cross2 >= vec3<f32>(0.0)));
+}
+
+// The samples of one row of a column's square covered by the triangle: (count, Σu, Σv). The
+// offsets are a little off the square's quarters, so that the diagonal shared by a grid-aligned
+// quad's two triangles passes between samples rather than through them.
+fn covered_row(corner: vec2<f32>, row: f32, a: vec2<f32>, b: vec2<f32>, c: vec2<f32>, d: f32)
+    -> vec3<f32> {
+    let v = corner.y + (row + 0.5) * 0.25 - 0.0071;
+    let q0 = vec2<f32>(corner.x + 0.1359, v);
+    let q1 = vec2<f32>(corner.x + 0.3859, v);
+    let q2 = vec2<f32>(corner.x + 0.6359, v);
+    let q3 = vec2<f32>(corner.x + 0.8859, v);
+    let k = vec4<f32>(inside(q0, a, b, c, d), inside(q1, a, b, c, d), inside(q2, a, b, c, d),
+                      inside(q3, a, b, c, d));
+    let count = k.x + k.y + k.z + k.w;
+    return vec3<f32>(count, dot(k, vec4<f32>(q0.x, q1.x, q2.x, q3.x)), count * v);
+}
+
+// Written out, without loops, as `overlaps` is.
+fn covered(corner: vec2<f32>, a: vec2<f32>, b: vec2<f32>, c: vec2<f32>) -> vec3<f32> {
+    let d = (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x);
+    return covered_row(corner, 0.0, a, b, c, d) + covered_row(corner, 1.0, a, b, c, d)
+        + covered_row(corner, 2.0, a, b, c, d) + covered_row(corner, 3.0, a, b, c, d);
+}
+
+fn add_surface(cell: u32, part: u32, area: f32, normal: vec3<f32>, albedo: vec3<f32>,
+               centroid: vec3<f32>) {
+    let base = (cell * SURFACE_PARTS + part) * SURFACE_VALUES;
+    let a = area * SURFACE_SCALE;
+    // Written out: a loop here would count against lavapipe's iterations (see `overlaps`).
+    atomicAdd(&surfaces[base], i32(round(a)));
+    atomicAdd(&surfaces[base + 1u], i32(round(normal.x * a)));
+    atomicAdd(&surfaces[base + 2u], i32(round(normal.y * a)));
+    atomicAdd(&surfaces[base + 3u], i32(round(normal.z * a)));
+    atomicAdd(&surfaces[base + 4u], i32(round(albedo.r * a)));
+    atomicAdd(&surfaces[base + 5u], i32(round(albedo.g * a)));
+    atomicAdd(&surfaces[base + 6u], i32(round(albedo.b * a)));
+    atomicAdd(&surfaces[base + 7u], i32(round(centroid.x * a)));
+    atomicAdd(&surfaces[base + 8u], i32(round(centroid.y * a)));
+    atomicAdd(&surfaces[base + 9u], i32(round(centroid.z * a)));
 }
 
 @compute @workgroup_size(64)
@@ -95,6 +168,20 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let u = (w + 1) % 3;
     let v = (w + 2) % 3;
+    let summed = dvct.voxelized.w == 1u && bit == 1u && m[w] > 0.0;
+    // The face's normal, the winding's turned to the side its vertex normals face (where the
+    // mesh has them).
+    let facing = vertex_normal(first_vertex) + vertex_normal(indices[corner + 1u])
+        + vertex_normal(indices[corner + 2u]);
+    let unit_normal = normal / length(normal) * select(1.0, -1.0, dot(facing, normal) < 0.0);
+    let part = select(0u, 1u, unit_normal[w] < 0.0);
+    let albedo = (vertex_albedo(first_vertex) + vertex_albedo(indices[corner + 1u])
+        + vertex_albedo(indices[corner + 2u])) / 3.0;
+    // The plane's area over one column's square, in cell faces.
+    let area_over_square = length(normal) / m[w];
+    let ta = vec2<f32>(pa[u], pa[v]);
+    let tb = vec2<f32>(pb[u], pb[v]);
+    let tc = vec2<f32>(pc[u], pc[v]);
     for (var cv = first[v]; cv <= last[v]; cv++) {
         for (var cu = first[u] + i32(lane); cu <= last[u]; cu += i32(lanes)) {
             var cell = vec3<i32>(0);
@@ -115,12 +202,37 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
                 w_first = max(w_first, i32(clamp(floor(low), bounds.x, bounds.y)) - 1);
                 w_last = min(w_last, i32(clamp(floor(high), bounds.x, bounds.y)) + 1);
             }
+            var marked = 0u;
             for (var along = w_first; along <= w_last; along++) {
                 cell[w] = along;
                 let centre = dvct.origin.xyz + (vec3<f32>(cell) + 0.5) * s;
                 if overlaps(centre, 0.5 * s, a, b, c) {
                     atomicOr(&occupancy[(cell.z * n + cell.y) * n + cell.x], bit);
+                    marked |= 1u << u32(along - w_first);
                 }
+            }
+            if !summed || marked == 0u {
+                continue;
+            }
+            let samples = covered(vec2<f32>(f32(cu), f32(cv)), ta, tb, tc);
+            if samples.x == 0.0 {
+                continue;
+            }
+            // The covered samples' centroid on the triangle's plane, in cells.
+            var centroid = vec3<f32>(0.0);
+            centroid[u] = samples.y / samples.x;
+            centroid[v] = samples.z / samples.x;
+            centroid[w] = (dot(normal, pa) - normal[u] * centroid[u] - normal[v] * centroid[v])
+                / normal[w];
+            let area = area_over_square * samples.x / 16.0 / f32(countOneBits(marked));
+            for (var along = w_first; along <= w_last; along++) {
+                if (marked & (1u << u32(along - w_first))) == 0u {
+                    continue;
+                }
+                cell[w] = along;
+                let inside_cell = clamp(centroid - vec3<f32>(cell), vec3<f32>(0.0), vec3<f32>(1.0));
+                add_surface(u32((cell.z * n + cell.y) * n + cell.x), part, area, unit_normal,
+                            albedo, inside_cell);
             }
         }
     }

@@ -104,6 +104,9 @@ pub struct DvctSettings {
     /// over its hemisphere rather than as the paper's cosine lobe of intensity
     /// ([`radiance_lobe_gains`]).
     pub radiance_lobe: f32,
+    /// Bounces of indirect light: 1, the paper's, or 2, the first bounce gathered by each
+    /// cell's surfaces and injected again (`bounce` in `dvct_trace.wgsl`).
+    pub bounces: u32,
 }
 
 /// How real pixels take the real scene's indirect light that the object blocks (`occlusion`;
@@ -143,6 +146,7 @@ impl Default for DvctSettings {
             far_receivers: true,
             trace_stride: 2,
             radiance_lobe: 0.5,
+            bounces: 1,
         }
     }
 }
@@ -179,6 +183,10 @@ fn mip_chain(n: u32) -> (u32, u64) {
     (levels, cells)
 }
 
+/// A cell's surface sums for the second bounce: two records of 10 `i32` (`SURFACE_PARTS` and
+/// `SURFACE_VALUES` in `shaders/common.wgsl`).
+const SURFACE_BYTES: u64 = 2 * 10 * 4;
+
 /// The mip chains' textures: V^Δ's three channels of L1 SH, V^ρ's, then occlusion.
 const CHAINS: usize = 7;
 
@@ -191,6 +199,11 @@ struct VolumeBuffers {
     n: u32,
     cells: CellCounts,
     occupancy: wgpu::Buffer,
+    /// Each cell's real surfaces for the second bounce (`SURFACE_VALUES` in
+    /// `shaders/common.wgsl`); one cell's worth, unread, with one bounce.
+    surfaces: wgpu::Buffer,
+    /// Whether `surfaces` holds every cell's.
+    summed: bool,
     /// Every chain's whole mip chain, as the tracer samples it.
     chains: Vec<wgpu::TextureView>,
     /// Each level's dispatches, first V^Δ's (which writes occlusion too), then V^ρ's, with
@@ -214,6 +227,8 @@ pub struct Dvct {
     /// into `object_probe`: what the object blocks (`occlusion` "probe", the far receivers).
     probe: wgpu::ComputePipeline,
     object_probe: wgpu::Buffer,
+    /// The second bounce (`dvct_trace.wgsl`, `bounce`).
+    bounce: wgpu::ComputePipeline,
     sampler: wgpu::Sampler,
     inject_uniform: wgpu::Buffer,
     dvct_uniform: wgpu::Buffer,
@@ -319,6 +334,13 @@ impl Dvct {
                 d.radiance_lobe,
             ),
             int(
+                "bounces",
+                "bounces of indirect light: 1 (the paper), or 2, each voxel's surfaces gathering the first bounce by cones and injecting what they reflect",
+                1,
+                2,
+                d.bounces,
+            ),
+            int(
                 "trace_stride",
                 "diffuse cones at every n-th pixel per axis; the pixels between take their alike neighbours' irradiance (1: every pixel, as the paper)",
                 1,
@@ -350,6 +372,12 @@ impl Dvct {
                 "probe",
             ),
             object_probe: ctx.buffer("dvct probe", 9 * 16, wgpu::BufferUsages::STORAGE),
+            bounce: shaders::compute_pipeline_at(
+                &ctx.device,
+                "dvct bounce",
+                shaders::DVCT_TRACE,
+                "bounce",
+            ),
             sampler: ctx.device.create_sampler(&wgpu::SamplerDescriptor {
                 label: Some("dvct volume"),
                 address_mode_u: wgpu::AddressMode::ClampToBorder,
@@ -385,7 +413,12 @@ impl Dvct {
             u64::from(n).div_ceil(4),
             "volume_size",
         )?;
-        if self.volume.as_ref().is_none_or(|v| v.n != n) {
+        let summed = self.settings.bounces > 1;
+        if self
+            .volume
+            .as_ref()
+            .is_none_or(|v| v.n != n || v.summed != summed)
+        {
             use wgpu::BufferUsages as U;
             let cells = CellCounts::new(&ctx, "dvct cells", n, "volume_size")?;
             let occupancy = ctx.buffer(
@@ -393,6 +426,13 @@ impl Dvct {
                 u64::from(n).pow(3) * 4,
                 U::STORAGE | U::COPY_DST,
             );
+            let surface_bytes = if summed {
+                u64::from(n).pow(3) * SURFACE_BYTES
+            } else {
+                SURFACE_BYTES
+            };
+            ctx.require("max_storage_buffer_binding_size", surface_bytes, "bounces")?;
+            let surfaces = ctx.buffer("dvct surfaces", surface_bytes, U::STORAGE | U::COPY_DST);
             let textures: Vec<wgpu::Texture> = (0..CHAINS)
                 .map(|_| {
                     ctx.device.create_texture(&wgpu::TextureDescriptor {
@@ -472,6 +512,8 @@ impl Dvct {
                 n,
                 cells,
                 occupancy,
+                surfaces,
+                summed,
                 chains: textures
                     .iter()
                     .map(|t| t.create_view(&Default::default()))
@@ -516,6 +558,24 @@ fn trace_work(settings: &DvctSettings, n: u32, pixels: u32, lights: u32, mip_cel
         + Work::new(96.0 + 16.0, 0.0).times(mip_cells)
 }
 
+/// What one mip chain must do: every level's cells read as eight children and written once, two
+/// radiance volumes (96 bytes) and the occlusion texel (16).
+fn mip_work(mip_cells: f64) -> Work {
+    Work::new(2.0 * (96.0 + 16.0), 8.0 * 27.0).times(mip_cells)
+}
+
+/// What the second bounce (`dvct_trace.wgsl`, `bounce`) must do: every cell's surfaces read
+/// (80 bytes); at the cells a surface crosses, about 3 n² of them (a floor and two walls), the
+/// nine diffuse cones twice (Δ and ρ) and the injection's 24 atomics.
+fn bounce_work(settings: &DvctSettings, n: u32) -> Work {
+    let growth =
+        1.0 + 2.0 * f64::from(settings.cone_aperture_deg.to_radians().tan() * settings.step);
+    let samples = ((1.7 * f64::from(n)).ln() / growth.ln()).max(1.0);
+    Work::new(80.0, 4.0).times(f64::from(n).powi(3))
+        + Work::new(96.0, 2.0 * 9.0 * samples * 14.0 * 16.0 * 2.0 + 24.0 * 4.0)
+            .times(3.0 * f64::from(n).powi(2))
+}
+
 /// What the probe (`dvct_trace.wgsl`, `probe`) must do: 64 cones of half angle 14.4° from the
 /// object's centre, each sample a quadrilinear lookup of both volumes' SH and the occlusion
 /// (26 values of 16 cells), then the projection onto L2 SH.
@@ -531,9 +591,10 @@ fn probe_work(settings: &DvctSettings, n: u32) -> Work {
 /// Threads that share one triangle's cells in the voxelisation (`dvct_voxelize.wgsl`) of an
 /// `n`³ volume. On a GPU, 32: one thread walking a floor-sized triangle alone held the pass at
 /// 5 to 11 ms at 64³ (H200). On a CPU adapter threads are SIMD lanes of one core, so as few as
-/// keep each under lavapipe's 65535 loop iterations an invocation (about 7 a column of n²).
+/// keep each under lavapipe's 65535 loop iterations an invocation (about 7 a column of n², 10
+/// with the surfaces summed for the second bounce).
 fn voxelize_lanes(ctx: &GpuContext, n: u32) -> u32 {
-    let needed = (8 * n * n).div_ceil(65535).max(1);
+    let needed = (12 * n * n).div_ceil(65535).max(1);
     match ctx.info.device_type {
         wgpu::DeviceType::Cpu => needed,
         _ => needed.max(32),
@@ -625,7 +686,12 @@ impl Engine for Dvct {
                         tan(settings.glossy_min_aperture_deg),
                         scale,
                     ],
-                    voxelized: [voxelized.start, triangles, voxelize_lanes(&ctx, n), 0],
+                    voxelized: [
+                        voxelized.start,
+                        triangles,
+                        voxelize_lanes(&ctx, n),
+                        u32::from(settings.bounces > 1),
+                    ],
                     modes: [
                         settings.occlusion as u32,
                         u32::from(settings.far_field),
@@ -643,7 +709,11 @@ impl Engine for Dvct {
                 bytemuck::bytes_of(&inject_volume),
                 &scene_geometry.to_le_bytes(),
                 &self.deferred.light_inputs().to_le_bytes(),
-                &[u8::from(settings.far_receivers), settings.occlusion as u8],
+                &[
+                    u8::from(settings.far_receivers),
+                    settings.occlusion as u8,
+                    settings.bounces as u8,
+                ],
             ]);
             let revoxelize = !self.voxelized.holds(inputs);
             let mut timer = self.deferred.lend_timer();
@@ -674,6 +744,8 @@ impl Engine for Dvct {
                     scene.vertices.as_entire_binding(),
                     v.occupancy.as_entire_binding(),
                     scene.indices.as_entire_binding(),
+                    v.surfaces.as_entire_binding(),
+                    scene.materials.as_entire_binding(),
                 ],
             );
             let inject_group = self.inject.bind_group(
@@ -703,21 +775,38 @@ impl Engine for Dvct {
                 v.cells.far_field(),
                 self.far_emitters.buffer.as_entire_binding(),
                 self.object_probe.as_entire_binding(),
+                v.cells.binding(0),
+                v.cells.binding(1),
+                v.surfaces.as_entire_binding(),
             ]);
-            // `resolve` reads the traced irradiance, not the far emitters or the probe it came
-            // from.
-            let [main, fill, resolve] = self.trace.each_ref();
-            let trace_groups = [
-                group(main, "dvct trace", &trace_resources),
-                group(fill, "dvct trace", &trace_resources),
+            let group_of = |pipeline, label, bindings: &[u32]| {
                 shaders::pipeline_bind_group_of(
                     &ctx.device,
-                    resolve,
-                    "dvct trace",
+                    pipeline,
+                    label,
                     &trace_resources,
-                    &(0..trace_resources.len() as u32 - 2).collect::<Vec<_>>(),
-                ),
+                    bindings,
+                )
+            };
+            // The pixels' entries read through the probe (20); `resolve` reads the traced
+            // irradiance, not the far emitters or the probe it came from.
+            let pixels: Vec<u32> = (0..21).collect();
+            let [main, fill, resolve] = self.trace.each_ref();
+            let trace_groups = [
+                group_of(main, "dvct trace", &pixels),
+                group_of(fill, "dvct trace", &pixels),
+                group_of(resolve, "dvct trace", &pixels[..19]),
             ];
+            let probe_group = group_of(
+                &self.probe,
+                "dvct probe",
+                &(0..1).chain(9..17).chain([18, 20]).collect::<Vec<_>>(),
+            );
+            let bounce_group = group_of(
+                &self.bounce,
+                "dvct bounce",
+                &(0..1).chain(9..17).chain(18..24).collect::<Vec<_>>(),
+            );
 
             let mut encoder = ctx
                 .device
@@ -739,15 +828,12 @@ impl Engine for Dvct {
                         pass: "inject",
                         work: InjectPass::work(rsm_size, faces, cells),
                     },
-                    PassWork {
-                        pass: "mip",
-                        // Every level's cells read as eight children and written once: two
-                        // radiance volumes (96 bytes) and the occlusion texel (16).
-                        work: Work::new(2.0 * (96.0 + 16.0), 8.0 * 27.0).times(mip_cells),
-                    },
                 ]);
                 encoder.clear_buffer(&v.cells.buffer, 0, None);
                 encoder.clear_buffer(&v.occupancy, 0, None);
+                if settings.bounces > 1 {
+                    encoder.clear_buffer(&v.surfaces, 0, None);
+                }
                 {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.voxelize");
                     pass.set_pipeline(&self.voxelize);
@@ -762,46 +848,57 @@ impl Engine for Dvct {
                     self.inject
                         .dispatch(&mut pass, &inject_group, rsm_size, faces);
                 }
-                if settings.far_receivers {
-                    out.work.push(PassWork {
-                        pass: "far_emitters",
-                        work: FarEmitters::work(n),
-                    });
-                    let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.far_emitters");
-                    self.far_emitters.dispatch(
-                        &ctx.device,
-                        &mut pass,
-                        &self.inject_uniform,
-                        &v.cells,
-                        0,
-                    );
-                }
-                {
-                    let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.mip");
-                    for (coarser, m, mip_group) in &v.mip_groups {
-                        let m = m.div_ceil(4);
-                        pass.set_pipeline(&self.mip[usize::from(*coarser)]);
-                        pass.set_bind_group(0, mip_group, &[]);
-                        pass.dispatch_workgroups(m, m, m);
+                // The far emitters, the mip chain and the probe, from the cells; with a second
+                // bounce, which the cells gather from the first's chains and probe, once more.
+                for bounce in 1..=settings.bounces {
+                    if bounce > 1 {
+                        out.work.push(PassWork {
+                            pass: "bounce",
+                            work: bounce_work(&settings, n),
+                        });
+                        let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.bounce");
+                        pass.set_pipeline(&self.bounce);
+                        pass.set_bind_group(0, &bounce_group, &[]);
+                        let groups = n.pow(3).div_ceil(64);
+                        pass.dispatch_workgroups(groups.min(65535), groups.div_ceil(65535), 1);
                     }
-                }
-                if probe {
-                    out.work.push(PassWork {
-                        pass: "probe",
-                        work: probe_work(&settings, n),
-                    });
-                    let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.probe");
-                    let bindings: Vec<u32> = (0..1).chain(9..17).chain([18, 20]).collect();
-                    let probe_group = shaders::pipeline_bind_group_of(
-                        &ctx.device,
-                        &self.probe,
-                        "dvct probe",
-                        &trace_resources,
-                        &bindings,
-                    );
-                    pass.set_pipeline(&self.probe);
-                    pass.set_bind_group(0, &probe_group, &[]);
-                    pass.dispatch_workgroups(1, 1, 1);
+                    if settings.far_receivers {
+                        out.work.push(PassWork {
+                            pass: "far_emitters",
+                            work: FarEmitters::work(n),
+                        });
+                        let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.far_emitters");
+                        self.far_emitters.dispatch(
+                            &ctx.device,
+                            &mut pass,
+                            &self.inject_uniform,
+                            &v.cells,
+                            0,
+                        );
+                    }
+                    {
+                        out.work.push(PassWork {
+                            pass: "mip",
+                            work: mip_work(mip_cells),
+                        });
+                        let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.mip");
+                        for (coarser, m, mip_group) in &v.mip_groups {
+                            let m = m.div_ceil(4);
+                            pass.set_pipeline(&self.mip[usize::from(*coarser)]);
+                            pass.set_bind_group(0, mip_group, &[]);
+                            pass.dispatch_workgroups(m, m, m);
+                        }
+                    }
+                    if probe {
+                        out.work.push(PassWork {
+                            pass: "probe",
+                            work: probe_work(&settings, n),
+                        });
+                        let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.probe");
+                        pass.set_pipeline(&self.probe);
+                        pass.set_bind_group(0, &probe_group, &[]);
+                        pass.dispatch_workgroups(1, 1, 1);
+                    }
                 }
             }
             out.work.push(PassWork {
@@ -870,6 +967,7 @@ impl Engine for Dvct {
             volume_in_scene: schema.choice(params, "volume_placement") == "scene",
             far_receivers: schema.choice(params, "far_receivers") == "emitters",
             trace_stride: int("trace_stride"),
+            bounces: int("bounces"),
         };
         self.deferred
             .set_environment_light_count(schema.int(params, "env_lights") as u32);
@@ -1019,6 +1117,9 @@ mod tests {
         let indices = ctx.buffer_with("indices", bytemuck::cast_slice(&corners), U::STORAGE);
         let pipeline = shaders::compute_pipeline(&ctx.device, "voxelize", shaders::DVCT_VOXELIZE);
         let size = 4 * (n * n * n) as u64;
+        // Unread: the surfaces are not summed (`voxelized.w` 0).
+        let surfaces = ctx.buffer("surfaces", SURFACE_BYTES, U::STORAGE);
+        let materials = ctx.buffer("materials", 32, U::STORAGE);
         for lanes in [1, 32] {
             let uniform = DvctUniform {
                 origin: origin.extend(s).to_array(),
@@ -1038,6 +1139,8 @@ mod tests {
                         vertices.as_entire_binding(),
                         occupancy.as_entire_binding(),
                         indices.as_entire_binding(),
+                        surfaces.as_entire_binding(),
+                        materials.as_entire_binding(),
                     ],
                     (triangles.len() as u32 * lanes).div_ceil(64),
                     &occupancy,
@@ -1053,6 +1156,139 @@ mod tests {
                 differing.len(),
                 &differing[..differing.len().min(5)]
             );
+        }
+    }
+
+    /// The surfaces summed for the second bounce (`Dvct.voxelized.w`): over the cells, each
+    /// side's area is its triangles' to the coverage samples' precision (16 a column), with
+    /// their normal, turned to the side their vertex normals face, their material's albedo and
+    /// a centroid within each cell. A slab thinner than a cell keeps its top and its underside
+    /// apart, and the object's triangles add nothing.
+    #[test]
+    fn the_second_bounce_sums_each_sides_area_normal_and_albedo() {
+        let ctx = GpuContext::new().expect("a GPU adapter (lavapipe in CI)");
+        let (n, s, origin) = (16u32, 1.0 / 16.0, Vec3::splat(-0.5));
+        let v = Vec3::new;
+        let (top, under) = (-0.101, -0.118);
+        let quad = |y: f32| {
+            [
+                [v(-0.31, y, -0.27), v(0.22, y, -0.27), v(0.22, y, 0.26)],
+                [v(-0.31, y, -0.27), v(0.22, y, 0.26), v(-0.31, y, 0.26)],
+            ]
+        };
+        // Facing +x mostly, of the second material.
+        let tilted = [v(0.3, -0.4, -0.3), v(0.35, 0.4, -0.2), v(0.4, 0.0, 0.35)];
+        let area = |t: &[Vec3; 3]| 0.5 * (t[1] - t[0]).cross(t[2] - t[0]).length();
+        // (corners, vertex normal, material, virtual)
+        let mut triangles = Vec::new();
+        for t in quad(top) {
+            triangles.push((t, Vec3::Y, 0u32, false));
+        }
+        for t in quad(under) {
+            // The underside wound as the top is: its vertex normals turn it down.
+            triangles.push((t, Vec3::NEG_Y, 0, false));
+        }
+        let tilted_normal = (tilted[1] - tilted[0])
+            .cross(tilted[2] - tilted[0])
+            .normalize();
+        let tilted_normal = tilted_normal * tilted_normal.x.signum();
+        triangles.push((tilted, tilted_normal, 1, false));
+        triangles.push((
+            [v(0.0, 0.1, 0.0), v(0.2, 0.1, 0.0), v(0.0, 0.3, 0.1)],
+            Vec3::Z,
+            1,
+            true,
+        ));
+        let mut words = Vec::new();
+        for (t, normal, material, virtual_object) in &triangles {
+            for p in t {
+                words.extend(p.to_array().map(f32::to_bits));
+                words.extend(normal.to_array().map(f32::to_bits));
+                words.extend([*material, u32::from(*virtual_object)]);
+            }
+        }
+        let albedos = [[0.5f32, 0.6, 0.7, 0.0], [0.2, 0.3, 0.1, 0.0]];
+        let material_words: Vec<f32> = albedos
+            .iter()
+            .flat_map(|a| [*a, [0.0; 4]])
+            .flatten()
+            .collect();
+        use wgpu::BufferUsages as U;
+        let vertices = ctx.buffer_with("vertices", bytemuck::cast_slice(&words), U::STORAGE);
+        let corners: Vec<u32> = (0..3 * triangles.len() as u32).collect();
+        let indices = ctx.buffer_with("indices", bytemuck::cast_slice(&corners), U::STORAGE);
+        let materials = ctx.buffer_with(
+            "materials",
+            bytemuck::cast_slice(&material_words),
+            U::STORAGE,
+        );
+        let cells = u64::from(n).pow(3);
+        let occupancy = ctx.buffer("occupancy", 4 * cells, U::STORAGE);
+        let surfaces = ctx.buffer("surfaces", SURFACE_BYTES * cells, U::STORAGE | U::COPY_SRC);
+        let uniform = DvctUniform {
+            origin: origin.extend(s).to_array(),
+            dims: [n, 1, 0, 0],
+            voxelized: [0, triangles.len() as u32, 1, 1],
+            ..DvctUniform::zeroed()
+        };
+        let uniform = ctx.buffer_with("dvct", bytemuck::bytes_of(&uniform), shaders::PARAMS_USAGE);
+        let pipeline = shaders::compute_pipeline(&ctx.device, "voxelize", shaders::DVCT_VOXELIZE);
+        let sums: Vec<i32> = ctx
+            .run_once(
+                &pipeline,
+                &[
+                    uniform.as_entire_binding(),
+                    vertices.as_entire_binding(),
+                    occupancy.as_entire_binding(),
+                    indices.as_entire_binding(),
+                    surfaces.as_entire_binding(),
+                    materials.as_entire_binding(),
+                ],
+                (triangles.len() as u32).div_ceil(64),
+                &surfaces,
+                SURFACE_BYTES * cells,
+                |b| bytemuck::cast_slice(b).to_vec(),
+            )
+            .unwrap();
+        // Per side: the area (m²) and the area-weighted normal and albedo.
+        let mut totals = [[0.0f64; 7]; 2];
+        for cell in sums.chunks(20) {
+            for (side, record) in cell.chunks(10).enumerate() {
+                let a = f64::from(record[0]);
+                for (total, value) in totals[side].iter_mut().zip(&record[..7]) {
+                    *total += f64::from(*value) / 65536.0 * f64::from(s * s);
+                }
+                for centroid in &record[7..] {
+                    let inside = f64::from(*centroid) / a.max(1.0);
+                    assert!((-1e-3..=1.0 + 1e-3).contains(&inside), "centroid {inside}");
+                }
+            }
+        }
+        let quad_area = f64::from(area(&quad(top)[0]) * 2.0);
+        let tilted_area = f64::from(area(&tilted));
+        let [up, down] = totals;
+        eprintln!("up {up:?}\ndown {down:?}\nquad {quad_area}, tilted {tilted_area}");
+        assert!(
+            (down[0] / quad_area - 1.0).abs() < 0.01,
+            "underside {}",
+            down[0]
+        );
+        assert!(
+            (up[0] / (quad_area + tilted_area) - 1.0).abs() < 0.02,
+            "up {}",
+            up[0]
+        );
+        let expected_up = |quad_value: f32, tilted_value: f32| {
+            (quad_area * f64::from(quad_value) + tilted_area * f64::from(tilted_value))
+                / (quad_area + tilted_area)
+        };
+        for k in 0..3 {
+            assert!((down[1 + k] / down[0] - f64::from(Vec3::NEG_Y[k])).abs() < 1e-3);
+            assert!((down[4 + k] / down[0] - f64::from(albedos[0][k])).abs() < 1e-3);
+            let normal = expected_up(Vec3::Y[k], tilted_normal[k]);
+            assert!((up[1 + k] / up[0] - normal).abs() < 0.01, "normal {k}");
+            let albedo = expected_up(albedos[0][k], albedos[1][k]);
+            assert!((up[4 + k] / up[0] - albedo).abs() < 0.01, "albedo {k}");
         }
     }
 }
