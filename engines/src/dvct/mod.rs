@@ -1025,6 +1025,58 @@ mod tests {
         occupancy
     }
 
+    /// Runs `dvct_voxelize.wgsl` once over the vertices `words` (as `GpuVertex`, three a
+    /// triangle) into a fresh `n`³ volume of cell edge `s` from `origin`, `lanes` threads a
+    /// triangle, and reads back the occupancy, or with `summed` the surfaces' sums.
+    fn voxelize_on_gpu(
+        ctx: &GpuContext,
+        words: &[u32],
+        materials: &wgpu::Buffer,
+        (n, s, origin): (u32, f32, Vec3),
+        lanes: u32,
+        summed: bool,
+    ) -> Vec<u32> {
+        use wgpu::BufferUsages as U;
+        let triangles = words.len() as u32 / 24;
+        let vertices = ctx.buffer_with("vertices", bytemuck::cast_slice(words), U::STORAGE);
+        let corners: Vec<u32> = (0..3 * triangles).collect();
+        let indices = ctx.buffer_with("indices", bytemuck::cast_slice(&corners), U::STORAGE);
+        let cells = u64::from(n).pow(3);
+        // New buffers start zeroed: nothing marked, nothing summed.
+        let occupancy = ctx.buffer("occupancy", 4 * cells, U::STORAGE | U::COPY_SRC);
+        let surface_bytes = SURFACE_BYTES * if summed { cells } else { 1 };
+        let surfaces = ctx.buffer("surfaces", surface_bytes, U::STORAGE | U::COPY_SRC);
+        let uniform = DvctUniform {
+            origin: origin.extend(s).to_array(),
+            dims: [n, 1, 0, 0],
+            voxelized: [0, triangles, lanes, u32::from(summed)],
+            ..DvctUniform::zeroed()
+        };
+        let uniform = ctx.buffer_with("dvct", bytemuck::bytes_of(&uniform), shaders::PARAMS_USAGE);
+        let pipeline = shaders::compute_pipeline(&ctx.device, "voxelize", shaders::DVCT_VOXELIZE);
+        let (read, bytes) = if summed {
+            (&surfaces, surface_bytes)
+        } else {
+            (&occupancy, 4 * cells)
+        };
+        ctx.run_once(
+            &pipeline,
+            &[
+                uniform.as_entire_binding(),
+                vertices.as_entire_binding(),
+                occupancy.as_entire_binding(),
+                indices.as_entire_binding(),
+                surfaces.as_entire_binding(),
+                materials.as_entire_binding(),
+            ],
+            (triangles * lanes).div_ceil(64),
+            read,
+            bytes,
+            |b| bytemuck::cast_slice(b).to_vec(),
+        )
+        .unwrap()
+    }
+
     /// The column walk along each triangle's dominant axis marks exactly the cells the whole
     /// bounding-box walk marks, with one thread a triangle (CPU adapters) and with 32.
     #[test]
@@ -1111,43 +1163,17 @@ mod tests {
                 words.extend([0, 0, 0, 0, flags]);
             }
         }
-        use wgpu::BufferUsages as U;
-        let vertices = ctx.buffer_with("vertices", bytemuck::cast_slice(&words), U::STORAGE);
-        let corners: Vec<u32> = (0..3 * triangles.len() as u32).collect();
-        let indices = ctx.buffer_with("indices", bytemuck::cast_slice(&corners), U::STORAGE);
-        let pipeline = shaders::compute_pipeline(&ctx.device, "voxelize", shaders::DVCT_VOXELIZE);
-        let size = 4 * (n * n * n) as u64;
-        // Unread: the surfaces are not summed (`voxelized.w` 0).
-        let surfaces = ctx.buffer("surfaces", SURFACE_BYTES, U::STORAGE);
-        let materials = ctx.buffer("materials", 32, U::STORAGE);
+        // Not read: the surfaces are not summed.
+        let materials = ctx.buffer("materials", 32, wgpu::BufferUsages::STORAGE);
         for lanes in [1, 32] {
-            let uniform = DvctUniform {
-                origin: origin.extend(s).to_array(),
-                dims: [n as u32, 1, 0, 0],
-                voxelized: [0, triangles.len() as u32, lanes, 0],
-                ..DvctUniform::zeroed()
-            };
-            let uniform =
-                ctx.buffer_with("dvct", bytemuck::bytes_of(&uniform), shaders::PARAMS_USAGE);
-            // A new buffer starts zeroed: nothing marked.
-            let occupancy = ctx.buffer("occupancy", size, U::STORAGE | U::COPY_SRC);
-            let got: Vec<u32> = ctx
-                .run_once(
-                    &pipeline,
-                    &[
-                        uniform.as_entire_binding(),
-                        vertices.as_entire_binding(),
-                        occupancy.as_entire_binding(),
-                        indices.as_entire_binding(),
-                        surfaces.as_entire_binding(),
-                        materials.as_entire_binding(),
-                    ],
-                    (triangles.len() as u32 * lanes).div_ceil(64),
-                    &occupancy,
-                    size,
-                    |b| bytemuck::cast_slice(b).to_vec(),
-                )
-                .unwrap();
+            let got = voxelize_on_gpu(
+                &ctx,
+                &words,
+                &materials,
+                (n as u32, s, origin),
+                lanes,
+                false,
+            );
             let differing: Vec<usize> =
                 (0..got.len()).filter(|i| got[*i] != expected[*i]).collect();
             assert!(
@@ -1213,53 +1239,22 @@ mod tests {
             .flat_map(|a| [*a, [0.0; 4]])
             .flatten()
             .collect();
-        use wgpu::BufferUsages as U;
-        let vertices = ctx.buffer_with("vertices", bytemuck::cast_slice(&words), U::STORAGE);
-        let corners: Vec<u32> = (0..3 * triangles.len() as u32).collect();
-        let indices = ctx.buffer_with("indices", bytemuck::cast_slice(&corners), U::STORAGE);
         let materials = ctx.buffer_with(
             "materials",
             bytemuck::cast_slice(&material_words),
-            U::STORAGE,
+            wgpu::BufferUsages::STORAGE,
         );
-        let cells = u64::from(n).pow(3);
-        let occupancy = ctx.buffer("occupancy", 4 * cells, U::STORAGE);
-        let surfaces = ctx.buffer("surfaces", SURFACE_BYTES * cells, U::STORAGE | U::COPY_SRC);
-        let uniform = DvctUniform {
-            origin: origin.extend(s).to_array(),
-            dims: [n, 1, 0, 0],
-            voxelized: [0, triangles.len() as u32, 1, 1],
-            ..DvctUniform::zeroed()
-        };
-        let uniform = ctx.buffer_with("dvct", bytemuck::bytes_of(&uniform), shaders::PARAMS_USAGE);
-        let pipeline = shaders::compute_pipeline(&ctx.device, "voxelize", shaders::DVCT_VOXELIZE);
-        let sums: Vec<i32> = ctx
-            .run_once(
-                &pipeline,
-                &[
-                    uniform.as_entire_binding(),
-                    vertices.as_entire_binding(),
-                    occupancy.as_entire_binding(),
-                    indices.as_entire_binding(),
-                    surfaces.as_entire_binding(),
-                    materials.as_entire_binding(),
-                ],
-                (triangles.len() as u32).div_ceil(64),
-                &surfaces,
-                SURFACE_BYTES * cells,
-                |b| bytemuck::cast_slice(b).to_vec(),
-            )
-            .unwrap();
+        let sums = voxelize_on_gpu(&ctx, &words, &materials, (n, s, origin), 1, true);
         // Per side: the area (m²) and the area-weighted normal and albedo.
         let mut totals = [[0.0f64; 7]; 2];
         for cell in sums.chunks(20) {
             for (side, record) in cell.chunks(10).enumerate() {
-                let a = f64::from(record[0]);
+                let record: Vec<f64> = record.iter().map(|v| f64::from(*v as i32)).collect();
                 for (total, value) in totals[side].iter_mut().zip(&record[..7]) {
-                    *total += f64::from(*value) / 65536.0 * f64::from(s * s);
+                    *total += value / 65536.0 * f64::from(s * s);
                 }
                 for centroid in &record[7..] {
-                    let inside = f64::from(*centroid) / a.max(1.0);
+                    let inside = centroid / record[0].max(1.0);
                     assert!((-1e-3..=1.0 + 1e-3).contains(&inside), "centroid {inside}");
                 }
             }
