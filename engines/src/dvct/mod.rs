@@ -23,12 +23,19 @@
 //!    the direct light as antiradiance;
 //! 5. the shared shading pass composites.
 //!
+//! With `bounces` 2 (off by default: the gain is small for the time, see `docs/ALGORITHMS.md`),
+//! voxelisation also sums each cell's real surfaces (area, normal, albedo, centroid), and after
+//! step 3 those surfaces gather the first bounce as a pixel would and inject what they reflect
+//! into the same cells (`bounce` in `dvct_trace.wgsl`); the far emitters, mip chain and probe
+//! are built again from both bounces.
+//!
 //! The mip chain is **isotropic** (one occlusion value and one L1 SH radiance per cell) rather
 //! than anisotropic (six directional values per cell, Crassin et al. 2011): the radiance is
 //! already directional through its SH, and six occlusion and radiance copies would multiply the
 //! memory by six, which at the paper's 256³ is the difference between fitting a GPU or not.
 //! The cost is that a thin wall seen edge-on at a coarse level occludes as much as seen face-on.
-//! The voxels keep no normals: all radiance comes from the RSMs' VPLs, which carry their own.
+//! With one bounce the voxels keep no normals: all radiance comes from the RSMs' VPLs, which
+//! carry their own.
 
 use std::sync::Arc;
 use std::time::Instant;
