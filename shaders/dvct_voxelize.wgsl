@@ -10,10 +10,10 @@
 // GPU one thread walking a large triangle alone would hold the whole pass up.
 //
 // With the second bounce on (`Dvct.voxelized.w`), each column also sums a real triangle's
-// surface into the cells it marks there (`surfaces`, see SURFACE_VALUES in common.wgsl): its area over
-// the column's square (the square's share its projection covers, from 16 samples, over the
-// normal's cosine to the column's axis), split evenly between those cells, with the normal, the
-// material's albedo and the covered samples' centroid on the plane, clamped into each cell.
+// surface into the cells it marks there (`surfaces`, see SURFACE_VALUES in common.wgsl): its
+// area over the column's square (the square's share its projection covers, from 16 samples,
+// over the normal's cosine to the column's axis), split evenly between those cells, with the
+// normal, the albedo and the covered samples' centroid on the plane, clamped into each cell.
 // A large triangle's area is so spread over every cell it crosses, and the sums over a surface
 // keep its area to the samples' precision wherever its triangles' edges fall.
 
