@@ -29,7 +29,7 @@ pub enum ReplayMode {
     Realtime { speed: f64 },
     /// As fast as possible; with [`Replay::with_backpressure`], as fast as the consumer takes it.
     Fast,
-    /// Only when [`crate::DeviceRunner::step`] asks, that many messages at a time (or, with
+    /// Only when [`Stepper::step`](crate::device::Stepper::step) asks, that many messages at a time (or, with
     /// [`Replay::stepping_by`], that many messages of one stream: frame sets).
     Stepped,
 }

@@ -4,7 +4,7 @@
 //!
 //! Each scene is rendered once by the reference (full light transport, pixel centres, so the
 //! engines' rasterised silhouettes line up), whose L^μ is also the camera image; each engine is built once per setting, run on the
-//! same offline [`SceneFrame`](relight_engines::SceneFrame) the daemon would give it, warmed up,
+//! same offline [`SceneFrame`] the daemon would give it, warmed up,
 //! then timed over `frames` renders: wall clock of `Engine::render`, including the readback of Δ
 //! and the composite (what the pipeline waits for), and the GPU time of its passes from
 //! timestamp queries where the adapter has them.

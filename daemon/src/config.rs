@@ -5,7 +5,7 @@
 //!
 //! 1. the text is parsed into a spanned document ([`toml::de::DeTable`]); syntax errors stop here;
 //! 2. the document is deserialized into raw section structs that deny unknown keys; type errors
-//!    carry a byte span, which the [`Locator`] maps back to the key path that contains it;
+//!    carry a byte span, which the `Locator` maps back to the key path that contains it;
 //! 3. the raw sections are validated and converted into [`Config`]; each check names its key path,
 //!    and the locator finds that key's position in the text.
 //!

@@ -10,7 +10,7 @@
 //! accumulates (the rasterisers' sub-pixel edges, `pt`'s samples) and, for `auto`, its probes
 //! and switches happen on that clock. The engines take their frames in turn, so a slow spell
 //! of the machine falls on all of them alike. Its time is the median frame over its clock
-//! ([`clock_median_ms`]: the frame the run is in at its middle instant); its error that of
+//! (`clock_median_ms`: the frame the run is in at its middle instant); its error that of
 //! the last frame's Δ (relative L2 over real pixels) against the reference over each pixel's
 //! area (what a camera sees, and what still frames converge to).
 //! `auto`'s horizon is set to the same time. A fixed engine fits when that frame is within

@@ -507,7 +507,7 @@ impl Deferred {
     /// [`prepare`](Self::prepare) on. Unless it is `Anywhere`, a real pixel's Δ is nonzero only
     /// where the virtual object can shadow it or that term reaches, so the real meshes are drawn
     /// into the camera's G-buffers, and the shading runs, only within the pixels that can hold
-    /// such a point or the object ([`shadow_reach`](crate::shadow_reach)). The picture is the
+    /// such a point or the object ([`shadow_reach`]). The picture is the
     /// same.
     pub fn set_real_indirect(&mut self, reach: RealIndirect) {
         self.real_indirect = reach;

@@ -176,8 +176,8 @@ impl Liveness {
             .store(STALL_FRAMES * frame_ms.max(slowest_ms), Ordering::Release);
     }
 
-    /// The last heartbeat is no older than `within`, or than [`STALL_FRAMES`] times the slowest
-    /// recent frame (the first frame of an engine gets [`FIRST_FRAME_STALL_MS`]), so a slow
+    /// The last heartbeat is no older than `within`, or than `STALL_FRAMES` times the slowest
+    /// recent frame (the first frame of an engine gets `FIRST_FRAME_STALL_MS`), so a slow
     /// adapter is not mistaken for a hung one.
     pub fn is_recent(&self, within: Duration) -> bool {
         let now_ms = self.started.elapsed().as_millis() as u64;

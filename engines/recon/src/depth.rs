@@ -508,7 +508,7 @@ impl BoxWeight {
 }
 
 /// Weighted sum over the (2r + 1)² window around every pixel k, clipped at the border:
-/// out[k] = Σ_{i ∈ ω_k} w_x(x_i − x_k) · w_y(y_i − y_k) · values[i]. Computed as a horizontal
+/// `out[k] = Σ_{i ∈ ω_k} w_x(x_i − x_k) · w_y(y_i − y_k) · values[i]`. Computed as a horizontal
 /// pass, then a vertical one, each adding offsets −r..=r in ascending order (what the GPU
 /// port does, so the two agree to float rounding).
 pub fn box_sum_weighted(

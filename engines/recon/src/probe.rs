@@ -51,7 +51,7 @@ pub struct ProbeSettings {
     /// Frames older than this (device clock, relative to the newest) leave the bracket.
     pub max_age_ns: u64,
     /// Angular radius, degrees, masked out of the map around each tracked light
-    /// ([`ProbeLighting::set_tracked_lights`]): the bulb's disc, the map's resampling blur
+    /// ([`ProbeLighting::track_light`]): the bulb's disc, the map's resampling blur
     /// (a texel of the default 128 × 64 map is 2.8°) and the light's motion between two of its
     /// reports.
     pub tracked_light_mask_deg: f32,

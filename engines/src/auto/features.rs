@@ -12,7 +12,7 @@
 //! - **bleeding**: ρ_p/π Σ_t L_t A_t cos θ_p cos θ_t / d², the light the object's patches t
 //!   reflect onto p, each a Lambertian emitter of radiance L_t = ρ_o/π Σ_l E_l(t) (the object's
 //!   albedo, its size and its distance to lit real surfaces, together), times
-//!   [`BLEEDING_SCALE`];
+//!   `BLEEDING_SCALE`;
 //! - **occlusion**: ρ_p/π Σ_t L_q A_t cos θ_p cos θ_t / d², where L_q is what the real surface
 //!   behind patch t (seen from p) reflects of the lights: the real indirect light the object
 //!   hides from p (the indirect shadow of an object touching a lit wall);

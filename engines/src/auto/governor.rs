@@ -19,7 +19,7 @@
 //! **Cost.** The frame time of each candidate, tracked per motion state (a still scene lets
 //! engines keep work between frames) as the median of its last frames, first measured by a
 //! short probe. A candidate whose cost is not known yet is probed only when it would be chosen
-//! were it to fit, only when the cost ratios in [`ErrorModel::relative_cost`] (lavapipe's,
+//! were it to fit, only when the cost ratios in `ErrorModel::relative_cost` (lavapipe's,
 //! a rough prior) do not put it far over the budget. A candidate counts as measured after
 //! [`PROBE_FRAMES`] steady frames. A rasteriser's cost is estimated from a measured
 //! rasteriser's, so with none measured the cheapest is measured first, and with the ratios'
@@ -80,7 +80,7 @@ pub const WARM_UP_MS: f64 = 150.0;
 pub const WARM_UP_FRAMES: u32 = 3;
 /// Steady frames (after the warm-up) a probe measures.
 pub const PROBE_FRAMES: u32 = 3;
-/// Frames after which a candidate measured over the budget (but within [`PROBE_LIMIT`]) that
+/// Frames after which a candidate measured over the budget (but within `PROBE_LIMIT`) that
 /// would win were it to fit is probed again: ten seconds at 30 Hz. The adapter's speed drifts
 /// (a shared machine's phases, a GPU's clocks, another process), and a cost measured in a slow
 /// spell would otherwise keep the best candidate out for good.

@@ -22,7 +22,7 @@
 //!   lights importance-sampled from the scene's environment map, shadowed and bounced like the
 //!   others.
 //!
-//! - **Second bounce** ([`bounce`]): the first bounce's VPLs are read back and continued on
+//! - **Second bounce** (`bounce`): the first bounce's VPLs are read back and continued on
 //!   the CPU, one ray each (`second_bounce` = 1), to VPLs where their light lands, classed by
 //!   the path flag (where the ray lands with the object and without it); they join the first
 //!   bounce's in the ISM and gather passes. The light the object changes is carried by rays
@@ -94,21 +94,21 @@ pub struct DirSettings {
     pub clamp_distance: f32,
     pub shadow_bias: f32,
     pub env_lights: u32,
-    /// Second-bounce rays as a share of `vpl_count` ([`bounce`]); 0: one bounce.
+    /// Second-bounce rays as a share of `vpl_count` (`bounce`); 0: one bounce.
     pub second_bounce: f32,
     /// Third-bounce rays as a share of `vpl_count`, continuing the second bounce's VPLs as the
-    /// second continues the first's ([`bounce`]); 0: two bounces.
+    /// second continues the first's (`bounce`); 0: two bounces.
     pub third_bounce: f32,
     /// Second-bounce rays into the object's cone, as a share of `vpl_count`, for the light the
-    /// object changes ([`bounce`]); 0: the cosine rays carry it too.
+    /// object changes (`bounce`); 0: the cosine rays carry it too.
     pub object_rays: f32,
     /// With object rays, the light landing on the object from this many cells per edge of
-    /// each face of its box ([`bounce`]); 0: from where the rays land on it.
+    /// each face of its box (`bounce`); 0: from where the rays land on it.
     pub object_cells: u32,
     /// A first-bounce VPL's 1/d² clamp as a share of the radius of the surface it stands for;
     /// 0: `clamp_distance` alone.
     pub footprint_clamp: f32,
-    /// Each still frame averaged into the picture draws its VPLs anew ([`vpl_stratum`]); off,
+    /// Each still frame averaged into the picture draws its VPLs anew (`vpl_stratum`); off,
     /// every frame has the same ones.
     pub vpls_per_frame: bool,
     /// The gather at every `gather_stride`-th pixel per axis (`crate::strided`).

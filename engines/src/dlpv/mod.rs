@@ -12,7 +12,7 @@
 //!    cells × VPLs. A thread injects a 4 × 4 tile, summing runs of texels that land in one cell
 //!    before adding them, and adds neither VPL of an R^ρ/R^μ pair that is the same texel (the
 //!    counts would cancel): the same integers with far fewer atomics.
-//! 2. **resolve** the counts to SH, stored as f16 ([`SH_CELL_BYTES`]); **propagate** N steps
+//! 2. **resolve** the counts to SH, stored as f16 (`SH_CELL_BYTES`); **propagate** N steps
 //!    (gather from the six neighbours over their faces' solid angles, written out per
 //!    direction: `dlpv_propagate.wgsl`, `propagate.rs`), accumulating every step; negative
 //!    light is dampened per step. V^Δ takes `steps`. V^ρ, the light on the object, is read

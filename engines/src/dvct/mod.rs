@@ -109,7 +109,7 @@ pub struct DvctSettings {
     pub trace_stride: u32,
     /// Along virtual pixels' cones, the share of each VPL read as the radiance its surface shows
     /// over its hemisphere rather than as the paper's cosine lobe of intensity
-    /// ([`radiance_lobe_gains`]).
+    /// (`radiance_lobe_gains`).
     pub radiance_lobe: f32,
     /// Bounces of indirect light: 1, the paper's, or 2, the first bounce gathered by each
     /// cell's surfaces and injected again (`bounce` in `dvct_trace.wgsl`).

@@ -67,7 +67,7 @@ pub struct PtScene {
     pub env_radiance: wgpu::Buffer,
     pub env_tables: wgpu::Buffer,
     pub light_count: u32,
-    /// Where traversal starts: an inner node's index or `LEAF | triangle` ([`NOTHING`] without
+    /// Where traversal starts: an inner node's index or `LEAF | triangle` (`NOTHING` without
     /// triangles).
     pub root: u32,
     /// The environment map's size, (0, 0) without one (or an all-black one).
