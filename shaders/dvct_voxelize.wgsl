@@ -169,14 +169,20 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let u = (w + 1) % 3;
     let v = (w + 2) % 3;
     let summed = dvct.voxelized.w == 1u && bit == 1u && m[w] > 0.0;
-    // The face's normal, the winding's turned to the side its vertex normals face (where the
-    // mesh has them).
-    let facing = vertex_normal(first_vertex) + vertex_normal(indices[corner + 1u])
-        + vertex_normal(indices[corner + 2u]);
-    let unit_normal = normal / length(normal) * select(1.0, -1.0, dot(facing, normal) < 0.0);
-    let part = select(0u, 1u, unit_normal[w] < 0.0);
-    let albedo = (vertex_albedo(first_vertex) + vertex_albedo(indices[corner + 1u])
-        + vertex_albedo(indices[corner + 2u])) / 3.0;
+    // What the surface sums take, read only for them.
+    var unit_normal = vec3<f32>(0.0);
+    var part = 0u;
+    var albedo = vec3<f32>(0.0);
+    if summed {
+        // The face's normal, the winding's turned to the side its vertex normals face (where
+        // the mesh has them).
+        let facing = vertex_normal(first_vertex) + vertex_normal(indices[corner + 1u])
+            + vertex_normal(indices[corner + 2u]);
+        unit_normal = normal / length(normal) * select(1.0, -1.0, dot(facing, normal) < 0.0);
+        part = select(0u, 1u, unit_normal[w] < 0.0);
+        albedo = (vertex_albedo(first_vertex) + vertex_albedo(indices[corner + 1u])
+            + vertex_albedo(indices[corner + 2u])) / 3.0;
+    }
     // The plane's area over one column's square, in cell faces.
     let area_over_square = length(normal) / m[w];
     let ta = vec2<f32>(pa[u], pa[v]);

@@ -804,16 +804,6 @@ impl Engine for Dvct {
                 group_of(fill, "dvct trace", &pixels),
                 group_of(resolve, "dvct trace", &pixels[..19]),
             ];
-            let probe_group = group_of(
-                &self.probe,
-                "dvct probe",
-                &(0..1).chain(9..17).chain([18, 20]).collect::<Vec<_>>(),
-            );
-            let bounce_group = group_of(
-                &self.bounce,
-                "dvct bounce",
-                &(0..1).chain(9..17).chain(18..24).collect::<Vec<_>>(),
-            );
 
             let mut encoder = ctx
                 .device
@@ -855,17 +845,32 @@ impl Engine for Dvct {
                     self.inject
                         .dispatch(&mut pass, &inject_group, rsm_size, faces);
                 }
+                // Built only when the voxels are: a frame that keeps them traces alone.
+                let probe_group = probe.then(|| {
+                    group_of(
+                        &self.probe,
+                        "dvct probe",
+                        &(0..1).chain(9..17).chain([18, 20]).collect::<Vec<_>>(),
+                    )
+                });
+                let bounce_group = (settings.bounces > 1).then(|| {
+                    group_of(
+                        &self.bounce,
+                        "dvct bounce",
+                        &(0..1).chain(9..17).chain(18..24).collect::<Vec<_>>(),
+                    )
+                });
                 // The far emitters, the mip chain and the probe, from the cells; with a second
                 // bounce, which the cells gather from the first's chains and probe, once more.
                 for bounce in 1..=settings.bounces {
-                    if bounce > 1 {
+                    if let Some(bounce_group) = bounce_group.as_ref().filter(|_| bounce > 1) {
                         out.work.push(PassWork {
                             pass: "bounce",
                             work: bounce_work(&settings, n),
                         });
                         let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.bounce");
                         pass.set_pipeline(&self.bounce);
-                        pass.set_bind_group(0, &bounce_group, &[]);
+                        pass.set_bind_group(0, bounce_group, &[]);
                         let groups = n.pow(3).div_ceil(64);
                         pass.dispatch_workgroups(groups.min(65535), groups.div_ceil(65535), 1);
                     }
@@ -896,14 +901,14 @@ impl Engine for Dvct {
                             pass.dispatch_workgroups(m, m, m);
                         }
                     }
-                    if probe {
+                    if let Some(probe_group) = &probe_group {
                         out.work.push(PassWork {
                             pass: "probe",
                             work: probe_work(&settings, n),
                         });
                         let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.probe");
                         pass.set_pipeline(&self.probe);
-                        pass.set_bind_group(0, &probe_group, &[]);
+                        pass.set_bind_group(0, probe_group, &[]);
                         pass.dispatch_workgroups(1, 1, 1);
                     }
                 }
