@@ -194,6 +194,12 @@ fn mip_chain(n: u32) -> (u32, u64) {
 /// `SURFACE_VALUES` in `shaders/common.wgsl`).
 const SURFACE_BYTES: u64 = 2 * 10 * 4;
 
+/// The surface buffer of an `n`³ volume: every cell's sums when `summed` (the second bounce),
+/// else one cell's, bound but unread.
+fn surface_bytes(n: u32, summed: bool) -> u64 {
+    SURFACE_BYTES * if summed { u64::from(n).pow(3) } else { 1 }
+}
+
 /// The mip chains' textures: V^Δ's three channels of L1 SH, V^ρ's, then occlusion.
 const CHAINS: usize = 7;
 
@@ -433,11 +439,7 @@ impl Dvct {
                 u64::from(n).pow(3) * 4,
                 U::STORAGE | U::COPY_DST,
             );
-            let surface_bytes = if summed {
-                u64::from(n).pow(3) * SURFACE_BYTES
-            } else {
-                SURFACE_BYTES
-            };
+            let surface_bytes = surface_bytes(n, summed);
             ctx.require("max_storage_buffer_binding_size", surface_bytes, "bounces")?;
             let surfaces = ctx.buffer("dvct surfaces", surface_bytes, U::STORAGE | U::COPY_DST);
             let textures: Vec<wgpu::Texture> = (0..CHAINS)
@@ -593,6 +595,16 @@ fn probe_work(settings: &DvctSettings, n: u32) -> Work {
         64.0 * 16.0,
         64.0 * samples * 26.0 * 16.0 * 2.0 + 64.0 * 9.0 * 30.0,
     )
+}
+
+/// Dispatches `threads` threads of the 64-thread workgroups of `dvct_voxelize.wgsl` and of
+/// `bounce`, in rows of 65535 workgroups (a dimension's limit); the shaders number a thread
+/// `id.x + id.y * 65535 * 64`.
+fn dispatch_threads(pass: &mut wgpu::ComputePass, threads: u32) {
+    let groups = threads.div_ceil(64);
+    if groups > 0 {
+        pass.dispatch_workgroups(groups.min(65535), groups.div_ceil(65535), 1);
+    }
 }
 
 /// Threads that share one triangle's cells in the voxelisation (`dvct_voxelize.wgsl`) of an
@@ -835,10 +847,7 @@ impl Engine for Dvct {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.voxelize");
                     pass.set_pipeline(&self.voxelize);
                     pass.set_bind_group(0, &voxelize_group, &[]);
-                    let groups = (triangles * voxelize_lanes(&ctx, n)).div_ceil(64);
-                    if groups > 0 {
-                        pass.dispatch_workgroups(groups.min(65535), groups.div_ceil(65535), 1);
-                    }
+                    dispatch_threads(&mut pass, triangles * voxelize_lanes(&ctx, n));
                 }
                 {
                     let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.inject");
@@ -871,8 +880,7 @@ impl Engine for Dvct {
                         let mut pass = timed_pass(&mut encoder, &mut timer, "gpu.bounce");
                         pass.set_pipeline(&self.bounce);
                         pass.set_bind_group(0, bounce_group, &[]);
-                        let groups = n.pow(3).div_ceil(64);
-                        pass.dispatch_workgroups(groups.min(65535), groups.div_ceil(65535), 1);
+                        dispatch_threads(&mut pass, n.pow(3));
                     }
                     if settings.far_receivers {
                         out.work.push(PassWork {
@@ -1056,7 +1064,7 @@ mod tests {
         let cells = u64::from(n).pow(3);
         // New buffers start zeroed: nothing marked, nothing summed.
         let occupancy = ctx.buffer("occupancy", 4 * cells, U::STORAGE | U::COPY_SRC);
-        let surface_bytes = SURFACE_BYTES * if summed { cells } else { 1 };
+        let surface_bytes = surface_bytes(n, summed);
         let surfaces = ctx.buffer("surfaces", surface_bytes, U::STORAGE | U::COPY_SRC);
         let uniform = DvctUniform {
             origin: origin.extend(s).to_array(),
